@@ -1,0 +1,1 @@
+"""voxelwatch: camera_worker."""

@@ -1,0 +1,1 @@
+"""voxelwatch: fusion_server."""
