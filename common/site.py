@@ -1,0 +1,334 @@
+"""The site file: one TOML file that describes a home.
+
+Paths inside the file are relative to the file. Every problem stops start-up
+with one :class:`SiteError` naming the file, the field and the problem, e.g.
+``site file /etc/vw/flat.toml: cameras[1].resolution: expected 2 items``.
+
+Schema (all lengths in metres, world frame Z up, floor at Z = 0)::
+
+    name = "synthetic-house"     # [A-Za-z0-9_-]+, used in the zenoh prefix
+    residents = 1                # people who live here; more present = a visit
+    utc_offset_hours = 0.0       # local time = UTC + offset (visit labels)
+
+    [volume]
+    min_m = [0.0, 0.0, 0.0]
+    max_m = [8.0, 6.0, 2.5]
+
+    [carving]
+    voxel_sizes_m = [0.4, 0.2, 0.1, 0.05]  # octree levels, coarse to fine, halving
+    min_cameras = 2              # seeing cameras that must find foreground
+    min_ratio = 0.75             # and the fraction of seeing cameras that must
+    mask_scale = 1.0             # workers downscale masks by this factor
+
+    [zenoh]
+    prefix = ""                  # default voxelwatch/<name>
+    mode = "peer"                # peer | client | router
+    listen = []                  # e.g. ["tcp/127.0.0.1:7447"]
+    connect = []
+    multicast_scouting = false
+    shared_memory = false
+
+    [[cameras]]
+    id = "cam1"
+    calibration = "calib/cam1.toml"
+    format = "voxelwatch"        # opencv | opencv-fisheye | pets-tsai | voxelwatch
+    units = "m"                  # m | cm | mm: the calibration's length unit
+    up = "+z"                    # +z | -z: the calibration's up axis
+    origin_m = [0.0, 0.0, 0.0]   # the calibration origin in the site's world
+    yaw_deg = 0.0                # rotation of the calibration frame about Z
+    resolution = [640, 480]
+    modality = "colour"          # colour | thermal | infrared | depth
+    fps = 15.0
+    source = ""                  # default source for this camera's worker
+    background = ""              # clip of the empty room to learn from first
+
+    [[hotspots]]
+    name = "dinner table"
+    kind = "table"
+    polygon_m = [[3.0, 2.0], [4.6, 2.0], [4.6, 3.0], [3.0, 3.0]]
+
+    [[doors]]
+    name = "front door"
+    polygon_m = [[0.0, 4.6], [0.5, 4.6], [0.5, 5.6], [0.0, 5.6]]
+"""
+
+from __future__ import annotations
+
+import math
+import tomllib
+from pathlib import Path
+from typing import TYPE_CHECKING, Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+
+from common import keys
+
+if TYPE_CHECKING:
+    from common.camera import Camera
+
+NAME_PATTERN = r"^[A-Za-z0-9_-]+$"
+
+
+class SiteError(ValueError):
+    """A site file that cannot be used; the message names file, field and problem."""
+
+
+class _Model(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+def _polygon_ok(polygon: list[tuple[float, float]]) -> list[tuple[float, float]]:
+    if len(polygon) < 3:
+        raise ValueError(f"a polygon needs at least 3 points, got {len(polygon)}")
+    if not all(math.isfinite(c) for p in polygon for c in p):
+        raise ValueError("polygon coordinates must be finite")
+    return polygon
+
+
+class Volume(_Model):
+    """The monitored box, world frame, metres."""
+
+    min_m: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    max_m: tuple[float, float, float] = (8.0, 6.0, 2.5)
+
+    @model_validator(mode="after")
+    def _ordered(self) -> "Volume":
+        for axis, lo, hi in zip("xyz", self.min_m, self.max_m):
+            if not (math.isfinite(lo) and math.isfinite(hi)):
+                raise ValueError(f"{axis} bounds must be finite")
+            if hi <= lo:
+                raise ValueError(f"max_m {axis}={hi} must exceed min_m {axis}={lo}")
+        return self
+
+    @property
+    def size_m(self) -> tuple[float, float, float]:
+        return tuple(hi - lo for lo, hi in zip(self.min_m, self.max_m))  # type: ignore[return-value]
+
+
+class Carving(_Model):
+    """Octree levels and the vote."""
+
+    voxel_sizes_m: list[float] = Field(default_factory=lambda: [0.4, 0.2, 0.1, 0.05])
+    min_cameras: int = Field(default=2, ge=1)
+    min_ratio: float = Field(default=0.75, gt=0.0, le=1.0)
+    mask_scale: float = Field(default=1.0, ge=0.125, le=1.0)
+
+    @field_validator("voxel_sizes_m")
+    @classmethod
+    def _halving(cls, sizes: list[float]) -> list[float]:
+        if not sizes:
+            raise ValueError("needs at least one voxel size")
+        if any(not (0.005 <= s <= 2.0) for s in sizes):
+            raise ValueError(f"voxel sizes must lie in 0.005..2 m, got {sizes}")
+        for coarse, fine in zip(sizes, sizes[1:]):
+            if not math.isclose(coarse, 2 * fine, rel_tol=1e-6):
+                raise ValueError(f"each level must halve the previous one, got {coarse} then {fine}")
+        return sizes
+
+
+class ZenohSettings(_Model):
+    """How this process joins the zenoh network."""
+
+    prefix: str = ""
+    mode: Literal["peer", "client", "router"] = "peer"
+    listen: list[str] = Field(default_factory=list)
+    connect: list[str] = Field(default_factory=list)
+    multicast_scouting: bool = False
+    shared_memory: bool = False
+
+    @field_validator("prefix")
+    @classmethod
+    def _prefix_ok(cls, prefix: str) -> str:
+        if prefix:
+            for chunk in prefix.split("/"):
+                keys.validate_chunk(chunk, "zenoh prefix")
+        return prefix
+
+
+class CameraSpec(_Model):
+    """One camera of the home."""
+
+    id: str = Field(pattern=NAME_PATTERN)
+    calibration: str
+    format: Literal["opencv", "opencv-fisheye", "pets-tsai", "voxelwatch"] = "voxelwatch"
+    units: Literal["m", "cm", "mm"] = "m"
+    up: Literal["+z", "-z"] = "+z"
+    origin_m: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    yaw_deg: float = 0.0
+    resolution: tuple[int, int] = (640, 480)
+    modality: Literal["colour", "thermal", "infrared", "depth"] = "colour"
+    fps: float = Field(default=15.0, gt=0.0, le=240.0)
+    source: str = ""
+    background: str = ""
+
+    @field_validator("resolution")
+    @classmethod
+    def _resolution_ok(cls, res: tuple[int, int]) -> tuple[int, int]:
+        if not all(16 <= v <= 8192 for v in res):
+            raise ValueError(f"width and height must lie in 16..8192, got {list(res)}")
+        return res
+
+
+class HotSpotSpec(_Model):
+    """A named floor area where dwelling means something (sofa, table, TV)."""
+
+    name: str = Field(min_length=1)
+    kind: str = ""
+    polygon_m: list[tuple[float, float]]
+
+    _poly = field_validator("polygon_m")(classmethod(lambda cls, p: _polygon_ok(p)))
+
+
+class DoorSpec(_Model):
+    """A floor zone through which people enter and leave."""
+
+    name: str = Field(min_length=1)
+    polygon_m: list[tuple[float, float]]
+
+    _poly = field_validator("polygon_m")(classmethod(lambda cls, p: _polygon_ok(p)))
+
+
+class Site(_Model):
+    """A home: volume, cameras, hot spots, doors and network settings."""
+
+    name: str = Field(pattern=NAME_PATTERN)
+    residents: int = Field(default=1, ge=0)
+    utc_offset_hours: float = Field(default=0.0, ge=-14.0, le=14.0)
+    volume: Volume = Field(default_factory=Volume)
+    carving: Carving = Field(default_factory=Carving)
+    zenoh: ZenohSettings = Field(default_factory=ZenohSettings)
+    cameras: list[CameraSpec] = Field(min_length=1)
+    hotspots: list[HotSpotSpec] = Field(default_factory=list)
+    doors: list[DoorSpec] = Field(default_factory=list)
+    base_dir: Path = Field(default=Path("."), exclude=True)
+
+    @model_validator(mode="after")
+    def _unique_ids(self) -> "Site":
+        ids = [c.id for c in self.cameras]
+        dupes = sorted({i for i in ids if ids.count(i) > 1})
+        if dupes:
+            raise ValueError(f"camera ids must be unique, repeated: {dupes}")
+        return self
+
+    @property
+    def prefix(self) -> str:
+        return self.zenoh.prefix or keys.default_prefix(self.name)
+
+    @property
+    def camera_ids(self) -> list[str]:
+        return [c.id for c in self.cameras]
+
+    def camera(self, cam_id: str) -> CameraSpec:
+        for spec in self.cameras:
+            if spec.id == cam_id:
+                return spec
+        raise SiteError(f"site {self.name}: no camera {cam_id!r}; cameras are {self.camera_ids}")
+
+    def resolve(self, path: str) -> Path:
+        """A path from the file, made absolute against the file's folder."""
+        p = Path(path).expanduser()
+        return p if p.is_absolute() else (self.base_dir / p).resolve()
+
+    def calibration_path(self, cam_id: str) -> Path:
+        return self.resolve(self.camera(cam_id).calibration)
+
+    def load_camera(self, cam_id: str) -> "Camera":
+        """The camera model of one camera, in the site's world frame."""
+        from common.calibration import WorldTransform, load_calibration
+
+        spec = self.camera(cam_id)
+        transform = WorldTransform(units=spec.units, up=spec.up, origin_m=spec.origin_m, yaw_deg=spec.yaw_deg)
+        return load_calibration(
+            self.calibration_path(cam_id), spec.format, cam_id, transform, image_size=spec.resolution
+        )
+
+    def load_cameras(self) -> dict[str, "Camera"]:
+        return {cam_id: self.load_camera(cam_id) for cam_id in self.camera_ids}
+
+
+def load_site(path: str | Path) -> Site:
+    """Read and validate a site file; raise :class:`SiteError` on any problem."""
+    path = Path(path)
+    try:
+        raw = tomllib.loads(path.read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise SiteError(f"site file {path}: not found") from None
+    except OSError as exc:
+        raise SiteError(f"site file {path}: cannot read: {exc.strerror or exc}") from None
+    except UnicodeDecodeError:
+        raise SiteError(f"site file {path}: not UTF-8 text") from None
+    except tomllib.TOMLDecodeError as exc:
+        raise SiteError(f"site file {path}: not valid TOML: {exc}") from None
+    return site_from_dict(raw, base_dir=path.resolve().parent, source=str(path))
+
+
+def site_from_dict(raw: dict[str, Any], *, base_dir: Path, source: str = "<site>") -> Site:
+    """Validate a site given as a dict (the parsed TOML)."""
+    try:
+        return Site.model_validate({**raw, "base_dir": base_dir})
+    except ValidationError as exc:
+        err = exc.errors()[0]
+        field = _field_name(err["loc"])
+        more = f" (and {exc.error_count() - 1} more problems)" if exc.error_count() > 1 else ""
+        raise SiteError(f"site file {source}: field {field}: {_problem(err)}{more}") from None
+
+
+def site_to_toml(site: Site) -> str:
+    """The site as TOML text that :func:`load_site` reads back unchanged."""
+    data = site.model_dump(mode="json", exclude={"base_dir"})
+    lines: list[str] = []
+    for key, value in data.items():
+        if not isinstance(value, (dict, list)) or (isinstance(value, list) and not _is_table_list(value)):
+            lines.append(f"{key} = {_toml_value(value)}")
+    for key, value in data.items():
+        if isinstance(value, dict):
+            lines.append(f"\n[{key}]")
+            lines.extend(f"{k} = {_toml_value(v)}" for k, v in value.items())
+        elif isinstance(value, list) and _is_table_list(value):
+            for item in value:
+                lines.append(f"\n[[{key}]]")
+                lines.extend(f"{k} = {_toml_value(v)}" for k, v in item.items())
+    return "\n".join(lines) + "\n"
+
+
+def write_site(site: Site, path: str | Path) -> Path:
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(site_to_toml(site), encoding="utf-8")
+    return path
+
+
+def _is_table_list(value: list) -> bool:
+    return bool(value) and all(isinstance(v, dict) for v in value)
+
+
+def _toml_value(value: Any) -> str:
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, (int, float)):
+        return repr(value)
+    if isinstance(value, str):
+        escaped = value.replace("\\", "\\\\").replace('"', '\\"')
+        return f'"{escaped}"'
+    if isinstance(value, (list, tuple)):
+        return "[" + ", ".join(_toml_value(v) for v in value) + "]"
+    raise TypeError(f"cannot write {type(value).__name__} to TOML")
+
+
+def _field_name(loc: tuple) -> str:
+    name = ""
+    for part in loc:
+        if isinstance(part, int):
+            name += f"[{part}]"
+        else:
+            name += ("." if name else "") + str(part)
+    return name or "(top level)"
+
+
+def _problem(err: dict) -> str:
+    msg = err["msg"]
+    if err["type"] == "extra_forbidden":
+        return "unknown field (check the spelling against the documented site file)"
+    if err["type"] == "missing":
+        return "required field is missing"
+    return msg.removeprefix("Value error, ")

@@ -1,0 +1,58 @@
+"""``voxelwatch-fusion``: the fusion server process."""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+from collections.abc import Sequence
+from pathlib import Path
+
+DESCRIPTION = """\
+The voxelwatch fusion server: subscribes to every camera's foreground masks,
+groups them into frame sets by capture time, carves 3D voxels with an octree
+tested by distance transforms, detects and tracks people on the floor plane,
+judges posture, dwelling and falls, and publishes on zenoh:
+
+  <prefix>/tracks                   every fused frame: all tracks
+  <prefix>/events/<kind>/<track>    each event (JSON text, never dropped)
+  <prefix>/history/events           queryable: past events (?since=..;until=..;kind=..)
+  <prefix>/status                   per-camera health
+  <prefix>/cam/<id>/hold            regions of still people the camera must not learn
+
+Events are written to the local store before they are published, so a
+restarted server answers history queries with everything it sent before.
+"""
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="voxelwatch-fusion", description=DESCRIPTION, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--site", required=True, type=Path, help="the site TOML file (cameras, volume, hot spots, doors, zenoh)")
+    p.add_argument("--store", type=Path, default=None, help="SQLite event store (default: voxelwatch-events.sqlite next to the site file)")
+    p.add_argument("--out", type=Path, default=None, help="also write tracks.csv and events.jsonl into this folder")
+    p.add_argument("--prefix", default=None, help="zenoh key prefix (default from the site: voxelwatch/<site name>)")
+    p.add_argument("--listen", action="append", default=None, help="zenoh endpoint to listen on (repeatable), overrides the site")
+    p.add_argument("--connect", action="append", default=None, help="zenoh endpoint to connect to (repeatable), overrides the site")
+    p.add_argument("--mode", choices=["peer", "client"], default=None, help="zenoh mode, overrides the site")
+    p.add_argument("--cache-dir", type=Path, default=None, help="where carving lookup tables are cached (default ~/.cache/voxelwatch)")
+    p.add_argument("--min-cameras", type=int, default=None, help="fewest cameras a frame set needs to be fused (default: the carving vote's min_cameras)")
+    p.add_argument("--exit-after-idle", type=float, default=None, metavar="SECONDS", help="stop when no mask has arrived for this long (for replays and tests)")
+    p.add_argument("-v", "--verbose", action="store_true", help="log debug messages")
+    return p
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    from fusion_server.server import FusionSettings, run_forever
+
+    try:
+        settings = FusionSettings.from_args(args)
+    except ValueError as exc:
+        print(f"voxelwatch-fusion: {exc}", file=sys.stderr)
+        return 2
+    return run_forever(settings)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
