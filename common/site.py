@@ -202,13 +202,14 @@ class Site(_Model):
     doors: list[DoorSpec] = Field(default_factory=list)
     base_dir: Path = Field(default=Path("."), exclude=True)
 
-    @model_validator(mode="after")
-    def _unique_ids(self) -> "Site":
-        ids = [c.id for c in self.cameras]
+    @field_validator("cameras")
+    @classmethod
+    def _unique_ids(cls, cameras: list[CameraSpec]) -> list[CameraSpec]:
+        ids = [c.id for c in cameras]
         dupes = sorted({i for i in ids if ids.count(i) > 1})
         if dupes:
             raise ValueError(f"camera ids must be unique, repeated: {dupes}")
-        return self
+        return cameras
 
     @property
     def prefix(self) -> str:
