@@ -1,0 +1,1 @@
+"""Scoring a run against ground truth (filled in below)."""

@@ -1,0 +1,405 @@
+"""Reading, writing and validating the track and event files.
+
+Two documented formats, used both for ground truth and for a run's output:
+
+* **tracks CSV**, header ``frame,stamp_ns,id,x,y,z_top,posture``: one row per
+  person per frame; ``x``, ``y`` on the floor and ``z_top`` the top of the head,
+  metres, world frame; ``posture`` one of :data:`POSTURES`. Frames without rows
+  have nobody in them. A track id is any non-empty text (``7``, ``alice``).
+* **events JSON lines**: one object per line with ``kind``, ``track``,
+  ``frame``, ``stamp_ns``, ``x``, ``y``, ``details`` and an optional ``id``.
+  Kinds outside :data:`SCORED_KINDS` (``camera_lost`` and the like) are read
+  and kept but not scored.
+
+Ground truth sits in ``TRUTH/truth/`` or directly in ``TRUTH/``, optionally
+with ``meta.json`` holding ``fps`` and ``n_frames``. Every problem raises
+:class:`EvalFormatError` naming the file, the line and the field.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+TRACK_COLUMNS: tuple[str, ...] = ("frame", "stamp_ns", "id", "x", "y", "z_top", "posture")
+POSTURES: tuple[str, ...] = ("standing", "sitting", "lying", "bending", "unknown")
+SCORED_KINDS: tuple[str, ...] = (
+    "fall",
+    "long_lie",
+    "sit_down",
+    "stand_up",
+    "enter",
+    "exit",
+    "dwell_start",
+    "dwell_end",
+    "visit",
+    "inactivity",
+)
+TRACKS_FILE = "tracks.csv"
+EVENTS_FILE = "events.jsonl"
+META_FILE = "meta.json"
+
+
+class EvalFormatError(ValueError):
+    """A track, event or meta file that cannot be used; the message names file, line and field."""
+
+
+@dataclass(frozen=True)
+class TrackTable:
+    """All rows of one tracks file, as parallel arrays sorted by (frame, id).
+
+    ``frame`` (N,) int64; ``stamp_ns`` (N,) int64; ``track_id`` (N,) str;
+    ``x``, ``y``, ``z_top`` (N,) float64, world frame, metres; ``posture`` (N,) str.
+    """
+
+    frame: np.ndarray
+    stamp_ns: np.ndarray
+    track_id: np.ndarray
+    x: np.ndarray
+    y: np.ndarray
+    z_top: np.ndarray
+    posture: np.ndarray
+
+    def __len__(self) -> int:
+        return int(self.frame.shape[0])
+
+    @property
+    def xy_m(self) -> np.ndarray:
+        """(N, 2) float64 floor positions, world frame, metres."""
+        return np.column_stack([self.x, self.y]) if len(self) else np.zeros((0, 2))
+
+    @classmethod
+    def from_rows(cls, rows: Iterable[Sequence[Any]]) -> "TrackTable":
+        """Build from ``(frame, stamp_ns, id, x, y, z_top, posture)`` tuples; sorts by (frame, id)."""
+        rows = list(rows)
+        if not rows:
+            return cls.empty()
+        cols = list(zip(*rows))
+        table = cls(
+            frame=np.asarray(cols[0], dtype=np.int64),
+            stamp_ns=np.asarray(cols[1], dtype=np.int64),
+            track_id=np.asarray([str(v) for v in cols[2]], dtype=str),
+            x=np.asarray(cols[3], dtype=np.float64),
+            y=np.asarray(cols[4], dtype=np.float64),
+            z_top=np.asarray(cols[5], dtype=np.float64),
+            posture=np.asarray([str(v) for v in cols[6]], dtype=str),
+        )
+        return table.sorted()
+
+    @classmethod
+    def empty(cls) -> "TrackTable":
+        f = np.zeros(0, dtype=np.int64)
+        z = np.zeros(0, dtype=np.float64)
+        s = np.zeros(0, dtype=str)
+        return cls(frame=f, stamp_ns=f.copy(), track_id=s, x=z, y=z.copy(), z_top=z.copy(), posture=s.copy())
+
+    def sorted(self) -> "TrackTable":
+        order = np.lexsort((self.track_id, self.frame))
+        return TrackTable(**{name: getattr(self, name)[order] for name in _FIELDS})
+
+    def rows(self) -> Iterable[tuple[int, int, str, float, float, float, str]]:
+        for i in range(len(self)):
+            yield (
+                int(self.frame[i]),
+                int(self.stamp_ns[i]),
+                str(self.track_id[i]),
+                float(self.x[i]),
+                float(self.y[i]),
+                float(self.z_top[i]),
+                str(self.posture[i]),
+            )
+
+
+_FIELDS = ("frame", "stamp_ns", "track_id", "x", "y", "z_top", "posture")
+
+
+@dataclass(frozen=True)
+class Event:
+    """One event. ``x``, ``y`` world frame, metres (None when the event has no place)."""
+
+    kind: str
+    frame: int
+    stamp_ns: int
+    track: str | None = None
+    x: float | None = None
+    y: float | None = None
+    details: dict[str, Any] = field(default_factory=dict)
+    id: str | None = None
+
+    def to_json(self) -> dict[str, Any]:
+        out: dict[str, Any] = {}
+        if self.id is not None:
+            out["id"] = self.id
+        out.update(
+            kind=self.kind,
+            track=self.track,
+            frame=self.frame,
+            stamp_ns=self.stamp_ns,
+            x=self.x,
+            y=self.y,
+            details=self.details,
+        )
+        return out
+
+
+@dataclass(frozen=True)
+class Meta:
+    """What ``meta.json`` says about a recording; None where it says nothing."""
+
+    fps: float | None = None
+    n_frames: int | None = None
+
+
+# ---------------------------------------------------------------- tracks
+
+
+def read_tracks(path: str | Path) -> TrackTable:
+    """Read and validate a tracks CSV; raise :class:`EvalFormatError` on any problem."""
+    path = Path(path)
+    text = _read_text(path)
+    reader = csv.reader(text.splitlines())
+    try:
+        header = next(reader)
+    except StopIteration:
+        raise EvalFormatError(f"tracks file {path}: empty, expected the header {','.join(TRACK_COLUMNS)}") from None
+    header = [h.strip() for h in header]
+    missing = [c for c in TRACK_COLUMNS if c not in header]
+    if missing:
+        raise EvalFormatError(
+            f"tracks file {path}, line 1: header lacks {missing}; expected {','.join(TRACK_COLUMNS)}, got {','.join(header)}"
+        )
+    dupes = sorted({h for h in header if header.count(h) > 1})
+    if dupes:
+        raise EvalFormatError(f"tracks file {path}, line 1: repeated columns {dupes}")
+    col = {name: header.index(name) for name in TRACK_COLUMNS}
+    rows: list[tuple] = []
+    seen: dict[tuple[int, str], int] = {}
+    for line_no, cells in enumerate(reader, start=2):
+        if not cells or all(not c.strip() for c in cells):
+            continue
+        if len(cells) != len(header):
+            raise EvalFormatError(f"tracks file {path}, line {line_no}: {len(cells)} fields, the header has {len(header)}")
+        where = f"tracks file {path}, line {line_no}"
+        frame = _int_cell(cells[col["frame"]], where, "frame", minimum=0)
+        stamp_ns = _int_cell(cells[col["stamp_ns"]], where, "stamp_ns")
+        track_id = cells[col["id"]].strip()
+        if not track_id:
+            raise EvalFormatError(f"{where}, field id: empty")
+        x = _float_cell(cells[col["x"]], where, "x")
+        y = _float_cell(cells[col["y"]], where, "y")
+        z_top = _float_cell(cells[col["z_top"]], where, "z_top")
+        posture = cells[col["posture"]].strip()
+        if posture not in POSTURES:
+            raise EvalFormatError(f"{where}, field posture: {posture!r} is not one of {list(POSTURES)}")
+        key = (frame, track_id)
+        if key in seen:
+            raise EvalFormatError(f"{where}, field id: track {track_id} appears twice in frame {frame} (first on line {seen[key]})")
+        seen[key] = line_no
+        rows.append((frame, stamp_ns, track_id, x, y, z_top, posture))
+    return TrackTable.from_rows(rows)
+
+
+def write_tracks(path: str | Path, tracks: TrackTable | Iterable[Sequence[Any]]) -> Path:
+    """Write a tracks CSV (header first, rows sorted by frame then id); returns the path."""
+    path = Path(path)
+    table = tracks if isinstance(tracks, TrackTable) else TrackTable.from_rows(tracks)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with path.open("w", newline="", encoding="utf-8") as fh:
+        writer = csv.writer(fh, lineterminator="\n")
+        writer.writerow(TRACK_COLUMNS)
+        for frame, stamp_ns, tid, x, y, z_top, posture in table.rows():
+            writer.writerow([frame, stamp_ns, tid, f"{x:.4f}", f"{y:.4f}", f"{z_top:.4f}", posture])
+    return path
+
+
+# ---------------------------------------------------------------- events
+
+
+def read_events(path: str | Path) -> list[Event]:
+    """Read and validate an events JSON-lines file (blank lines are skipped); sorted by frame."""
+    path = Path(path)
+    text = _read_text(path)
+    events: list[Event] = []
+    for line_no, line in enumerate(text.splitlines(), start=1):
+        if not line.strip():
+            continue
+        where = f"events file {path}, line {line_no}"
+        try:
+            obj = json.loads(line)
+        except json.JSONDecodeError as exc:
+            raise EvalFormatError(f"{where}: not valid JSON: {exc.msg} at column {exc.colno}") from None
+        events.append(event_from_json(obj, where))
+    events.sort(key=lambda e: (e.frame, e.stamp_ns))
+    return events
+
+
+def event_from_json(obj: Any, where: str = "event") -> Event:
+    """Validate one decoded event object; ``where`` prefixes every error message."""
+    if not isinstance(obj, dict):
+        raise EvalFormatError(f"{where}: expected a JSON object, got {type(obj).__name__}")
+    for name in ("kind", "frame", "stamp_ns"):
+        if name not in obj:
+            raise EvalFormatError(f"{where}, field {name}: required field is missing")
+    kind = obj["kind"]
+    if not isinstance(kind, str) or not kind:
+        raise EvalFormatError(f"{where}, field kind: expected a non-empty string, got {kind!r}")
+    frame = _json_int(obj["frame"], where, "frame", minimum=0)
+    stamp_ns = _json_int(obj["stamp_ns"], where, "stamp_ns")
+    track = obj.get("track")
+    if track is not None:
+        if isinstance(track, bool) or not isinstance(track, (str, int)) or str(track) == "":
+            raise EvalFormatError(f"{where}, field track: expected a track id (string or integer) or null, got {track!r}")
+        track = str(track)
+    x = _json_coord(obj.get("x"), where, "x")
+    y = _json_coord(obj.get("y"), where, "y")
+    if (x is None) != (y is None):
+        raise EvalFormatError(f"{where}, fields x/y: give both or neither")
+    details = obj.get("details") or {}
+    if not isinstance(details, dict):
+        raise EvalFormatError(f"{where}, field details: expected an object, got {type(details).__name__}")
+    ev_id = obj.get("id")
+    return Event(
+        kind=kind, frame=frame, stamp_ns=stamp_ns, track=track, x=x, y=y, details=details,
+        id=None if ev_id is None else str(ev_id),
+    )
+
+
+def write_events(path: str | Path, events: Iterable[Event]) -> Path:
+    """Write events as JSON lines, one object per line; returns the path."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with path.open("w", encoding="utf-8") as fh:
+        for ev in events:
+            fh.write(json.dumps(ev.to_json(), separators=(",", ":")) + "\n")
+    return path
+
+
+# ---------------------------------------------------------------- meta and folders
+
+
+def read_meta(path: str | Path) -> Meta:
+    """Read ``meta.json``: ``fps`` (> 0) and ``n_frames`` (>= 0), both optional; other keys are ignored."""
+    path = Path(path)
+    where = f"meta file {path}"
+    try:
+        obj = json.loads(_read_text(path))
+    except json.JSONDecodeError as exc:
+        raise EvalFormatError(f"{where}, line {exc.lineno}: not valid JSON: {exc.msg}") from None
+    if not isinstance(obj, dict):
+        raise EvalFormatError(f"{where}: expected a JSON object")
+    fps = obj.get("fps")
+    if fps is not None:
+        if isinstance(fps, bool) or not isinstance(fps, (int, float)) or not math.isfinite(fps) or fps <= 0:
+            raise EvalFormatError(f"{where}, field fps: expected a positive number, got {fps!r}")
+        fps = float(fps)
+    n_frames = obj.get("n_frames")
+    if n_frames is not None:
+        n_frames = _json_int(n_frames, where, "n_frames", minimum=0)
+    return Meta(fps=fps, n_frames=n_frames)
+
+
+def truth_file(truth_dir: str | Path, name: str) -> Path | None:
+    """``TRUTH/truth/<name>`` if present, else ``TRUTH/<name>`` if present, else None."""
+    truth_dir = Path(truth_dir)
+    for candidate in (truth_dir / "truth" / name, truth_dir / name):
+        if candidate.is_file():
+            return candidate
+    return None
+
+
+def read_truth_tracks(truth_dir: str | Path) -> TrackTable:
+    path = truth_file(truth_dir, TRACKS_FILE)
+    if path is None:
+        raise EvalFormatError(f"truth folder {truth_dir}: no {TRACKS_FILE} in {Path(truth_dir) / 'truth'} or {truth_dir}")
+    return read_tracks(path)
+
+
+def read_truth_events(truth_dir: str | Path) -> list[Event] | None:
+    """The truth events, or None when the truth folder has no events file."""
+    path = truth_file(truth_dir, EVENTS_FILE)
+    return None if path is None else read_events(path)
+
+
+def read_truth_meta(truth_dir: str | Path) -> Meta:
+    path = truth_file(truth_dir, META_FILE)
+    return Meta() if path is None else read_meta(path)
+
+
+def read_run_tracks(run_dir: str | Path) -> TrackTable:
+    path = Path(run_dir) / TRACKS_FILE
+    if not path.is_file():
+        raise EvalFormatError(f"run folder {run_dir}: no {TRACKS_FILE}")
+    return read_tracks(path)
+
+
+def read_run_events(run_dir: str | Path, *, required: bool = True) -> list[Event]:
+    """The run's events; a missing file is an error when ``required``, else no events."""
+    path = Path(run_dir) / EVENTS_FILE
+    if not path.is_file():
+        if required:
+            raise EvalFormatError(f"run folder {run_dir}: no {EVENTS_FILE} (the truth has events to score)")
+        return []
+    return read_events(path)
+
+
+# ---------------------------------------------------------------- helpers
+
+
+def _read_text(path: Path) -> str:
+    kind = {".csv": "tracks file", ".jsonl": "events file", ".json": "meta file"}.get(path.suffix, "file")
+    try:
+        return path.read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise EvalFormatError(f"{kind} {path}: not found") from None
+    except IsADirectoryError:
+        raise EvalFormatError(f"{kind} {path}: is a folder, expected a file") from None
+    except UnicodeDecodeError:
+        raise EvalFormatError(f"{kind} {path}: not UTF-8 text") from None
+    except OSError as exc:
+        raise EvalFormatError(f"{kind} {path}: cannot read: {exc.strerror or exc}") from None
+
+
+def _int_cell(text: str, where: str, name: str, *, minimum: int | None = None) -> int:
+    text = text.strip()
+    try:
+        value = int(text)
+    except ValueError:
+        raise EvalFormatError(f"{where}, field {name}: expected an integer, got {text!r}") from None
+    if minimum is not None and value < minimum:
+        raise EvalFormatError(f"{where}, field {name}: must be >= {minimum}, got {value}")
+    return value
+
+
+def _float_cell(text: str, where: str, name: str) -> float:
+    text = text.strip()
+    try:
+        value = float(text)
+    except ValueError:
+        raise EvalFormatError(f"{where}, field {name}: expected a number in metres, got {text!r}") from None
+    if not math.isfinite(value):
+        raise EvalFormatError(f"{where}, field {name}: must be finite, got {text!r}")
+    return value
+
+
+def _json_int(value: Any, where: str, name: str, *, minimum: int | None = None) -> int:
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or (isinstance(value, float) and not value.is_integer()):
+        raise EvalFormatError(f"{where}, field {name}: expected an integer, got {value!r}")
+    value = int(value)
+    if minimum is not None and value < minimum:
+        raise EvalFormatError(f"{where}, field {name}: must be >= {minimum}, got {value}")
+    return value
+
+
+def _json_coord(value: Any, where: str, name: str) -> float | None:
+    if value is None:
+        return None
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+        raise EvalFormatError(f"{where}, field {name}: expected a finite number in metres or null, got {value!r}")
+    return float(value)
