@@ -1,0 +1,514 @@
+"""Body posture from a tracked person's voxel height profile.
+
+A person's blob is summarised by its height profile: the number of
+foreground voxels in each horizontal layer (layer ``k`` covers
+``[k * voxel_m, (k + 1) * voxel_m)`` above the floor). Posture is read from
+the *shape* of that profile, never from the top height alone: a seated
+person wearing a tall hat or a horse mask reaches 1.6-1.8 m but still has
+most of their mass low and a wide lap, and someone bending over to pick
+something up has a wide torso layer at hip height above two thin legs.
+
+Pipeline per track (:class:`PostureEstimator`):
+
+1. :func:`profile_features` turns one profile into :class:`PostureFeatures`
+   (top, bottom, mass centre, mass fractions, horizontal extent, lower/upper
+   area ratio).
+2. The features are smoothed by a short FIR filter (the seed paper's FIR on
+   the posture measurement), :func:`fir_smooth`.
+3. :func:`feature_vector` normalises them by the person's long-term standing
+   height (learnt only while they confidently stand), and
+   :func:`posture_log_likelihoods` scores each posture with a robust
+   diagonal Gaussian model (:class:`PostureModel`).
+4. An HMM forward filter over the postures (the online form of the seed's
+   Viterbi recursion over standing/fallen states) and a minimum duration for
+   any change keep the reported posture from flickering.
+
+Postures: ``standing``, ``sitting``, ``bending`` and ``lying``. Kneeling and
+squatting read ``sitting`` or ``bending`` (the seed paper: a person who
+kneels or bows may read sitting but never fallen). Whether a lying person has
+*fallen* is decided by :mod:`fusion_server.events` from how fast they got
+there.
+
+Pure math: time comes in as ``stamp_ns``; no I/O, no clock.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import deque
+from dataclasses import dataclass, field, replace
+from typing import Iterable, Mapping, Protocol, Sequence
+
+import numpy as np
+
+POSTURES: tuple[str, ...] = ("standing", "sitting", "bending", "lying")
+"""Posture labels, in the order of every per-posture array in this module."""
+
+FEATURE_NAMES: tuple[str, ...] = (
+    "centre_rel",
+    "top_rel",
+    "frac_low",
+    "frac_mid",
+    "log_flatness",
+    "widest_rel",
+)
+"""Entries of :func:`feature_vector`, in order."""
+
+
+class ProfiledTrack(Protocol):
+    """What posture needs of a track estimate (any object with these attributes)."""
+
+    id: int
+    z_top_m: float
+    height_profile: np.ndarray
+
+
+@dataclass(frozen=True)
+class PostureFeatures:
+    """Shape of one body's height profile. Heights in metres above the floor.
+
+    top_m: top face of the highest occupied layer.
+    bottom_m: bottom face of the lowest layer holding a real share of the
+        mass (the floor for anyone standing or sitting on it; the mattress
+        for someone lying on a bed).
+    centre_m: height of the voxel mass centre.
+    frac_low: fraction of the voxels below ``bottom_m + 0.5``.
+    frac_mid: fraction of the voxels in ``[bottom_m + 0.5, bottom_m + 1.0)``.
+    horizontal_m: horizontal extent, ``sqrt`` of the largest layer area
+        (3-layer running mean), metres.
+    widest_m: height of the body's widest part: area-weighted mean height of
+        the layers whose (3-layer running mean) area is within
+        ``wide_frac`` of the largest, ignoring the lowest ``floor_skip_m``
+        above the bottom where shadows bloat the carving. A seated person's
+        lap puts it near seat height, a standing or bending person's torso
+        near hip height or above.
+    volume_m3: total voxel volume.
+    """
+
+    top_m: float
+    bottom_m: float
+    centre_m: float
+    frac_low: float
+    frac_mid: float
+    horizontal_m: float
+    widest_m: float
+    volume_m3: float
+
+    @property
+    def vertical_m(self) -> float:
+        """Vertical extent of the body, metres."""
+        return self.top_m - self.bottom_m
+
+
+@dataclass(frozen=True)
+class PostureModel:
+    """Per-posture robust Gaussian over :data:`FEATURE_NAMES`.
+
+    mean, sigma: (4, 6) float64, rows in :data:`POSTURES` order.
+    weight: (6,) float64, how much each feature counts (top height is kept
+        weak on purpose: hats, masks and raised arms move it).
+    clip: the most one feature may cost, in units of ``0.5 * z**2``, so one
+        odd feature cannot veto a posture on its own.
+    """
+
+    mean: np.ndarray
+    sigma: np.ndarray
+    weight: np.ndarray
+    clip: float = 8.0
+
+    def __post_init__(self) -> None:
+        shape = (len(POSTURES), len(FEATURE_NAMES))
+        for name in ("mean", "sigma"):
+            arr = np.asarray(getattr(self, name), dtype=np.float64)
+            if arr.shape != shape or not np.all(np.isfinite(arr)):
+                raise ValueError(f"PostureModel.{name} must be a finite {shape} array")
+            object.__setattr__(self, name, arr)
+        if np.any(self.sigma <= 0):
+            raise ValueError("PostureModel.sigma must be positive")
+        weight = np.asarray(self.weight, dtype=np.float64)
+        if weight.shape != (len(FEATURE_NAMES),) or np.any(weight < 0) or not np.all(np.isfinite(weight)):
+            raise ValueError(f"PostureModel.weight must be {len(FEATURE_NAMES)} finite non-negative values")
+        object.__setattr__(self, "weight", weight)
+        if not self.clip > 0:
+            raise ValueError(f"PostureModel.clip must be positive, got {self.clip}")
+
+
+def default_model() -> PostureModel:
+    """Class parameters worked out from articulated synthetic bodies 1.5-1.95 m tall,
+    with and without visual-hull fattening (see tests/test_posture.py)."""
+    #            centre_rel top_rel frac_low frac_mid log_flat widest_rel
+    mean = [
+        [0.52, 1.00, 0.23, 0.33, 1.30, 0.63],  # standing
+        [0.38, 0.77, 0.32, 0.52, 0.80, 0.37],  # sitting
+        [0.41, 0.71, 0.28, 0.50, 0.60, 0.54],  # bending
+        [0.09, 0.18, 0.99, 0.01, -1.20, 0.10],  # lying
+    ]
+    sigma = [
+        [0.04, 0.08, 0.08, 0.10, 0.30, 0.08],
+        [0.06, 0.15, 0.10, 0.10, 0.30, 0.07],
+        [0.05, 0.08, 0.10, 0.12, 0.30, 0.08],
+        [0.05, 0.08, 0.05, 0.05, 0.30, 0.06],
+    ]
+    weight = [1.0, 0.4, 0.6, 0.6, 1.0, 1.5]
+    return PostureModel(mean=np.array(mean), sigma=np.array(sigma), weight=np.array(weight))
+
+
+def profile_features(
+    height_profile: np.ndarray,
+    voxel_m: float,
+    *,
+    bottom_mass_frac: float = 0.01,
+    wide_frac: float = 0.8,
+    floor_skip_m: float = 0.1,
+) -> PostureFeatures | None:
+    """Shape features of one height profile; None when the profile is empty.
+
+    height_profile: (nz,) integer counts of foreground voxels per layer,
+        layer ``k`` covering ``[k * voxel_m, (k + 1) * voxel_m)`` above the floor.
+    bottom_mass_frac: layers at the bottom holding less than this share of
+        the voxels each are treated as floor noise (shadows) for ``bottom_m``.
+    wide_frac, floor_skip_m: see :attr:`PostureFeatures.widest_m`.
+    """
+    counts = np.asarray(height_profile)
+    if counts.ndim != 1:
+        raise ValueError(f"height_profile must be 1-D (nz,), got shape {counts.shape}")
+    if not voxel_m > 0:
+        raise ValueError(f"voxel_m must be positive, got {voxel_m}")
+    counts = np.clip(np.nan_to_num(counts.astype(np.float64), nan=0.0, posinf=0.0), 0.0, None)
+    total = float(counts.sum())
+    if total <= 0:
+        return None
+    nz = counts.shape[0]
+    occupied = np.flatnonzero(counts > 0)
+    top_m = float((occupied[-1] + 1) * voxel_m)
+    solid = np.flatnonzero(counts >= bottom_mass_frac * total)
+    k0 = int(solid[0]) if len(solid) else int(occupied[0])
+    bottom_m = float(k0 * voxel_m)
+    centres = (np.arange(nz) + 0.5) * voxel_m
+    centre_m = float((counts * centres).sum() / total)
+    rel = centres - bottom_m
+    frac_low = float(counts[rel < 0.5].sum() / total)
+    frac_mid = float(counts[(rel >= 0.5) & (rel < 1.0)].sum() / total)
+    area = counts * voxel_m * voxel_m
+    smooth = np.convolve(area, np.ones(3) / 3.0, mode="same") if nz >= 3 else area
+    horizontal_m = float(math.sqrt(max(smooth.max(), area.max() / 3.0)))
+    # A body no taller than the skipped band (lying) keeps all its layers.
+    considered = rel >= floor_skip_m
+    if not np.any(considered & (counts > 0)):
+        considered = np.ones(nz, dtype=bool)
+    wide = considered & (smooth >= wide_frac * smooth[considered].max())
+    widest_m = float((smooth[wide] * centres[wide]).sum() / smooth[wide].sum())
+    return PostureFeatures(
+        top_m=top_m,
+        bottom_m=bottom_m,
+        centre_m=centre_m,
+        frac_low=frac_low,
+        frac_mid=frac_mid,
+        horizontal_m=horizontal_m,
+        widest_m=widest_m,
+        volume_m3=total * voxel_m**3,
+    )
+
+
+def feature_vector(features: PostureFeatures, standing_height_m: float) -> np.ndarray:
+    """(6,) float64 in :data:`FEATURE_NAMES` order; heights relative to the bottom
+    of the body and divided by the person's standing height."""
+    if not standing_height_m > 0:
+        raise ValueError(f"standing_height_m must be positive, got {standing_height_m}")
+    h = float(standing_height_m)
+    vertical = max(features.vertical_m, 1e-3)
+    horizontal = max(features.horizontal_m, 1e-3)
+    return np.array(
+        [
+            (features.centre_m - features.bottom_m) / h,
+            vertical / h,
+            features.frac_low,
+            features.frac_mid,
+            math.log(vertical / horizontal),
+            (features.widest_m - features.bottom_m) / h,
+        ],
+        dtype=np.float64,
+    )
+
+
+def posture_log_likelihoods(vector: np.ndarray, model: PostureModel | None = None) -> np.ndarray:
+    """(4,) float64 log-likelihood of each posture (:data:`POSTURES` order) for one
+    (6,) feature vector, up to a shared constant."""
+    model = model or default_model()
+    v = np.asarray(vector, dtype=np.float64)
+    if v.shape != (len(FEATURE_NAMES),):
+        raise ValueError(f"feature vector must have shape ({len(FEATURE_NAMES)},), got {v.shape}")
+    cost = 0.5 * ((v[None, :] - model.mean) / model.sigma) ** 2
+    cost = np.minimum(cost, model.clip)
+    return -(cost * model.weight[None, :]).sum(axis=1)
+
+
+def classify(features: PostureFeatures, standing_height_m: float, model: PostureModel | None = None) -> str:
+    """Single-frame posture, no smoothing: the most likely of :data:`POSTURES`."""
+    ll = posture_log_likelihoods(feature_vector(features, standing_height_m), model)
+    return POSTURES[int(np.argmax(ll))]
+
+
+def fir_smooth(history: np.ndarray, taps: np.ndarray | None = None) -> np.ndarray:
+    """FIR-filter the newest sample of a multichannel history.
+
+    history: (N, F) float64, oldest first. taps: (M,) weights for the newest
+    M samples, newest last; default uniform over all N. Fewer than M samples
+    use the newest taps, renormalised. Returns (F,) float64.
+    """
+    h = np.asarray(history, dtype=np.float64)
+    if h.ndim != 2 or len(h) == 0:
+        raise ValueError(f"history must be a non-empty (N, F) array, got shape {h.shape}")
+    w = np.ones(len(h)) if taps is None else np.asarray(taps, dtype=np.float64)
+    if w.ndim != 1 or len(w) == 0 or np.any(w < 0) or not w.sum() > 0:
+        raise ValueError("taps must be a non-empty 1-D array of non-negative weights")
+    n = min(len(h), len(w))
+    w = w[-n:]
+    if not w.sum() > 0:
+        w = np.ones(n)
+    return (h[-n:] * w[:, None]).sum(axis=0) / w.sum()
+
+
+@dataclass(frozen=True)
+class PostureReading:
+    """One track's posture at one frame.
+
+    posture: the reported (smoothed, debounced) posture, one of :data:`POSTURES`.
+    since_ns: when the reported posture began (first frame it led).
+    probabilities: per-posture filtered probability, :data:`POSTURES` order.
+    raw: this frame's features; smoothed: FIR-smoothed features.
+    standing_height_m: the person's long-term standing height estimate.
+    stamp_ns: frame time.
+    """
+
+    posture: str
+    since_ns: int
+    probabilities: tuple[float, ...]
+    raw: PostureFeatures
+    smoothed: PostureFeatures
+    standing_height_m: float
+    stamp_ns: int
+
+    @property
+    def confidence(self) -> float:
+        """Filtered probability of the reported posture."""
+        return self.probabilities[POSTURES.index(self.posture)]
+
+
+class PostureEstimator:
+    """Posture of one tracked person over time.
+
+    Keyword arguments (all validated, ValueError names the bad one):
+
+    voxel_m: layer thickness of the height profiles, metres.
+    standing_height_m: prior standing height before any is learnt, metres.
+    fir_taps: FIR weights over the newest samples, newest last (default 5
+        uniform taps: a third of a second at 15 fps).
+    switch_rate_hz: prior rate of posture changes for the HMM transition
+        model; lower means stickier.
+    evidence_weight: scale on the per-frame log-likelihoods (the features are
+        correlated, so their naive sum is over-confident).
+    min_duration_s: a new posture must lead the filter this long before it is
+        reported.
+    learn_min_prob: standing probability above which the standing height is
+        updated; learn_time_constant_s: its exponential time constant;
+        learn_prior_frames: weight of the prior height, in frames, while
+        the first samples arrive.
+    height_limits_m: the standing height estimate stays in this range.
+    model: the :class:`PostureModel` (default :func:`default_model`).
+    """
+
+    def __init__(
+        self,
+        *,
+        voxel_m: float,
+        standing_height_m: float = 1.70,
+        fir_taps: Sequence[float] | None = None,
+        switch_rate_hz: float = 0.5,
+        evidence_weight: float = 0.5,
+        min_duration_s: float = 0.4,
+        learn_min_prob: float = 0.9,
+        learn_time_constant_s: float = 10.0,
+        learn_prior_frames: int = 15,
+        height_limits_m: tuple[float, float] = (1.2, 2.2),
+        model: PostureModel | None = None,
+    ) -> None:
+        if not voxel_m > 0:
+            raise ValueError(f"voxel_m must be positive, got {voxel_m}")
+        lo, hi = (float(v) for v in height_limits_m)
+        if not 0 < lo < hi:
+            raise ValueError(f"height_limits_m must be 0 < low < high, got {height_limits_m}")
+        if not lo <= standing_height_m <= hi:
+            raise ValueError(f"standing_height_m {standing_height_m} must lie in height_limits_m {height_limits_m}")
+        taps = np.ones(5) if fir_taps is None else np.asarray(fir_taps, dtype=np.float64)
+        if taps.ndim != 1 or len(taps) == 0 or np.any(taps < 0) or not taps.sum() > 0:
+            raise ValueError("fir_taps must be a non-empty list of non-negative weights with a positive sum")
+        if not switch_rate_hz > 0:
+            raise ValueError(f"switch_rate_hz must be positive, got {switch_rate_hz}")
+        if not evidence_weight > 0:
+            raise ValueError(f"evidence_weight must be positive, got {evidence_weight}")
+        if not min_duration_s >= 0:
+            raise ValueError(f"min_duration_s must be >= 0, got {min_duration_s}")
+        if not 0 < learn_min_prob < 1:
+            raise ValueError(f"learn_min_prob must lie in (0, 1), got {learn_min_prob}")
+        if not learn_time_constant_s > 0:
+            raise ValueError(f"learn_time_constant_s must be positive, got {learn_time_constant_s}")
+        if learn_prior_frames < 0:
+            raise ValueError(f"learn_prior_frames must be >= 0, got {learn_prior_frames}")
+        self.voxel_m = float(voxel_m)
+        self.height_limits_m = (lo, hi)
+        self.taps = taps
+        self.switch_rate_hz = float(switch_rate_hz)
+        self.evidence_weight = float(evidence_weight)
+        self.min_duration_ns = int(round(min_duration_s * 1e9))
+        self.learn_min_prob = float(learn_min_prob)
+        self.learn_time_constant_s = float(learn_time_constant_s)
+        self.learn_prior_frames = int(learn_prior_frames)
+        self.model = model or default_model()
+        self.standing_height_m = float(standing_height_m)
+        self.standing_samples = 0
+        self._history: deque[np.ndarray] = deque(maxlen=len(taps))
+        self._log_alpha: np.ndarray | None = None
+        self._last_stamp_ns: int | None = None
+        self._reported: int | None = None
+        self._since_ns = 0
+        self._candidate: int | None = None
+        self._candidate_ns = 0
+        self._last: PostureReading | None = None
+
+    @property
+    def last(self) -> PostureReading | None:
+        """The most recent reading, None before the first non-empty profile."""
+        return self._last
+
+    def update(self, stamp_ns: int, height_profile: np.ndarray) -> PostureReading | None:
+        """Feed one frame's (nz,) height profile; returns the current reading.
+
+        An empty profile changes nothing and returns the previous reading
+        (None if there is none yet). Frames must come in time order; a frame
+        older than the previous one raises ValueError.
+        """
+        stamp_ns = int(stamp_ns)
+        if self._last_stamp_ns is not None and stamp_ns < self._last_stamp_ns:
+            raise ValueError(f"stamp_ns {stamp_ns} is older than the previous frame {self._last_stamp_ns}")
+        raw = profile_features(height_profile, self.voxel_m)
+        if raw is None:
+            return self._last
+        dt_s = 0.0 if self._last_stamp_ns is None else (stamp_ns - self._last_stamp_ns) * 1e-9
+        self._last_stamp_ns = stamp_ns
+        self._history.append(_as_array(raw))
+        smoothed = _from_array(fir_smooth(np.stack(self._history), self.taps))
+        ll = self.evidence_weight * posture_log_likelihoods(
+            feature_vector(smoothed, self.standing_height_m), self.model
+        )
+        self._log_alpha = _forward_step(self._log_alpha, ll, self.switch_rate_hz, dt_s)
+        prob = np.exp(self._log_alpha)
+        best = int(np.argmax(prob))
+        self._debounce(best, stamp_ns)
+        self._learn_height(prob, smoothed, dt_s)
+        self._last = PostureReading(
+            posture=POSTURES[self._reported],
+            since_ns=self._since_ns,
+            probabilities=tuple(float(p) for p in prob),
+            raw=raw,
+            smoothed=smoothed,
+            standing_height_m=self.standing_height_m,
+            stamp_ns=stamp_ns,
+        )
+        return self._last
+
+    def _debounce(self, best: int, stamp_ns: int) -> None:
+        if self._reported is None:
+            self._reported, self._since_ns = best, stamp_ns
+            self._candidate = None
+            return
+        if best == self._reported:
+            self._candidate = None
+            return
+        if best != self._candidate:
+            self._candidate, self._candidate_ns = best, stamp_ns
+        if stamp_ns - self._candidate_ns >= self.min_duration_ns:
+            self._reported, self._since_ns = best, self._candidate_ns
+            self._candidate = None
+
+    def _learn_height(self, prob: np.ndarray, smoothed: PostureFeatures, dt_s: float) -> None:
+        standing = POSTURES.index("standing")
+        if self._reported != standing or prob[standing] < self.learn_min_prob:
+            return
+        self.standing_samples += 1
+        rate = dt_s / self.learn_time_constant_s if dt_s > 0 else 0.0
+        alpha = max(1.0 / (self.learn_prior_frames + self.standing_samples), min(rate, 1.0))
+        lo, hi = self.height_limits_m
+        target = min(max(smoothed.vertical_m, lo), hi)
+        self.standing_height_m += alpha * (target - self.standing_height_m)
+
+
+class PostureBank:
+    """One :class:`PostureEstimator` per track id, created on first sight and
+    forgotten when the track is no longer reported.
+
+    estimator_kwargs: passed to every :class:`PostureEstimator`.
+    """
+
+    def __init__(self, **estimator_kwargs) -> None:
+        PostureEstimator(**estimator_kwargs)  # validate once, up front
+        self._kwargs = dict(estimator_kwargs)
+        self._estimators: dict[int, PostureEstimator] = {}
+
+    def update(self, stamp_ns: int, tracks: Iterable[ProfiledTrack]) -> dict[int, PostureReading]:
+        """Readings of every reported track that has had a non-empty profile."""
+        out: dict[int, PostureReading] = {}
+        seen: set[int] = set()
+        for track in tracks:
+            tid = int(track.id)
+            seen.add(tid)
+            est = self._estimators.get(tid)
+            if est is None:
+                est = self._estimators[tid] = PostureEstimator(**self._kwargs)
+            reading = est.update(stamp_ns, track.height_profile)
+            if reading is not None:
+                out[tid] = reading
+        for tid in [t for t in self._estimators if t not in seen]:
+            del self._estimators[tid]
+        return out
+
+    def estimator(self, track_id: int) -> PostureEstimator | None:
+        return self._estimators.get(int(track_id))
+
+
+# --------------------------------------------------------------------------- helpers
+
+_FIELDS = (
+    "top_m",
+    "bottom_m",
+    "centre_m",
+    "frac_low",
+    "frac_mid",
+    "horizontal_m",
+    "widest_m",
+    "volume_m3",
+)
+
+
+def _as_array(f: PostureFeatures) -> np.ndarray:
+    return np.array([getattr(f, n) for n in _FIELDS], dtype=np.float64)
+
+
+def _from_array(a: np.ndarray) -> PostureFeatures:
+    return PostureFeatures(**{n: float(v) for n, v in zip(_FIELDS, a)})
+
+
+def _forward_step(log_alpha: np.ndarray | None, log_lik: np.ndarray, rate_hz: float, dt_s: float) -> np.ndarray:
+    """One normalised HMM forward step in the log domain; (S,) -> (S,)."""
+    n = len(log_lik)
+    if log_alpha is None:
+        post = log_lik - np.log(np.exp(log_lik - log_lik.max()).sum()) - log_lik.max()
+        return post
+    switch = 1.0 - math.exp(-rate_hz * max(dt_s, 0.0))
+    switch = min(max(switch, 1e-6), 1.0 - 1.0 / n)
+    trans = np.full((n, n), switch / (n - 1))
+    np.fill_diagonal(trans, 1.0 - switch)
+    prior = np.exp(log_alpha) @ trans
+    post = np.log(np.maximum(prior, 1e-300)) + log_lik
+    m = post.max()
+    return post - (m + math.log(np.exp(post - m).sum()))
