@@ -1,0 +1,194 @@
+"""The carver: foreground masks of one frame set -> foreground voxels and floor maps.
+
+Stages, kept apart so a benchmark can time each one:
+
+1. :meth:`Carver.distance_stage` - distance images of the inverted masks;
+2. :meth:`Carver.octree_stage` - the octree descent (seed paper, Figure 1), or
+   :meth:`Carver.dense_stage` - the brute-force oracle that tests every finest voxel;
+3. :meth:`Carver.result` - floor maps and the :class:`CarveResult`.
+
+Both carves apply the same vote at the finest level, so the octree result is
+always a subset of the dense one. It can miss a few voxels the dense carve
+keeps (section 2.1.3 of the paper): a child's enclosing circle can reach
+outside its parent's circle, so foreground there passes the child's test while
+the parent, tested first, failed and was never split; a camera can also see a
+child's centre but not its parent's, which changes the parent's vote.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from collections.abc import Mapping, Sequence
+
+import numpy as np
+
+from common.camera import Camera
+from fusion_server.carving.distance import DistanceImages, distance_images, vote
+from fusion_server.carving.lut import CacheReport, load_or_compute_lut
+from fusion_server.carving.octree import OctreeLayout, descend, level_ijk, octree_layout
+from fusion_server.grid import CarveResult, VoxelGrid, floor_maps
+
+__all__ = ["Carver", "DEFAULT_CACHE_DIR", "DEFAULT_VOXEL_SIZES_M"]
+
+DEFAULT_CACHE_DIR = "~/.cache/voxelwatch"
+DEFAULT_VOXEL_SIZES_M = (0.4, 0.2, 0.1, 0.05)
+_DENSE_CHUNK = 1 << 17
+
+
+class Carver:
+    """Multi-camera voxel carving over a fixed volume with fixed cameras.
+
+    Keyword arguments:
+      cameras: camera id -> :class:`common.camera.Camera` (keys equal the cameras' ids).
+      volume_min_m, volume_max_m: (3,) corners of the monitored volume, world frame, metres.
+      voxel_sizes_m: octree voxel edges, coarse to fine, each half the previous.
+      min_cameras: a foreground voxel needs at least this many cameras finding foreground.
+      min_ratio: and at least this fraction of the present cameras that see it (h(v)).
+      mask_scale: the workers' mask downscale factor; the tables are computed for the
+        cameras scaled by it. Masks of any other size still work (scaled lookups).
+      cache_dir: directory for the lookup-table cache (``~`` expanded), None for no cache.
+
+    Building the tables is the slow part (about a second per camera for 1M voxels); it
+    happens here, once. Attributes ``grid``, ``layout``, ``camera_ids``, ``lut_nbytes`` and
+    ``cache_reports`` (camera id -> :class:`CacheReport`) describe the result.
+
+    Not thread-safe: the distance buffer is reused from one frame set to the next.
+    """
+
+    def __init__(
+        self,
+        *,
+        cameras: Mapping[str, Camera],
+        volume_min_m: Sequence[float],
+        volume_max_m: Sequence[float],
+        voxel_sizes_m: Sequence[float] = DEFAULT_VOXEL_SIZES_M,
+        min_cameras: int = 2,
+        min_ratio: float = 0.75,
+        mask_scale: float = 1.0,
+        cache_dir: str | os.PathLike | None = DEFAULT_CACHE_DIR,
+    ) -> None:
+        if not isinstance(cameras, Mapping) or not cameras:
+            raise ValueError("cameras must be a non-empty mapping of camera id -> Camera")
+        for cid, cam in cameras.items():
+            if not isinstance(cam, Camera):
+                raise ValueError(f"cameras[{cid!r}] must be a Camera, got {type(cam).__name__}")
+            if cam.id != cid:
+                raise ValueError(f"cameras[{cid!r}] has id {cam.id!r}; keys must equal camera ids")
+        sizes = _check_voxel_sizes(voxel_sizes_m)
+        if isinstance(min_cameras, bool) or not isinstance(min_cameras, (int, np.integer)) or min_cameras < 1:
+            raise ValueError(f"min_cameras must be an int >= 1, got {min_cameras!r}")
+        if not isinstance(min_ratio, (int, float)) or not 0.0 <= float(min_ratio) <= 1.0:
+            raise ValueError(f"min_ratio must be in [0, 1], got {min_ratio!r}")
+        if not isinstance(mask_scale, (int, float)) or not (math.isfinite(mask_scale) and 0 < mask_scale <= 4):
+            raise ValueError(f"mask_scale must be in (0, 4], got {mask_scale!r}")
+        try:
+            grid = VoxelGrid.from_bounds(volume_min_m, volume_max_m, sizes[-1])
+        except ValueError as exc:
+            raise ValueError(f"volume_min_m/volume_max_m: {exc}") from None
+        if grid.origin_m.shape != (3,):
+            raise ValueError(f"volume_min_m/volume_max_m must be 3-vectors, got {grid.origin_m.shape}")
+
+        self.grid: VoxelGrid = grid
+        self.layout: OctreeLayout = octree_layout(grid.shape, len(sizes))
+        self.voxel_sizes_m: tuple[float, ...] = tuple(grid.voxel_m * f for f in self.layout.factors)
+        self.min_cameras = int(min_cameras)
+        self.min_ratio = float(min_ratio)
+        self.mask_scale = float(mask_scale)
+        self.camera_ids: tuple[str, ...] = tuple(cameras)
+        self.cache_reports: dict[str, CacheReport] = {}
+        self.lut_sizes: dict[str, tuple[int, int]] = {}
+
+        n_cams = len(self.camera_ids)
+        # (N_L, C): one row per voxel holds all cameras, so one gather per level serves all.
+        self._pixel = [np.empty((self.layout.count(L), n_cams), dtype=np.int32) for L in range(self.layout.n_levels)]
+        self._radius = [np.empty((self.layout.count(L), n_cams), dtype=np.float16) for L in range(self.layout.n_levels)]
+        for col, cid in enumerate(self.camera_ids):
+            cam = cameras[cid]
+            if self.mask_scale != 1.0:
+                cam = cam.scaled(self.mask_scale)
+            lut, report = load_or_compute_lut(cam, grid, self.layout, cache_dir)
+            self.cache_reports[cid] = report
+            self.lut_sizes[cid] = (lut.width, lut.height)
+            for level in range(self.layout.n_levels):
+                self._pixel[level][:, col] = lut.pixel[level]
+                self._radius[level][:, col] = lut.radius_px[level]
+            del lut
+        self._buffer: np.ndarray | None = None
+
+    # ------------------------------------------------------------------ public
+
+    @property
+    def lut_nbytes(self) -> int:
+        """Bytes held by the lookup tables of all cameras and levels."""
+        return sum(a.nbytes for a in self._pixel) + sum(a.nbytes for a in self._radius)
+
+    def carve(self, masks: Mapping[str, np.ndarray], stamp_ns: int) -> CarveResult:
+        """Octree carve of one frame set.
+
+        masks: camera id -> (H, W) uint8 mask (0 background, 255 foreground; > 127 counts)
+            or bool; cameras absent from ``masks`` do not vote. Unknown ids raise ValueError.
+        stamp_ns: the frame set's capture time.
+        """
+        dists = self.distance_stage(masks)
+        return self.result(self.octree_stage(dists), stamp_ns, dists)
+
+    def carve_dense(self, masks: Mapping[str, np.ndarray], stamp_ns: int) -> CarveResult:
+        """The brute-force oracle: every finest voxel tested with the same vote, no octree."""
+        dists = self.distance_stage(masks)
+        return self.result(self.dense_stage(dists), stamp_ns, dists)
+
+    def distance_stage(self, masks: Mapping[str, np.ndarray]) -> DistanceImages:
+        """Stage 1: distance images of the present cameras (valid until the next call)."""
+        dists = distance_images(masks, self.camera_ids, self.lut_sizes, out=self._buffer)
+        if self._buffer is None or self._buffer.size < dists.values.size:
+            self._buffer = dists.values
+        return dists
+
+    def octree_stage(self, dists: DistanceImages) -> np.ndarray:
+        """Stage 2: the octree descent. Returns (N, 3) int32 finest indices of foreground voxels."""
+        if len(dists.camera_ids) < self.min_cameras:
+            return np.zeros((0, 3), dtype=np.int32)
+        finest = descend(self.layout, lambda level, idx: self._test(level, idx, dists))
+        return level_ijk(finest, self.layout.dims[-1])
+
+    def dense_stage(self, dists: DistanceImages) -> np.ndarray:
+        """Stage 2 (oracle): every finest voxel tested. Returns (N, 3) int32 indices, sorted."""
+        if len(dists.camera_ids) < self.min_cameras:
+            return np.zeros((0, 3), dtype=np.int32)
+        pixel, radius = self._pixel[-1], self._radius[-1]
+        hits = []
+        for lo in range(0, pixel.shape[0], _DENSE_CHUNK):
+            hi = min(pixel.shape[0], lo + _DENSE_CHUNK)
+            passed = vote(pixel[lo:hi], radius[lo:hi], dists, self.min_cameras, self.min_ratio)
+            hits.append(np.flatnonzero(passed) + lo)
+        return level_ijk(np.concatenate(hits), self.layout.dims[-1])
+
+    def result(self, ijk: np.ndarray, stamp_ns: int, dists: DistanceImages) -> CarveResult:
+        """Stage 3: floor maps and the carve result."""
+        return CarveResult(ijk=ijk, grid=self.grid, floor=floor_maps(ijk, self.grid), stamp_ns=int(stamp_ns),
+                           cameras=dists.camera_ids)
+
+    def seeing_counts(self, level: int = -1) -> np.ndarray:
+        """(N_L,) int: how many cameras see each voxel centre of ``level`` (all cameras)."""
+        return np.count_nonzero(self._pixel[level] >= 0, axis=1)
+
+    # ------------------------------------------------------------------ helpers
+
+    def _test(self, level: int, index: np.ndarray, dists: DistanceImages) -> np.ndarray:
+        pixel = np.take(self._pixel[level], index, axis=0)
+        radius = np.take(self._radius[level], index, axis=0)
+        return vote(pixel, radius, dists, self.min_cameras, self.min_ratio)
+
+
+def _check_voxel_sizes(voxel_sizes_m) -> tuple[float, ...]:
+    try:
+        sizes = tuple(float(s) for s in voxel_sizes_m)
+    except (TypeError, ValueError):
+        raise ValueError(f"voxel_sizes_m must be a sequence of numbers, got {voxel_sizes_m!r}") from None
+    if not sizes or any(not math.isfinite(s) or s <= 0 for s in sizes):
+        raise ValueError(f"voxel_sizes_m must be positive, got {list(sizes)}")
+    for a, b in zip(sizes, sizes[1:]):
+        if abs(a / b - 2.0) > 1e-6:
+            raise ValueError(f"voxel_sizes_m must halve from one level to the next, got {list(sizes)}")
+    return sizes
