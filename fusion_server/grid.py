@@ -106,7 +106,9 @@ def floor_maps(ijk: np.ndarray, grid: VoxelGrid) -> FloorMaps:
     count = np.zeros((ny, nx), dtype=np.int32)
     top = np.zeros((ny, nx), dtype=np.float32)
     if len(ijk):
-        i, j, k = ijk[:, 0], ijk[:, 1], ijk[:, 2]
-        np.add.at(count, (j, i), 1)
-        np.maximum.at(top, (j, i), ((k + 1) * grid.voxel_m + grid.origin_m[2]).astype(np.float32))
+        ijk = np.asarray(ijk)
+        # Flat column indices: ufunc.at and bincount are an order of magnitude faster on 1-D indices.
+        col = ijk[:, 1].astype(np.int64) * nx + ijk[:, 0]
+        count = np.bincount(col, minlength=nx * ny).astype(np.int32).reshape(ny, nx)
+        np.maximum.at(top.ravel(), col, ((ijk[:, 2] + 1) * grid.voxel_m + grid.origin_m[2]).astype(np.float32))
     return FloorMaps(count=count, top_m=top)
