@@ -1,1 +1,65 @@
-"""Scoring a run against ground truth (filled in below)."""
+"""Scoring a run against ground truth: tracking, events and posture.
+
+Typical use::
+
+    from common.evaluation import evaluate, format_table, suite_table
+    results = evaluate("scenarios/fall_kitchen", "runs/fall_kitchen")
+    print(format_table(results))
+
+* :mod:`~common.evaluation.io`: the tracks CSV and events JSON-lines formats;
+* :mod:`~common.evaluation.tracking`: CLEAR-MOT (MOTA, MOTP, ID switches,
+  fragmentations, MT/PT/ML), identity measures (IDF1, IDP, IDR) and the seed
+  paper's MOTME, MOTV, missed and artifact tracks per frame;
+* :mod:`~common.evaluation.events`: precision, recall, F1 per event kind with a
+  +-30-frame window, fall delays, false alarms per hour;
+* :mod:`~common.evaluation.posture`: posture accuracy and confusion matrix;
+* :mod:`~common.evaluation.report`: :func:`evaluate`, console tables, JSON;
+* :mod:`~common.evaluation.plots`: plan view, posture timeline and mask
+  overlay pictures (needs the ``plots`` extra for the first two).
+"""
+
+from common.evaluation.events import ALARM_KINDS, WINDOW_FRAMES, EventScores, TrackLinks, score_events
+from common.evaluation.io import (
+    POSTURES,
+    SCORED_KINDS,
+    EvalFormatError,
+    Event,
+    TrackTable,
+    read_events,
+    read_tracks,
+    write_events,
+    write_tracks,
+)
+from common.evaluation.posture import PostureResult, posture_scores
+from common.evaluation.report import evaluate, format_table, suite_table, suite_totals, to_json, write_json
+from common.evaluation.tracking import Matches, SeedResult, TrackingResult, clear_mot, seed_measures
+
+__all__ = [
+    "ALARM_KINDS",
+    "POSTURES",
+    "SCORED_KINDS",
+    "WINDOW_FRAMES",
+    "EvalFormatError",
+    "Event",
+    "EventScores",
+    "Matches",
+    "PostureResult",
+    "SeedResult",
+    "TrackLinks",
+    "TrackTable",
+    "TrackingResult",
+    "clear_mot",
+    "evaluate",
+    "format_table",
+    "posture_scores",
+    "read_events",
+    "read_tracks",
+    "score_events",
+    "seed_measures",
+    "suite_table",
+    "suite_totals",
+    "to_json",
+    "write_events",
+    "write_json",
+    "write_tracks",
+]

@@ -1,0 +1,394 @@
+"""Scoring a run folder against a truth folder, and showing the scores.
+
+:func:`evaluate` reads the files and returns one JSON-ready dict holding every
+count and ratio; :func:`format_table` prints it for the console;
+:func:`suite_table` prints one row per scenario and a total row.
+
+Frames: when the frame count is known (argument, or ``n_frames`` in the truth
+``meta.json``) the evaluated frames are ``0 .. n_frames - 1``, widened with a
+note if a file has rows outside; otherwise they run from the first to the
+last frame that has a row in either tracks file. Frames without rows count as
+frames with nobody in them.
+
+Frame rate (for durations and false alarms per hour): the ``fps`` argument,
+else ``fps`` in ``meta.json``, else estimated from the frame numbers and
+stamps of the truth tracks (then the run's); unknown leaves rates at None.
+
+Totals over scenarios are computed from summed counts, never by averaging
+ratios: MOTA = 1 - sum(FN + FP + IDSW) / sum(GT); MOTP and MOTME = summed
+distance / summed matches; MOTV pooled from summed distances and squared
+distances; IDF1 = 2 sum(IDTP) / (sum(GT) + sum(predictions)) (each scenario
+keeps its own identity assignment, as identities do not cross recordings);
+MTPF and ATPF per summed frame; event precision/recall/F1 from summed
+TP/FP/FN; posture accuracy from summed correct/scored pairs; false alarms per
+summed hour; fall delays pooled.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from collections.abc import Iterable, Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from common.evaluation import io
+from common.evaluation.events import ALARM_KINDS, WINDOW_FRAMES, TrackLinks, f1_score, score_events
+from common.evaluation.posture import posture_scores
+from common.evaluation.tracking import CLEAR_RADIUS_M, SEED_RADIUS_M, clear_mot, frame_span, ratio, seed_measures
+
+
+def evaluate(
+    truth_dir: str | Path,
+    run_dir: str | Path,
+    *,
+    fps: float | None = None,
+    n_frames: int | None = None,
+    clear_radius_m: float = CLEAR_RADIUS_M,
+    seed_radius_m: float = SEED_RADIUS_M,
+    window_frames: int = WINDOW_FRAMES,
+    position_gate_m: Mapping[str, float] | None = None,
+    require_track: bool = False,
+    alarm_kinds: Sequence[str] = ALARM_KINDS,
+) -> dict[str, Any]:
+    """Score ``run_dir`` (tracks.csv, events.jsonl) against ``truth_dir`` (truth/ or flat).
+
+    Returns a dict of plain JSON values with the keys ``truth_dir``,
+    ``run_dir``, ``frames`` {first, last, count}, ``fps``, ``fps_source``,
+    ``duration_s``, ``tracking`` (CLEAR-MOT and identity), ``seed`` (MOTME,
+    MOTV, MTPF, ATPF), ``events`` (None when the truth has no events file),
+    ``posture`` and ``notes``. Raises :class:`~common.evaluation.io.EvalFormatError`
+    naming the file, line and field of any bad input.
+    """
+    if fps is not None and not (isinstance(fps, (int, float)) and math.isfinite(fps) and fps > 0):
+        raise ValueError(f"fps must be a positive number, got {fps!r}")
+    if n_frames is not None and (isinstance(n_frames, bool) or not isinstance(n_frames, int) or n_frames < 0):
+        raise ValueError(f"n_frames must be a non-negative integer, got {n_frames!r}")
+    notes: list[str] = []
+    truth = io.read_truth_tracks(truth_dir)
+    run = io.read_run_tracks(run_dir)
+    meta = io.read_truth_meta(truth_dir)
+    truth_events = io.read_truth_events(truth_dir)
+    run_events = io.read_run_events(run_dir, required=truth_events is not None)
+
+    fps_value, fps_source = _frame_rate(fps, meta, truth, run)
+    if fps_value is None:
+        notes.append("frame rate unknown (no fps argument, no meta.json fps, stamps unusable): rates per hour left out")
+    first, last = _frame_range(n_frames if n_frames is not None else meta.n_frames, truth, run, truth_events, run_events, notes)
+    count = 0 if first is None else last - first + 1
+    duration_s = None if fps_value is None else count / fps_value
+
+    mot = clear_mot(truth, run, radius_m=clear_radius_m)
+    seed = seed_measures(truth, run, radius_m=seed_radius_m, n_frames=count)
+    events = None
+    if truth_events is None:
+        notes.append("the truth has no events.jsonl: events not scored")
+    else:
+        links = TrackLinks.from_matches(truth, run, mot.pairs) if require_track else None
+        scores = score_events(
+            truth_events, run_events, window_frames=window_frames, position_gate_m=position_gate_m, track_links=links
+        )
+        events = scores.summary(duration_s=duration_s, alarm_kinds=alarm_kinds)
+    return {
+        "truth_dir": str(truth_dir),
+        "run_dir": str(run_dir),
+        "frames": {"first": first, "last": last, "count": count},
+        "fps": fps_value,
+        "fps_source": fps_source,
+        "duration_s": duration_s,
+        "tracking": mot.summary(),
+        "seed": seed.summary(),
+        "events": events,
+        "posture": posture_scores(truth, run, mot.pairs).summary(),
+        "notes": notes,
+    }
+
+
+def format_table(results: Mapping[str, Any]) -> str:
+    """The results of :func:`evaluate` as aligned plain-text tables for the console."""
+    t, s, p = results["tracking"], results["seed"], results["posture"]
+    fr = results["frames"]
+    lines = [
+        f"truth {results['truth_dir']}  run {results['run_dir']}",
+        f"frames {fr['first']}..{fr['last']} ({fr['count']})  fps {_num(results['fps'], 3)} ({results['fps_source']})"
+        f"  duration {_num(results['duration_s'], 1)} s",
+        "",
+        f"tracking (CLEAR-MOT, match radius {t['radius_m']} m)",
+    ]
+    lines += _table(
+        ["MOTA", "MOTP m", "IDF1", "IDP", "IDR", "IDSW", "FRAG", "MT", "PT", "ML", "FP", "FN", "GT", "GT ids", "run ids"],
+        [[_pct(t["mota"]), _num(t["motp_m"], 3), _pct(t["idf1"]), _pct(t["idp"]), _pct(t["idr"]), t["id_switches"],
+          t["fragmentations"], t["mostly_tracked"], t["partly_tracked"], t["mostly_lost"], t["fp"], t["fn"], t["gt"],
+          t["gt_ids"], t["pred_ids"]]],
+        label_column=False,
+    )
+    lines += ["", f"seed measures (per-frame Hungarian, radius {s['radius_m']} m)"]
+    lines += _table(
+        ["MOTME m", "MOTV m2", "MTPF", "ATPF", "matches", "missed", "artifacts"],
+        [[_num(s["motme_m"], 3), _num(s["motv_m2"], 4), _num(s["mtpf"], 4), _num(s["atpf"], 4), s["matches"],
+          s["missed"], s["artifacts"]]],
+        label_column=False,
+    )
+    ev = results.get("events")
+    if ev is not None:
+        gate = ", ".join(f"{k} {v} m" for k, v in ev["position_gate_m"].items()) or "none"
+        lines += ["", f"events (window +-{ev['window_frames']} frames; position gate: {gate};"
+                      f" same track required: {'yes' if ev['track_required'] else 'no'})"]
+        rows = [
+            [kind, k["truth"], k["run"], k["tp"], k["fp"], k["fn"], _pct(k["precision"]), _pct(k["recall"]), _pct(k["f1"])]
+            for kind, k in ev["per_kind"].items()
+            if k["truth"] or k["run"]
+        ]
+        o = ev["overall"]
+        rows.append(["all", o["truth"], o["run"], o["tp"], o["fp"], o["fn"], _pct(o["precision"]), _pct(o["recall"]), _pct(o["f1"])])
+        lines += _table(["kind", "truth", "run", "TP", "FP", "FN", "precision", "recall", "F1"], rows)
+        lines.append(
+            f"fall delay s: mean {_num(ev['fall_delay_mean_s'], 2)}  median {_num(ev['fall_delay_median_s'], 2)}"
+            f"  max {_num(ev['fall_delay_max_s'], 2)}  ({len(ev['fall_delays_s'])} detected)"
+        )
+        lines.append(
+            f"false alarms ({'/'.join(ev['alarm_kinds'])}): {ev['false_alarms']}"
+            f"  per hour {_num(ev['false_alarms_per_hour'], 2)}"
+        )
+    lines += ["", f"posture over {p['pairs']} matched pairs ({p['scored']} with a known truth posture)"]
+    lines.append(f"accuracy strict {_pct(p['strict_accuracy'])}  lenient (bending = standing) {_pct(p['lenient_accuracy'])}")
+    labels = p["labels"]
+    conf = p["confusion"]
+    lines += _table(["truth \\ run", *labels], [[lab, *row] for lab, row in zip(labels, conf) if any(row)] or [["-"] * (len(labels) + 1)])
+    for note in results.get("notes", []):
+        lines.append(f"note: {note}")
+    return "\n".join(lines)
+
+
+def suite_totals(results: Iterable[Mapping[str, Any]]) -> dict[str, Any]:
+    """Totals over scenarios from summed counts (see the module text), in :func:`evaluate`'s layout."""
+    results = list(results)
+    if not results:
+        raise ValueError("suite_totals needs at least one result")
+    add = lambda section, key: sum(r[section][key] for r in results)  # noqa: E731
+    t_keys = ["gt", "gt_ids", "pred", "pred_ids", "matches", "fp", "fn", "id_switches", "fragmentations",
+              "mostly_tracked", "partly_tracked", "mostly_lost", "distance_sum_m", "idtp", "idfp", "idfn"]
+    t = {k: add("tracking", k) for k in t_keys}
+    t["radius_m"] = results[0]["tracking"]["radius_m"]
+    t["mota"] = None if t["gt"] == 0 else 1.0 - (t["fn"] + t["fp"] + t["id_switches"]) / t["gt"]
+    t["motp_m"] = ratio(t["distance_sum_m"], t["matches"])
+    t["precision"] = ratio(t["matches"], t["pred"])
+    t["recall"] = ratio(t["matches"], t["gt"])
+    t["idp"] = ratio(t["idtp"], t["pred"])
+    t["idr"] = ratio(t["idtp"], t["gt"])
+    t["idf1"] = ratio(2 * t["idtp"], t["gt"] + t["pred"])
+
+    s = {k: add("seed", k) for k in ["frames", "matches", "missed", "artifacts", "distance_sum_m", "distance_sq_sum_m2"]}
+    s["radius_m"] = results[0]["seed"]["radius_m"]
+    s["motme_m"] = ratio(s["distance_sum_m"], s["matches"])
+    s["motv_m2"] = None if not s["matches"] else max(0.0, s["distance_sq_sum_m2"] / s["matches"] - s["motme_m"] ** 2)
+    s["mtpf"] = ratio(s["missed"], s["frames"])
+    s["atpf"] = ratio(s["artifacts"], s["frames"])
+
+    p_counts = {k: add("posture", k) for k in ["pairs", "scored", "strict_correct", "lenient_correct"]}
+    confusion = np.sum([np.asarray(r["posture"]["confusion"]) for r in results], axis=0).astype(int)
+    p = {
+        **p_counts,
+        "strict_accuracy": ratio(p_counts["strict_correct"], p_counts["scored"]),
+        "lenient_accuracy": ratio(p_counts["lenient_correct"], p_counts["scored"]),
+        "labels": results[0]["posture"]["labels"],
+        "confusion": confusion.tolist(),
+    }
+    durations = [r["duration_s"] for r in results]
+    duration_s = None if any(d is None for d in durations) else float(sum(durations))
+    return {
+        "truth_dir": "(suite)",
+        "run_dir": "(suite)",
+        "frames": {"first": None, "last": None, "count": add("frames", "count")},
+        "fps": None,
+        "fps_source": "suite",
+        "duration_s": duration_s,
+        "tracking": t,
+        "seed": s,
+        "events": _sum_events([r["events"] for r in results if r.get("events") is not None], duration_s),
+        "posture": p,
+        "notes": [],
+    }
+
+
+def suite_table(rows: Mapping[str, Mapping[str, Any]] | Iterable[tuple[str, Mapping[str, Any]]]) -> str:
+    """One line per scenario and a ``total`` line from :func:`suite_totals`.
+
+    ``rows``: scenario name -> :func:`evaluate` result (a mapping or pairs).
+    Columns: frames, GT, MOTA, MOTP, IDF1, IDSW, FRAG, FP, FN, MOTME, MTPF,
+    ATPF, fall P and R, sit/stand F1 (sit_down + stand_up counts), enter/exit
+    F1 (enter + exit counts), strict posture accuracy, false alarms per hour.
+    """
+    items = list(rows.items()) if isinstance(rows, Mapping) else list(rows)
+    if not items:
+        return "(no scenarios)"
+    header = ["scenario", "frames", "GT", "MOTA", "MOTP m", "IDF1", "IDSW", "FRAG", "FP", "FN", "MOTME m", "MTPF",
+              "ATPF", "fall P", "fall R", "sit/stand F1", "enter/exit F1", "posture", "FA/h"]
+    body = [_suite_row(name, r) for name, r in items]
+    total = _suite_row("total", suite_totals(r for _, r in items))
+    return "\n".join(_table(header, body + [total], rule_before_last=True))
+
+
+def to_json(results: Mapping[str, Any]) -> str:
+    """The results as indented JSON text (None becomes null)."""
+    return json.dumps(_plain(results), indent=2, allow_nan=False)
+
+
+def write_json(results: Mapping[str, Any], path: str | Path) -> Path:
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(to_json(results) + "\n", encoding="utf-8")
+    return path
+
+
+# ---------------------------------------------------------------- helpers
+
+
+def _frame_rate(fps: float | None, meta: io.Meta, truth: io.TrackTable, run: io.TrackTable) -> tuple[float | None, str]:
+    if fps is not None:
+        return float(fps), "argument"
+    if meta.fps is not None:
+        return meta.fps, "meta.json"
+    for name, table in (("truth", truth), ("run", run)):
+        est = _fps_from_stamps(table)
+        if est is not None:
+            return est, f"{name} stamps"
+    return None, "unknown"
+
+
+def _fps_from_stamps(table: io.TrackTable) -> float | None:
+    """Frames per second from the first and last frame's stamps; None when unusable."""
+    if len(table) < 2:
+        return None
+    f0, f1 = int(table.frame.min()), int(table.frame.max())
+    if f1 == f0:
+        return None
+    s0 = int(table.stamp_ns[table.frame == f0].min())
+    s1 = int(table.stamp_ns[table.frame == f1].min())
+    if s1 <= s0:
+        return None
+    return (f1 - f0) / ((s1 - s0) / 1e9)
+
+
+def _frame_range(n_frames, truth, run, truth_events, run_events, notes: list[str]) -> tuple[int | None, int | None]:
+    first, last = frame_span(truth, run)
+    ev_frames = [e.frame for e in (truth_events or []) + (run_events or [])]
+    if ev_frames and first is None:
+        first, last = min(ev_frames), max(ev_frames)
+    elif ev_frames:
+        first, last = min(first, min(ev_frames)), max(last, max(ev_frames))
+    if n_frames is None:
+        return first, last
+    if n_frames == 0 and first is None:
+        return None, None
+    if first is not None and (first < 0 or last > n_frames - 1):
+        notes.append(f"rows or events lie outside frames 0..{n_frames - 1}: the evaluated range is widened to {min(first, 0)}..{max(last, n_frames - 1)}")
+        return min(first, 0), max(last, n_frames - 1)
+    return 0, n_frames - 1
+
+
+def _sum_events(events: list[Mapping[str, Any]], duration_s: float | None) -> dict[str, Any] | None:
+    if not events:
+        return None
+    kinds = list(dict.fromkeys(k for e in events for k in e["per_kind"]))
+    per_kind = {}
+    for kind in kinds:
+        c = {n: sum(e["per_kind"].get(kind, {}).get(n, 0) for e in events) for n in ("truth", "run", "tp", "fp", "fn")}
+        per_kind[kind] = _kind_summary(c)
+    overall = _kind_summary({n: sum(k[n] for k in per_kind.values()) for n in ("truth", "run", "tp", "fp", "fn")})
+    delays = [d for e in events for d in e["fall_delays_s"]]
+    n_false = sum(e["false_alarms"] for e in events)
+    return {
+        "window_frames": events[0]["window_frames"],
+        "position_gate_m": events[0]["position_gate_m"],
+        "track_required": events[0]["track_required"],
+        "per_kind": per_kind,
+        "overall": overall,
+        "fall_delays_s": delays,
+        "fall_delay_mean_s": float(np.mean(delays)) if delays else None,
+        "fall_delay_median_s": float(np.median(delays)) if delays else None,
+        "fall_delay_max_s": max(delays) if delays else None,
+        "alarm_kinds": events[0]["alarm_kinds"],
+        "false_alarms": n_false,
+        "duration_s": duration_s,
+        "false_alarms_per_hour": None if not duration_s else n_false / (duration_s / 3600.0),
+        "unscored_run_events": sum(e["unscored_run_events"] for e in events),
+    }
+
+
+def _kind_summary(c: Mapping[str, int]) -> dict[str, Any]:
+    return {
+        **c,
+        "precision": ratio(c["tp"], c["run"]),
+        "recall": ratio(c["tp"], c["truth"]),
+        "f1": f1_score(c["tp"], c["fp"], c["fn"]),
+    }
+
+
+def _suite_row(name: str, r: Mapping[str, Any]) -> list[Any]:
+    t, s, p, ev = r["tracking"], r["seed"], r["posture"], r.get("events")
+    fall = sit = door = "-"
+    fall_r = fa = "-"
+    if ev is not None:
+        k = ev["per_kind"]
+        if "fall" in k:
+            fall, fall_r = _pct(k["fall"]["precision"]), _pct(k["fall"]["recall"])
+        sit = _pct(_pooled_f1(k, ("sit_down", "stand_up")))
+        door = _pct(_pooled_f1(k, ("enter", "exit")))
+        fa = _num(ev["false_alarms_per_hour"], 2)
+    return [name, r["frames"]["count"], t["gt"], _pct(t["mota"]), _num(t["motp_m"], 3), _pct(t["idf1"]),
+            t["id_switches"], t["fragmentations"], t["fp"], t["fn"], _num(s["motme_m"], 3), _num(s["mtpf"], 3),
+            _num(s["atpf"], 3), fall, fall_r, sit, door, _pct(p["strict_accuracy"]), fa]
+
+
+def _pooled_f1(per_kind: Mapping[str, Mapping[str, int]], kinds: Sequence[str]) -> float | None:
+    tp = sum(per_kind.get(k, {}).get("tp", 0) for k in kinds)
+    fp = sum(per_kind.get(k, {}).get("fp", 0) for k in kinds)
+    fn = sum(per_kind.get(k, {}).get("fn", 0) for k in kinds)
+    return f1_score(tp, fp, fn)
+
+
+def _table(
+    header: Sequence[str], rows: Sequence[Sequence[Any]], *, rule_before_last: bool = False, label_column: bool = True
+) -> list[str]:
+    """Aligned text rows: the first column left-aligned when it holds labels, numbers right-aligned."""
+    cells = [[str(h) for h in header]] + [[str(c) for c in row] for row in rows]
+    widths = [max(len(row[k]) for row in cells) for k in range(len(header))]
+
+    def line(row: Sequence[str]) -> str:
+        first = row[0].ljust(widths[0]) if label_column else row[0].rjust(widths[0])
+        return "  ".join([first] + [c.rjust(w) for c, w in zip(row[1:], widths[1:])]).rstrip()
+
+    rule = "  ".join("-" * w for w in widths)
+    out = [line(cells[0]), rule]
+    for k, row in enumerate(cells[1:]):
+        if rule_before_last and k == len(cells) - 2 and k > 0:
+            out.append(rule)
+        out.append(line(row))
+    return out
+
+
+def _pct(value: float | None) -> str:
+    return "-" if value is None else f"{100.0 * value:.1f}%"
+
+
+def _num(value: float | None, digits: int) -> str:
+    return "-" if value is None else f"{value:.{digits}f}"
+
+
+def _plain(value: Any) -> Any:
+    """Numpy scalars and arrays to plain Python; non-finite floats to None."""
+    if isinstance(value, Mapping):
+        return {str(k): _plain(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_plain(v) for v in value]
+    if isinstance(value, np.ndarray):
+        return _plain(value.tolist())
+    if isinstance(value, (np.integer,)):
+        return int(value)
+    if isinstance(value, (float, np.floating)):
+        value = float(value)
+        return value if math.isfinite(value) else None
+    return value
