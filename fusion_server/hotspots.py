@@ -1,0 +1,293 @@
+"""Named floor areas (hot spots) and dwelling in them.
+
+A hot spot is a polygon on the floor plan with a name ("dinner table"), a
+label used in messages (defaults to the name) and a kind ("table", "sofa",
+"tv", "bed", "door" ...). Draw it around where people stand or sit when they
+use the place: the table *and its chairs*, the sofa and the floor in front.
+
+Dwelling follows the seed paper: over the last ``window_s`` seconds, the
+variance of the person's floor position about its mean (the mean squared
+distance from the mean 2D location) is compared to a threshold. A dwell
+starts when the person has been that still for a whole window and the mean
+of the window lies inside a hot spot; it ends when they move (the variance
+over the window exceeds a larger threshold), leave (the mean of the last
+``leave_window_s`` is outside the hot spot) or the track is lost.
+
+Pure math: no clock, no I/O; time is ``stamp_ns``.
+"""
+
+from __future__ import annotations
+
+from collections import deque
+from dataclasses import dataclass
+from typing import Iterable, Sequence
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class Hotspot:
+    """A named floor polygon.
+
+    name: unique name, used as identifier in events.
+    polygon_m: (K, 2) float64, K >= 3, world floor (x, y), metres; any
+        orientation, may be concave, must not self-intersect.
+    label: human wording for messages ("the dinner table"); defaults to name.
+    kind: free category ("table", "sofa", "tv", "bed", "door" ...).
+    """
+
+    name: str
+    polygon_m: np.ndarray
+    label: str = ""
+    kind: str = ""
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.name, str) or not self.name.strip():
+            raise ValueError("hot spot name must be a non-empty string")
+        poly = np.asarray(self.polygon_m, dtype=np.float64)
+        if poly.ndim != 2 or poly.shape[1] != 2 or len(poly) < 3:
+            raise ValueError(f"hot spot {self.name!r}: polygon_m must be (K, 2) with K >= 3, got shape {poly.shape}")
+        if not np.all(np.isfinite(poly)):
+            raise ValueError(f"hot spot {self.name!r}: polygon_m has non-finite coordinates")
+        if abs(polygon_area(poly)) <= 0:
+            raise ValueError(f"hot spot {self.name!r}: polygon_m encloses no area")
+        poly.setflags(write=False)
+        object.__setattr__(self, "polygon_m", poly)
+        if not self.label:
+            object.__setattr__(self, "label", self.name)
+
+    def contains(self, xy: np.ndarray) -> np.ndarray:
+        """(N, 2) or (2,) floor points -> (N,) bool (even-odd rule)."""
+        return points_in_polygon(xy, self.polygon_m)
+
+    @property
+    def centroid_m(self) -> np.ndarray:
+        """(2,) float64 area centroid of the polygon, world floor frame."""
+        p = self.polygon_m
+        q = np.roll(p, -1, axis=0)
+        cross = p[:, 0] * q[:, 1] - q[:, 0] * p[:, 1]
+        a = cross.sum() / 2.0
+        return np.array([((p[:, 0] + q[:, 0]) * cross).sum(), ((p[:, 1] + q[:, 1]) * cross).sum()]) / (6.0 * a)
+
+
+def points_in_polygon(xy: np.ndarray, polygon_m: np.ndarray) -> np.ndarray:
+    """Even-odd point-in-polygon test, vectorised over points and edges.
+
+    xy: (N, 2) or (2,) points; polygon_m: (K, 2) vertices (closed
+    implicitly). Returns (N,) bool. Points exactly on an edge may fall
+    either side.
+    """
+    pts = np.atleast_2d(np.asarray(xy, dtype=np.float64))
+    poly = np.asarray(polygon_m, dtype=np.float64)
+    if pts.shape[-1] != 2 or poly.ndim != 2 or poly.shape[1] != 2:
+        raise ValueError(f"points must be (N, 2) and polygon (K, 2), got {pts.shape} and {poly.shape}")
+    x, y = pts[:, 0:1], pts[:, 1:2]
+    xi, yi = poly[:, 0], poly[:, 1]
+    xj, yj = np.roll(xi, 1), np.roll(yi, 1)
+    straddles = (yi > y) != (yj > y)  # (N, K): edge crosses the horizontal line through the point
+    dy = np.where(yj == yi, 1.0, yj - yi)
+    x_cross = xi + (xj - xi) * (y - yi) / dy
+    crossings = np.count_nonzero(straddles & (x < x_cross), axis=1)
+    return (crossings % 2) == 1
+
+
+def polygon_area(polygon_m: np.ndarray) -> float:
+    """Signed shoelace area of a (K, 2) polygon, m² (positive when counter-clockwise)."""
+    p = np.asarray(polygon_m, dtype=np.float64)
+    q = np.roll(p, -1, axis=0)
+    return float((p[:, 0] * q[:, 1] - q[:, 0] * p[:, 1]).sum() / 2.0)
+
+
+def hotspot_index(hotspots: Sequence[Hotspot], xy: np.ndarray) -> np.ndarray:
+    """(N,) int: index of the first hot spot (in list order) containing each
+    (N, 2) point, -1 where none does."""
+    pts = np.atleast_2d(np.asarray(xy, dtype=np.float64))
+    out = np.full(len(pts), -1, dtype=np.int64)
+    for i in range(len(hotspots) - 1, -1, -1):
+        out[hotspots[i].contains(pts)] = i
+    return out
+
+
+def hotspot_at(hotspots: Sequence[Hotspot], x: float, y: float) -> Hotspot | None:
+    """The first hot spot (in list order) containing the floor point, or None."""
+    idx = int(hotspot_index(hotspots, np.array([[x, y]]))[0])
+    return hotspots[idx] if idx >= 0 else None
+
+
+def position_variance(xy: np.ndarray) -> float:
+    """Mean squared distance of (N, 2) floor positions from their mean, m²."""
+    pts = np.asarray(xy, dtype=np.float64)
+    if pts.ndim != 2 or pts.shape[1] != 2 or len(pts) == 0:
+        raise ValueError(f"positions must be a non-empty (N, 2) array, got shape {pts.shape}")
+    return float(((pts - pts.mean(axis=0)) ** 2).sum(axis=1).mean())
+
+
+class PositionWindow:
+    """Floor positions of one track over the last ``window_s`` seconds.
+
+    Keeps one sample at or before the window start, so :attr:`span_s`
+    reaches ``window_s`` exactly when the history is long enough.
+    """
+
+    def __init__(self, *, window_s: float) -> None:
+        if not window_s > 0:
+            raise ValueError(f"window_s must be positive, got {window_s}")
+        self.window_ns = int(round(window_s * 1e9))
+        self._t: deque[int] = deque()
+        self._xy: deque[tuple[float, float]] = deque()
+
+    def add(self, stamp_ns: int, x: float, y: float) -> None:
+        stamp_ns = int(stamp_ns)
+        if self._t and stamp_ns < self._t[-1]:
+            raise ValueError(f"stamp_ns {stamp_ns} is older than the previous sample {self._t[-1]}")
+        self._t.append(stamp_ns)
+        self._xy.append((float(x), float(y)))
+        start = stamp_ns - self.window_ns
+        while len(self._t) >= 2 and self._t[1] <= start:
+            self._t.popleft()
+            self._xy.popleft()
+
+    def clear(self) -> None:
+        self._t.clear()
+        self._xy.clear()
+
+    def __len__(self) -> int:
+        return len(self._t)
+
+    @property
+    def span_s(self) -> float:
+        """Time from the oldest kept sample to the newest, seconds."""
+        return (self._t[-1] - self._t[0]) * 1e-9 if self._t else 0.0
+
+    @property
+    def full(self) -> bool:
+        """True when the samples cover the whole window."""
+        return bool(self._t) and self._t[-1] - self._t[0] >= self.window_ns
+
+    @property
+    def start_ns(self) -> int:
+        """Stamp of the oldest kept sample."""
+        if not self._t:
+            raise ValueError("empty position window")
+        return self._t[0]
+
+    def positions(self, since_ns: int | None = None) -> np.ndarray:
+        """(N, 2) float64 positions, oldest first, optionally only those at or after ``since_ns``."""
+        xy = np.array(self._xy, dtype=np.float64).reshape(-1, 2)
+        if since_ns is None:
+            return xy
+        t = np.fromiter(self._t, dtype=np.int64, count=len(self._t))
+        return xy[t >= since_ns]
+
+    def variance_m2(self) -> float:
+        """:func:`position_variance` of the window."""
+        return position_variance(self.positions())
+
+    def mean_xy(self, since_ns: int | None = None) -> np.ndarray:
+        """(2,) mean position of the window (or of the samples since ``since_ns``)."""
+        xy = self.positions(since_ns)
+        if len(xy) == 0:
+            xy = self.positions()[-1:]
+        return xy.mean(axis=0)
+
+
+@dataclass(frozen=True)
+class DwellChange:
+    """A dwell starting or ending.
+
+    kind: ``"dwell_start"`` or ``"dwell_end"``.
+    hotspot: where. stamp_ns: the frame that decided it.
+    start_ns: when the person became still there (start of the still window).
+    x, y: mean floor position over the window, metres.
+    reason: for ends, ``"moved"``, ``"left"`` or ``"lost"``; empty for starts.
+    """
+
+    kind: str
+    hotspot: Hotspot
+    stamp_ns: int
+    start_ns: int
+    x: float
+    y: float
+    reason: str = ""
+
+    @property
+    def duration_s(self) -> float:
+        return (self.stamp_ns - self.start_ns) * 1e-9
+
+
+class DwellDetector:
+    """Dwelling of one track in a list of hot spots.
+
+    hotspots: the hot spots, first match wins where they overlap.
+    window_s: length of the still window (the seed paper's period).
+    still_std_m: a dwell starts when ``sqrt(variance)`` over a full window is
+        at or below this.
+    move_std_m: a dwell ends when it rises above this (larger than
+        ``still_std_m``, so tracker jitter does not toggle the dwell).
+    leave_window_s: a dwell ends when the mean position over this many
+        recent seconds is outside the hot spot.
+    """
+
+    def __init__(
+        self,
+        *,
+        hotspots: Iterable[Hotspot],
+        window_s: float = 10.0,
+        still_std_m: float = 0.15,
+        move_std_m: float = 0.30,
+        leave_window_s: float = 2.0,
+    ) -> None:
+        self.hotspots = tuple(hotspots)
+        for h in self.hotspots:
+            if not isinstance(h, Hotspot):
+                raise ValueError(f"hotspots must be Hotspot instances, got {type(h).__name__}")
+        if not still_std_m > 0:
+            raise ValueError(f"still_std_m must be positive, got {still_std_m}")
+        if not move_std_m >= still_std_m:
+            raise ValueError(f"move_std_m ({move_std_m}) must be at least still_std_m ({still_std_m})")
+        if not leave_window_s > 0:
+            raise ValueError(f"leave_window_s must be positive, got {leave_window_s}")
+        self.window = PositionWindow(window_s=window_s)
+        self.still_var_m2 = float(still_std_m) ** 2
+        self.move_var_m2 = float(move_std_m) ** 2
+        self.leave_ns = int(round(leave_window_s * 1e9))
+        self.current: Hotspot | None = None
+        self.start_ns = 0
+
+    def update(self, stamp_ns: int, x: float, y: float) -> list[DwellChange]:
+        """Add one position; returns the dwell changes it causes (0, 1 or 2)."""
+        stamp_ns = int(stamp_ns)
+        self.window.add(stamp_ns, x, y)
+        changes: list[DwellChange] = []
+        var = self.window.variance_m2() if self.window.full else None
+        if self.current is not None:
+            recent = self.window.mean_xy(stamp_ns - self.leave_ns)
+            reason = ""
+            if var is not None and var > self.move_var_m2:
+                reason = "moved"
+            elif not bool(self.current.contains(recent)[0]):
+                reason = "left"
+            if reason:
+                changes.append(self._end(stamp_ns, recent, reason))
+        if self.current is None and var is not None and var <= self.still_var_m2:
+            mean = self.window.mean_xy()
+            spot = hotspot_at(self.hotspots, mean[0], mean[1])
+            # The recent mean must agree, or a slow drift out would end and restart the dwell every frame.
+            if spot is not None and bool(spot.contains(self.window.mean_xy(stamp_ns - self.leave_ns))[0]):
+                self.current, self.start_ns = spot, self.window.start_ns
+                changes.append(DwellChange("dwell_start", spot, stamp_ns, self.start_ns, float(mean[0]), float(mean[1])))
+        return changes
+
+    def lost(self, stamp_ns: int) -> list[DwellChange]:
+        """The track is gone: end any dwell and forget the history."""
+        changes = []
+        if self.current is not None and len(self.window):
+            changes.append(self._end(int(stamp_ns), self.window.positions()[-1], "lost"))
+        self.current = None
+        self.window.clear()
+        return changes
+
+    def _end(self, stamp_ns: int, xy: np.ndarray, reason: str) -> DwellChange:
+        change = DwellChange("dwell_end", self.current, stamp_ns, self.start_ns, float(xy[0]), float(xy[1]), reason)
+        self.current = None
+        return change
