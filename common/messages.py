@@ -101,7 +101,8 @@ Coord = Annotated[StrictInt, Field(ge=0, le=maskcodec.MAX_MASK_SIDE)]
 Fraction = Annotated[float, Field(ge=0.0, le=1.0)]
 Box = Annotated[tuple[Coord, Coord, Coord, Coord], Strict(False)]
 """``(x0, y0, x1, y1)`` pixels, full-resolution capture frame, ``x1``/``y1`` exclusive."""
-DetailValue = Annotated[str, StringConstraints(max_length=1024)] | int | float | bool | None
+DetailValue = (Annotated[str, StringConstraints(max_length=1024)] | Annotated[int, Field(ge=-_I64_MAX - 1, le=_I64_MAX)]
+               | float | bool | None)
 DetailKey = Annotated[str, StringConstraints(min_length=1, max_length=64)]
 
 _CONFIG = ConfigDict(strict=True, frozen=True, extra="forbid", allow_inf_nan=False)
@@ -336,10 +337,16 @@ M = TypeVar("M", bound=_Message)
 
 
 def encode(msg: _Message) -> bytes:
-    """The msgpack bytes of a message (``v`` and ``type`` first, then its fields)."""
+    """The msgpack bytes of a message (``v`` and ``type`` first, then its fields).
+
+    Raises WireError if the result is larger than a receiver accepts.
+    """
     if not isinstance(msg, _Message) or not msg.TYPE:
         raise TypeError(f"cannot encode {type(msg).__name__}: not a top-level message")
-    return msgpack.packb(_tagged(msg), use_bin_type=True)
+    data = msgpack.packb(_tagged(msg), use_bin_type=True)
+    if len(data) > msg.MAX_BYTES:
+        raise WireError(_oversize(type(msg), len(data)))
+    return data
 
 
 def decode(data: bytes, expected: type[M]) -> M:
@@ -397,7 +404,8 @@ def _unpack(data: bytes, name: str, max_bytes: int) -> dict:
             max_map_len=_MAX_MAP_LEN, max_ext_len=0,
         )
     except Exception as exc:  # noqa: BLE001 - msgpack raises several unrelated types for bad input
-        raise WireError(f"{name}: not a msgpack message ({type(exc).__name__}: {str(exc) or 'bad format byte'})") from None
+        detail = str(exc) or "bad format byte"
+        raise WireError(f"{name}: not a msgpack message ({type(exc).__name__}: {detail})") from None
     if not isinstance(obj, dict):
         raise WireError(f"{name}: expected a msgpack map, got {type(obj).__name__}")
     return obj

@@ -273,7 +273,8 @@ def test_png_of_other_size_or_depth_is_refused():
 
 
 def test_png_declaring_a_huge_image_is_refused_before_decoding():
-    header = b"\x89PNG\r\n\x1a\n" + struct.pack(">I", 13) + b"IHDR" + struct.pack(">IIBBBBB", 100000, 100000, 1, 0, 0, 0, 0)
+    ihdr = struct.pack(">IIBBBBB", 100000, 100000, 1, 0, 0, 0, 0)
+    header = b"\x89PNG\r\n\x1a\n" + struct.pack(">I", 13) + b"IHDR" + ihdr
     data = header + b"\x00" * 64
     with pytest.raises(MaskCodecError):
         decode_mask(data, "png", 640, 480)

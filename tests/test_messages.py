@@ -279,6 +279,16 @@ def test_bad_field_is_refused_and_named(index, path, value, field):
     assert re.search(rf"'{re.escape(field)}(\.[^']*)?'", text), text
 
 
+def test_detail_ints_beyond_int64_become_floats_and_still_encode():
+    obj = _fields(_samples()[5])
+    obj["details"] = {"big": 2**64 - 1, "small": -(2**63)}
+    ev = decode(_pack(obj), Event)
+    assert isinstance(ev.details["big"], float) and ev.details["small"] == -(2**63)
+    assert decode(encode(ev), Event) == ev
+    ev = Event(id="a", kind="visit", track=1, stamp_ns=0, frame=0, x=0.0, y=0.0, details={"n": 2**70})
+    assert decode(encode(ev), Event) == ev
+
+
 def test_cross_field_checks():
     obj = _fields(_samples()[1])
     obj["boxes"] = [[10, 0, 10, 20]]
@@ -424,6 +434,13 @@ def test_decode_any_applies_the_per_type_limit():
         decode_any(_pack(obj))
 
 
+def test_encode_refuses_what_a_receiver_would_refuse():
+    msg = MaskFrame(cam="c", seq=0, stamp_ns=0, width=4096, height=4096, src_width=4096, src_height=4096,
+                    codec="rle-zlib", data=bytes(messages.MAX_MESSAGE_BYTES), fg_fraction=0.5)
+    with pytest.raises(WireError, match="MaskFrame: payload of .* exceeds"):
+        encode(msg)
+
+
 def test_deep_nesting_is_refused():
     deep = b"\x81" + _pack("details") + b"\x91" * 100_000 + b"\xc0"
     with pytest.raises(WireError):
@@ -432,3 +449,60 @@ def test_deep_nesting_is_refused():
 
 def test_wire_error_is_a_value_error():
     assert issubclass(WireError, ValueError)
+
+
+# --- over real zenoh -----------------------------------------------------------
+
+
+def _free_port() -> int:
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _peer(listen: list[str], connect: list[str]):
+    import zenoh
+
+    conf = zenoh.Config()
+    conf.insert_json5("mode", '"peer"')
+    conf.insert_json5("scouting/multicast/enabled", "false")
+    conf.insert_json5("transport/shared_memory/enabled", "false")
+    conf.insert_json5("listen/endpoints", json.dumps(listen))
+    conf.insert_json5("connect/endpoints", json.dumps(connect))
+    return zenoh.open(conf)
+
+
+def test_messages_over_zenoh_loopback_and_events_readable_as_text():
+    import time
+
+    import zenoh
+
+    from common import keys
+
+    prefix = keys.default_prefix("testsite")
+    endpoint = f"tcp/127.0.0.1:{_free_port()}"
+    mask, event = _mask_frame(2), _samples()[5]
+    with _peer([endpoint], []) as pub_side, _peer([f"tcp/127.0.0.1:{_free_port()}"], [endpoint]) as sub_side:
+        masks = sub_side.declare_subscriber(keys.mask_wildcard(prefix), zenoh.handlers.FifoChannel(16))
+        events = sub_side.declare_subscriber(keys.events_wildcard(prefix), zenoh.handlers.FifoChannel(16))
+        mask_key, event_key = keys.mask_key(prefix, mask.cam), keys.event_key(prefix, event.kind, event.track)
+        got_mask = got_event = None
+        deadline = time.monotonic() + 10.0
+        while (got_mask is None or got_event is None) and time.monotonic() < deadline:
+            pub_side.put(mask_key, encode(mask), encoding=zenoh.Encoding(messages.MSGPACK_ENCODING))
+            pub_side.put(event_key, event.to_json(), encoding=zenoh.Encoding.APPLICATION_JSON)
+            time.sleep(0.05)
+            while (sample := masks.try_recv()) is not None:
+                assert keys.camera_of(sample.key_expr, prefix) == "cam1"
+                got_mask = decode(sample.payload.to_bytes(), MaskFrame)
+            while (sample := events.try_recv()) is not None:
+                assert keys.event_of(sample.key_expr, prefix) == ("fall", 4)
+                text = sample.payload.to_string()  # what stock zenoh clients print
+                assert json.loads(text)["kind"] == "fall"
+                got_event = decode_event(sample.payload.to_bytes())
+        masks.undeclare()
+        events.undeclare()
+    assert got_mask == mask
+    assert got_event == event
