@@ -26,7 +26,9 @@ would fold back into the image. Each camera computes once the largest
 normalised radius ``tan(angle off the optical axis)`` over which its
 distortion is monotonic (``max_radius``); ``project`` rejects points beyond it
 and ``rays`` returns NaN for pixels that no point within it reaches (the
-outer corners of such images).
+outer corners of such images). The fisheye model covers directions up to 90
+degrees off the optical axis (in front of the camera plane); pixels of wider
+lenses beyond that get NaN rays.
 """
 
 from __future__ import annotations
