@@ -1,0 +1,437 @@
+"""Target management and tracking: blobs of one frame set -> people with ids.
+
+Seed paper 000, sections 2.2.2 and 2.3. Every frame:
+
+1. each target's 2.5D particle filter moves to the new time and refines the
+   target's floor position on the frame's floor count map;
+2. targets are matched to the detected blobs by the Hungarian method on the
+   floor distance between the target and the blob's centroid, with a gate;
+   a target left out that stands on a matched blob shares it (two people
+   touching above tau1 make one blob);
+3. each target's reliability follows the IIR filter ``r = r + l (M - r)``
+   with ``M`` = 1 when matched and 0 when not, and the age-dependent learning
+   rate ``l = min(l_max, 1 / age + l_min)``: a young target becomes trusted
+   within a few frames, an old one survives a few seconds of misses;
+4. a target is *confirmed* (trusted as a person) while ``r`` is at least
+   ``confirm_reliability`` and destroyed when ``r`` drops below
+   ``delete_reliability``;
+5. blobs no target matched start new targets;
+6. two targets closer than ``merge_distance_m`` for ``merge_frames``
+   consecutive frames follow the same person: the older one is kept.
+
+Time comes from ``stamp_ns`` only, randomness from the injected generator,
+track ids from the injected id source.
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+from collections import deque
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+
+import numpy as np
+
+from fusion_server.association import associate
+from fusion_server.detection import Blob
+from fusion_server.grid import CarveResult
+from fusion_server.particle_filter import FloorEvidence, ParticleFilter, floor_evidence
+
+__all__ = ["TrackEstimate", "Tracker"]
+
+
+@dataclass(frozen=True, eq=False)
+class TrackEstimate:
+    """One target after a frame.
+
+    id: track id from the tracker's id source.
+    x, y: world metres, floor position (particle filter mean).
+    z_top_m: highest foreground voxel top in the target's floor box, metres
+        (falls back to the matched blob's top, then to the last value).
+    volume_m3: volume of the matched blob (of this target's part of it when
+        several targets share it), or of the last one matched.
+    reliability: r in [0, 1] from the IIR filter.
+    confirmed: r >= the tracker's ``confirm_reliability``.
+    age_frames: frames since the target was created, counting this one.
+    vx, vy: smoothed floor velocity, metres per second.
+    height_profile: (nz,) int32 voxels per height layer of the matched blob
+        (this target's part when shared; else of the last one matched).
+    blob: the blob matched this frame, or None. Several tracks can share one
+        blob when people touch above tau1.
+    still: the smoothed speed stayed below the tracker's ``still_speed_mps``
+        for the last ``still_window_s``.
+    alpha_m: half-size of the filter's square floor box, metres.
+    stamp_ns: the frame time.
+    """
+
+    id: int
+    x: float
+    y: float
+    z_top_m: float
+    volume_m3: float
+    reliability: float
+    confirmed: bool
+    age_frames: int
+    vx: float
+    vy: float
+    height_profile: np.ndarray
+    blob: Blob | None
+    still: bool
+    alpha_m: float = 0.0
+    stamp_ns: int = 0
+
+
+class Tracker:
+    """Multi-person tracker over blobs and floor maps.
+
+    Keyword parameters (defaults in brackets):
+
+    rng: numpy Generator for every particle filter (required).
+    id_source: iterator or zero-argument callable giving new track ids
+        [a fresh ``itertools.count(1)``].
+    gate_m: largest target-to-blob floor distance that can match [0.6 m; a
+        walker moves 0.1 m per frame at 15 fps and a blob's centroid can sit
+        0.2-0.3 m off the person when it includes furniture or an arm].
+    learning_rate_max, learning_rate_min: l_max and l_min of the learning
+        rate [0.3, 0.05].
+    confirm_reliability: r at or above which a target is a person [0.6:
+        three matched frames from creation].
+    delete_reliability: r below which a target is destroyed [0.1: a new
+        target missed four frames in a row, an old one about 45 frames].
+    merge_distance_m, merge_frames: duplicate targets closer than this for
+        this many consecutive frames merge [0.3 m, 8 frames]. People do not
+        stand closer than 0.3 m centre to centre for half a second.
+    new_target_min_distance_m: an unmatched blob this close to an existing
+        target does not start a new one [0.3 m].
+    velocity_tau_s: time constant of the velocity smoothing [0.3 s].
+    still_speed_mps, still_window_s: a target is still when its smoothed
+        speed stayed below the speed for the whole window [0.15 m/s, 1.0 s].
+    n_particles, k_m, alpha_range_m, position_noise_m, alpha_noise_m,
+    resample_below: passed to each :class:`ParticleFilter` [200, 0.1 m,
+        (0.15, 0.6) m, 0.3 m, 0.1 m, 0.5].
+    share_blobs: a target left unmatched whose filter still sees evidence
+        and whose position lies on a blob's footprint counts as matched to
+        that blob [True]. Two people touching above tau1 form one blob; the
+        paper's one-to-one assignment would starve one of them. With False
+        the tracker follows the paper strictly.
+    """
+
+    def __init__(
+        self,
+        *,
+        rng: np.random.Generator,
+        id_source: Iterator[int] | Callable[[], int] | None = None,
+        gate_m: float = 0.6,
+        learning_rate_max: float = 0.3,
+        learning_rate_min: float = 0.05,
+        confirm_reliability: float = 0.6,
+        delete_reliability: float = 0.1,
+        merge_distance_m: float = 0.3,
+        merge_frames: int = 8,
+        new_target_min_distance_m: float = 0.3,
+        velocity_tau_s: float = 0.3,
+        still_speed_mps: float = 0.15,
+        still_window_s: float = 1.0,
+        n_particles: int = 200,
+        k_m: float = 0.1,
+        alpha_range_m: tuple[float, float] = (0.15, 0.6),
+        position_noise_m: float = 0.3,
+        alpha_noise_m: float = 0.1,
+        resample_below: float = 0.5,
+        share_blobs: bool = True,
+    ):
+        if not isinstance(rng, np.random.Generator):
+            raise ValueError(f"rng must be a numpy Generator, got {type(rng).__name__}")
+        for name, value in (
+            ("gate_m", gate_m),
+            ("merge_distance_m", merge_distance_m),
+            ("new_target_min_distance_m", new_target_min_distance_m),
+            ("still_speed_mps", still_speed_mps),
+            ("still_window_s", still_window_s),
+        ):
+            if not (np.isfinite(value) and value >= 0):
+                raise ValueError(f"{name} must be a finite non-negative number, got {value}")
+        if not velocity_tau_s > 0:
+            raise ValueError(f"velocity_tau_s must be positive, got {velocity_tau_s}")
+        if not 0 < learning_rate_max <= 1:
+            raise ValueError(f"learning_rate_max must be in (0, 1], got {learning_rate_max}")
+        if not 0 <= learning_rate_min <= learning_rate_max:
+            raise ValueError(f"learning_rate_min must be in [0, learning_rate_max], got {learning_rate_min}")
+        if not 0 <= delete_reliability < confirm_reliability <= 1:
+            raise ValueError(
+                f"need 0 <= delete_reliability < confirm_reliability <= 1, got {delete_reliability} and {confirm_reliability}"
+            )
+        if int(merge_frames) < 1:
+            raise ValueError(f"merge_frames must be at least 1, got {merge_frames}")
+        self._pf_args = dict(
+            n_particles=n_particles,
+            k_m=k_m,
+            alpha_range_m=alpha_range_m,
+            position_noise_m=position_noise_m,
+            alpha_noise_m=alpha_noise_m,
+            resample_below=resample_below,
+        )
+        # Build one filter now so that bad filter settings fail at construction.
+        probe = ParticleFilter(0.0, 0.0, alpha_range_m[0], rng=np.random.default_rng(0), **self._pf_args)
+        self._max_half_m = probe.max_half_m
+        self.rng = rng
+        if id_source is None:
+            id_source = itertools.count(1)
+        self._next_id: Callable[[], int] = id_source if callable(id_source) else (lambda it=id_source: next(it))
+        self.gate_m = float(gate_m)
+        self.learning_rate_max = float(learning_rate_max)
+        self.learning_rate_min = float(learning_rate_min)
+        self.confirm_reliability = float(confirm_reliability)
+        self.delete_reliability = float(delete_reliability)
+        self.merge_distance_m = float(merge_distance_m)
+        self.merge_frames = int(merge_frames)
+        self.new_target_min_distance_m = float(new_target_min_distance_m)
+        self.velocity_tau_s = float(velocity_tau_s)
+        self.still_speed_mps = float(still_speed_mps)
+        self.still_window_s = float(still_window_s)
+        self.share_blobs = bool(share_blobs)
+        self._targets: list[_Target] = []
+        self._close_frames: dict[tuple[int, int], int] = {}
+        self._last_stamp_ns: int | None = None
+
+    @property
+    def track_ids(self) -> list[int]:
+        return [t.id for t in self._targets]
+
+    def learning_rate(self, age_frames: int) -> float:
+        """l = min(l_max, 1 / age + l_min), the paper's equation (2)."""
+        return min(self.learning_rate_max, 1.0 / max(age_frames, 1) + self.learning_rate_min)
+
+    def step(self, result: CarveResult, blobs: list[Blob], stamp_ns: int) -> list[TrackEstimate]:
+        """Advance all targets to ``stamp_ns`` with this frame's floor maps and blobs.
+
+        Returns every live target (confirmed or not), sorted by id.
+        Raises ValueError if ``stamp_ns`` is earlier than the previous frame's.
+        """
+        stamp_ns = int(stamp_ns)
+        if self._last_stamp_ns is not None and stamp_ns < self._last_stamp_ns:
+            raise ValueError(f"stamp_ns {stamp_ns} is before the previous frame's {self._last_stamp_ns}")
+        dt_s = 0.0 if self._last_stamp_ns is None else (stamp_ns - self._last_stamp_ns) * 1e-9
+        self._last_stamp_ns = stamp_ns
+        evidence = floor_evidence(result.floor, result.grid, max_half_m=self._max_half_m)
+
+        for t in self._targets:
+            t.track(evidence, stamp_ns, dt_s, self.velocity_tau_s)
+
+        positions = np.array([[t.x, t.y] for t in self._targets]).reshape(-1, 2)
+        blob_xy = np.array([[b.x, b.y] for b in blobs]).reshape(-1, 2)
+        cost = np.linalg.norm(positions[:, None, :] - blob_xy[None, :, :], axis=2)
+        matches, unmatched_targets, unmatched_blobs = associate(cost, self.gate_m)
+        blob_of = {int(ti): int(bi) for ti, bi in matches}
+        if self.share_blobs and len(unmatched_targets) and blobs:
+            self._share(blob_of, unmatched_targets, blobs, result)
+            unmatched_blobs = [bi for bi in unmatched_blobs if int(bi) not in blob_of.values()]
+        parts = self._split_shared(blob_of, blobs, result)
+
+        for n, t in enumerate(self._targets):
+            bi = blob_of.get(n)
+            blob = None if bi is None else blobs[bi]
+            t.age += 1
+            hit = 1.0 if blob is not None else 0.0
+            t.reliability += self.learning_rate(t.age) * (hit - t.reliability)
+            profile, volume_m3 = parts.get(n, (None, None)) if blob is not None else (None, None)
+            if blob is not None and profile is None:
+                profile, volume_m3 = blob.height_profile, blob.volume_m3
+            t.observe(blob, profile, volume_m3, result, self.rng)
+
+        for bi in unmatched_blobs:
+            blob = blobs[int(bi)]
+            if any(math.hypot(t.x - blob.x, t.y - blob.y) < self.new_target_min_distance_m for t in self._targets):
+                continue
+            self._targets.append(self._create(blob, evidence, result, stamp_ns))
+
+        self._merge_duplicates()
+        self._targets = [t for t in self._targets if t.reliability >= self.delete_reliability]
+        live = {t.id for t in self._targets}
+        self._close_frames = {k: v for k, v in self._close_frames.items() if k[0] in live and k[1] in live}
+
+        nz = result.grid.shape[2]
+        for t in self._targets:
+            t.update_stillness(stamp_ns, self.still_window_s, self.still_speed_mps)
+        return [t.estimate(stamp_ns, self.confirm_reliability, nz) for t in sorted(self._targets, key=lambda t: t.id)]
+
+    def _create(self, blob: Blob, evidence: FloorEvidence, result: CarveResult, stamp_ns: int) -> "_Target":
+        lo, hi = self._pf_args["alpha_range_m"]
+        alpha_m = float(np.clip(0.5 * math.sqrt(blob.footprint_area_m2), lo, hi))
+        pf = ParticleFilter(blob.x, blob.y, alpha_m, rng=self.rng, **self._pf_args)
+        t = _Target(id=int(self._next_id()), pf=pf, x=blob.x, y=blob.y, alpha_m=alpha_m)
+        t.track(evidence, stamp_ns, 0.0, self.velocity_tau_s)
+        t.age = 1
+        t.reliability = self.learning_rate(1)
+        t.observe(blob, blob.height_profile, blob.volume_m3, result, self.rng)
+        return t
+
+    def _share(self, blob_of: dict[int, int], unmatched: np.ndarray, blobs: list[Blob], result: CarveResult) -> None:
+        """Let a target the assignment left out share the blob it stands on.
+
+        Two people who touch above ``tau1`` make one blob, and the one-to-one
+        assignment gives it to one of them; the other's filter still sees its
+        person, so its target counts as matched to the same blob.
+        """
+        grid = result.grid
+        owner = np.full(result.floor.count.shape, -1, dtype=np.int32)
+        for bi, b in enumerate(blobs):
+            owner[b.footprint[:, 0], b.footprint[:, 1]] = bi
+        for ti in unmatched:
+            t = self._targets[int(ti)]
+            if not t.pf.supported:
+                continue
+            i = int(math.floor((t.x - grid.origin_m[0]) / grid.voxel_m))
+            j = int(math.floor((t.y - grid.origin_m[1]) / grid.voxel_m))
+            if 0 <= j < owner.shape[0] and 0 <= i < owner.shape[1] and owner[j, i] >= 0:
+                blob_of[int(ti)] = int(owner[j, i])
+
+    def _split_shared(self, blob_of: dict[int, int], blobs: list[Blob], result: CarveResult) -> dict[int, tuple[np.ndarray, float]]:
+        """Height profile and volume of each target's part of a shared blob.
+
+        Each voxel of a blob matched to several targets goes to the target
+        nearest on the floor. Returns {target index: (profile (nz,) int32, volume_m3)}.
+        """
+        users: dict[int, list[int]] = {}
+        for ti, bi in blob_of.items():
+            users.setdefault(bi, []).append(ti)
+        parts: dict[int, tuple[np.ndarray, float]] = {}
+        nz = result.grid.shape[2]
+        for bi, tis in users.items():
+            if len(tis) < 2:
+                continue
+            b = blobs[bi]
+            xy = result.grid.centres(b.ijk)[:, :2]
+            pos = np.array([[self._targets[ti].x, self._targets[ti].y] for ti in tis])
+            nearest = np.argmin(((xy[:, None, :] - pos[None, :, :]) ** 2).sum(-1), axis=1)
+            for n, ti in enumerate(tis):
+                k = b.ijk[nearest == n, 2]
+                parts[ti] = (np.bincount(k, minlength=nz).astype(np.int32), len(k) * b.voxel_m**3)
+        return parts
+
+    def _merge_duplicates(self) -> None:
+        targets = self._targets
+        close_now: dict[tuple[int, int], int] = {}
+        doomed: set[int] = set()
+        for a, b in itertools.combinations(targets, 2):
+            key = (min(a.id, b.id), max(a.id, b.id))
+            if math.hypot(a.x - b.x, a.y - b.y) >= self.merge_distance_m:
+                continue
+            close_now[key] = self._close_frames.get(key, 0) + 1
+            if close_now[key] >= self.merge_frames and a.id not in doomed and b.id not in doomed:
+                keep, drop = (a, b) if (a.age, -a.id) >= (b.age, -b.id) else (b, a)
+                keep.reliability = max(keep.reliability, drop.reliability)
+                doomed.add(drop.id)
+        self._close_frames = close_now
+        if doomed:
+            self._targets = [t for t in targets if t.id not in doomed]
+
+
+class _Target:
+    """Mutable state of one target."""
+
+    def __init__(self, *, id: int, pf: ParticleFilter, x: float, y: float, alpha_m: float):
+        self.id = id
+        self.pf = pf
+        self.x = x
+        self.y = y
+        self.alpha_m = alpha_m
+        self.vx = 0.0
+        self.vy = 0.0
+        self.age = 0
+        self.reliability = 0.0
+        self.z_top_m = 0.0
+        self.volume_m3 = 0.0
+        self.height_profile: np.ndarray | None = None
+        self.blob: Blob | None = None
+        self.speeds: deque[tuple[int, float]] = deque()
+        self.still = False
+
+    def track(self, evidence: FloorEvidence, stamp_ns: int, dt_s: float, tau_s: float) -> None:
+        """Particle filter step; velocity from the change of position."""
+        est = self.pf.step(evidence, stamp_ns, velocity_mps=(self.vx, self.vy))
+        if dt_s > 0:
+            beta = 1.0 - math.exp(-dt_s / tau_s)
+            self.vx += beta * (float(est[0] - self.x) / dt_s - self.vx)
+            self.vy += beta * (float(est[1] - self.y) / dt_s - self.vy)
+        self.x, self.y, self.alpha_m = float(est[0]), float(est[1]), float(est[2])
+
+    def observe(
+        self, blob: Blob | None, profile: np.ndarray | None, volume_m3: float | None, result: CarveResult, rng: np.random.Generator
+    ) -> None:
+        """Take this frame's measurements of the target (its part of ``blob``)."""
+        self.blob = blob
+        if blob is not None:
+            self.volume_m3 = float(volume_m3)
+            self.height_profile = profile
+            if not self.pf.supported:
+                # The particles lost the person while a blob still matched: restart them on it.
+                self.pf = _restart(self.pf, blob, self.alpha_m, rng)
+                self.x, self.y = blob.x, blob.y
+        top = _box_top(result, self.x, self.y, self.alpha_m)
+        if top > 0:
+            self.z_top_m = top
+        elif blob is not None:
+            self.z_top_m = blob.z_top_m
+
+    def update_stillness(self, stamp_ns: int, window_s: float, still_speed_mps: float) -> None:
+        """Still when the smoothed speed stayed below the threshold over the whole window."""
+        self.speeds.append((stamp_ns, math.hypot(self.vx, self.vy)))
+        window_ns = int(round(window_s * 1e9))
+        while len(self.speeds) > 1 and self.speeds[1][0] <= stamp_ns - window_ns:
+            self.speeds.popleft()
+        covered = stamp_ns - self.speeds[0][0] >= window_ns
+        self.still = covered and max(s for _, s in self.speeds) < still_speed_mps
+
+    def estimate(self, stamp_ns: int, confirm: float, nz: int) -> TrackEstimate:
+        profile = self.height_profile if self.height_profile is not None else np.zeros(nz, dtype=np.int32)
+        return TrackEstimate(
+            id=self.id,
+            x=self.x,
+            y=self.y,
+            z_top_m=self.z_top_m,
+            volume_m3=self.volume_m3,
+            reliability=self.reliability,
+            confirmed=self.reliability >= confirm,
+            age_frames=self.age,
+            vx=self.vx,
+            vy=self.vy,
+            height_profile=profile,
+            blob=self.blob,
+            still=bool(self.still),
+            alpha_m=self.alpha_m,
+            stamp_ns=stamp_ns,
+        )
+
+
+def _restart(pf: ParticleFilter, blob: Blob, alpha_m: float, rng: np.random.Generator) -> ParticleFilter:
+    fresh = ParticleFilter(
+        blob.x,
+        blob.y,
+        alpha_m,
+        rng=rng,
+        n_particles=len(pf.weights),
+        k_m=pf.k_m,
+        alpha_range_m=pf.alpha_range_m,
+        position_noise_m=pf.position_noise_m,
+        alpha_noise_m=pf.alpha_noise_m,
+        resample_below=pf.resample_below,
+    )
+    fresh.last_stamp_ns = pf.last_stamp_ns
+    return fresh
+
+
+def _box_top(result: CarveResult, x_m: float, y_m: float, alpha_m: float) -> float:
+    """Highest column top (metres) in the square floor box around (x, y)."""
+    grid = result.grid
+    top = result.floor.top_m
+    v = grid.voxel_m
+    i = int(math.floor((x_m - grid.origin_m[0]) / v))
+    j = int(math.floor((y_m - grid.origin_m[1]) / v))
+    a = max(0, int(round(alpha_m / v)))
+    j0, j1 = max(j - a, 0), min(j + a + 1, top.shape[0])
+    i0, i1 = max(i - a, 0), min(i + a + 1, top.shape[1])
+    if j0 >= j1 or i0 >= i1:
+        return 0.0
+    return float(top[j0:j1, i0:i1].max())
