@@ -75,6 +75,17 @@ class TrackTable:
         """(N, 2) float64 floor positions, world frame, metres."""
         return np.column_stack([self.x, self.y]) if len(self) else np.zeros((0, 2))
 
+    def fps_from_stamps(self) -> float | None:
+        """Frames per second from the first and last frame's earliest stamps; None when unusable."""
+        if len(self) < 2:
+            return None
+        f0, f1 = int(self.frame.min()), int(self.frame.max())
+        if f1 == f0:
+            return None
+        s0 = int(self.stamp_ns[self.frame == f0].min())
+        s1 = int(self.stamp_ns[self.frame == f1].min())
+        return None if s1 <= s0 else (f1 - f0) / ((s1 - s0) / 1e9)
+
     @classmethod
     def from_rows(cls, rows: Iterable[Sequence[Any]]) -> "TrackTable":
         """Build from ``(frame, stamp_ns, id, x, y, z_top, posture)`` tuples; sorts by (frame, id)."""

@@ -252,24 +252,10 @@ def _frame_rate(fps: float | None, meta: io.Meta, truth: io.TrackTable, run: io.
     if meta.fps is not None:
         return meta.fps, "meta.json"
     for name, table in (("truth", truth), ("run", run)):
-        est = _fps_from_stamps(table)
+        est = table.fps_from_stamps()
         if est is not None:
             return est, f"{name} stamps"
     return None, "unknown"
-
-
-def _fps_from_stamps(table: io.TrackTable) -> float | None:
-    """Frames per second from the first and last frame's stamps; None when unusable."""
-    if len(table) < 2:
-        return None
-    f0, f1 = int(table.frame.min()), int(table.frame.max())
-    if f1 == f0:
-        return None
-    s0 = int(table.stamp_ns[table.frame == f0].min())
-    s1 = int(table.stamp_ns[table.frame == f1].min())
-    if s1 <= s0:
-        return None
-    return (f1 - f0) / ((s1 - s0) / 1e9)
 
 
 def _frame_range(n_frames, truth, run, truth_events, run_events, notes: list[str]) -> tuple[int | None, int | None]:
