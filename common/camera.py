@@ -443,11 +443,16 @@ def _pinhole_distort(dist: np.ndarray, x: np.ndarray, y: np.ndarray) -> tuple[np
     k[: dist.size] = dist
     k1, k2, p1, p2, k3, k4, k5, k6, s1, s2, s3, s4, tau_x, tau_y = k
     r2 = x * x + y * y
-    r4 = r2 * r2
-    radial = (1 + r2 * (k1 + r2 * (k2 + r2 * k3))) / (1 + r2 * (k4 + r2 * (k5 + r2 * k6)))
+    radial = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
+    if k4 or k5 or k6:
+        radial = radial / (1 + r2 * (k4 + r2 * (k5 + r2 * k6)))
     xy2 = 2 * x * y
-    xd = x * radial + p1 * xy2 + p2 * (r2 + 2 * x * x) + s1 * r2 + s2 * r4
-    yd = y * radial + p1 * (r2 + 2 * y * y) + p2 * xy2 + s3 * r2 + s4 * r4
+    xd = x * radial + p1 * xy2 + p2 * (r2 + 2 * x * x)
+    yd = y * radial + p1 * (r2 + 2 * y * y) + p2 * xy2
+    if s1 or s2 or s3 or s4:
+        r4 = r2 * r2
+        xd = xd + s1 * r2 + s2 * r4
+        yd = yd + s3 * r2 + s4 * r4
     if tau_x != 0 or tau_y != 0:
         T = _tilt_matrix(tau_x, tau_y)
         a = T[0, 0] * xd + T[0, 1] * yd + T[0, 2]
