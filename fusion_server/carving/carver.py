@@ -75,6 +75,8 @@ class Carver:
                 raise ValueError(f"cameras[{cid!r}] must be a Camera, got {type(cam).__name__}")
             if cam.id != cid:
                 raise ValueError(f"cameras[{cid!r}] has id {cam.id!r}; keys must equal camera ids")
+        if len(cameras) > 255:
+            raise ValueError(f"cameras: at most 255 cameras, got {len(cameras)}")
         sizes = _check_voxel_sizes(voxel_sizes_m)
         if isinstance(min_cameras, bool) or not isinstance(min_cameras, (int, np.integer)) or min_cameras < 1:
             raise ValueError(f"min_cameras must be an int >= 1, got {min_cameras!r}")

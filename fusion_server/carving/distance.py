@@ -23,7 +23,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-__all__ = ["DistanceImages", "distance_images", "vote", "FOREGROUND_THRESHOLD"]
+__all__ = ["DistanceImages", "distance_images", "vote", "needed_votes", "FOREGROUND_THRESHOLD"]
 
 FOREGROUND_THRESHOLD = 127  # mask values above this are foreground (MOG2 marks shadows 127)
 _RATIO_EPS = 1e-9
@@ -38,7 +38,7 @@ class DistanceImages:
         is NaN, so that a LUT pixel of -1 (not visible) reads NaN and never passes.
     camera_ids: ids of the present cameras, in LUT column order.
     columns: (P,) int64 LUT columns of those cameras.
-    offsets: (P,) int64 start of each camera's image in ``values``.
+    offsets: (P,) int32 (int64 for huge buffers) start of each camera's image in ``values``.
     sizes: per present camera, the mask size (width, height).
     lut_sizes: per present camera, the size the LUT pixels refer to (width, height).
     """
@@ -80,6 +80,8 @@ def distance_images(masks: Mapping[str, np.ndarray], camera_ids: Sequence[str],
         offsets[p] = total
         total += w * h
     total += 1
+    if total < 2**31:
+        offsets = offsets.astype(np.int32)  # int32 LUT pixels + int32 offsets stay int32
     values = out[:total] if out is not None and out.dtype == np.float32 and out.ndim == 1 and out.size >= total \
         else np.empty(total, dtype=np.float32)
     inverted = None
@@ -119,10 +121,23 @@ def vote(pixel: np.ndarray, radius_px: np.ndarray, dists: DistanceImages, min_ca
         pixel = pixel[:, cols]
         radius_px = radius_px[:, cols]
     pixel, radius_px = _rescale(pixel, radius_px, dists)
-    d = dists.values[pixel + dists.offsets]
-    found = np.count_nonzero(d <= radius_px, axis=1)
-    seeing = np.count_nonzero(pixel >= 0, axis=1)
-    return (found >= min_cameras) & (found >= min_ratio * seeing - _RATIO_EPS)
+    hit = dists.values[pixel + dists.offsets] <= radius_px  # NaN (not visible) never hits
+    seen = pixel >= 0
+    # Column sums: much faster than a reduction along a short inner axis.
+    found = hit[:, 0].astype(np.uint8)
+    seeing = seen[:, 0].astype(np.uint8)
+    for p in range(1, hit.shape[1]):
+        found += hit[:, p]
+        seeing += seen[:, p]
+    return found >= needed_votes(hit.shape[1], min_cameras, min_ratio)[seeing]
+
+
+def needed_votes(n_cameras: int, min_cameras: int, min_ratio: float) -> np.ndarray:
+    """(n_cameras + 1,) uint8: votes needed by a voxel that ``s`` cameras see, indexed by ``s``:
+    ``max(min_cameras, ceil(min_ratio * s))``; never reachable when ``s < min_cameras``."""
+    s = np.arange(n_cameras + 1)
+    need = np.maximum(min_cameras, np.ceil(min_ratio * s - _RATIO_EPS)).astype(np.int64)
+    return np.minimum(need, 255).astype(np.uint8)
 
 
 # ---------------------------------------------------------------------- helpers

@@ -1,0 +1,225 @@
+"""Frame-set synchronisation: masks from free-running cameras -> sets of one instant.
+
+Cameras are not genlocked: each stamps its frames with its own capture time.
+A *frame set* gathers at most one frame per camera whose stamps lie within
+``tolerance_ns`` of the set's reference stamp (the stamp of the frame that
+opened it). Default tolerance: half a frame period, so that consecutive
+frames of one camera never fall in one window.
+
+Release rules (time comes only from the stamps pushed, never from a clock):
+
+* a set holding every camera is released at once;
+* a set is released with the cameras it has once the newest stamp seen from
+  any camera is more than ``max_wait_ns`` past its reference stamp, so a late
+  or silent camera never holds the others back;
+* sets leave in reference-stamp order: releasing a set first releases every
+  older pending set.
+
+Dropped and counted per camera (``counters[cam][...]``):
+
+* ``duplicate``: same sequence number or same stamp as a recent frame of that camera;
+* ``out_of_order``: joins no pending set and is not newer than the last released
+  set (its stamp is at most the last released reference stamp plus the tolerance);
+* ``stale``: more than ``max_wait_ns`` older than the newest stamp seen, with no
+  pending set to join (its set would leave at once, without the others);
+* ``superseded``: a second frame of the camera for a pending set; the frame
+  nearer to the reference stamp stays;
+* ``dropped_overflow``: the camera already had ``max_buffer`` frames pending;
+  its oldest pending frame is dropped to make room.
+
+``received`` counts every push of a known camera and ``released`` the frames that
+left in sets. Pushes from unknown cameras are counted in ``unknown`` and dropped.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import deque
+from collections.abc import Iterable
+from dataclasses import dataclass, field
+from typing import Any
+
+__all__ = ["FrameSet", "FrameSynchroniser", "COUNTER_NAMES"]
+
+COUNTER_NAMES = ("received", "duplicate", "out_of_order", "stale", "superseded", "released", "dropped_overflow")
+
+
+@dataclass(frozen=True)
+class FrameSet:
+    """Frames of one instant.
+
+    stamp_ns: reference stamp (the stamp of the frame that opened the set).
+    payloads: camera id -> payload, for the cameras present.
+    stamps_ns: camera id -> that frame's own stamp.
+    seqs: camera id -> that frame's sequence number.
+    missing: ids of the configured cameras absent from the set.
+    """
+
+    stamp_ns: int
+    payloads: dict[str, Any]
+    stamps_ns: dict[str, int]
+    seqs: dict[str, int]
+    missing: tuple[str, ...] = ()
+
+    @property
+    def cameras(self) -> tuple[str, ...]:
+        return tuple(self.payloads)
+
+    @property
+    def complete(self) -> bool:
+        return not self.missing
+
+
+@dataclass
+class _Pending:
+    stamp_ns: int
+    frames: dict[str, tuple[int, int, Any]] = field(default_factory=dict)  # cam -> (seq, stamp_ns, payload)
+
+
+class FrameSynchroniser:
+    """Groups masks of several cameras into frame sets. Pure: no clock, no I/O.
+
+    Keyword arguments:
+      camera_ids: the cameras expected in a complete set.
+      fps: nominal frame rate, used for the defaults below.
+      tolerance_ns: largest |stamp - reference| in a set; default half a frame period.
+      max_wait_ns: how far the newest stamp may run ahead of a set before it is released
+        without its missing cameras; default one frame period.
+      max_buffer: most frames pending per camera.
+    """
+
+    def __init__(self, *, camera_ids: Iterable[str], fps: float = 15.0, tolerance_ns: int | None = None,
+                 max_wait_ns: int | None = None, max_buffer: int = 8) -> None:
+        ids = tuple(camera_ids) if not isinstance(camera_ids, str) else ()
+        if not ids or any(not isinstance(c, str) or not c for c in ids):
+            raise ValueError(f"camera_ids must be non-empty strings, got {camera_ids!r}")
+        if len(set(ids)) != len(ids):
+            raise ValueError(f"camera_ids must be unique, got {list(ids)}")
+        if isinstance(fps, bool) or not isinstance(fps, (int, float)) or not (math.isfinite(fps) and fps > 0):
+            raise ValueError(f"fps must be a positive number, got {fps!r}")
+        period_ns = 1e9 / fps
+        tolerance_ns = int(round(period_ns / 2)) if tolerance_ns is None else tolerance_ns
+        max_wait_ns = int(round(period_ns)) if max_wait_ns is None else max_wait_ns
+        for name, value in (("tolerance_ns", tolerance_ns), ("max_wait_ns", max_wait_ns)):
+            if isinstance(value, bool) or not isinstance(value, int) or value < 0:
+                raise ValueError(f"{name} must be a non-negative int, got {value!r}")
+        if isinstance(max_buffer, bool) or not isinstance(max_buffer, int) or max_buffer < 1:
+            raise ValueError(f"max_buffer must be an int >= 1, got {max_buffer!r}")
+        self.camera_ids: tuple[str, ...] = ids
+        self.tolerance_ns = tolerance_ns
+        self.max_wait_ns = max_wait_ns
+        self.max_buffer = max_buffer
+        self.counters: dict[str, dict[str, int]] = {c: dict.fromkeys(COUNTER_NAMES, 0) for c in ids}
+        self.unknown = 0
+        self.sets_released = 0
+        self.sets_partial = 0
+        self._pending: list[_Pending] = []  # sorted by stamp_ns
+        self._recent: dict[str, deque[tuple[int, int]]] = {c: deque(maxlen=2 * max_buffer + 2) for c in ids}
+        self._newest_ns: int | None = None
+        self._released_ns: int | None = None
+
+    @property
+    def pending(self) -> int:
+        """Number of frames waiting in open sets."""
+        return sum(len(p.frames) for p in self._pending)
+
+    @property
+    def last_released_ns(self) -> int | None:
+        """Reference stamp of the last released set, None before the first."""
+        return self._released_ns
+
+    def push(self, cam: str, seq: int, stamp_ns: int, payload: Any) -> list[FrameSet]:
+        """Offer one frame; returns the frame sets ready for fusion, oldest first (often empty)."""
+        if cam not in self.counters:
+            self.unknown += 1
+            return []
+        count = self.counters[cam]
+        count["received"] += 1
+        seq, stamp_ns = int(seq), int(stamp_ns)
+        if any(s == seq or t == stamp_ns for s, t in self._recent[cam]):
+            count["duplicate"] += 1
+            return []
+        target = self._match(stamp_ns)
+        if target is None:
+            if self._released_ns is not None and stamp_ns <= self._released_ns + self.tolerance_ns:
+                count["out_of_order"] += 1
+                return []
+            if self._newest_ns is not None and self._newest_ns - stamp_ns > self.max_wait_ns:
+                count["stale"] += 1
+                return []
+        self._recent[cam].append((seq, stamp_ns))
+        if target is None:
+            target = _Pending(stamp_ns)
+            self._insert(target)
+        if cam in target.frames:
+            held_stamp = target.frames[cam][1]
+            count["superseded"] += 1
+            if abs(held_stamp - target.stamp_ns) <= abs(stamp_ns - target.stamp_ns):
+                return self._release_due()
+        else:
+            self._make_room(cam)
+        target.frames[cam] = (seq, stamp_ns, payload)
+        self._newest_ns = stamp_ns if self._newest_ns is None else max(self._newest_ns, stamp_ns)
+        out: list[FrameSet] = []
+        if len(target.frames) == len(self.camera_ids):
+            out.extend(self._release_through(target))
+        out.extend(self._release_due())
+        return out
+
+    def flush(self) -> list[FrameSet]:
+        """Release every pending set as it is (end of a recording), oldest first."""
+        return self._release_through(self._pending[-1]) if self._pending else []
+
+    # ------------------------------------------------------------------ helpers
+
+    def _match(self, stamp_ns: int) -> _Pending | None:
+        """The pending set whose reference stamp is nearest, if within the tolerance."""
+        best, best_d = None, None
+        for p in self._pending:
+            d = abs(p.stamp_ns - stamp_ns)
+            if d <= self.tolerance_ns and (best_d is None or d < best_d):
+                best, best_d = p, d
+        return best
+
+    def _insert(self, pending: _Pending) -> None:
+        i = len(self._pending)
+        while i > 0 and self._pending[i - 1].stamp_ns > pending.stamp_ns:
+            i -= 1
+        self._pending.insert(i, pending)
+
+    def _make_room(self, cam: str) -> None:
+        """Keep at most max_buffer - 1 frames of ``cam`` pending before adding one."""
+        held = [p for p in self._pending if cam in p.frames]
+        while len(held) >= self.max_buffer:
+            oldest = held.pop(0)
+            del oldest.frames[cam]
+            self.counters[cam]["dropped_overflow"] += 1
+            if not oldest.frames:
+                self._pending.remove(oldest)
+
+    def _release_due(self) -> list[FrameSet]:
+        """Release sets the newest stamp has left more than max_wait_ns behind."""
+        due = [p for p in self._pending if self._newest_ns - p.stamp_ns > self.max_wait_ns]
+        return self._release_through(due[-1]) if due else []
+
+    def _release_through(self, last: _Pending) -> list[FrameSet]:
+        """Release ``last`` and every pending set older than it, oldest first."""
+        i = self._pending.index(last)
+        out, self._pending = self._pending[: i + 1], self._pending[i + 1 :]
+        sets = []
+        for p in out:
+            cams = [c for c in self.camera_ids if c in p.frames]
+            for c in cams:
+                self.counters[c]["released"] += 1
+            missing = tuple(c for c in self.camera_ids if c not in p.frames)
+            self.sets_released += 1
+            self.sets_partial += bool(missing)
+            sets.append(FrameSet(
+                stamp_ns=p.stamp_ns,
+                payloads={c: p.frames[c][2] for c in cams},
+                stamps_ns={c: p.frames[c][1] for c in cams},
+                seqs={c: p.frames[c][0] for c in cams},
+                missing=missing,
+            ))
+        self._released_ns = out[-1].stamp_ns
+        return sets
