@@ -95,10 +95,12 @@ class Tracker:
         0.2-0.3 m off the person when it includes furniture or an arm].
     learning_rate_max, learning_rate_min: l_max and l_min of the learning
         rate [0.3, 0.05].
-    confirm_reliability: r at or above which a target is a person [0.6:
-        three matched frames from creation].
-    delete_reliability: r below which a target is destroyed [0.1: a new
-        target missed four frames in a row, an old one about 45 frames].
+    confirm_reliability: r at or above which a target is a person [0.6].
+    delete_reliability: r below which a target is destroyed [0.1]. With the
+        defaults a new target is confirmed on its 3rd matched frame and a
+        one-frame ghost destroyed on its 4th miss; a target seen for 4 s
+        (60 frames at 15 fps) is unconfirmed on the 8th missed frame and
+        destroyed on the 36th; never later than the 45th.
     merge_distance_m, merge_frames: duplicate targets closer than this for
         this many consecutive frames merge [0.3 m, 8 frames]. People do not
         stand closer than 0.3 m centre to centre for half a second.

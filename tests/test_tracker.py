@@ -1,0 +1,261 @@
+"""Tracker scenarios on synthesised voxel scenes at 15 fps (5 cm voxels)."""
+
+from __future__ import annotations
+
+import itertools
+
+import numpy as np
+import pytest
+
+from fusion_server.detection import detect_blobs
+from fusion_server.grid import CarveResult, VoxelGrid, floor_maps
+from fusion_server.tracker import TrackEstimate, Tracker
+
+GRID = VoxelGrid.from_bounds((0.0, 0.0, 0.0), (6.0, 4.0, 2.0), 0.05)
+FRAME_NS = 1_000_000_000 // 15
+
+
+def box(lo_m, hi_m) -> np.ndarray:
+    """Voxels whose centres lie in [lo_m, hi_m), (N, 3) int32."""
+    lo = np.ceil((np.asarray(lo_m) - GRID.origin_m) / GRID.voxel_m - 0.5 - 1e-9).astype(int)
+    hi = np.ceil((np.asarray(hi_m) - GRID.origin_m) / GRID.voxel_m - 0.5 - 1e-9).astype(int)
+    axes = [np.arange(max(a, 0), min(b, n)) for a, b, n in zip(lo, hi, GRID.shape)]
+    return np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3).astype(np.int32)
+
+
+def cylinder(cx, cy, radius_m, z0_m, z1_m) -> np.ndarray:
+    ijk = box((cx - radius_m, cy - radius_m, z0_m), (cx + radius_m, cy + radius_m, z1_m))
+    c = GRID.centres(ijk)
+    return ijk[(c[:, 0] - cx) ** 2 + (c[:, 1] - cy) ** 2 <= radius_m**2]
+
+
+def person(cx, cy, height_m=1.75) -> np.ndarray:
+    """Body r 0.2 m to the shoulders, head r 0.1 m."""
+    return np.concatenate([cylinder(cx, cy, 0.2, 0.0, height_m - 0.3), cylinder(cx, cy, 0.1, height_m - 0.3, height_m)])
+
+
+def frame(n: int, *parts) -> CarveResult:
+    parts = [p for p in parts if len(p)] or [np.zeros((0, 3), np.int32)]
+    ijk = np.unique(np.concatenate(parts), axis=0).astype(np.int32).reshape(-1, 3)
+    return CarveResult(ijk=ijk, grid=GRID, floor=floor_maps(ijk, GRID), stamp_ns=n * FRAME_NS, cameras=("a", "b", "c"))
+
+
+def run(tracker: Tracker, scenes) -> list[list[TrackEstimate]]:
+    out = []
+    for res in scenes:
+        out.append(tracker.step(res, detect_blobs(res), res.stamp_ns))
+    return out
+
+
+def by_id(estimates: list[TrackEstimate]) -> dict[int, TrackEstimate]:
+    return {e.id: e for e in estimates}
+
+
+def reliability_oracle(hits: list[bool], l_max=0.3, l_min=0.05) -> list[float]:
+    """Equations (1) and (2) of the paper, frame by frame, from creation."""
+    r, out = 0.0, []
+    for age, hit in enumerate(hits, start=1):
+        r += min(l_max, 1.0 / age + l_min) * ((1.0 if hit else 0.0) - r)
+        out.append(r)
+    return out
+
+
+def test_learning_rate_follows_the_paper():
+    tr = Tracker(rng=np.random.default_rng(0), learning_rate_max=0.3, learning_rate_min=0.05)
+    assert tr.learning_rate(1) == 0.3
+    assert tr.learning_rate(4) == pytest.approx(0.3)
+    assert tr.learning_rate(5) == pytest.approx(0.25)
+    assert tr.learning_rate(100) == pytest.approx(0.06)
+
+
+def test_new_person_is_confirmed_on_the_third_frame():
+    tr = Tracker(rng=np.random.default_rng(0))
+    out = run(tr, [frame(n, person(2.0, 2.0)) for n in range(4)])
+    assert [len(o) for o in out] == [1, 1, 1, 1]
+    rel = [o[0].reliability for o in out]
+    np.testing.assert_allclose(rel, [0.3, 0.51, 0.657, reliability_oracle([True] * 4)[3]])
+    assert [o[0].confirmed for o in out] == [False, False, True, True]
+    assert [o[0].age_frames for o in out] == [1, 2, 3, 4]
+
+
+def test_a_one_frame_ghost_is_deleted_after_four_misses():
+    tr = Tracker(rng=np.random.default_rng(0))
+    out = run(tr, [frame(0, person(2.0, 2.0))] + [frame(n) for n in range(1, 7)])
+    # r: 0.3 -> 0.21 -> 0.147 -> 0.1029 -> 0.0772 < 0.1 at the fourth miss.
+    assert [len(o) for o in out] == [1, 1, 1, 1, 0, 0, 0]
+    np.testing.assert_allclose([o[0].reliability for o in out[:4]], reliability_oracle([True, False, False, False]))
+    assert not any(o[0].confirmed for o in out[:4])
+
+
+def test_a_person_who_leaves_is_unconfirmed_then_deleted_with_the_stated_delays():
+    present = 60
+    scenes = [frame(n, person(2.0, 2.0)) for n in range(present)] + [frame(n) for n in range(present, present + 80)]
+    tr = Tracker(rng=np.random.default_rng(1))
+    out = run(tr, scenes)
+    oracle = reliability_oracle([True] * present + [False] * 80)
+    first_unconfirmed = next(n for n in range(present, len(oracle)) if oracle[n] < 0.6)
+    first_deleted = next(n for n in range(present, len(oracle)) if oracle[n] < 0.1)
+    assert first_unconfirmed - present == 7  # unconfirmed on the 8th missed frame (0.53 s at 15 fps)
+    assert first_deleted - present == 35  # deleted on the 36th (2.4 s)
+    for n, o in enumerate(out):
+        if n < first_deleted:
+            assert len(o) == 1 and o[0].id == 1
+            assert o[0].reliability == pytest.approx(oracle[n])
+            assert o[0].confirmed == (oracle[n] >= 0.6)
+        else:
+            assert o == []
+
+
+def walk_past(n_frames: int = 100, lateral_m: float = 0.5, bridge=None, heights=(1.75, 1.75)):
+    """Two people walking past each other in opposite directions along x.
+
+    Their centres pass ``lateral_m`` apart; ``bridge`` (z0, z1) joins them
+    with an arm at that height while they are closer than 0.6 m.
+    """
+    scenes, truth = [], []
+    for n in range(n_frames):
+        ax = 1.0 + 4.0 * n / (n_frames - 1)
+        bx = 5.0 - 4.0 * n / (n_frames - 1)
+        a, b = (ax, 2.0 - lateral_m / 2), (bx, 2.0 + lateral_m / 2)
+        parts = [person(*a, heights[0]), person(*b, heights[1])]
+        if bridge is not None and abs(ax - bx) < 0.6:
+            mid = 0.5 * (ax + bx)
+            parts.append(box((mid - 0.1, a[1] + 0.1, bridge[0]), (mid + 0.1, b[1] - 0.1, bridge[1])))
+        scenes.append(frame(n, *parts))
+        truth.append((a, b))
+    return scenes, truth
+
+
+@pytest.mark.parametrize("bridge", [None, (0.8, 0.95), (1.25, 1.4)], ids=["apart", "hands-below-tau1", "shoulders-above-tau1"])
+def test_two_people_walking_past_keep_their_identities(bridge):
+    scenes, truth = walk_past(bridge=bridge, heights=(1.75, 1.6))
+    tr = Tracker(rng=np.random.default_rng(7))
+    out = run(tr, scenes)
+    ids = {e.id for o in out for e in o}
+    assert ids == {1, 2}
+    speed = 4.0 / (99 / 15)  # 0.606 m/s
+    for n, (o, (a, b)) in enumerate(zip(out, truth)):
+        est = by_id(o)
+        assert set(est) == {1, 2}, n
+        # Track 1 started on the left walker, track 2 on the right one.
+        assert np.hypot(est[1].x - a[0], est[1].y - a[1]) < 0.05, n
+        assert np.hypot(est[2].x - b[0], est[2].y - b[1]) < 0.05, n
+        if n >= 2:
+            assert est[1].confirmed and est[2].confirmed, n
+        if n >= 15:
+            assert est[1].vx == pytest.approx(speed, abs=0.12) and est[2].vx == pytest.approx(-speed, abs=0.12)
+            assert abs(est[1].vy) < 0.12 and abs(est[2].vy) < 0.12
+            assert not est[1].still and not est[2].still
+        assert est[1].z_top_m == pytest.approx(1.75) and est[2].z_top_m == pytest.approx(1.6)
+    merged_frames = [o for o in out if len({id(e.blob) for e in o}) == 1]
+    if bridge == (1.25, 1.4):
+        assert len(merged_frames) >= 5  # they were one blob and shared it
+        for o in merged_frames:
+            a, b = o
+            assert a.blob is b.blob
+            assert a.height_profile.sum() * 0.05**3 == pytest.approx(a.volume_m3)
+            assert a.volume_m3 + b.volume_m3 == pytest.approx(a.blob.volume_m3)
+            assert a.height_profile[33] > 0 and b.height_profile[33] == 0  # only the taller head reaches 1.65-1.7 m
+    else:
+        assert merged_frames == []
+
+
+def test_strict_paper_association_starves_the_second_target_of_a_merged_blob():
+    scenes, _ = walk_past(bridge=(1.25, 1.4))
+    out = run(Tracker(rng=np.random.default_rng(7), share_blobs=False), scenes)
+    assert min(e.reliability for o in out[40:60] for e in o) < 0.9
+    out = run(Tracker(rng=np.random.default_rng(7), share_blobs=True), scenes)
+    assert min(e.reliability for o in out[40:60] for e in o) > 0.99
+
+
+def test_same_seed_same_tracks():
+    scenes, _ = walk_past(n_frames=40)
+    a = run(Tracker(rng=np.random.default_rng(3)), scenes)
+    b = run(Tracker(rng=np.random.default_rng(3)), scenes)
+    for oa, ob in zip(a, b):
+        assert [(e.id, e.x, e.y, e.reliability) for e in oa] == [(e.id, e.x, e.y, e.reliability) for e in ob]
+
+
+def test_duplicate_target_on_one_person_is_merged_into_the_older():
+    # A bag held away from the body for one frame starts a second target,
+    # whose filter then settles on the person: after merge_frames close
+    # frames only the older track remains.
+    bag = box((2.3, 1.85, 0.45), (2.5, 2.15, 0.85))  # 0.024 m^3, 0.4 m from the centre
+    scenes = [frame(n, person(2.0, 2.0), bag if n == 5 else []) for n in range(40)]
+    tr = Tracker(rng=np.random.default_rng(2), merge_frames=8, merge_distance_m=0.3)
+    out = run(tr, scenes)
+    assert {e.id for e in out[5]} == {1, 2}
+    merged_at = next(n for n in range(6, 40) if {e.id for e in out[n]} == {1})
+    assert merged_at <= 5 + 8 + 6
+    assert all({e.id for e in o} == {1} for o in out[merged_at:])
+    assert out[-1][0].confirmed and out[-1][0].age_frames == 40
+
+
+def test_merge_keeps_the_older_target():
+    # A child walks into an adult's arms: from frame 7 on the two are one
+    # mass and both targets follow it; the adult's older track is kept.
+    scenes = [frame(0, person(2.0, 2.0))]
+    scenes += [frame(n, person(2.0, 2.0), person(max(2.0, 2.7 - 0.1 * n), 2.0, 1.2)) for n in range(1, 40)]
+    tr = Tracker(rng=np.random.default_rng(4), id_source=iter([10, 20, 30]))
+    out = run(tr, scenes)
+    assert {e.id for e in out[1]} == {10, 20}
+    gone = next(n for n in range(len(out)) if n > 1 and {e.id for e in out[n]} == {10})
+    assert gone <= 7 + 8 + 3
+    assert all({e.id for e in o} == {10} for o in out[gone:])
+
+
+def test_ids_come_from_the_injected_source():
+    scenes = [frame(n, person(1.0, 1.0), person(3.0, 3.0) if n >= 2 else []) for n in range(4)]
+    out = run(Tracker(rng=np.random.default_rng(0), id_source=itertools.count(500, 5)), scenes)
+    assert [e.id for e in out[-1]] == [500, 505]
+    counter = iter(range(7, 100))
+    out = run(Tracker(rng=np.random.default_rng(0), id_source=lambda: next(counter)), scenes)
+    assert [e.id for e in out[-1]] == [7, 8]
+
+
+def test_still_after_a_window_without_motion():
+    scenes = [frame(n, person(1.0 + min(n, 15) * 0.06, 2.0)) for n in range(45)]
+    out = run(Tracker(rng=np.random.default_rng(5), still_window_s=1.0, still_speed_mps=0.15), scenes)
+    still = [o[0].still for o in out]
+    assert not any(still[:16])  # walking at 0.9 m/s, then the first second of standing
+    assert all(still[40:])
+    assert all(o[0].x == pytest.approx(1.9, abs=0.04) for o in out[30:])
+
+
+def test_estimate_fields():
+    out = run(Tracker(rng=np.random.default_rng(0)), [frame(n, person(3.0, 1.5, 1.7)) for n in range(3)])
+    e = out[-1][0]
+    assert isinstance(e, TrackEstimate)
+    assert e.height_profile.shape == (GRID.shape[2],) and e.height_profile.dtype == np.int32
+    assert e.blob is not None and e.volume_m3 == pytest.approx(e.blob.volume_m3)
+    assert e.z_top_m == pytest.approx(1.7)
+    assert e.stamp_ns == 2 * FRAME_NS
+    assert 0.15 <= e.alpha_m <= 0.6
+    assert isinstance(e.vx, float) and isinstance(e.x, float)
+
+
+def test_stamps_must_not_go_back():
+    tr = Tracker(rng=np.random.default_rng(0))
+    res = frame(5, person(1.0, 1.0))
+    tr.step(res, detect_blobs(res), res.stamp_ns)
+    with pytest.raises(ValueError, match="stamp_ns"):
+        tr.step(res, detect_blobs(res), res.stamp_ns - 1)
+
+
+@pytest.mark.parametrize(
+    "bad",
+    [
+        {"gate_m": -1.0},
+        {"learning_rate_max": 0.0},
+        {"learning_rate_min": 0.5},
+        {"confirm_reliability": 0.05},
+        {"merge_frames": 0},
+        {"velocity_tau_s": 0.0},
+        {"n_particles": 0},
+        {"rng": None},
+    ],
+)
+def test_bad_settings_name_themselves(bad):
+    kwargs = {"rng": np.random.default_rng(0), **bad}
+    with pytest.raises(ValueError, match=next(iter(bad))):
+        Tracker(**kwargs)
