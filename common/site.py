@@ -36,7 +36,7 @@ Schema (all lengths in metres, world frame Z up, floor at Z = 0)::
     up = "+z"                    # +z | -z: the calibration's up axis
     origin_m = [0.0, 0.0, 0.0]   # the calibration origin in the site's world
     yaw_deg = 0.0                # rotation of the calibration frame about Z
-    resolution = [640, 480]
+    resolution = [640, 480]      # optional when the calibration states its size
     modality = "colour"          # colour | thermal | infrared | depth
     fps = 15.0
     source = ""                  # default source for this camera's worker
@@ -155,7 +155,7 @@ class CameraSpec(_Model):
     up: Literal["+z", "-z"] = "+z"
     origin_m: tuple[float, float, float] = (0.0, 0.0, 0.0)
     yaw_deg: float = 0.0
-    resolution: tuple[int, int] = (640, 480)
+    resolution: tuple[int, int] | None = None
     modality: Literal["colour", "thermal", "infrared", "depth"] = "colour"
     fps: float = Field(default=15.0, gt=0.0, le=240.0)
     source: str = ""
@@ -163,8 +163,8 @@ class CameraSpec(_Model):
 
     @field_validator("resolution")
     @classmethod
-    def _resolution_ok(cls, res: tuple[int, int]) -> tuple[int, int]:
-        if not all(16 <= v <= 8192 for v in res):
+    def _resolution_ok(cls, res: tuple[int, int] | None) -> tuple[int, int] | None:
+        if res is not None and not all(16 <= v <= 8192 for v in res):
             raise ValueError(f"width and height must lie in 16..8192, got {list(res)}")
         return res
 
@@ -284,11 +284,11 @@ def site_to_toml(site: Site) -> str:
     for key, value in data.items():
         if isinstance(value, dict):
             lines.append(f"\n[{key}]")
-            lines.extend(f"{k} = {_toml_value(v)}" for k, v in value.items())
+            lines.extend(f"{k} = {_toml_value(v)}" for k, v in value.items() if v is not None)
         elif isinstance(value, list) and _is_table_list(value):
             for item in value:
                 lines.append(f"\n[[{key}]]")
-                lines.extend(f"{k} = {_toml_value(v)}" for k, v in item.items())
+                lines.extend(f"{k} = {_toml_value(v)}" for k, v in item.items() if v is not None)
     return "\n".join(lines) + "\n"
 
 

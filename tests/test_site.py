@@ -111,3 +111,28 @@ def test_unknown_camera_lists_the_known_ones(tmp_path):
     site = load_site(_write(tmp_path, GOOD))
     with pytest.raises(SiteError, match=r"no camera 'door'.*\['hall', 'ceiling'\]"):
         site.camera("door")
+
+
+def test_lab_site_loads_every_calibration_into_the_world_frame(tmp_path, lab4cam):
+    """The lab calibrations are in mm with -Z up; the site lands them in metres, Z up."""
+    cams = "".join(
+        f'\n[[cameras]]\nid = "cam{i}"\ncalibration = "{lab4cam / f"cam{i}" / "config.xml"}"\n'
+        f'format = "opencv"\nunits = "mm"\nup = "-z"\nresolution = [644, 486]\n'
+        for i in range(1, 5)
+    )
+    site = load_site(_write(tmp_path, 'name = "lab"\n[volume]\nmin_m = [-1.0, -1.5, 0.0]\nmax_m = [2.0, 1.5, 2.2]\n' + cams))
+    cameras = site.load_cameras()
+    assert sorted(cameras) == ["cam1", "cam2", "cam3", "cam4"]
+    for cam in cameras.values():
+        assert (cam.width, cam.height) == (644, 486)
+        assert 1.0 < cam.center[2] < 3.0  # mounted above a person's head, below a lab ceiling
+        # the chair near the world origin is in front of every camera and in its image
+        _, valid = cam.project([[0.35, 0.0, 0.8]])
+        assert valid[0]
+
+
+def test_pets_camera_takes_its_size_from_the_calibration(tmp_path, pets_calibration):
+    text = f'name = "pets"\n[[cameras]]\nid = "v1"\ncalibration = "{pets_calibration / "View_001.xml"}"\nformat = "pets-tsai"\nunits = "mm"\n'
+    cam = load_site(_write(tmp_path, text)).load_camera("v1")
+    assert (cam.width, cam.height) == (768, 576)
+    assert cam.center[2] > 1.0
