@@ -198,9 +198,11 @@ class _TopDown:
                 prev = labels[k]
                 continue
             n, cc = cv2.connectedComponents(layer, connectivity=8, ltype=cv2.CV_32S)
-            if dirty or len(rootmap) < len(self.parent):
+            if dirty:
                 rootmap = np.array([self._find(i) for i in range(len(self.parent))], dtype=np.int32)
                 dirty = False
+            elif len(rootmap) < len(self.parent):  # blobs born since are their own roots
+                rootmap = np.concatenate([rootmap, np.arange(len(rootmap), len(self.parent), dtype=np.int32)])
             above = rootmap[prev]
             touch = (cc > 0) & (above > 0)
             meets = np.zeros((n, len(self.parent)), dtype=bool)

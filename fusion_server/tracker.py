@@ -174,9 +174,8 @@ class Tracker:
             alpha_noise_m=alpha_noise_m,
             resample_below=resample_below,
         )
-        # Build one filter now so that bad filter settings fail at construction.
-        probe = ParticleFilter(0.0, 0.0, alpha_range_m[0], rng=np.random.default_rng(0), **self._pf_args)
-        self._max_half_m = probe.max_half_m
+        # One throw-away filter makes bad filter settings fail here, not on the first frame.
+        self._max_half_m = ParticleFilter(0.0, 0.0, alpha_range_m[0], rng=rng, **{**self._pf_args, "n_particles": 1}).max_half_m
         self.rng = rng
         if id_source is None:
             id_source = itertools.count(1)

@@ -173,3 +173,24 @@ def test_grid_with_offset_origin():
 def test_bad_parameters_name_themselves(bad):
     with pytest.raises(ValueError, match=next(iter(bad))):
         detect_blobs(scene(standing(1.0, 1.0)), **bad)
+
+
+def test_separate_groups_are_detected_as_if_alone():
+    # The detector packs separate groups of columns side by side; each group's
+    # blobs must equal those found with the group alone in the room.
+    groups = [
+        [standing(0.5, 0.5)],
+        [standing(1.5, 0.6), standing(2.1, 0.6), box((1.65, 0.55, 0.8), (1.95, 0.65, 0.95))],
+        [seated(3.0, 3.0)],
+        [box((0.3, 3.0, 0.0), (1.5, 3.4, 0.3))],
+        [box((3.6, 0.3, 0.0), (3.7, 0.4, 0.1))],
+    ]
+    together = detect_blobs(scene(*[p for g in groups for p in g]))
+    alone = [b for g in groups for b in detect_blobs(scene(*g))]
+    key = lambda b: (b.volume_voxels, round(b.x, 9), round(b.y, 9), b.z_top_m)
+    assert sorted(map(key, together)) == sorted(map(key, alone))
+    assert len(together) == 5
+    for b in together:
+        twin = next(a for a in alone if key(a) == key(b))
+        assert np.array_equal(np.unique(b.ijk, axis=0), np.unique(twin.ijk, axis=0))
+        assert np.array_equal(b.height_profile, twin.height_profile)
