@@ -311,7 +311,7 @@ class PostureEstimator:
     min_duration_s: a new posture must lead the filter this long before it is
         reported.
     learn_min_prob: standing probability above which the standing height is
-        updated; learn_time_constant_s: its exponential time constant;
+        updated (the frame on its own must also read standing); learn_time_constant_s: its exponential time constant;
         learn_prior_frames: weight of the prior height, in frames, while
         the first samples arrive.
     height_limits_m: the standing height estimate stays in this range.
@@ -405,7 +405,7 @@ class PostureEstimator:
         prob = np.exp(self._log_alpha)
         best = int(np.argmax(prob))
         self._debounce(best, stamp_ns)
-        self._learn_height(prob, smoothed, dt_s)
+        self._learn_height(prob, raw, dt_s)
         self._last = PostureReading(
             posture=POSTURES[self._reported],
             since_ns=self._since_ns,
@@ -431,15 +431,18 @@ class PostureEstimator:
             self._reported, self._since_ns = best, self._candidate_ns
             self._candidate = None
 
-    def _learn_height(self, prob: np.ndarray, smoothed: PostureFeatures, dt_s: float) -> None:
+    def _learn_height(self, prob: np.ndarray, raw: PostureFeatures, dt_s: float) -> None:
         standing = POSTURES.index("standing")
         if self._reported != standing or prob[standing] < self.learn_min_prob:
+            return
+        # The filter lags a change by a few frames: this frame on its own must read standing too.
+        if classify(raw, self.standing_height_m, self.model) != "standing":
             return
         self.standing_samples += 1
         rate = dt_s / self.learn_time_constant_s if dt_s > 0 else 0.0
         alpha = max(1.0 / (self.learn_prior_frames + self.standing_samples), min(rate, 1.0))
         lo, hi = self.height_limits_m
-        target = min(max(smoothed.vertical_m, lo), hi)
+        target = min(max(raw.vertical_m, lo), hi)
         self.standing_height_m += alpha * (target - self.standing_height_m)
 
 

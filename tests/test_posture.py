@@ -1,0 +1,354 @@
+"""Posture from height profiles of synthetic articulated bodies.
+
+The body model below (boxes for shins, thighs, torso, head and arms, chained
+from the feet in the sagittal plane, optionally fattened the way a visual
+hull fattens a body, tilted about the feet, turned about Z and voxelised)
+is also used by tests/test_events.py to build fall, sit-down, kneel and bend
+sequences.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from fusion_server.posture import (
+    FEATURE_NAMES,
+    POSTURES,
+    PostureBank,
+    PostureEstimator,
+    PostureFeatures,
+    classify,
+    feature_vector,
+    fir_smooth,
+    posture_log_likelihoods,
+    profile_features,
+)
+
+VOXEL_M = 0.05
+NZ = 50  # 2.5 m
+FPS = 15
+NS = 1_000_000_000
+
+# Joint angles in degrees from the vertical, positive leaning forward (+x):
+# each segment starts where the previous one ends, from the feet up.
+POSE_ANGLES: dict[str, dict[str, float]] = {
+    "standing": dict(shin=0, thigh=0, torso=0, uarm=180, farm=180),
+    "sitting": dict(shin=0, thigh=-90, torso=-5, uarm=175, farm=90),
+    "bending": dict(shin=0, thigh=-8, torso=80, uarm=170, farm=175),
+    "kneeling": dict(shin=-90, thigh=0, torso=0, uarm=180, farm=180),
+    "squatting": dict(shin=35, thigh=-115, torso=40, uarm=170, farm=170),
+}
+
+
+def blend(a: str, b: str, f: float) -> dict[str, float]:
+    """Joint angles a fraction ``f`` of the way from pose ``a`` to pose ``b``."""
+    return {k: (1 - f) * POSE_ANGLES[a][k] + f * POSE_ANGLES[b][k] for k in POSE_ANGLES[a]}
+
+
+def _segment(start, angle_deg, length, width, depth, y_c, step):
+    a = np.deg2rad(angle_deg)
+    along = np.array([np.sin(a), np.cos(a)])
+    across = np.array([np.cos(a), -np.sin(a)])
+    u = np.arange(0, length + 1e-9, step)
+    v = np.arange(-depth / 2, depth / 2 + 1e-9, step)
+    w = np.arange(-width / 2, width / 2 + 1e-9, step)
+    uu, vv, ww = np.meshgrid(u, v, w, indexing="ij")
+    xz = start[None, :] + uu.reshape(-1, 1) * along + vv.reshape(-1, 1) * across
+    return np.column_stack([xz[:, 0], ww.reshape(-1) + y_c, xz[:, 1]]), start + length * along
+
+
+def body_points(
+    angles: dict[str, float] | str = "standing",
+    *,
+    height_m: float = 1.75,
+    inflate_m: float = 0.04,
+    hat_m: float = 0.0,
+    horse_mask: bool = False,
+    tilt_deg: float = 0.0,
+    lift_m: float = 0.0,
+    yaw_rad: float = 0.0,
+    step_m: float = 0.02,
+) -> np.ndarray:
+    """(N, 3) points filling a synthetic body, metres, lowest point at ``lift_m``.
+
+    angles: a pose name from :data:`POSE_ANGLES` or a joint-angle dict.
+    inflate_m: added to every half-width (visual-hull fattening).
+    hat_m: a 10 x 10 cm protrusion of this height on the head.
+    horse_mask: the head replaced by a 26 x 45 x 62 cm block.
+    tilt_deg: the whole body rotated forward about the feet (90: lying).
+    """
+    ang = POSE_ANGLES[angles] if isinstance(angles, str) else angles
+    s = height_m / 1.75
+    shin, thigh, torso, head = 0.50 * s, 0.43 * s, 0.52 * s, 0.30 * s
+    leg_w, leg_d = 0.13 * s + 2 * inflate_m, 0.14 * s + 2 * inflate_m
+    tor_w, tor_d = 0.36 * s + 2 * inflate_m, 0.22 * s + 2 * inflate_m
+    arm = 0.09 * s + 2 * inflate_m
+    parts = []
+    for y_leg in (-0.1 * s, 0.1 * s):
+        pts, knee = _segment(np.zeros(2), ang["shin"], shin, leg_w, leg_d, y_leg, step_m)
+        parts.append(pts)
+        pts, hip = _segment(knee, ang["thigh"], thigh, leg_w, leg_d, y_leg, step_m)
+        parts.append(pts)
+    pts, shoulder = _segment(hip, ang["torso"], torso, tor_w, tor_d, 0.0, step_m)
+    parts.append(pts)
+    if horse_mask:
+        parts.append(_segment(shoulder, ang["torso"], 0.62 * s, 0.26 * s + 2 * inflate_m, 0.45 * s + 2 * inflate_m, 0.0, step_m)[0])
+    else:
+        pts, crown = _segment(shoulder, ang["torso"], head, 0.17 * s + 2 * inflate_m, 0.21 * s + 2 * inflate_m, 0.0, step_m)
+        parts.append(pts)
+        if hat_m > 0:
+            parts.append(_segment(crown, ang["torso"], hat_m, 0.10, 0.10, 0.0, step_m)[0])
+    for y_arm in (-(tor_w + arm) / 2, (tor_w + arm) / 2):
+        pts, elbow = _segment(shoulder, ang["uarm"], 0.32 * s, arm, arm, y_arm, step_m)
+        parts.append(pts)
+        parts.append(_segment(elbow, ang["farm"], 0.42 * s, arm, arm, y_arm, step_m)[0])
+    p = np.concatenate(parts)
+    if tilt_deg:
+        a = np.deg2rad(tilt_deg)
+        x, z = p[:, 0].copy(), p[:, 2].copy()
+        p[:, 0], p[:, 2] = x * np.cos(a) + z * np.sin(a), -x * np.sin(a) + z * np.cos(a)
+    if yaw_rad:
+        c, sn = np.cos(yaw_rad), np.sin(yaw_rad)
+        p[:, :2] = p[:, :2] @ np.array([[c, -sn], [sn, c]]).T
+    p[:, 2] += lift_m - p[:, 2].min()
+    return p
+
+
+def body_profile(angles: dict[str, float] | str = "standing", *, voxel_m: float = VOXEL_M, nz: int = NZ, **kw) -> np.ndarray:
+    """(nz,) int32 foreground voxels per layer of a voxelised synthetic body."""
+    p = body_points(angles, **kw)
+    ijk = np.unique(np.floor(p / voxel_m).astype(np.int64), axis=0)
+    k = ijk[:, 2]
+    return np.bincount(k[(k >= 0) & (k < nz)], minlength=nz).astype(np.int32)
+
+
+def run_estimator(profiles, *, est: PostureEstimator | None = None, t0_ns: int = 0) -> list:
+    est = est or PostureEstimator(voxel_m=VOXEL_M)
+    return [est.update(t0_ns + i * NS // FPS, p) for i, p in enumerate(profiles)]
+
+
+# --------------------------------------------------------------------------- features
+
+
+def test_profile_features_hand_worked():
+    # 10 layers of 0.1 m with 4 voxels each: a 1 m column of 0.2 x 0.2 m.
+    prof = np.zeros(25, np.int32)
+    prof[:10] = 4
+    f = profile_features(prof, 0.1)
+    assert f.top_m == pytest.approx(1.0)
+    assert f.bottom_m == pytest.approx(0.0)
+    assert f.centre_m == pytest.approx(0.5)
+    assert f.frac_low == pytest.approx(0.5) and f.frac_mid == pytest.approx(0.5)
+    assert f.horizontal_m == pytest.approx(0.2)
+    assert f.volume_m3 == pytest.approx(40 * 0.001)
+    # uniform column: every layer above the skipped 0.1 m is "widest"; mean height of layers 1..9 (edge layer 9
+    # has a running mean of 2/3 of the others and is dropped at wide_frac 0.8)
+    assert f.widest_m == pytest.approx(np.mean(np.arange(1, 9) + 0.5) * 0.1)
+    v = feature_vector(f, 2.0)
+    assert v.shape == (len(FEATURE_NAMES),)
+    np.testing.assert_allclose(v[:4], [0.25, 0.5, 0.5, 0.5])
+    assert v[4] == pytest.approx(np.log(1.0 / 0.2))
+
+
+def test_profile_features_bottom_ignores_thin_floor_noise():
+    prof = np.zeros(30, np.int32)
+    prof[0] = 1  # one shadow voxel on the floor
+    prof[9:20] = 50  # a body lying on a bed 0.45 m high
+    f = profile_features(prof, 0.05)
+    assert f.bottom_m == pytest.approx(0.45)
+    assert f.top_m == pytest.approx(1.0)
+
+
+def test_profile_features_edge_cases():
+    assert profile_features(np.zeros(10, np.int32), 0.05) is None
+    with pytest.raises(ValueError, match="1-D"):
+        profile_features(np.zeros((2, 5)), 0.05)
+    with pytest.raises(ValueError, match="voxel_m"):
+        profile_features(np.ones(5), 0.0)
+    with pytest.raises(ValueError, match="standing_height_m"):
+        feature_vector(profile_features(np.ones(5), 0.1), 0.0)
+    with pytest.raises(ValueError, match="shape"):
+        posture_log_likelihoods(np.zeros(3))
+
+
+def test_fir_smooth_hand_worked():
+    h = np.array([[0.0, 10.0], [3.0, 10.0], [6.0, 40.0]])
+    np.testing.assert_allclose(fir_smooth(h), [3.0, 20.0])
+    np.testing.assert_allclose(fir_smooth(h, np.array([1.0, 2.0])), [5.0, 30.0])
+    np.testing.assert_allclose(fir_smooth(h[:1], np.array([1.0, 1.0, 1.0])), [0.0, 10.0])
+    with pytest.raises(ValueError):
+        fir_smooth(np.zeros((0, 2)))
+    with pytest.raises(ValueError):
+        fir_smooth(h, np.array([-1.0]))
+
+
+# --------------------------------------------------------------------------- single frames
+
+
+@pytest.mark.parametrize("height_m", [1.55, 1.75, 1.92])
+@pytest.mark.parametrize("inflate_m", [0.0, 0.04, 0.08])
+def test_single_frame_postures_with_known_standing_height(height_m, inflate_m):
+    kw = dict(height_m=height_m, inflate_m=inflate_m)
+    cases = {
+        "standing": body_profile("standing", **kw),
+        "sitting": body_profile("sitting", **kw),
+        "bending": body_profile("bending", **kw),
+        "lying": body_profile("standing", tilt_deg=90, **kw),
+    }
+    for want, prof in cases.items():
+        assert classify(profile_features(prof, VOXEL_M), height_m) == want, want
+    hat = profile_features(body_profile("sitting", hat_m=0.5, **kw), VOXEL_M)
+    assert hat.top_m > 0.77 * height_m + 0.45  # the hat really makes it tall
+    assert classify(hat, height_m) == "sitting"
+    assert classify(profile_features(body_profile("sitting", horse_mask=True, **kw), VOXEL_M), height_m) == "sitting"
+    for pose in ("kneeling", "squatting"):
+        got = classify(profile_features(body_profile(pose, **kw), VOXEL_M), height_m)
+        assert got in ("sitting", "bending"), (pose, got)
+
+
+def test_reference_bodies_have_the_stated_sizes():
+    """The named test bodies: standing 1.75 m, seated 1.3 m, lying 0.4 m, hat 0.5 m."""
+    top = lambda p: profile_features(p, VOXEL_M).top_m  # noqa: E731
+    assert top(body_profile("standing")) == pytest.approx(1.75, abs=0.06)
+    assert top(body_profile("sitting")) == pytest.approx(1.32, abs=0.06)
+    assert top(body_profile("sitting", hat_m=0.5)) - top(body_profile("sitting")) == pytest.approx(0.5, abs=0.06)
+    assert top(body_profile("standing", tilt_deg=90, inflate_m=0.08)) == pytest.approx(0.4, abs=0.06)
+
+
+def test_random_bodies_confusion():
+    """Random heights, fattening, turns and voxel sizes: the posture must be right
+    with the person's standing height known."""
+    rng = np.random.default_rng(7)
+    wrong = []
+    for _ in range(25):
+        h = rng.uniform(1.5, 1.95)
+        kw = dict(height_m=h, inflate_m=rng.uniform(0.0, 0.08), yaw_rad=rng.uniform(0, np.pi))
+        voxel = float(rng.choice([0.05, 0.05, 0.1]))
+        for want, angles, extra in (
+            ("standing", "standing", {}),
+            ("sitting", "sitting", {}),
+            ("sitting", "sitting", {"hat_m": 0.5}),
+            ("sitting", "sitting", {"horse_mask": True}),
+            ("bending", "bending", {}),
+            ("lying", "standing", {"tilt_deg": 90}),
+        ):
+            prof = body_profile(angles, voxel_m=voxel, nz=int(2.5 / voxel), **kw, **extra)
+            got = classify(profile_features(prof, voxel), h)
+            if got != want:
+                wrong.append((want, extra, round(h, 2), voxel, got))
+    assert wrong == []
+
+
+# --------------------------------------------------------------------------- over time
+
+
+def test_estimator_reads_each_posture_and_never_lying_for_kneel_or_bend():
+    for pose, allowed in (
+        ("standing", {"standing"}),
+        ("sitting", {"sitting"}),
+        ("bending", {"bending"}),
+        ("kneeling", {"sitting", "bending"}),
+        ("squatting", {"sitting", "bending"}),
+    ):
+        readings = run_estimator([body_profile(pose)] * 30)
+        assert {r.posture for r in readings} <= allowed, pose
+    readings = run_estimator([body_profile("standing", tilt_deg=90)] * 30)
+    assert {r.posture for r in readings} == {"lying"}
+
+
+def test_seated_with_tall_hat_reads_sitting_without_ever_standing():
+    # never seen standing: the prior standing height is all there is
+    for extra in ({"hat_m": 0.5}, {"horse_mask": True}):
+        readings = run_estimator([body_profile("sitting", **extra)] * 45)
+        assert {r.posture for r in readings} == {"sitting"}, extra
+        assert readings[-1].raw.top_m >= 1.6
+
+
+def test_standing_height_is_learnt_only_while_standing():
+    est = PostureEstimator(voxel_m=VOXEL_M, standing_height_m=1.70)
+    run_estimator([body_profile("standing", height_m=1.55)] * (20 * FPS), est=est)
+    assert est.standing_height_m == pytest.approx(1.55, abs=0.06)
+    learnt = est.standing_height_m
+    rs = run_estimator([body_profile("sitting", height_m=1.55, hat_m=0.5)] * (10 * FPS), est=est, t0_ns=21 * NS)
+    assert rs[-1].posture == "sitting"
+    assert est.standing_height_m == learnt  # no update while sitting
+    assert rs[-1].standing_height_m == learnt
+
+
+def test_lying_on_a_bed_reads_lying():
+    readings = run_estimator([body_profile("standing", tilt_deg=90, lift_m=0.45)] * 30)
+    assert readings[-1].posture == "lying"
+
+
+def test_no_flicker_with_outlier_frames():
+    stand, bend = body_profile("standing"), body_profile("bending")
+    seq = [bend if i % 4 == 3 else stand for i in range(90)]  # every 4th carve is bad
+    readings = run_estimator(seq)
+    assert {r.posture for r in readings} == {"standing"}
+
+
+def test_sit_down_switches_once_with_min_duration():
+    n = FPS  # one second to sit down
+    seq = [body_profile("standing")] * (2 * FPS)
+    seq += [body_profile(blend("standing", "sitting", (i + 1) / n)) for i in range(n)]
+    seq += [body_profile("sitting")] * (3 * FPS)
+    readings = run_estimator(seq)
+    labels = [r.posture for r in readings]
+    changes = [i for i in range(1, len(labels)) if labels[i] != labels[i - 1]]
+    assert labels[0] == "standing" and labels[-1] == "sitting"
+    assert len(changes) == 1 or set(labels[changes[0]: changes[-1] + 1]) <= {"bending", "sitting"}
+    first_sit = labels.index("sitting")
+    # reported within 1.5 s of the end of the movement; since_ns is earlier than the report by the debounce
+    assert first_sit / FPS < 3.0 + 1.5
+    r = readings[first_sit]
+    assert r.since_ns <= r.stamp_ns - 0.4 * NS + 1
+    assert r.confidence > 0.5 and sum(r.probabilities) == pytest.approx(1.0)
+
+
+def test_empty_profile_keeps_previous_reading_and_time_must_not_go_back():
+    est = PostureEstimator(voxel_m=VOXEL_M)
+    assert est.update(0, np.zeros(NZ, np.int32)) is None
+    r = est.update(NS, body_profile("standing"))
+    assert est.update(2 * NS, np.zeros(NZ, np.int32)) is r
+    with pytest.raises(ValueError, match="older"):
+        est.update(NS // 2, body_profile("standing"))
+
+
+def test_posture_bank_creates_and_forgets_estimators():
+    class T:
+        def __init__(self, tid, prof):
+            self.id, self.height_profile, self.z_top_m = tid, prof, 0.0
+
+    bank = PostureBank(voxel_m=VOXEL_M)
+    out = bank.update(0, [T(1, body_profile("standing")), T(2, body_profile("sitting")), T(3, np.zeros(NZ, np.int32))])
+    assert sorted(out) == [1, 2] and out[1].posture == "standing" and out[2].posture == "sitting"
+    assert bank.estimator(3) is not None
+    bank.update(NS // FPS, [T(2, body_profile("sitting"))])
+    assert bank.estimator(1) is None and bank.estimator(3) is None and bank.estimator(2) is not None
+
+
+@pytest.mark.parametrize(
+    "kwargs, name",
+    [
+        (dict(voxel_m=0), "voxel_m"),
+        (dict(voxel_m=0.05, standing_height_m=3.0), "standing_height_m"),
+        (dict(voxel_m=0.05, fir_taps=[]), "fir_taps"),
+        (dict(voxel_m=0.05, switch_rate_hz=0), "switch_rate_hz"),
+        (dict(voxel_m=0.05, min_duration_s=-1), "min_duration_s"),
+        (dict(voxel_m=0.05, learn_min_prob=1.5), "learn_min_prob"),
+        (dict(voxel_m=0.05, height_limits_m=(2.0, 1.0)), "height_limits_m"),
+    ],
+)
+def test_estimator_validation(kwargs, name):
+    with pytest.raises(ValueError, match=name):
+        PostureEstimator(**kwargs)
+    with pytest.raises(ValueError, match=name):
+        PostureBank(**kwargs)
+
+
+def test_postures_constant_matches_wire_labels():
+    from common.messages import POSTURES as WIRE
+
+    assert set(POSTURES) <= set(WIRE)
+    assert isinstance(profile_features(np.ones(5), 0.1), PostureFeatures)
