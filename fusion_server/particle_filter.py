@@ -208,6 +208,9 @@ class ParticleFilter:
     init_spread_m: spread of the initial particles around the start (0.05 m).
     resample_below: resample when the effective sample size falls below
         this fraction of ``n_particles`` (default 0.5).
+    max_dt_s: longest time step the motion model is applied over (default
+        0.5 s); after a longer gap (cameras lost, process paused) the drift
+        and spread of a blind half second is all the filter assumes.
     """
 
     def __init__(
@@ -224,9 +227,12 @@ class ParticleFilter:
         alpha_noise_m: float = 0.1,
         init_spread_m: float = 0.05,
         resample_below: float = 0.5,
+        max_dt_s: float = 0.5,
     ):
         if not isinstance(rng, np.random.Generator):
             raise ValueError(f"rng must be a numpy Generator, got {type(rng).__name__}")
+        if not max_dt_s > 0:
+            raise ValueError(f"max_dt_s must be positive, got {max_dt_s}")
         if int(n_particles) < 1:
             raise ValueError(f"n_particles must be at least 1, got {n_particles}")
         if not k_m > 0:
@@ -245,6 +251,7 @@ class ParticleFilter:
         self.position_noise_m = float(position_noise_m)
         self.alpha_noise_m = float(alpha_noise_m)
         self.resample_below = float(resample_below)
+        self.max_dt_s = float(max_dt_s)
         n = int(n_particles)
         self.particles = np.empty((n, 3), dtype=np.float64)
         self.particles[:, :2] = np.array([x_m, y_m], dtype=np.float64) + rng.standard_normal((n, 2)) * init_spread_m
@@ -278,7 +285,7 @@ class ParticleFilter:
         self.last_stamp_ns = stamp_ns
         self.particles = propagate(
             self.particles,
-            dt_s,
+            min(dt_s, self.max_dt_s),
             velocity_mps=velocity_mps,
             position_noise_m=self.position_noise_m,
             alpha_noise_m=self.alpha_noise_m,

@@ -175,7 +175,7 @@ class Tracker:
             resample_below=resample_below,
         )
         # One throw-away filter makes bad filter settings fail here, not on the first frame.
-        self._max_half_m = ParticleFilter(0.0, 0.0, alpha_range_m[0], rng=rng, **{**self._pf_args, "n_particles": 1}).max_half_m
+        self._max_half_m = ParticleFilter(0.0, 0.0, alpha_range_m[0], rng=rng, **self._pf_args).max_half_m
         self.rng = rng
         if id_source is None:
             id_source = itertools.count(1)
@@ -418,6 +418,7 @@ def _restart(pf: ParticleFilter, blob: Blob, alpha_m: float, rng: np.random.Gene
         position_noise_m=pf.position_noise_m,
         alpha_noise_m=pf.alpha_noise_m,
         resample_below=pf.resample_below,
+        max_dt_s=pf.max_dt_s,
     )
     fresh.last_stamp_ns = pf.last_stamp_ns
     return fresh

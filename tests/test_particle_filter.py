@@ -201,6 +201,8 @@ def test_filter_time_step_comes_from_stamps():
     np.testing.assert_allclose(pf.estimate()[:2], [1.2, 0.9])
     with pytest.raises(ValueError, match="stamp_ns"):
         pf.step(ev, 1_400_000_000)
+    pf.step(ev, 11_500_000_000, velocity_mps=(1.0, 0.0))  # a 10 s gap counts as max_dt_s = 0.5 s
+    np.testing.assert_allclose(pf.estimate()[:2], [1.7, 0.9])
 
 
 def test_evidence_must_cover_the_filter_boxes():
@@ -218,6 +220,7 @@ def test_evidence_must_cover_the_filter_boxes():
         {"alpha_range_m": (0.5, 0.2)},
         {"position_noise_m": -1.0},
         {"resample_below": 1.5},
+        {"max_dt_s": 0.0},
         {"rng": 7},
     ],
 )
