@@ -43,6 +43,7 @@ from fusion_server.grid import FloorMaps, VoxelGrid
 __all__ = [
     "FloorEvidence",
     "ParticleFilter",
+    "box_count",
     "effective_sample_size",
     "floor_evidence",
     "likelihood",
