@@ -111,9 +111,16 @@ class TrackTable:
         s = np.zeros(0, dtype=str)
         return cls(frame=f, stamp_ns=f.copy(), track_id=s, x=z, y=z.copy(), z_top=z.copy(), posture=s.copy())
 
+    def sort_order(self) -> np.ndarray:
+        """(N,) int64 row order that sorts the table by (frame, id)."""
+        return np.lexsort((self.track_id, self.frame)).astype(np.int64)
+
+    def take(self, rows: np.ndarray) -> "TrackTable":
+        """The table made of ``rows`` (an index array or boolean mask), in that order."""
+        return TrackTable(**{name: getattr(self, name)[rows] for name in _FIELDS})
+
     def sorted(self) -> "TrackTable":
-        order = np.lexsort((self.track_id, self.frame))
-        return TrackTable(**{name: getattr(self, name)[order] for name in _FIELDS})
+        return self.take(self.sort_order())
 
     def rows(self) -> Iterable[tuple[int, int, str, float, float, float, str]]:
         for i in range(len(self)):

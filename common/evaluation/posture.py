@@ -97,5 +97,5 @@ def posture_from_labels(truth_postures: np.ndarray, run_postures: np.ndarray) ->
         confusion=confusion,
         scored=int(known.sum()),
         strict_correct=int((known & (t == r)).sum()),
-        lenient_correct=int((known & (lenient_t == lenient_r)).sum()) if t.size else 0,
+        lenient_correct=int((known & (lenient_t == lenient_r)).sum()),
     )

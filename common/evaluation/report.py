@@ -258,7 +258,15 @@ def _frame_rate(fps: float | None, meta: io.Meta, truth: io.TrackTable, run: io.
     return None, "unknown"
 
 
-def _frame_range(n_frames, truth, run, truth_events, run_events, notes: list[str]) -> tuple[int | None, int | None]:
+def _frame_range(
+    n_frames: int | None,
+    truth: io.TrackTable,
+    run: io.TrackTable,
+    truth_events: list[io.Event] | None,
+    run_events: list[io.Event],
+    notes: list[str],
+) -> tuple[int | None, int | None]:
+    """First and last evaluated frame (see the module text); appends a note when the range is widened."""
     first, last = frame_span(truth, run)
     ev_frames = [e.frame for e in (truth_events or []) + (run_events or [])]
     if ev_frames and first is None:

@@ -193,8 +193,8 @@ def clear_mot(truth: TrackTable, run: TrackTable, *, radius_m: float = CLEAR_RAD
     are taken in the tables' (frame, id) order.
     """
     radius_m = _radius(radius_m)
-    t_order, r_order = _order(truth), _order(run)
-    truth, run = _take(truth, t_order), _take(run, r_order)
+    t_order, r_order = truth.sort_order(), run.sort_order()
+    truth, run = truth.take(t_order), run.take(r_order)
     t_codes, t_names = _codes(truth.track_id)
     r_codes, r_names = _codes(run.track_id)
     t_xy, r_xy = truth.xy_m, run.xy_m
@@ -382,18 +382,6 @@ def _radius(radius_m: float) -> float:
     if not (np.isfinite(radius_m) and radius_m > 0):
         raise ValueError(f"radius_m must be a positive number of metres, got {radius_m}")
     return radius_m
-
-
-def _order(table: TrackTable) -> np.ndarray:
-    """(N,) int64 row order that sorts ``table`` by (frame, id)."""
-    return np.lexsort((table.track_id, table.frame)).astype(np.int64)
-
-
-def _take(table: TrackTable, order: np.ndarray) -> TrackTable:
-    return TrackTable(**{name: getattr(table, name)[order] for name in _TABLE_FIELDS})
-
-
-_TABLE_FIELDS = ("frame", "stamp_ns", "track_id", "x", "y", "z_top", "posture")
 
 
 def _codes(ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
