@@ -159,7 +159,7 @@ def test_evaluate_end_to_end(tmp_path) -> None:
     t = r["tracking"]
     assert (t["gt"], t["matches"], t["mota"], t["idf1"]) == (100, 100, 1.0, 1.0)
     assert t["motp_m"] == pytest.approx(0.1, abs=1e-9)
-    assert r["seed"]["mtpf"] == 0.0 and r["seed"]["frames"] == 900
+    assert r["per_frame"]["mtpf"] == 0.0 and r["per_frame"]["frames"] == 900
     fall = r["events"]["per_kind"]["fall"]
     assert (fall["tp"], fall["fp"], fall["fn"]) == (1, 1, 0)
     assert r["events"]["fall_delays_s"] == [pytest.approx(10 * NS / 1e9)]

@@ -12,7 +12,7 @@ from common.evaluation import io
 from common.evaluation.io import TrackTable
 from common.evaluation.posture import posture_from_labels, posture_scores
 from common.evaluation.report import evaluate, suite_totals
-from common.evaluation.tracking import clear_mot, gated_assignment, seed_measures
+from common.evaluation.tracking import clear_mot, gated_assignment, per_frame_measures
 
 NS = 66_666_667  # one frame at 15 fps
 
@@ -75,9 +75,9 @@ def test_hand_worked_clear_mot_and_identity() -> None:
     assert r.pairs.switch.sum() == 1 and int(r.pairs.frame[r.pairs.switch][0]) == 3
 
 
-def test_hand_worked_seed_measures() -> None:
+def test_hand_worked_per_frame_measures() -> None:
     truth, run = hand_case()
-    s = seed_measures(truth, run, n_frames=4)
+    s = per_frame_measures(truth, run, n_frames=4)
     # same 7 pairs (all within 1 m): d = 0.1 0.3 0.1 0.3 0.3 0.2 0.3
     # MOTME = 1.6/7; mean d^2 = 0.42/7 = 0.06; MOTV = 0.06 - (1.6/7)^2 = 0.0077551...
     assert s.matches == 7
@@ -86,7 +86,7 @@ def test_hand_worked_seed_measures() -> None:
     # one missed person (A, frame 2) and one artifact (9, frame 1) over 4 frames
     assert (s.missed, s.artifacts, s.mtpf, s.atpf) == (1, 1, 0.25, 0.25)
     # empty frames count: the same errors over 8 frames halve the rates
-    assert seed_measures(truth, run, n_frames=8).mtpf == 0.125
+    assert per_frame_measures(truth, run, n_frames=8).mtpf == 0.125
 
 
 def test_previous_correspondence_is_kept_over_a_cheaper_hungarian_swap() -> None:
@@ -99,8 +99,8 @@ def test_previous_correspondence_is_kept_over_a_cheaper_hungarian_swap() -> None
     r = clear_mot(truth, run)
     assert r.id_switches == 0
     assert r.motp_m == pytest.approx(0.85 / 4, abs=1e-12)
-    # the seed measures have no memory: frame 1 is matched fresh, MOTME = (0.2 + 0.15) / 4
-    assert seed_measures(truth, run).motme_m == pytest.approx(0.35 / 4, abs=1e-12)
+    # the per-frame measures have no memory: frame 1 is matched fresh, MOTME = (0.2 + 0.15) / 4
+    assert per_frame_measures(truth, run).motme_m == pytest.approx(0.35 / 4, abs=1e-12)
 
 
 def test_correspondence_survives_absence_and_then_switches() -> None:
@@ -125,8 +125,8 @@ def test_match_radius_is_inclusive() -> None:
     truth = table([(0, "A", 0.0, 0.0)])
     assert clear_mot(truth, table([(0, "1", 0.5, 0.0)])).matches == 1
     assert clear_mot(truth, table([(0, "1", 0.5001, 0.0)])).matches == 0
-    assert seed_measures(truth, table([(0, "1", 0.0, 1.0)])).matches == 1
-    assert seed_measures(truth, table([(0, "1", 0.0, 1.0001)])).matches == 0
+    assert per_frame_measures(truth, table([(0, "1", 0.0, 1.0)])).matches == 1
+    assert per_frame_measures(truth, table([(0, "1", 0.0, 1.0001)])).matches == 0
 
 
 def test_mostly_tracked_boundaries_and_absence_is_not_fragmentation() -> None:
@@ -152,7 +152,7 @@ def test_empty_inputs_have_undefined_ratios() -> None:
     assert (r.gt, r.pred, r.mota, r.motp_m, r.idf1) == (0, 0, None, None, None)
     only_run = clear_mot(empty, table([(0, "1", 0.0, 0.0)]))
     assert (only_run.fp, only_run.mota, only_run.idp, only_run.idf1) == (1, None, 0.0, 0.0)
-    s = seed_measures(empty, empty)
+    s = per_frame_measures(empty, empty)
     assert (s.frames, s.motme_m, s.mtpf) == (0, None, None)
 
 
@@ -327,11 +327,11 @@ def test_suite_totals_equal_motmetrics_overall(tmp_path) -> None:
 
 
 def test_pooled_motv_equals_variance_of_all_distances() -> None:
-    a = seed_measures(*random_scene(np.random.default_rng(3), n_frames=80))
-    b = seed_measures(*random_scene(np.random.default_rng(4), n_frames=80))
-    fake = [{"tracking": _zero_tracking(), "seed": s.summary(), "posture": _zero_posture(), "frames": {"count": 1},
+    a = per_frame_measures(*random_scene(np.random.default_rng(3), n_frames=80))
+    b = per_frame_measures(*random_scene(np.random.default_rng(4), n_frames=80))
+    fake = [{"tracking": _zero_tracking(), "per_frame": s.summary(), "posture": _zero_posture(), "frames": {"count": 1},
              "duration_s": None} for s in (a, b)]
-    pooled = suite_totals(fake)["seed"]
+    pooled = suite_totals(fake)["per_frame"]
     n = a.matches + b.matches
     mean = (a.distance_sum_m + b.distance_sum_m) / n
     var = (a.distance_sq_sum_m2 + b.distance_sq_sum_m2) / n - mean**2

@@ -8,8 +8,8 @@ Typical use::
 
 * :mod:`~common.evaluation.io`: the tracks CSV and events JSON-lines formats;
 * :mod:`~common.evaluation.tracking`: CLEAR-MOT (MOTA, MOTP, ID switches,
-  fragmentations, MT/PT/ML), identity measures (IDF1, IDP, IDR) and the seed
-  paper's MOTME, MOTV, missed and artifact tracks per frame;
+  fragmentations, MT/PT/ML), identity measures (IDF1, IDP, IDR) and the
+  per-frame MOTME, MOTV, missed and artifact tracks per frame;
 * :mod:`~common.evaluation.events`: precision, recall, F1 per event kind with a
   +-30-frame window, fall delays, false alarms per hour;
 * :mod:`~common.evaluation.posture`: posture accuracy and confusion matrix;
@@ -32,7 +32,7 @@ from common.evaluation.io import (
 )
 from common.evaluation.posture import PostureResult, posture_scores
 from common.evaluation.report import evaluate, format_table, suite_table, suite_totals, to_json, write_json
-from common.evaluation.tracking import Matches, SeedResult, TrackingResult, clear_mot, seed_measures
+from common.evaluation.tracking import Matches, PerFrameResult, TrackingResult, clear_mot, per_frame_measures
 
 __all__ = [
     "ALARM_KINDS",
@@ -44,7 +44,7 @@ __all__ = [
     "EventScores",
     "Matches",
     "PostureResult",
-    "SeedResult",
+    "PerFrameResult",
     "TrackLinks",
     "TrackTable",
     "TrackingResult",
@@ -55,7 +55,7 @@ __all__ = [
     "read_events",
     "read_tracks",
     "score_events",
-    "seed_measures",
+    "per_frame_measures",
     "suite_table",
     "suite_totals",
     "to_json",

@@ -1,6 +1,7 @@
 """Event scoring: precision, recall and F1 per kind, fall delays, false alarms per hour.
 
-Matching rule (the ``002`` protocol, made one-to-one): a run event can match a
+Matching rule (the +-30-frame protocol of the multi-sensor fusion paper in
+DESIGN.md, made one-to-one): a run event can match a
 truth event of the same kind when their frames differ by at most
 ``window_frames`` (30 frames = 2 s at 15 fps; inclusive). Per kind, the
 gated Hungarian assignment first maximises the number of matched pairs and

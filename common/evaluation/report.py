@@ -37,7 +37,7 @@ import numpy as np
 from common.evaluation import io
 from common.evaluation.events import ALARM_KINDS, WINDOW_FRAMES, TrackLinks, f1_score, score_events
 from common.evaluation.posture import posture_scores
-from common.evaluation.tracking import CLEAR_RADIUS_M, SEED_RADIUS_M, clear_mot, frame_span, ratio, seed_measures
+from common.evaluation.tracking import CLEAR_RADIUS_M, PER_FRAME_RADIUS_M, clear_mot, frame_span, ratio, per_frame_measures
 
 
 def evaluate(
@@ -47,7 +47,7 @@ def evaluate(
     fps: float | None = None,
     n_frames: int | None = None,
     clear_radius_m: float = CLEAR_RADIUS_M,
-    seed_radius_m: float = SEED_RADIUS_M,
+    per_frame_radius_m: float = PER_FRAME_RADIUS_M,
     window_frames: int = WINDOW_FRAMES,
     position_gate_m: Mapping[str, float] | None = None,
     require_track: bool = False,
@@ -57,7 +57,7 @@ def evaluate(
 
     Returns a dict of plain JSON values with the keys ``truth_dir``,
     ``run_dir``, ``frames`` {first, last, count}, ``fps``, ``fps_source``,
-    ``duration_s``, ``tracking`` (CLEAR-MOT and identity), ``seed`` (MOTME,
+    ``duration_s``, ``tracking`` (CLEAR-MOT and identity), ``per_frame`` (MOTME,
     MOTV, MTPF, ATPF), ``events`` (None when the truth has no events file),
     ``posture`` and ``notes``. Raises :class:`~common.evaluation.io.EvalFormatError`
     naming the file, line and field of any bad input.
@@ -81,7 +81,7 @@ def evaluate(
     duration_s = None if fps_value is None else count / fps_value
 
     mot = clear_mot(truth, run, radius_m=clear_radius_m)
-    seed = seed_measures(truth, run, radius_m=seed_radius_m, n_frames=count)
+    per_frame = per_frame_measures(truth, run, radius_m=per_frame_radius_m, n_frames=count)
     events = None
     if truth_events is None:
         notes.append("the truth has no events.jsonl: events not scored")
@@ -99,7 +99,7 @@ def evaluate(
         "fps_source": fps_source,
         "duration_s": duration_s,
         "tracking": mot.summary(),
-        "seed": seed.summary(),
+        "per_frame": per_frame.summary(),
         "events": events,
         "posture": posture_scores(truth, run, mot.pairs).summary(),
         "notes": notes,
@@ -108,7 +108,7 @@ def evaluate(
 
 def format_table(results: Mapping[str, Any]) -> str:
     """The results of :func:`evaluate` as aligned plain-text tables for the console."""
-    t, s, p = results["tracking"], results["seed"], results["posture"]
+    t, s, p = results["tracking"], results["per_frame"], results["posture"]
     fr = results["frames"]
     lines = [
         f"truth {results['truth_dir']}  run {results['run_dir']}",
@@ -124,7 +124,7 @@ def format_table(results: Mapping[str, Any]) -> str:
           t["gt_ids"], t["pred_ids"]]],
         label_column=False,
     )
-    lines += ["", f"seed measures (per-frame Hungarian, radius {s['radius_m']} m)"]
+    lines += ["", f"per-frame measures (MOTME, MOTV, MTPF, ATPF: fresh Hungarian in every frame, radius {s['radius_m']} m)"]
     lines += _table(
         ["MOTME m", "MOTV m2", "MTPF", "ATPF", "matches", "missed", "artifacts"],
         [[_num(s["motme_m"], 3), _num(s["motv_m2"], 4), _num(s["mtpf"], 4), _num(s["atpf"], 4), s["matches"],
@@ -180,8 +180,8 @@ def suite_totals(results: Iterable[Mapping[str, Any]]) -> dict[str, Any]:
     t["idr"] = ratio(t["idtp"], t["gt"])
     t["idf1"] = ratio(2 * t["idtp"], t["gt"] + t["pred"])
 
-    s = {k: add("seed", k) for k in ["frames", "matches", "missed", "artifacts", "distance_sum_m", "distance_sq_sum_m2"]}
-    s["radius_m"] = results[0]["seed"]["radius_m"]
+    s = {k: add("per_frame", k) for k in ["frames", "matches", "missed", "artifacts", "distance_sum_m", "distance_sq_sum_m2"]}
+    s["radius_m"] = results[0]["per_frame"]["radius_m"]
     s["motme_m"] = ratio(s["distance_sum_m"], s["matches"])
     s["motv_m2"] = None if not s["matches"] else max(0.0, s["distance_sq_sum_m2"] / s["matches"] - s["motme_m"] ** 2)
     s["mtpf"] = ratio(s["missed"], s["frames"])
@@ -206,7 +206,7 @@ def suite_totals(results: Iterable[Mapping[str, Any]]) -> dict[str, Any]:
         "fps_source": "suite",
         "duration_s": duration_s,
         "tracking": t,
-        "seed": s,
+        "per_frame": s,
         "events": _sum_events([r["events"] for r in results if r.get("events") is not None], duration_s),
         "posture": p,
         "notes": [],
@@ -322,7 +322,7 @@ def _kind_summary(c: Mapping[str, int]) -> dict[str, Any]:
 
 
 def _suite_row(name: str, r: Mapping[str, Any]) -> list[Any]:
-    t, s, p, ev = r["tracking"], r["seed"], r["posture"], r.get("events")
+    t, s, p, ev = r["tracking"], r["per_frame"], r["posture"], r.get("events")
     fall = sit = door = "-"
     fall_r = fa = "-"
     if ev is not None:

@@ -1,4 +1,4 @@
-"""Tracking measures on the floor plane: CLEAR-MOT, identity (IDF1) and the seed paper's four.
+"""Tracking measures on the floor plane: CLEAR-MOT, identity (IDF1) and per-frame MOTME/MOTV/MTPF/ATPF.
 
 All positions are ``x``, ``y`` in metres, world frame; a truth person and a
 run track can only match when their floor distance is at most the radius
@@ -27,7 +27,8 @@ assignment that maximises the agreeing frames over the whole recording gives
 IDTP; IDFN = GT - IDTP, IDFP = predictions - IDTP, IDP = IDTP / predictions,
 IDR = IDTP / GT, IDF1 = 2 IDTP / (GT + predictions).
 
-Seed measures (``002`` evaluation protocol), radius 1 m: every frame is matched
+Per-frame measures (the evaluation protocol of the multi-sensor fusion paper in
+DESIGN.md: MOTME, MOTV, missed and artifact tracks per frame), radius 1 m: every frame is matched
 on its own (no memory) with the same gated Hungarian; MOTME and MOTV are the
 mean and the (population) variance of the matched distances, MTPF and ATPF the
 unmatched truth people and unmatched run tracks per evaluated frame.
@@ -44,7 +45,7 @@ from scipy.optimize import linear_sum_assignment
 from common.evaluation.io import TrackTable
 
 CLEAR_RADIUS_M = 0.5
-SEED_RADIUS_M = 1.0
+PER_FRAME_RADIUS_M = 1.0
 MOSTLY_TRACKED = 0.8
 MOSTLY_LOST = 0.2
 
@@ -149,8 +150,8 @@ class TrackingResult:
 
 
 @dataclass(frozen=True)
-class SeedResult:
-    """The seed paper's measures for one recording; ratios are None when undefined."""
+class PerFrameResult:
+    """MOTME, MOTV, MTPF and ATPF for one recording; ratios are None when undefined."""
 
     radius_m: float
     frames: int
@@ -285,10 +286,10 @@ def clear_mot(truth: TrackTable, run: TrackTable, *, radius_m: float = CLEAR_RAD
     )
 
 
-def seed_measures(
-    truth: TrackTable, run: TrackTable, *, radius_m: float = SEED_RADIUS_M, n_frames: int | None = None
-) -> SeedResult:
-    """MOTME, MOTV, missed and artifact tracks per frame (the ``002`` protocol).
+def per_frame_measures(
+    truth: TrackTable, run: TrackTable, *, radius_m: float = PER_FRAME_RADIUS_M, n_frames: int | None = None
+) -> PerFrameResult:
+    """MOTME, MOTV, missed and artifact tracks per frame (see the module text).
 
     ``n_frames`` is the number of evaluated frames (empty frames included);
     default: every frame from the first to the last frame with a row.
@@ -309,7 +310,7 @@ def seed_measures(
             dists.append(dist[rows, cols])
     d = np.concatenate(dists) if dists else np.zeros(0)
     n = int(d.size)
-    return SeedResult(
+    return PerFrameResult(
         radius_m=radius_m,
         frames=int(n_frames),
         matches=n,
