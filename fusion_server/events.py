@@ -423,7 +423,8 @@ class EventReasoner:
             if place is not None:
                 emit("enter", tid, x, y, door=place, first_seen_ns=st.first_ns)
         posture, top_m, centre_m, height_m = self._observe(tr, reading)
-        st.posture = posture
+        if posture != st.posture:
+            st.posture, st.posture_changed_ns = posture, stamp_ns
         self._posture_events(tid, st, posture, reading, x, y, emit)
         self._fall_events(tid, st, stamp_ns, posture, top_m, centre_m, height_m, x, y, emit)
         for ch in st.dwell.update(stamp_ns, x, y):
@@ -542,13 +543,14 @@ class EventReasoner:
         on_floor = st.fall.floor_since_ns is not None
         still = st.still.full and st.still.variance_m2() <= self.inactivity_var_m2
         if not still or on_floor:
-            st.still_since_ns, st.still_posture, st.inactivity_emitted = None, posture, False
+            st.still_since_ns, st.inactivity_emitted = None, False
             return
         if st.still_since_ns is None:
-            st.still_since_ns, st.still_posture = st.still.start_ns, posture
-        elif posture != st.still_posture:
+            settled = st.still.settled_since_ns(math.sqrt(self.inactivity_var_m2))
+            st.still_since_ns = max(settled, st.posture_changed_ns)
+        elif st.posture_changed_ns > st.still_since_ns:
             # Standing up or sitting down in place is activity: start the clock again.
-            st.still_since_ns, st.still_posture, st.inactivity_emitted = stamp_ns, posture, False
+            st.still_since_ns, st.inactivity_emitted = st.posture_changed_ns, False
         if st.inactivity_emitted or stamp_ns - st.still_since_ns < self.inactivity_ns:
             return
         spot = hotspot_at(self.hotspots, x, y)
@@ -664,8 +666,8 @@ class _TrackState:
     posture: str | None = None
     stable_posture: str | None = None
     fall: _FallState = field(default_factory=_FallState)
+    posture_changed_ns: int = 0
     still_since_ns: int | None = None
-    still_posture: str | None = None
     inactivity_emitted: bool = False
 
 

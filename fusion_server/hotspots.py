@@ -176,8 +176,19 @@ class PositionWindow:
         xy = np.array(self._xy, dtype=np.float64).reshape(-1, 2)
         if since_ns is None:
             return xy
-        t = np.fromiter(self._t, dtype=np.int64, count=len(self._t))
-        return xy[t >= since_ns]
+        return xy[self.stamps() >= since_ns]
+
+    def stamps(self) -> np.ndarray:
+        """(N,) int64 stamps of the kept samples, oldest first."""
+        return np.fromiter(self._t, dtype=np.int64, count=len(self._t))
+
+    def settled_since_ns(self, radius_m: float) -> int:
+        """Stamp of the first sample after the last one farther than ``radius_m``
+        from the window's mean: when the person arrived where they now are."""
+        xy = self.positions()
+        far = np.flatnonzero(np.hypot(*(xy - xy.mean(axis=0)).T) > radius_m)
+        t = self.stamps()
+        return int(t[far[-1] + 1]) if len(far) and far[-1] + 1 < len(t) else int(t[0])
 
     def variance_m2(self) -> float:
         """:func:`position_variance` of the window."""
@@ -197,7 +208,8 @@ class DwellChange:
 
     kind: ``"dwell_start"`` or ``"dwell_end"``.
     hotspot: where. stamp_ns: the frame that decided it.
-    start_ns: when the person became still there (start of the still window).
+    start_ns: when the person settled there: the first sample of the still
+        window after the last one farther than ``still_std_m`` from its mean.
     x, y: mean floor position over the window, metres.
     reason: for ends, ``"moved"``, ``"left"`` or ``"lost"``; empty for starts.
     """
@@ -248,6 +260,7 @@ class DwellDetector:
         if not leave_window_s > 0:
             raise ValueError(f"leave_window_s must be positive, got {leave_window_s}")
         self.window = PositionWindow(window_s=window_s)
+        self.still_radius_m = float(still_std_m)
         self.still_var_m2 = float(still_std_m) ** 2
         self.move_var_m2 = float(move_std_m) ** 2
         self.leave_ns = int(round(leave_window_s * 1e9))
@@ -274,7 +287,7 @@ class DwellDetector:
             spot = hotspot_at(self.hotspots, mean[0], mean[1])
             # The recent mean must agree, or a slow drift out would end and restart the dwell every frame.
             if spot is not None and bool(spot.contains(self.window.mean_xy(stamp_ns - self.leave_ns))[0]):
-                self.current, self.start_ns = spot, self.window.start_ns
+                self.current, self.start_ns = spot, self.window.settled_since_ns(self.still_radius_m)
                 changes.append(DwellChange("dwell_start", spot, stamp_ns, self.start_ns, float(mean[0]), float(mean[1])))
         return changes
 

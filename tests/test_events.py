@@ -1,0 +1,412 @@
+"""Events from hand-built track sequences whose height profiles come from the
+synthetic articulated bodies of tests/test_posture.py."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from functools import lru_cache
+
+import numpy as np
+import pytest
+
+from fusion_server.events import (
+    EVENT_KINDS,
+    EventReasoner,
+    EventRecord,
+    crossing_time,
+    detect_fast_drop,
+    event_id,
+    local_hour,
+    time_of_day_label,
+)
+from fusion_server.hotspots import Hotspot
+from fusion_server.posture import PostureBank
+from test_posture import NZ, VOXEL_M, blend, body_profile
+
+FPS = 15
+NS = 1_000_000_000
+FRAME_NS = NS // FPS
+# 2024-05-01 00:00:00 UTC: stamps are Unix-epoch nanoseconds
+DAY0_NS = 1_714_521_600 * NS
+
+
+@dataclass
+class Est:
+    """The attributes of the tracker's TrackEstimate that reasoning reads."""
+
+    id: int
+    x: float
+    y: float
+    height_profile: np.ndarray
+    confirmed: bool = True
+    z_top_m: float = 0.0
+    volume_m3: float = 0.0
+    reliability: float = 1.0
+    age_frames: int = 1
+    vx: float = 0.0
+    vy: float = 0.0
+    still: bool = False
+
+    def __post_init__(self):
+        nz = np.flatnonzero(self.height_profile)
+        self.z_top_m = float((nz[-1] + 1) * VOXEL_M) if len(nz) else 0.0
+
+
+@lru_cache(maxsize=None)
+def _profile(pose: str, **kw) -> np.ndarray:
+    return body_profile(pose, **kw)
+
+
+STAND = _profile("standing")
+SIT = _profile("sitting")
+LIE = _profile("standing", tilt_deg=90)
+
+
+@dataclass
+class Person:
+    """One person's timeline: per frame (x, y, profile, confirmed) or None when absent."""
+
+    tid: int
+    frames: list = field(default_factory=list)
+
+    def absent(self, seconds: float):
+        self.frames += [None] * int(round(seconds * FPS))
+        return self
+
+    def hold(self, seconds: float, profile=STAND, xy=None, confirmed=True):
+        xy = xy or self._xy()
+        self.frames += [(xy[0], xy[1], profile, confirmed)] * int(round(seconds * FPS))
+        return self
+
+    def move(self, seconds: float, profiles, xy_to=None):
+        """``profiles(f)`` gives the profile a fraction f in (0, 1] through the movement."""
+        n = int(round(seconds * FPS))
+        x0, y0 = self._xy()
+        x1, y1 = xy_to or (x0, y0)
+        for i in range(n):
+            f = (i + 1) / n
+            self.frames.append((x0 + f * (x1 - x0), y0 + f * (y1 - y0), profiles(f), True))
+        return self
+
+    def walk(self, xy_to, speed_mps: float = 1.0, profile=STAND):
+        x0, y0 = self._xy()
+        d = math.hypot(xy_to[0] - x0, xy_to[1] - y0)
+        return self.move(max(d / speed_mps, 1.0 / FPS), lambda f: profile, xy_to)
+
+    def _xy(self):
+        for fr in reversed(self.frames):
+            if fr is not None:
+                return fr[0], fr[1]
+        raise ValueError("place the person first with hold(..., xy=...)")
+
+
+def run(people, reasoner: EventReasoner, *, t0_ns: int = 0, bank: PostureBank | None = None):
+    bank = bank or PostureBank(voxel_m=VOXEL_M)
+    n = max(len(p.frames) for p in people)
+    events = []
+    for k in range(n):
+        stamp = t0_ns + k * FRAME_NS
+        tracks = []
+        for p in people:
+            fr = p.frames[k] if k < len(p.frames) else None
+            if fr is not None:
+                tracks.append(Est(p.tid, fr[0], fr[1], fr[2], confirmed=fr[3]))
+        readings = bank.update(stamp, tracks)
+        events += reasoner.step(stamp, k, tracks, readings)
+    return events
+
+
+def kinds(events, kind=None):
+    return [e.kind for e in events] if kind is None else [e for e in events if e.kind == kind]
+
+
+def t_s(stamp_ns: int, t0_ns: int = 0) -> float:
+    return (stamp_ns - t0_ns) / NS
+
+
+# --------------------------------------------------------------------------- pure helpers
+
+
+def test_time_of_day_labels_and_local_hour():
+    assert local_hour(DAY0_NS + 17 * 3600 * NS, 2.0) == pytest.approx(19.0)
+    assert local_hour(DAY0_NS + 23 * 3600 * NS, 2.0) == pytest.approx(1.0)
+    assert local_hour(DAY0_NS + 1 * 3600 * NS, -3.5) == pytest.approx(21.5)
+    assert time_of_day_label(19.0) == "for dinner"
+    assert time_of_day_label(8.0) == "for breakfast"
+    assert time_of_day_label(12.5) == "for lunch"
+    assert time_of_day_label(16.0) == "for tea"
+    assert time_of_day_label(10.5) == "in the morning"
+    assert time_of_day_label(14.5) == "in the afternoon"
+    assert time_of_day_label(21.75) == "in the evening"
+    assert time_of_day_label(3.0) == "at night"
+
+
+def test_detect_fast_drop_hand_worked():
+    t = np.arange(10) * 0.1
+    z = np.array([1.7, 1.7, 1.7, 1.4, 1.0, 0.6, 0.4, 0.4, 0.4, 0.4])
+    i, j = detect_fast_drop(t, z, window_s=2.0, min_drop_m=0.5, min_speed_mps=0.8)
+    assert z[i] - z[j] == pytest.approx(1.3)
+    assert (i, j) == (2, 6)  # latest start of the largest drop, earliest end
+    # the same drop over 2.4 s: no 2 s stretch of it reaches 0.8 m/s
+    assert detect_fast_drop(t * 6, z, window_s=2.0, min_drop_m=0.5, min_speed_mps=0.8) is None
+    # a 0.3 m drop is too small
+    assert detect_fast_drop(t, np.clip(z, 1.4, None), window_s=2.0, min_drop_m=0.5, min_speed_mps=0.8) is None
+    # halfway (1.05 m) is crossed between samples 3 (1.4) and 4 (1.0): 7/8 of the way
+    assert crossing_time(t, z, i, j, 1.05) == pytest.approx(0.3 + 0.0875)
+
+
+def test_event_record_round_trip_and_wire_model():
+    from common.messages import EVENT_KINDS as WIRE_KINDS
+    from common.messages import Event
+
+    rec = EventRecord(event_id(5, "fall", 3), "fall", 3, 5, 1, 1.5, 2.0, {"fall_stamp_ns": 4, "from_posture": "standing"})
+    assert rec.id == "5-fall-3"
+    assert EventRecord.from_dict(rec.to_dict()) == rec
+    Event(**rec.to_dict())  # the wire model accepts the record as it is
+    assert set(EVENT_KINDS) <= set(WIRE_KINDS)
+    with pytest.raises(ValueError, match="'track'"):
+        EventRecord.from_dict({**rec.to_dict(), "track": "3"})
+    with pytest.raises(ValueError, match="'x'"):
+        EventRecord.from_dict({**rec.to_dict(), "x": float("nan")})
+    with pytest.raises(ValueError, match="'kind'"):
+        EventRecord.from_dict({k: v for k, v in rec.to_dict().items() if k != "kind"})
+
+
+# --------------------------------------------------------------------------- falls
+
+
+def _fall_profiles(start="standing", lift=0.0):
+    def prof(f):
+        # accelerating tilt about the feet, the body straightening out on the way down
+        angles = blend(start, "standing", min(1.0, 2 * f)) if start != "standing" else start
+        return body_profile(angles, tilt_deg=90 * f * f, lift_m=lift)
+
+    return prof
+
+
+def test_fall_from_standing_is_one_fall_with_the_right_time_then_a_long_lie():
+    fall_start_s, fall_s = 3.0, 0.8
+    p = Person(1).hold(fall_start_s, STAND, xy=(3.0, 3.0)).move(fall_s, _fall_profiles()).hold(65.0, LIE)
+    events = run([p], EventReasoner(long_lie_s=60.0))
+    falls = kinds(events, "fall")
+    assert len(falls) == 1
+    fall = falls[0]
+    fall_at = t_s(fall.details["fall_stamp_ns"])
+    landed = fall_start_s + fall_s
+    # the moment of the fall lies inside the movement ...
+    assert fall_start_s < fall_at < landed
+    # ... and the event is out within 1.5 s of landing: the 1 s confirmation plus at most 0.5 s
+    assert 0 < t_s(fall.stamp_ns) - landed <= 1.5
+    assert fall.details["from_posture"] == "standing"
+    assert fall.details["drop_m"] > 1.0 and fall.details["drop_speed_mps"] >= 0.8
+    assert (fall.x, fall.y) == (3.0, 3.0) and fall.track == 1
+    lies = kinds(events, "long_lie")
+    assert len(lies) == 1 and lies[0].details["after_fall"] is True
+    assert t_s(lies[0].stamp_ns) - fall_at == pytest.approx(60.0, abs=2 / FPS)
+    assert set(kinds(events)) == {"fall", "long_lie"}
+
+
+def test_fall_from_a_chair_is_a_fall():
+    p = Person(4).hold(3.0, SIT, xy=(2.0, 2.0)).move(0.7, _fall_profiles("sitting")).hold(5.0, LIE)
+    events = run([p], EventReasoner())
+    falls = kinds(events, "fall")
+    assert len(falls) == 1 and falls[0].details["from_posture"] == "sitting"
+    assert 3.0 < t_s(falls[0].details["fall_stamp_ns"]) < 3.7
+
+
+def test_sit_down_and_stand_up_without_fall():
+    p = Person(2).hold(3.0, STAND, xy=(1.0, 1.0))
+    p.move(1.0, lambda f: body_profile(blend("standing", "sitting", f))).hold(6.0, SIT)
+    p.move(1.0, lambda f: body_profile(blend("sitting", "standing", f))).hold(3.0, STAND)
+    events = run([p], EventReasoner())
+    assert kinds(events) == ["sit_down", "stand_up"]
+    sit, stand = events
+    assert 4.0 <= t_s(sit.stamp_ns) <= 4.0 + 1.5  # movement ends at 4 s
+    assert 11.0 <= t_s(stand.stamp_ns) <= 11.0 + 1.5  # movement ends at 11 s
+    assert sit.details["from_posture"] == "standing" and sit.details["to_posture"] == "sitting"
+    assert stand.details["from_posture"] == "sitting"
+
+
+@pytest.mark.parametrize("pose", ["kneeling", "bending", "squatting"])
+def test_fast_kneel_bend_or_squat_is_never_a_fall(pose):
+    p = Person(3).hold(2.0, STAND, xy=(2.0, 2.0))
+    p.move(0.5, lambda f: body_profile(blend("standing", pose, f))).hold(8.0, _profile(pose))
+    p.move(0.8, lambda f: body_profile(blend(pose, "standing", f))).hold(2.0, STAND)
+    events = run([p], EventReasoner(long_lie_s=5.0))
+    assert not kinds(events, "fall") and not kinds(events, "long_lie")
+    assert set(kinds(events)) <= {"sit_down", "stand_up"}
+
+
+def test_slow_lying_down_is_no_fall_but_becomes_a_long_lie():
+    p = Person(5).hold(2.0, STAND, xy=(4.0, 1.0))
+    p.move(2.0, lambda f: body_profile(blend("standing", "kneeling", f)))
+    # from kneeling, tipping over to lying in 5 s: the top falls at 0.44 m/s at most
+    p.move(5.0, lambda f: body_profile(blend("kneeling", "standing", f), tilt_deg=90 * f)).hold(25.0, LIE)
+    events = run([p], EventReasoner(long_lie_s=20.0))
+    assert not kinds(events, "fall")
+    lies = kinds(events, "long_lie")
+    assert len(lies) == 1 and lies[0].details["after_fall"] is False
+    assert lies[0].details["fall_stamp_ns"] is None
+
+
+def test_flopping_onto_a_bed_is_neither_fall_nor_long_lie():
+    bed = Hotspot("bed", [[3, 0], [5, 0], [5, 2], [3, 2]], kind="bed")
+    p = Person(6).hold(2.0, STAND, xy=(4.0, 1.0))
+    p.move(0.6, lambda f: body_profile("standing", tilt_deg=90 * f, lift_m=0.45 * f))
+    p.hold(30.0, _profile("standing", tilt_deg=90, lift_m=0.45))
+    events = run([p], EventReasoner(hotspots=[bed], long_lie_s=10.0, inactivity_s=15.0, inactivity_window_s=5.0))
+    assert not kinds(events, "fall") and not kinds(events, "long_lie")
+    assert not kinds(events, "inactivity")  # still in bed is rest
+
+
+def test_getting_up_before_confirmation_is_no_fall():
+    p = Person(7).hold(2.0, STAND, xy=(2.0, 2.0)).move(0.6, _fall_profiles())
+    p.hold(0.5, LIE).move(1.0, lambda f: body_profile("standing", tilt_deg=90 * (1 - f))).hold(3.0, STAND)
+    events = run([p], EventReasoner(fall_confirm_s=1.0))
+    assert not kinds(events, "fall")
+
+
+# --------------------------------------------------------------------------- doors
+
+
+DOOR = Hotspot("front door", [[0.0, 2.0], [0.5, 2.0], [0.5, 3.0], [0.0, 3.0]])
+
+
+def test_enter_and_exit_through_a_door_and_at_the_edge():
+    a = Person(1).hold(0.4, xy=(0.2, 2.5), confirmed=False).walk((3.0, 2.5)).hold(2.0).walk((0.25, 2.5)).hold(0.2)
+    a.absent(1.0)
+    b = Person(2).absent(1.0).hold(1.0, xy=(3.0, 1.0)).absent(3.0)  # appears and vanishes mid-room
+    c = Person(3).absent(2.0).hold(0.3, xy=(5.8, 4.0), confirmed=False).walk((4.0, 3.0)).hold(1.0)
+    d = Person(4).hold(0.3, xy=(0.3, 2.8), confirmed=False).absent(1.0)  # never confirmed: noise
+    events = run([a, b, c, d], EventReasoner(doors=[DOOR], bounds_xy_m=(0.0, 0.0, 6.0, 5.0), edge_margin_m=0.4))
+    got = [(e.kind, e.track, e.details.get("door")) for e in events]
+    assert got == [("enter", 1, "front door"), ("enter", 3, "edge"), ("exit", 1, "front door")]
+    enter_a = events[0]
+    assert t_s(enter_a.stamp_ns) == pytest.approx(0.4, abs=1.5 / FPS)  # when confirmed
+    assert enter_a.details["first_seen_ns"] == 0
+    exit_a = events[-1]
+    assert exit_a.details["last_seen_ns"] == exit_a.stamp_ns - FRAME_NS
+    assert (exit_a.x, exit_a.y) == pytest.approx((0.25, 2.5))
+
+
+# --------------------------------------------------------------------------- hot spots, visits, inactivity
+
+
+SOFA = Hotspot("sofa", [[4.0, 0.0], [6.0, 0.0], [6.0, 1.0], [4.0, 1.0]], label="the sofa", kind="sofa")
+TABLE = Hotspot("dinner table", [[1.0, 3.0], [3.0, 3.0], [3.0, 4.5], [1.0, 4.5]], kind="table")
+
+
+def test_dwell_start_and_end_at_a_named_hotspot():
+    p = Person(1).hold(1.0, xy=(2.0, 2.0)).walk((5.0, 0.5)).hold(30.0, SIT).walk((5.0, 2.5))
+    events = run([p], EventReasoner(hotspots=[TABLE, SOFA], dwell_window_s=10.0))
+    dwell = [e for e in events if e.kind.startswith("dwell")]
+    assert [e.kind for e in dwell] == ["dwell_start", "dwell_end"]
+    assert {e.details["hotspot"] for e in dwell} == {"sofa"}
+    assert dwell[0].details["label"] == "the sofa" and dwell[0].details["hotspot_kind"] == "sofa"
+    arrive = 1.0 + math.hypot(3.0, 1.5)
+    assert t_s(dwell[0].details["start_ns"]) == pytest.approx(arrive, abs=0.5)
+    assert t_s(dwell[1].stamp_ns) - (arrive + 30.0) < 2.5
+    assert dwell[1].details["duration_s"] == pytest.approx(30.0, abs=3.0)
+
+
+def _table_guests(n, seconds, arrive_s=0.0):
+    seats = [(1.5, 3.5), (2.5, 3.5), (1.5, 4.0), (2.5, 4.0)]
+    return [Person(10 + k).absent(arrive_s).hold(seconds, SIT, xy=seats[k]) for k in range(n)]
+
+
+def test_visit_for_dinner_at_the_dinner_table():
+    t0 = DAY0_NS + 17 * 3600 * NS  # 17:00 UTC = 19:00 local at UTC+2
+    people = _table_guests(3, 80.0)
+    events = run(people, EventReasoner(hotspots=[SOFA, TABLE], residents=1, utc_offset_h=2.0, visit_min_s=60.0), t0_ns=t0)
+    visits = kinds(events, "visit")
+    assert len(visits) == 1
+    v = visits[0]
+    assert v.track == -1 and v.id == f"{v.stamp_ns}-visit--1"
+    assert v.details["time_of_day"] == "for dinner"
+    assert v.details["local_time"] == "19:01"
+    assert v.details["hotspot"] == "dinner table" and v.details["people"] == 3
+    assert t_s(v.stamp_ns, t0) == pytest.approx(60.0, abs=1 / FPS)
+    assert (v.x, v.y) == pytest.approx((2.0, 3.75))
+
+
+def test_no_visit_when_only_residents_are_home_and_hour_override():
+    people = _table_guests(2, 80.0)
+    assert not kinds(run(people, EventReasoner(residents=2, visit_min_s=60.0)), "visit")
+
+    class Morning(EventReasoner):
+        def step(self, *a, **kw):
+            return super().step(*a, hour=8.25, **kw)
+
+    v = kinds(run(people, Morning(hotspots=[TABLE], residents=1, visit_min_s=60.0)), "visit")
+    assert len(v) == 1 and v[0].details["time_of_day"] == "for breakfast" and v[0].details["local_time"] == "08:15"
+
+
+def test_inactivity_while_seated_still_but_not_in_bed():
+    chair = Hotspot("armchair", [[0, 0], [1, 0], [1, 1], [0, 1]], kind="chair")
+    p = Person(1).hold(2.0, xy=(0.5, 0.5)).hold(80.0, SIT)
+    r = EventReasoner(hotspots=[chair], inactivity_s=60.0, inactivity_window_s=10.0, dwell_window_s=10.0)
+    events = run([p], r)
+    ina = kinds(events, "inactivity")
+    assert len(ina) == 1
+    assert ina[0].details["posture"] == "sitting" and ina[0].details["hotspot"] == "armchair"
+    # the clock starts when the seated posture starts (about 2 s + the posture delay)
+    assert t_s(ina[0].stamp_ns) == pytest.approx(62.5, abs=1.0)
+
+
+# --------------------------------------------------------------------------- robustness
+
+
+def test_same_inputs_same_events_and_unique_ids():
+    def scene():
+        p = Person(1).hold(0.5, xy=(0.2, 2.5)).walk((5.0, 0.5)).hold(15.0, SIT)
+        p.move(1.0, lambda f: body_profile(blend("sitting", "standing", f))).hold(2.0).move(0.8, _fall_profiles())
+        p.hold(3.0, LIE)
+        return [p] + _table_guests(2, 25.0)
+
+    cfg = dict(hotspots=[SOFA, TABLE], doors=[DOOR], residents=1, visit_min_s=20.0, dwell_window_s=5.0)
+    a = run(scene(), EventReasoner(**cfg))
+    b = run(scene(), EventReasoner(**cfg))
+    assert a == b and len(a) >= 6
+    assert len({e.id for e in a}) == len(a)
+    assert all(e.id == f"{e.stamp_ns}-{e.kind}-{e.track}" for e in a)
+    assert {"enter", "dwell_start", "visit", "stand_up", "fall"} <= set(kinds(a))
+
+
+def test_bad_frames_and_tracks_are_counted_and_dropped():
+    r = EventReasoner()
+    assert r.step(10 * NS, 0, [Est(1, 1.0, 1.0, STAND)]) == []
+    assert r.step(5 * NS, 1, [Est(1, 1.0, 1.0, STAND)]) == []  # back in time
+    assert r.rejected_frames == 1
+    r.step(11 * NS, 2, [Est(2, float("nan"), 1.0, STAND), Est(3, 1.0, 1.0, STAND), Est(3, 2.0, 1.0, STAND)])
+    assert r.rejected_tracks == 2
+
+
+@pytest.mark.parametrize(
+    "kwargs, name",
+    [
+        (dict(residents=-1), "residents"),
+        (dict(fall_min_drop_m=0), "fall_min_drop_m"),
+        (dict(long_lie_s=float("nan")), "long_lie_s"),
+        (dict(low_top_frac=1.5), "low_top_frac"),
+        (dict(bounds_xy_m=(0, 0, -1, 5)), "bounds_xy_m"),
+        (dict(utc_offset_h=20), "utc_offset_h"),
+        (dict(hotspots=[SOFA, SOFA]), "unique"),
+        (dict(doors=[[0, 0]]), "doors"),
+        (dict(stand_up_from=("flying",)), "stand_up_from"),
+        (dict(meals=(("for tea", 17, 15),)), "meals"),
+        (dict(dwell_still_std_m=0.5, dwell_move_std_m=0.2), "move_std_m"),
+    ],
+)
+def test_reasoner_validation(kwargs, name):
+    with pytest.raises(ValueError, match=name):
+        EventReasoner(**kwargs)
+
+
+def test_posture_names_may_replace_readings():
+    r = EventReasoner()
+    out = []
+    for k, post in enumerate(["standing"] * 5 + ["sitting"] * 5):
+        out += r.step(k * FRAME_NS, k, [Est(1, 1.0, 1.0, STAND)], {1: post})
+    assert kinds(out) == ["sit_down"]
+    assert NZ * VOXEL_M == pytest.approx(2.5)
