@@ -1,0 +1,249 @@
+"""One fused frame: masks of a frame set -> voxels -> people -> postures -> events.
+
+The whole algorithmic chain of the fusion server, shared line for line by the
+live server (``fusion_server.server``) and offline replay
+(``fusion_server.replay``). Pure: no zenoh, no clock, no files (the carving
+lookup-table cache aside, which the carver owns).
+"""
+
+from __future__ import annotations
+
+import itertools
+from collections.abc import Mapping
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from common.camera import Camera
+from common.site import Site
+from fusion_server.carving import Carver
+from fusion_server.detection import detect_blobs
+from fusion_server.events import EventReasoner, EventRecord, event_id
+from fusion_server.grid import CarveResult
+from fusion_server.hotspots import Hotspot
+from fusion_server.posture import PostureEstimator, PostureReading
+from fusion_server.tracker import TrackEstimate, Tracker
+
+
+@dataclass(frozen=True)
+class TrackOutput:
+    """A confirmed track as users see it. World frame, metres, m/s."""
+
+    id: int
+    x: float
+    y: float
+    z_top: float
+    volume_m3: float
+    posture: str
+    reliability: float
+    vx: float
+    vy: float
+    still: bool
+
+
+@dataclass(frozen=True)
+class FusedFrame:
+    """Everything one frame set produced.
+
+    holds: camera id -> full-resolution pixel boxes ``(x0, y0, x1, y1)``
+        (exclusive ends) around each still person, which that camera must not
+        learn into its background.
+    """
+
+    frame: int
+    stamp_ns: int
+    cameras: tuple[str, ...]
+    tracks: list[TrackOutput]
+    events: list[EventRecord]
+    holds: dict[str, list[tuple[int, int, int, int]]]
+    carve: CarveResult
+
+
+class FusionPipeline:
+    """Carve, detect, track, judge posture and reason about events, frame by frame.
+
+    Keyword arguments:
+      carver: the voxel carver of the site's cameras and volume.
+      cameras: camera id -> full-resolution camera (for hold regions).
+      reasoner: the event reasoner (hot spots, doors, residents).
+      rng: generator for the particle filters.
+      hold_radius_m: half-width of the floor square around a still person
+        whose projection a camera must not learn.
+      min_cameras: fewest cameras a frame set needs to be fused.
+    """
+
+    def __init__(
+        self,
+        *,
+        carver: Carver,
+        cameras: Mapping[str, Camera],
+        reasoner: EventReasoner,
+        rng: np.random.Generator,
+        hold_radius_m: float = 0.45,
+        min_cameras: int | None = None,
+    ) -> None:
+        if hold_radius_m <= 0:
+            raise ValueError(f"hold_radius_m must be positive, got {hold_radius_m}")
+        self.carver = carver
+        self.cameras = dict(cameras)
+        self.reasoner = reasoner
+        self.tracker = Tracker(rng=rng, id_source=itertools.count(1))
+        self.hold_radius_m = float(hold_radius_m)
+        self.min_cameras = int(min_cameras if min_cameras is not None else carver.min_cameras)
+        self.camera_ids: tuple[str, ...] = carver.camera_ids
+        self._postures: dict[int, PostureEstimator] = {}
+
+    @classmethod
+    def from_site(
+        cls,
+        site: Site,
+        *,
+        cameras: Mapping[str, Camera] | None = None,
+        cache_dir: str | Path | None = None,
+        seed: int = 0,
+        min_cameras: int | None = None,
+    ) -> "FusionPipeline":
+        """The pipeline a site file describes (calibrations loaded unless given)."""
+        cameras = dict(cameras) if cameras is not None else site.load_cameras()
+        carving = site.carving
+        kwargs = {} if cache_dir is None else {"cache_dir": cache_dir}
+        carver = Carver(
+            cameras=cameras,
+            volume_min_m=site.volume.min_m,
+            volume_max_m=site.volume.max_m,
+            voxel_sizes_m=carving.voxel_sizes_m,
+            min_cameras=carving.min_cameras,
+            min_ratio=carving.min_ratio,
+            mask_scale=carving.mask_scale,
+            **kwargs,
+        )
+        reasoner = EventReasoner(
+            hotspots=[Hotspot(name=h.name, polygon_m=np.asarray(h.polygon_m), kind=h.kind) for h in site.hotspots],
+            doors=[Hotspot(name=d.name, polygon_m=np.asarray(d.polygon_m), kind="door") for d in site.doors],
+            bounds_xy_m=(site.volume.min_m[0], site.volume.min_m[1], site.volume.max_m[0], site.volume.max_m[1]),
+            residents=site.residents,
+            utc_offset_h=site.utc_offset_hours,
+        )
+        return cls(
+            carver=carver, cameras=cameras, reasoner=reasoner, rng=np.random.default_rng(seed), min_cameras=min_cameras
+        )
+
+    def step(self, masks: Mapping[str, np.ndarray], stamp_ns: int, frame: int) -> FusedFrame:
+        """Fuse one frame set.
+
+        masks: camera id -> (H, W) uint8 mask, 0 background, 255 foreground,
+            at full or downscaled resolution; absent cameras do not vote.
+        stamp_ns: the frame set's capture time. frame: its frame number.
+        """
+        carve = self.carver.carve(masks, stamp_ns)
+        blobs = detect_blobs(carve)
+        estimates = self.tracker.step(carve, blobs, stamp_ns)
+        readings = self._update_postures(estimates, stamp_ns)
+        events = self.reasoner.step(stamp_ns, frame, estimates, readings)
+        confirmed = [e for e in estimates if e.confirmed]
+        tracks = [_output(e, readings.get(e.id)) for e in confirmed]
+        holds = self.hold_regions([e for e in confirmed if e.still])
+        return FusedFrame(
+            frame=int(frame),
+            stamp_ns=int(stamp_ns),
+            cameras=tuple(sorted(masks)),
+            tracks=tracks,
+            events=events,
+            holds=holds,
+            carve=carve,
+        )
+
+    def hold_regions(self, still: list[TrackEstimate]) -> dict[str, list[tuple[int, int, int, int]]]:
+        """Per camera, the image boxes of the given people (a floor square of
+        ``hold_radius_m`` around each, from the floor to their top)."""
+        holds: dict[str, list[tuple[int, int, int, int]]] = {cam: [] for cam in self.cameras}
+        if not still:
+            return holds
+        r = self.hold_radius_m
+        corners = []
+        for est in still:
+            top = max(float(est.z_top_m), 0.5) + 0.1
+            for dx, dy, z in itertools.product((-r, r), (-r, r), (0.0, top)):
+                corners.append((est.x + dx, est.y + dy, z))
+        pts = np.asarray(corners, dtype=np.float64).reshape(len(still), 8, 3)
+        for cam_id, cam in self.cameras.items():
+            uv, valid = cam.project(pts.reshape(-1, 3))
+            uv = uv.reshape(len(still), 8, 2)
+            valid = valid.reshape(len(still), 8)
+            for person_uv, person_valid in zip(uv, valid):
+                if not person_valid.any():
+                    continue
+                # corners off the image still bound the box where they project at all
+                seen = person_uv[np.all(np.isfinite(person_uv), axis=1)]
+                x0, y0 = np.floor(seen.min(axis=0)).astype(int)
+                x1, y1 = np.ceil(seen.max(axis=0)).astype(int) + 1
+                box = (max(0, x0), max(0, y0), min(cam.width, x1), min(cam.height, y1))
+                if box[2] > box[0] and box[3] > box[1]:
+                    holds[cam_id].append(tuple(int(v) for v in box))
+        return holds
+        r = self.hold_radius_m
+        corners = []
+        for est in still:
+            top = max(float(est.z_top_m), 0.5) + 0.1
+            for dx, dy, z in itertools.product((-r, r), (-r, r), (0.0, top)):
+                corners.append((est.x + dx, est.y + dy, z))
+        pts = np.asarray(corners, dtype=np.float64).reshape(len(still), 8, 3)
+        for cam_id, cam in self.cameras.items():
+            uv, valid = cam.project(pts.reshape(-1, 3))
+            uv = uv.reshape(len(still), 8, 2)
+            valid = valid.reshape(len(still), 8)
+            for person_uv, person_valid in zip(uv, valid):
+                if not person_valid.any():
+                    continue
+                seen = person_uv[person_valid]
+                x0, y0 = np.floor(seen.min(axis=0)).astype(int)
+                x1, y1 = np.ceil(seen.max(axis=0)).astype(int) + 1
+                if not person_valid.all():  # part of the box is off-image: extend to the border it leaves by
+                    x0, y0, x1, y1 = _extend_to_border(person_uv, person_valid, (x0, y0, x1, y1), cam)
+                box = (max(0, x0), max(0, y0), min(cam.width, x1), min(cam.height, y1))
+                if box[2] > box[0] and box[3] > box[1]:
+                    holds[cam_id].append(tuple(int(v) for v in box))
+        return holds
+
+    def camera_event(self, kind: str, cam: str, stamp_ns: int, frame: int, **details) -> EventRecord:
+        """A camera-health event (``camera_lost``, ``camera_back``, ``clock_skew``)."""
+        return EventRecord(
+            id=event_id(stamp_ns, f"{kind}-{cam}", -1),
+            kind=kind,
+            track=-1,
+            stamp_ns=int(stamp_ns),
+            frame=int(frame),
+            x=0.0,
+            y=0.0,
+            details={"camera": cam, **details},
+        )
+
+    def _update_postures(self, estimates: list[TrackEstimate], stamp_ns: int) -> dict[int, PostureReading]:
+        live = {e.id for e in estimates}
+        for tid in [t for t in self._postures if t not in live]:
+            del self._postures[tid]
+        readings: dict[int, PostureReading] = {}
+        for est in estimates:
+            estimator = self._postures.get(est.id)
+            if estimator is None:
+                estimator = self._postures[est.id] = PostureEstimator(voxel_m=self.carver.grid.voxel_m)
+            reading = estimator.update(stamp_ns, est.height_profile)
+            if reading is not None:
+                readings[est.id] = reading
+        return readings
+
+
+def _output(est: TrackEstimate, reading: PostureReading | None) -> TrackOutput:
+    return TrackOutput(
+        id=int(est.id),
+        x=float(est.x),
+        y=float(est.y),
+        z_top=float(est.z_top_m),
+        volume_m3=float(est.volume_m3),
+        posture=reading.posture if reading is not None else "unknown",
+        reliability=float(est.reliability),
+        vx=float(est.vx),
+        vy=float(est.vy),
+        still=bool(est.still),
+    )
