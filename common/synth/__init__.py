@@ -1,0 +1,1 @@
+"""The synthetic house: scripted people rendered into every camera, with exact ground truth."""
