@@ -1,0 +1,341 @@
+"""The event history: an SQLite file the fusion server writes before it publishes.
+
+:class:`EventStore` keeps every :class:`~fusion_server.events.EventRecord`
+in one table keyed by the event id. ``add`` is idempotent (a second event
+with the same id is ignored and reported as not added) and has committed
+to disk when it returns, so an event that was published is always in the
+history, also after a crash or restart. The database runs in WAL mode with
+``synchronous=FULL``; one connection is shared by all threads behind a lock
+(the zenoh queryable answers on its own thread).
+
+:func:`parse_history_selector` turns the parameters of a
+``<p>/history/events`` query into a :class:`HistoryFilter`:
+
+* ``since``, ``until``: integer nanoseconds since the Unix epoch, or an
+  ISO-8601 time (``2024-05-01T19:00:00Z``, ``2024-05-01T19:00+02:00``,
+  ``2024-05-01``); times without a zone are site-local (``utc_offset_h``).
+  The range is half-open: ``since <= stamp_ns < until``.
+* ``kind``: one kind or a comma (or ``|``) separated list.
+* ``format``: ``json`` (default) or ``msgpack``: how the replies are encoded.
+* ``limit``: at most this many events (default 1000, at most 100000),
+  oldest first.
+
+Parameters whose name starts with ``_`` are zenoh's own and are ignored.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import re
+import sqlite3
+import threading
+from dataclasses import dataclass
+from datetime import datetime, timedelta, timezone
+from pathlib import Path
+from typing import Any, Iterable, Mapping
+
+from fusion_server.events import EventRecord
+
+SCHEMA_VERSION = 1
+DEFAULT_LIMIT = 1000
+MAX_LIMIT = 100_000
+FORMATS = ("json", "msgpack")
+SELECTOR_PARAMETERS = ("since", "until", "kind", "format", "limit")
+
+_SCHEMA = """
+CREATE TABLE IF NOT EXISTS events (
+    id       TEXT PRIMARY KEY,
+    kind     TEXT NOT NULL,
+    track    INTEGER NOT NULL,
+    stamp_ns INTEGER NOT NULL,
+    frame    INTEGER NOT NULL,
+    x        REAL NOT NULL,
+    y        REAL NOT NULL,
+    details  TEXT NOT NULL
+);
+CREATE INDEX IF NOT EXISTS events_by_stamp ON events (stamp_ns);
+CREATE INDEX IF NOT EXISTS events_by_kind ON events (kind, stamp_ns);
+"""
+
+
+class EventStore:
+    """Durable, thread-safe event history in an SQLite file.
+
+    path: the database file (created with its folder if absent), or
+        ``":memory:"`` for a throw-away store.
+    timeout_s: how long to wait for another process's write lock.
+    """
+
+    def __init__(self, path: str | Path, *, timeout_s: float = 5.0) -> None:
+        self.path = str(path) if str(path) == ":memory:" else str(Path(path).expanduser())
+        if self.path != ":memory:":
+            try:
+                Path(self.path).resolve().parent.mkdir(parents=True, exist_ok=True)
+            except OSError as exc:
+                raise ValueError(f"event store {self.path}: cannot create its folder: {exc}") from None
+        self._lock = threading.Lock()
+        try:
+            self._db: sqlite3.Connection | None = sqlite3.connect(
+                self.path, timeout=timeout_s, check_same_thread=False
+            )
+            self._db.execute("PRAGMA journal_mode=WAL")
+            self._db.execute("PRAGMA synchronous=FULL")
+            version = self._db.execute("PRAGMA user_version").fetchone()[0]
+            if version > SCHEMA_VERSION:
+                raise ValueError(
+                    f"event store {self.path}: schema version {version} is newer than this build's {SCHEMA_VERSION}"
+                )
+            self._db.executescript(_SCHEMA)
+            self._db.execute(f"PRAGMA user_version = {SCHEMA_VERSION}")
+            self._db.commit()
+        except sqlite3.Error as exc:
+            raise ValueError(f"event store {self.path}: cannot open: {exc}") from None
+
+    # ------------------------------------------------------------------ writing
+
+    def add(self, event: EventRecord | Mapping[str, Any]) -> bool:
+        """Store one event and commit. True if it was new, False if its id was
+        already stored (the stored one is kept). ValueError for a malformed event."""
+        row = _row(event)
+        with self._lock:
+            db = self._open()
+            try:
+                cur = db.execute("INSERT OR IGNORE INTO events VALUES (?, ?, ?, ?, ?, ?, ?, ?)", row)
+                db.commit()
+            except sqlite3.Error as exc:
+                db.rollback()
+                raise ValueError(f"event store {self.path}: cannot write event {row[0]!r}: {exc}") from None
+            return cur.rowcount == 1
+
+    def add_many(self, events: Iterable[EventRecord | Mapping[str, Any]]) -> int:
+        """Store several events in one transaction; returns how many were new."""
+        rows = [_row(e) for e in events]
+        with self._lock:
+            db = self._open()
+            try:
+                before = db.total_changes
+                db.executemany("INSERT OR IGNORE INTO events VALUES (?, ?, ?, ?, ?, ?, ?, ?)", rows)
+                db.commit()
+                return db.total_changes - before
+            except sqlite3.Error as exc:
+                db.rollback()
+                raise ValueError(f"event store {self.path}: cannot write events: {exc}") from None
+
+    # ------------------------------------------------------------------ reading
+
+    def query(
+        self,
+        since_ns: int | None = None,
+        until_ns: int | None = None,
+        kinds: Iterable[str] | None = None,
+        limit: int = DEFAULT_LIMIT,
+        *,
+        newest_first: bool = False,
+    ) -> list[EventRecord]:
+        """Events with ``since_ns <= stamp_ns < until_ns`` (either bound optional)
+        and a kind in ``kinds`` (None: all), oldest first (or newest first),
+        at most ``limit``; ties in time keep the order they were added in."""
+        if isinstance(limit, bool) or not isinstance(limit, int) or not 1 <= limit <= MAX_LIMIT:
+            raise ValueError(f"limit must be an int in 1..{MAX_LIMIT}, got {limit!r}")
+        where, args = [], []
+        if since_ns is not None:
+            where.append("stamp_ns >= ?")
+            args.append(_int(since_ns, "since_ns"))
+        if until_ns is not None:
+            where.append("stamp_ns < ?")
+            args.append(_int(until_ns, "until_ns"))
+        if kinds is not None:
+            kinds = [kinds] if isinstance(kinds, str) else list(kinds)
+            if not kinds:
+                return []
+            where.append(f"kind IN ({', '.join('?' * len(kinds))})")
+            args.extend(str(k) for k in kinds)
+        order = "DESC" if newest_first else "ASC"
+        sql = "SELECT id, kind, track, stamp_ns, frame, x, y, details FROM events"
+        if where:
+            sql += " WHERE " + " AND ".join(where)
+        sql += f" ORDER BY stamp_ns {order}, rowid {order} LIMIT ?"
+        args.append(limit)
+        with self._lock:
+            try:
+                rows = self._open().execute(sql, args).fetchall()
+            except sqlite3.Error as exc:
+                raise ValueError(f"event store {self.path}: cannot read: {exc}") from None
+        return [
+            EventRecord(id=r[0], kind=r[1], track=r[2], stamp_ns=r[3], frame=r[4], x=r[5], y=r[6],
+                        details=json.loads(r[7]))
+            for r in rows
+        ]
+
+    def query_filter(self, flt: "HistoryFilter") -> list[EventRecord]:
+        """:meth:`query` with a :class:`HistoryFilter` from :func:`parse_history_selector`."""
+        return self.query(flt.since_ns, flt.until_ns, flt.kinds, flt.limit)
+
+    def count(self) -> int:
+        with self._lock:
+            return int(self._open().execute("SELECT COUNT(*) FROM events").fetchone()[0])
+
+    # ------------------------------------------------------------------ lifetime
+
+    def close(self) -> None:
+        """Close the database; closing twice is harmless."""
+        with self._lock:
+            if self._db is not None:
+                self._db.close()
+                self._db = None
+
+    def __enter__(self) -> "EventStore":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def _open(self) -> sqlite3.Connection:
+        if self._db is None:
+            raise ValueError(f"event store {self.path} is closed")
+        return self._db
+
+
+@dataclass(frozen=True)
+class HistoryFilter:
+    """What a history query asks for (see :func:`parse_history_selector`)."""
+
+    since_ns: int | None = None
+    until_ns: int | None = None
+    kinds: tuple[str, ...] | None = None
+    format: str = "json"
+    limit: int = DEFAULT_LIMIT
+
+
+def parse_history_selector(
+    parameters: str | Mapping[str, Any] | Any,
+    *,
+    utc_offset_h: float = 0.0,
+    known_kinds: Iterable[str] | None = None,
+) -> HistoryFilter:
+    """Parse the parameters of a history query.
+
+    parameters: the selector's parameter text (``since=...;kind=fall``, a
+        leading ``key?`` is skipped), a mapping, or any object whose ``str()``
+        is such text (``zenoh.Parameters``).
+    utc_offset_h: zone of ISO times written without one.
+    known_kinds: accepted event kinds (default: the wire's event kinds).
+
+    Raises ValueError naming the parameter and the problem.
+    """
+    if known_kinds is None:
+        from common.messages import EVENT_KINDS as known_kinds  # the wire's list is the reference
+    known = frozenset(known_kinds)
+    items = _selector_items(parameters)
+    unknown = sorted(k for k in items if k not in SELECTOR_PARAMETERS)
+    if unknown:
+        raise ValueError(
+            f"history selector: unknown parameter(s) {', '.join(map(repr, unknown))} "
+            f"(known: {', '.join(SELECTOR_PARAMETERS)})"
+        )
+    since = _time_param(items, "since", utc_offset_h)
+    until = _time_param(items, "until", utc_offset_h)
+    if since is not None and until is not None and since >= until:
+        raise ValueError(f"history selector: since ({since}) must be before until ({until})")
+    kinds = None
+    if "kind" in items:
+        raw = items["kind"]
+        parts = list(raw) if isinstance(raw, (list, tuple)) else re.split(r"[,|]", str(raw))
+        kinds = tuple(dict.fromkeys(str(p).strip() for p in parts if str(p).strip()))
+        if not kinds:
+            raise ValueError("history selector: kind is empty")
+        bad = [k for k in kinds if k not in known]
+        if bad:
+            raise ValueError(f"history selector: unknown kind(s) {', '.join(map(repr, bad))} (known: {', '.join(sorted(known))})")
+    fmt = str(items.get("format", "json")).strip().lower()
+    if fmt not in FORMATS:
+        raise ValueError(f"history selector: format {items['format']!r} is not one of {', '.join(FORMATS)}")
+    limit = DEFAULT_LIMIT
+    if "limit" in items:
+        raw = str(items["limit"]).strip()
+        if not raw.isdigit() or not 1 <= int(raw) <= MAX_LIMIT:
+            raise ValueError(f"history selector: limit {items['limit']!r} must be an integer in 1..{MAX_LIMIT}")
+        limit = int(raw)
+    return HistoryFilter(since_ns=since, until_ns=until, kinds=kinds, format=fmt, limit=limit)
+
+
+def parse_time_ns(text: str | int, *, utc_offset_h: float = 0.0) -> int:
+    """Nanoseconds since the Unix epoch from an integer (ns) or ISO-8601 text.
+
+    Times without a zone are taken at ``utc_offset_h``. ValueError otherwise.
+    """
+    if isinstance(text, bool):
+        raise ValueError(f"not a time: {text!r}")
+    if isinstance(text, int):
+        if text < 0:
+            raise ValueError(f"time {text} is negative")
+        return text
+    s = str(text).strip()
+    if re.fullmatch(r"[0-9]+", s):
+        return int(s)
+    try:
+        dt = datetime.fromisoformat(s)
+    except ValueError:
+        raise ValueError(f"{s!r} is neither integer nanoseconds nor an ISO-8601 time") from None
+    if dt.tzinfo is None:
+        if not (isinstance(utc_offset_h, (int, float)) and math.isfinite(utc_offset_h)):
+            raise ValueError(f"utc_offset_h must be a finite number, got {utc_offset_h!r}")
+        dt = dt.replace(tzinfo=timezone(timedelta(hours=utc_offset_h)))
+    micros = (dt - datetime(1970, 1, 1, tzinfo=timezone.utc)) // timedelta(microseconds=1)
+    if micros < 0:
+        raise ValueError(f"time {s!r} is before 1970")
+    return micros * 1000
+
+
+# --------------------------------------------------------------------------- helpers
+
+
+def _row(event: EventRecord | Mapping[str, Any]) -> tuple:
+    rec = EventRecord.from_dict(event.to_dict() if isinstance(event, EventRecord) else event)
+    if not 0 <= rec.stamp_ns < 2**63:
+        raise ValueError(f"event {rec.id!r}: stamp_ns {rec.stamp_ns} is out of range")
+    try:
+        details = json.dumps(rec.details, sort_keys=True, allow_nan=False, separators=(",", ":"))
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"event {rec.id!r}: details are not plain JSON values: {exc}") from None
+    return (rec.id, rec.kind, rec.track, rec.stamp_ns, rec.frame, rec.x, rec.y, details)
+
+
+def _int(value: Any, name: str) -> int:
+    if isinstance(value, bool) or not isinstance(value, int):
+        raise ValueError(f"{name} must be an int (nanoseconds), got {value!r}")
+    return value
+
+
+def _selector_items(parameters: Any) -> dict[str, Any]:
+    if isinstance(parameters, Mapping):
+        items = {str(k).strip(): v for k, v in parameters.items()}
+    else:
+        text = "" if parameters is None else str(parameters)
+        if "?" in text:
+            text = text.split("?", 1)[1]
+        items = {}
+        for part in re.split(r"[;&]", text):
+            part = part.strip()
+            if not part:
+                continue
+            key, sep, value = part.partition("=")
+            key = key.strip()
+            if not key:
+                raise ValueError(f"history selector: parameter {part!r} has no name")
+            if not sep:
+                raise ValueError(f"history selector: parameter {key!r} has no value (write {key}=...)")
+            if key in items:
+                raise ValueError(f"history selector: parameter {key!r} is given twice")
+            items[key] = value.strip()
+    return {k: v for k, v in items.items() if not k.startswith("_")}
+
+
+def _time_param(items: Mapping[str, Any], name: str, utc_offset_h: float) -> int | None:
+    if name not in items:
+        return None
+    try:
+        return parse_time_ns(items[name], utc_offset_h=utc_offset_h)
+    except ValueError as exc:
+        raise ValueError(f"history selector: {name}: {exc}") from None
