@@ -1,0 +1,209 @@
+"""The fusion server's output files: ``tracks.csv`` and ``events.jsonl``.
+
+Both formats are the ones ``common.evaluation.io`` reads (and the README
+documents), so a live run can be scored like a replay:
+
+* ``tracks.csv``, header ``frame,stamp_ns,id,x,y,z_top,posture``: one row
+  per confirmed track per fused frame; ``x``, ``y``, ``z_top`` in metres,
+  world frame, four decimals.
+* ``events.jsonl``: one ``EventRecord.to_dict()`` object per line.
+
+Each frame's rows and each event go out in one ``write`` followed by a
+flush, so a server that is killed loses nothing it had written. Files are
+opened for appending: a restarted server carries on after the last complete
+line (a partial last line, cut by a kill in mid-write, is trimmed first), and
+an existing ``tracks.csv`` must carry the expected header.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import math
+from collections.abc import Iterable, Mapping
+from pathlib import Path
+from typing import Any, Protocol
+
+__all__ = [
+    "EVENTS_FILE",
+    "TRACKS_FILE",
+    "TRACK_COLUMNS",
+    "EventsWriter",
+    "RunOutputs",
+    "TracksWriter",
+    "plain_value",
+]
+
+TRACKS_FILE = "tracks.csv"
+EVENTS_FILE = "events.jsonl"
+TRACK_COLUMNS: tuple[str, ...] = ("frame", "stamp_ns", "id", "x", "y", "z_top", "posture")
+_HEADER = ",".join(TRACK_COLUMNS)
+
+
+class TrackRow(Protocol):
+    """What a track row needs (``pipeline.TrackOutput`` has it)."""
+
+    id: int
+    x: float
+    y: float
+    z_top: float
+    posture: str
+
+
+class EventLike(Protocol):
+    def to_dict(self) -> dict[str, Any]: ...
+
+
+class TracksWriter:
+    """Appends fused frames to a tracks CSV, one flush per frame.
+
+    path: the CSV file; created with its header (and folder) when absent or
+    empty. ValueError names the file when it cannot be opened or its header
+    is not ``frame,stamp_ns,id,x,y,z_top,posture``.
+    """
+
+    def __init__(self, path: str | Path) -> None:
+        self.path = Path(path)
+        self._fh = _open_append(self.path, header=_HEADER)
+        self.rows_written = 0
+
+    def write_frame(self, frame: int, stamp_ns: int, tracks: Iterable[TrackRow]) -> int:
+        """Append one row per track of frame ``frame``; returns the number of rows.
+
+        Tracks with a non-finite position or height are left out (the
+        format has no place for them).
+        """
+        buf = io.StringIO()
+        n = 0
+        for t in tracks:
+            x, y, z = float(t.x), float(t.y), float(t.z_top)
+            if not (math.isfinite(x) and math.isfinite(y) and math.isfinite(z)):
+                continue
+            buf.write(f"{int(frame)},{int(stamp_ns)},{int(t.id)},{x:.4f},{y:.4f},{z:.4f},{t.posture}\n")
+            n += 1
+        if n:
+            self._fh.write(buf.getvalue())
+            self._fh.flush()
+            self.rows_written += n
+        return n
+
+    def close(self) -> None:
+        self._fh.close()
+
+
+class EventsWriter:
+    """Appends events to a JSON-lines file, one flush per event (see :func:`plain_value`)."""
+
+    def __init__(self, path: str | Path) -> None:
+        self.path = Path(path)
+        self._fh = _open_append(self.path, header=None)
+        self.events_written = 0
+
+    def write(self, event: EventLike | Mapping[str, Any]) -> None:
+        """Append one event (an ``EventRecord`` or its ``to_dict()``) as one line."""
+        obj = event.to_dict() if hasattr(event, "to_dict") else dict(event)
+        self._fh.write(json.dumps(plain_value(obj), ensure_ascii=False, allow_nan=False, separators=(",", ":")) + "\n")
+        self._fh.flush()
+        self.events_written += 1
+
+    def close(self) -> None:
+        self._fh.close()
+
+
+class RunOutputs:
+    """``tracks.csv`` and ``events.jsonl`` in one folder (created if absent)."""
+
+    def __init__(self, out_dir: str | Path) -> None:
+        self.out_dir = Path(out_dir)
+        try:
+            self.out_dir.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise ValueError(f"output folder {self.out_dir}: cannot create it: {exc.strerror or exc}") from None
+        self.tracks = TracksWriter(self.out_dir / TRACKS_FILE)
+        try:
+            self.events = EventsWriter(self.out_dir / EVENTS_FILE)
+        except ValueError:
+            self.tracks.close()
+            raise
+
+    def write_frame(self, frame: int, stamp_ns: int, tracks: Iterable[TrackRow]) -> int:
+        return self.tracks.write_frame(frame, stamp_ns, tracks)
+
+    def write_event(self, event: EventLike | Mapping[str, Any]) -> None:
+        self.events.write(event)
+
+    def close(self) -> None:
+        self.tracks.close()
+        self.events.close()
+
+    def __enter__(self) -> "RunOutputs":
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+def plain_value(value: Any) -> Any:
+    """``value`` with numpy scalars/arrays made plain Python and non-finite floats made None.
+
+    Dicts keep their keys (made ``str``), tuples become lists: what JSON,
+    msgpack and the wire models all take.
+    """
+    if isinstance(value, Mapping):
+        return {str(k): plain_value(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [plain_value(v) for v in value]
+    if isinstance(value, (str, bool)) or value is None:
+        return value
+    if hasattr(value, "tolist") and not isinstance(value, (int, float)):  # numpy scalar or array
+        return plain_value(value.tolist())
+    if isinstance(value, int):
+        return int(value)
+    if isinstance(value, float):
+        return float(value) if math.isfinite(value) else None
+    return str(value)
+
+
+# --------------------------------------------------------------------------- helpers
+
+
+def _open_append(path: Path, *, header: str | None):
+    """Open ``path`` for appending after its last complete line; write ``header`` into a new file."""
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        with path.open("a+b") as raw:
+            raw.seek(0, io.SEEK_END)
+            size = raw.tell()
+            if size:
+                _trim_partial_line(raw, size)
+                if header is not None:
+                    raw.seek(0)
+                    first = raw.readline().decode("utf-8", errors="replace").strip()
+                    if first and first != header:
+                        raise ValueError(f"tracks file {path}: header is {first!r}, expected {header!r}; "
+                                         "refusing to append to another kind of file")
+        fh = path.open("a", encoding="utf-8", newline="\n")
+    except OSError as exc:
+        raise ValueError(f"output file {path}: cannot open for appending: {exc.strerror or exc}") from None
+    if header is not None and fh.tell() == 0:
+        fh.write(header + "\n")
+        fh.flush()
+    return fh
+
+
+def _trim_partial_line(raw, size: int) -> None:
+    """Cut whatever follows the last newline (a line a killed writer left half written)."""
+    raw.seek(size - 1)
+    if raw.read(1) == b"\n":
+        return
+    pos, chunk = size, 4096
+    while pos > 0:
+        start = max(0, pos - chunk)
+        raw.seek(start)
+        data = raw.read(pos - start)
+        idx = data.rfind(b"\n")
+        if idx >= 0:
+            raw.truncate(start + idx + 1)
+            return
+        pos = start
+    raw.truncate(0)
