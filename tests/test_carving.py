@@ -25,6 +25,7 @@ from fusion_server.carving import (
     vote,
 )
 from fusion_server.carving.bench import Box, Cylinder, MaskRenderer, body_voxels, measure_carving, room_rig
+from fusion_server.carving.lut import LUT_FORMAT
 from fusion_server.grid import VoxelGrid
 
 VOLUME = dict(volume_min_m=(0.0, 0.0, 0.0), volume_max_m=(8.0, 6.0, 2.5))
@@ -115,6 +116,7 @@ def test_lut_matches_direct_projection(rig, carver):
         cam = rig[cid]
         lut = compute_lut(cam, grid, layout)
         assert lut.nbytes == sum(6 * layout.count(level) for level in range(layout.n_levels))
+        assert all(q.dtype == np.uint16 for q in lut.radius_q)
         for level, factor in enumerate(layout.factors):
             n = layout.count(level)
             idx = rng.choice(n, size=min(n, 3000), replace=False)
@@ -130,16 +132,16 @@ def test_lut_matches_direct_projection(rig, carver):
             corners = np.array([(a, b, c) for a in (0, 1) for b in (0, 1) for c in (0, 1)], dtype=float)
             cuv, _ = cam.project((grid.origin_m + (ijk[:, None, :] + corners[None]) * size).reshape(-1, 3))
             r = np.linalg.norm(cuv.reshape(-1, 8, 2) - uv[:, None, :], axis=2).max(axis=1)
-            stored = lut.radius_px[level][idx].astype(np.float64)
+            stored = lut.radius_px(level)[idx]
             unbounded = valid & np.isnan(r)
             bounded = valid & ~np.isnan(r)
             assert np.all(np.isinf(stored[unbounded]))
             assert np.all(stored[bounded] >= r[bounded])
-            assert np.all(stored[bounded] <= r[bounded] * (1 + 2.0**-10) + 1e-6)
+            assert np.all(stored[bounded] <= r[bounded] + 1 / 32)
     # The ceiling fisheye (z = 2.45 m) sits inside the volume: finest voxels just below it
     # have corners level with the lens, which cannot be projected.
     ceiling = compute_lut(rig["ceiling"], grid, layout)
-    unbounded = np.flatnonzero(np.isinf(ceiling.radius_px[-1]) & (ceiling.pixel[-1] >= 0))
+    unbounded = np.flatnonzero(np.isinf(ceiling.radius_px(-1)) & (ceiling.pixel[-1] >= 0))
     assert unbounded.size
     assert set(np.unravel_index(unbounded, layout.dims[-1])[2].tolist()) == {48}
 
@@ -151,14 +153,14 @@ def test_lut_cache_disabled_miss_hit_corrupt_unwritable(rig, tmp_path):
     fresh = compute_lut(cam, grid, layout)
 
     def same(lut):
-        return all(np.array_equal(a, b) for a, b in zip(lut.pixel + lut.radius_px, fresh.pixel + fresh.radius_px))
+        return all(np.array_equal(a, b) for a, b in zip(lut.pixel + lut.radius_q, fresh.pixel + fresh.radius_q))
 
     lut, rep = load_or_compute_lut(cam, grid, layout, None)
     assert rep == CacheReport("disabled", None) and same(lut)
 
     lut, rep = load_or_compute_lut(cam, grid, layout, tmp_path / "cache")
     assert rep.status == "miss" and rep.path.is_file() and same(lut)
-    assert rep.path.name == f"lut-v1-{lut_key(cam, grid, layout)[:32]}.npz"
+    assert rep.path.name == f"lut-v{LUT_FORMAT}-{lut_key(cam, grid, layout)[:32]}.npz"
     lut, rep2 = load_or_compute_lut(cam, grid, layout, tmp_path / "cache")
     assert rep2.status == "hit" and rep2.path == rep.path and same(lut)
 
@@ -166,7 +168,7 @@ def test_lut_cache_disabled_miss_hit_corrupt_unwritable(rig, tmp_path):
     good = rep.path.read_bytes()
     other, _ = load_or_compute_lut(cam.with_pose(cam.R, cam.t + 0.1), grid, layout, tmp_path / "other")
     np.savez(tmp_path / "wrong.npz", key=np.array(other.key), width=np.array(cam.width), height=np.array(cam.height),
-             **{f"pixel_{n}": p for n, p in enumerate(fresh.pixel)}, **{f"radius_{n}": r for n, r in enumerate(fresh.radius_px)})
+             **{f"pixel_{n}": p for n, p in enumerate(fresh.pixel)}, **{f"radius_{n}": r for n, r in enumerate(fresh.radius_q)})
     for bad in (b"not an npz at all", good[: len(good) // 2], (tmp_path / "wrong.npz").read_bytes()):
         rep.path.write_bytes(bad)
         lut, rep3 = load_or_compute_lut(cam, grid, layout, tmp_path / "cache")
@@ -234,7 +236,7 @@ def test_vote_by_hand():
         masks[cid] = m
     sizes = dict.fromkeys(ids, (8, 1))
     d = distance_images(masks, ids, sizes)
-    r = np.float16(1.0)
+    r = 1.0
     rows = [
         # pixels per camera, radii           found/seeing  -> foreground
         ([0, 1, 2], [r, r, r], True),  # 3/3
@@ -245,10 +247,10 @@ def test_vote_by_hand():
         ([2, 3, 4], [r, r, r], False),  # distances 1.91 > 1: 0/3
         ([2, 3, 4], [2, 2, 1], False),  # 2/3
         ([2, 3, 4], [2, 2, 2], True),  # 3/3
-        ([7, 7, 7], [np.inf, np.inf, 0], False),  # unbounded radii always find: 2/3
+        ([7, 7, 7], [np.inf, np.inf, 0], False),  # unbounded radii cover the image: 2/3
     ]
     pixel = np.array([row[0] for row in rows], dtype=np.int32)
-    radius = np.array([row[1] for row in rows], dtype=np.float16)
+    radius = np.minimum(np.array([row[1] for row in rows]) * 32, 65535).astype(np.uint16)  # 1/32 pixel
     want = [row[2] for row in rows]
     assert vote(pixel, radius, d, 2, 0.75).tolist() == want
     # p2 absent from the frame set: it neither finds nor counts as seeing.
@@ -335,8 +337,8 @@ def test_dense_carve_matches_a_per_voxel_computation(rig, carver, renderer):
     want = (found >= 2) & (found >= 0.75 * seeing)
     got = dense[sample[:, 0], sample[:, 1], sample[:, 2]]
     assert want.sum() > 1000
-    # Only a distance within float16 rounding of a radius may decide differently.
-    assert np.all((got == want) | (margin < 1e-2))
+    # Only a distance within the radius rounding (1/32 px) of a radius may decide differently.
+    assert np.all((got == want) | (margin <= 1 / 32))
 
 
 def test_voxels_seen_by_fewer_than_min_cameras_are_empty_and_missing_cameras_do_not_vote(rig, carver):

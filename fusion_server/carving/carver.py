@@ -104,7 +104,7 @@ class Carver:
         n_cams = len(self.camera_ids)
         # (N_L, C): one row per voxel holds all cameras, so one gather per level serves all.
         self._pixel = [np.empty((self.layout.count(L), n_cams), dtype=np.int32) for L in range(self.layout.n_levels)]
-        self._radius = [np.empty((self.layout.count(L), n_cams), dtype=np.float16) for L in range(self.layout.n_levels)]
+        self._radius = [np.empty((self.layout.count(L), n_cams), dtype=np.uint16) for L in range(self.layout.n_levels)]
         for col, cid in enumerate(self.camera_ids):
             cam = cameras[cid]
             if self.mask_scale != 1.0:
@@ -114,7 +114,7 @@ class Carver:
             self.lut_sizes[cid] = (lut.width, lut.height)
             for level in range(self.layout.n_levels):
                 self._pixel[level][:, col] = lut.pixel[level]
-                self._radius[level][:, col] = lut.radius_px[level]
+                self._radius[level][:, col] = lut.radius_q[level]
             del lut
         self._buffer: np.ndarray | None = None
 

@@ -23,10 +23,13 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from fusion_server.carving.lut import RADIUS_UNITS_PER_PX
+
 __all__ = ["DistanceImages", "distance_images", "vote", "needed_votes", "FOREGROUND_THRESHOLD"]
 
 FOREGROUND_THRESHOLD = 127  # mask values above this are foreground (MOG2 marks shadows 127)
 _RATIO_EPS = 1e-9
+_FAR = np.float32(1e30)  # distance in an image without foreground: finite, so scaling it cannot overflow
 
 
 @dataclass(frozen=True, eq=False)
@@ -94,7 +97,10 @@ def distance_images(masks: Mapping[str, np.ndarray], camera_ids: Sequence[str],
         # distanceTransform measures the distance to the nearest zero pixel: zero the foreground.
         cv2.threshold(mask, FOREGROUND_THRESHOLD, 255, cv2.THRESH_BINARY_INV, dst=inverted)
         view = values[o : o + w * h].reshape(h, w)
-        cv2.distanceTransform(inverted, cv2.DIST_L2, 3, dst=view)
+        if cv2.countNonZero(inverted) == w * h:
+            view.fill(_FAR)  # no foreground at all (OpenCV would write FLT_MAX)
+        else:
+            cv2.distanceTransform(inverted, cv2.DIST_L2, 3, dst=view)
     values[total - 1] = np.nan
     return DistanceImages(
         values=values,
@@ -106,12 +112,12 @@ def distance_images(masks: Mapping[str, np.ndarray], camera_ids: Sequence[str],
     )
 
 
-def vote(pixel: np.ndarray, radius_px: np.ndarray, dists: DistanceImages, min_cameras: int,
+def vote(pixel: np.ndarray, radius_q: np.ndarray, dists: DistanceImages, min_cameras: int,
          min_ratio: float) -> np.ndarray:
     """Which voxels hold foreground by the multi-camera vote.
 
     pixel: (M, C) int32 LUT rows of the voxels for all C known cameras (-1: not visible).
-    radius_px: (M, C) float16 (or float32) enclosing radii, same layout.
+    radius_q: (M, C) uint16 (or float32) enclosing radii in 1/32 pixel, same layout.
     Returns (M,) bool.
     """
     cols = dists.columns
@@ -119,9 +125,10 @@ def vote(pixel: np.ndarray, radius_px: np.ndarray, dists: DistanceImages, min_ca
         return np.zeros(pixel.shape[0], dtype=bool)
     if cols.size != pixel.shape[1] or np.any(cols != np.arange(pixel.shape[1])):
         pixel = pixel[:, cols]
-        radius_px = radius_px[:, cols]
-    pixel, radius_px = _rescale(pixel, radius_px, dists)
-    hit = dists.values[pixel + dists.offsets] <= radius_px  # NaN (not visible) never hits
+        radius_q = radius_q[:, cols]
+    pixel, radius_q = _rescale(pixel, radius_q, dists)
+    # A pixel of -1 reads the NaN before the camera's image: never a hit.
+    hit = np.take(dists.values, pixel + dists.offsets) * RADIUS_UNITS_PER_PX <= radius_q
     seen = pixel >= 0
     # Column sums: much faster than a reduction along a short inner axis.
     found = hit[:, 0].astype(np.uint8)
@@ -154,14 +161,14 @@ def _as_mask(cid: str, mask) -> np.ndarray:
     return np.ascontiguousarray(arr)
 
 
-def _rescale(pixel: np.ndarray, radius_px: np.ndarray, dists: DistanceImages):
+def _rescale(pixel: np.ndarray, radius_q: np.ndarray, dists: DistanceImages):
     """Map LUT pixels/radii to masks of another size (nearest pixel of the scaled centre;
     radius times the larger scale factor). Exact up to half a LUT pixel."""
     scaled = [p for p, (size, lut) in enumerate(zip(dists.sizes, dists.lut_sizes)) if size != lut]
     if not scaled:
-        return pixel, radius_px
+        return pixel, radius_q
     pixel = pixel.copy()
-    radius_px = radius_px.astype(np.float32)
+    radius_q = radius_q.astype(np.float32)
     for p in scaled:
         (w, h), (lw, lh) = dists.sizes[p], dists.lut_sizes[p]
         sx, sy = w / lw, h / lh
@@ -171,5 +178,5 @@ def _rescale(pixel: np.ndarray, radius_px: np.ndarray, dists: DistanceImages):
         us = np.minimum(((u + 0.5) * sx).astype(np.int64), w - 1)
         vs = np.minimum(((v + 0.5) * sy).astype(np.int64), h - 1)
         pixel[:, p] = np.where(seen, vs * w + us, -1)
-        radius_px[:, p] *= max(sx, sy)
-    return pixel, radius_px
+        radius_q[:, p] *= max(sx, sy)
+    return pixel, radius_q
