@@ -119,16 +119,19 @@ class FrameSource:
 class VideoFileSource(FrameSource):
     """A video file read through OpenCV (FFmpeg); recorded stamps.
 
-    ``fps`` overrides the file's own rate (needed when the file has none).
+    ``fps`` overrides the file's own rate; ``default_fps`` is used when the
+    file states none (without either, such a file is refused).
     """
 
     live = False
 
-    def __init__(self, path: str | Path, *, start_ns: int = 0, fps: float | None = None) -> None:
+    def __init__(self, path: str | Path, *, start_ns: int = 0, fps: float | None = None,
+                 default_fps: float | None = None) -> None:
         self.path = Path(path)
         self.name = f"video file {self.path}"
         self.start_ns = int(start_ns)
         self._fps_override = _check_fps(fps)
+        self._default_fps = _check_fps(default_fps)
         self.fps = self._fps_override
         self._cap: cv2.VideoCapture | None = None
         self._index = 0
@@ -144,10 +147,13 @@ class VideoFileSource(FrameSource):
             raise SourceError(f"{self.name}: OpenCV cannot open it as a video (unknown or damaged format)")
         if self._fps_override is None:
             rate = cap.get(cv2.CAP_PROP_FPS)
-            if not rate or not np.isfinite(rate) or rate <= 0 or rate > 1000:
+            if rate and np.isfinite(rate) and 0 < rate <= 1000:
+                self.fps = float(rate)
+            elif self._default_fps is not None:
+                self.fps = self._default_fps
+            else:
                 cap.release()
                 raise SourceError(f"{self.name}: the file states no frame rate; give one (--fps)")
-            self.fps = float(rate)
         self._cap = cap
         self._index = 0
 
@@ -357,15 +363,17 @@ def open_source(
     base_dir: str | Path | None = None,
     background: bool = False,
     n_frames: int | None = None,
+    default_fps: float = 15.0,
     clock: Callable[[], int] = time.time_ns,
 ) -> FrameSource:
     """Build (not open) the source a spec string names; see the module docstring for the forms.
 
     Relative paths are resolved against ``base_dir`` (the site file's folder)
     when given. ``background=True`` asks for the empty room of the synthetic
-    house; other specs are the clip itself. ``fps`` overrides the file's rate
-    (and sets it for image folders). Raises SourceError for an empty or
-    unknown spec.
+    house; other specs are the clip itself. ``fps`` overrides a recording's
+    own rate; ``default_fps`` (the site's camera fps) applies to image
+    folders and to files that state no rate. Raises SourceError for an
+    empty or unknown spec.
     """
     if isinstance(spec, int):
         return CaptureSource(spec, fps=fps, clock=clock)
@@ -390,8 +398,8 @@ def open_source(
     if base_dir is not None and not path.is_absolute():
         path = Path(base_dir) / path
     if path.is_dir():
-        return ImageFolderSource(path, start_ns=start_ns, fps=fps or 15.0)
-    return VideoFileSource(path, start_ns=start_ns, fps=fps)
+        return ImageFolderSource(path, start_ns=start_ns, fps=fps or default_fps)
+    return VideoFileSource(path, start_ns=start_ns, fps=fps, default_fps=default_fps)
 
 
 class LiveReader:

@@ -1,0 +1,196 @@
+"""``voxelwatch-camera``: one camera worker per camera host.
+
+Parses the command line, reads the site file, opens the zenoh session and
+hands plain settings to :func:`camera_worker.worker.run`.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import signal
+import sys
+import threading
+from collections.abc import Sequence
+
+from common import maskcodec
+
+log = logging.getLogger("voxelwatch.camera")
+
+DESCRIPTION = """\
+voxelwatch camera worker: reads one camera's frames, segments the people in
+them with an adaptive Gaussian-mixture background model (shadows removed,
+fast start-up, light-change recovery) and publishes one compressed
+foreground mask per frame over zenoh on <prefix>/cam/<id>/mask. Raw frames
+never leave the host.
+"""
+
+EPILOG = """\
+sources (--source, or the camera's 'source' in the site file):
+  /path/clip.avi          a video file (played at its own rate; --fast: as fast as possible)
+  /path/frames/           a folder of images, in name order (at the camera's fps)
+  0                       a camera index (V4L2);  /dev/video0  a camera device
+  rtsp://host/stream      a stream URL (rtsp, http, https, udp, tcp, rtp, srt, rtmp)
+  synthetic[:scenario]    the synthetic house, this camera's view (--seed)
+  Live sources that drop are reopened with back-off (0.5 s doubling to 30 s);
+  the worker stays up and reports itself degraded meanwhile.
+
+examples:
+  voxelwatch-camera --site home.toml --camera cam1
+  voxelwatch-camera --site home.toml --camera cam2 --source rtsp://10.0.0.12/live
+  voxelwatch-camera --site lab.toml --camera cam1 --source cam1/video.avi \\
+      --background cam1/background.avi --fast --connect tcp/10.0.0.2:7447
+
+exit status: 0 when a recorded source ended or on SIGINT/SIGTERM; 1 when the
+source or the background clip cannot be used; 2 for a bad site file or option.
+"""
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="voxelwatch-camera", description=DESCRIPTION, epilog=EPILOG,
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--site", required=True, metavar="SITE.toml", help="the site file (cameras, zenoh settings)")
+    p.add_argument("--camera", required=True, metavar="ID", help="this worker's camera id in the site file")
+
+    g = p.add_argument_group("source")
+    g.add_argument("--source", metavar="S", help="frame source (see below); default: the camera's 'source'")
+    g.add_argument("--background", metavar="B",
+                   help="recording of the empty room to learn first; default: the camera's 'background'")
+    g.add_argument("--no-background", action="store_true", help="ignore the site's background clip")
+    g.add_argument("--background-frames", type=int, metavar="N",
+                   help="learn at most N background frames (the synthetic house: default 100)")
+    g.add_argument("--fps", type=float, metavar="HZ",
+                   help="frame rate of a recording, overriding its own (default: the file's, else the camera's fps)")
+    g.add_argument("--fast", action="store_true", help="play recordings as fast as possible instead of at their rate")
+    g.add_argument("--loop", action="store_true", help="play a recording again and again instead of exiting at its end")
+    g.add_argument("--start-ns", type=int, metavar="NS",
+                   help="stamp of a recording's first frame (default: now); give every worker the same to replay "
+                        "several cameras in step")
+    g.add_argument("--seed", type=int, default=0, help="seed of the synthetic house (default 0)")
+    g.add_argument("--max-frames", type=int, metavar="N", help="stop after N frames")
+
+    g = p.add_argument_group("segmentation")
+    g.add_argument("--window-frames", type=int, default=500, metavar="L",
+                   help="learning window: rate 1/n for the first L frames, then 1/L (default 500)")
+    g.add_argument("--mask-scale", type=float, metavar="S",
+                   help="mask size as a fraction of the frame, 0.25..1 (default: the site's carving.mask_scale)")
+    g.add_argument("--min-area-px", type=int, default=400, metavar="PX",
+                   help="drop foreground blobs smaller than this, full-resolution pixels (default 400)")
+    g.add_argument("--no-shadows", action="store_true", help="switch the shadow test off (shadows become foreground)")
+    g.add_argument("--codec", choices=maskcodec.CODECS, default=maskcodec.DEFAULT_CODEC,
+                   help=f"mask codec (default {maskcodec.DEFAULT_CODEC})")
+
+    g = p.add_argument_group("zenoh (default: the site's [zenoh] section)")
+    g.add_argument("--prefix", help="key prefix (default: the site's, or voxelwatch/<site name>)")
+    g.add_argument("--mode", choices=("peer", "client", "router"), help="zenoh mode")
+    g.add_argument("--listen", action="append", metavar="ENDPOINT",
+                   help="listen on this endpoint, e.g. tcp/0.0.0.0:7448 (repeatable; replaces the site's)")
+    g.add_argument("--connect", action="append", metavar="ENDPOINT",
+                   help="connect to this endpoint, e.g. tcp/10.0.0.2:7447 (repeatable; replaces the site's)")
+
+    g = p.add_argument_group("logging")
+    g.add_argument("--stats-period", type=float, default=10.0, metavar="S",
+                   help="log counters and per-stage times every S seconds (default 10)")
+    g.add_argument("-v", "--verbose", action="store_true", help="log debug messages")
+    g.add_argument("-q", "--quiet", action="store_true", help="log warnings and errors only")
+    return p
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    logging.basicConfig(level=logging.DEBUG if args.verbose else logging.WARNING if args.quiet else logging.INFO,
+                        format="%(asctime)s %(levelname)s %(name)s: %(message)s", stream=sys.stderr)
+    _quiet_opencv()
+    try:
+        settings, conf = _configure(args)
+    except ValueError as exc:   # SiteError, TransportError and bad values carry their own clear message
+        print(f"voxelwatch-camera: {exc}", file=sys.stderr)
+        return 2
+
+    import zenoh
+
+    from camera_worker.worker import run
+
+    stop = threading.Event()
+
+    def _on_signal(signum: int, _frame: object) -> None:
+        log.info("camera %s: %s received, stopping", settings.cam, signal.Signals(signum).name)
+        stop.set()
+
+    signal.signal(signal.SIGINT, _on_signal)
+    signal.signal(signal.SIGTERM, _on_signal)
+    try:
+        session = zenoh.open(conf)
+    except Exception as exc:  # noqa: BLE001 - zenoh reports bad endpoints and busy ports as ZError
+        print(f"voxelwatch-camera: cannot open the zenoh session: {exc}", file=sys.stderr)
+        return 2
+    try:
+        return run(session, settings, stop=stop)
+    finally:
+        session.close()
+
+
+def _configure(args: argparse.Namespace):
+    """``(WorkerSettings, zenoh.Config)`` from the arguments and the site file; ValueError on any problem."""
+    from common.site import load_site
+    from common.transport import zenoh_config
+    from camera_worker.worker import WorkerSettings
+
+    site = load_site(args.site)
+    spec = site.camera(args.camera)
+    # paths from the command line are relative to the working directory, paths from the file to the file
+    source = args.source if args.source is not None else _from_site(site, spec.source)
+    if not source:
+        raise ValueError(f"camera {spec.id}: no source: give --source or set cameras[].source in {args.site}")
+    if args.no_background:
+        background = ""
+    else:
+        background = args.background if args.background is not None else _from_site(site, spec.background)
+    mask_scale = args.mask_scale if args.mask_scale is not None else site.carving.mask_scale
+    if not 0.25 <= mask_scale <= 1.0:
+        raise ValueError(f"--mask-scale must lie in 0.25..1, got {mask_scale}")
+    settings = WorkerSettings(
+        cam=spec.id,
+        prefix=args.prefix or site.prefix,
+        source=source,
+        background=background,
+        background_frames=args.background_frames,
+        fps=args.fps,
+        default_fps=spec.fps,
+        start_ns=args.start_ns,
+        paced=not args.fast,
+        loop=args.loop,
+        seed=args.seed,
+        codec=args.codec,
+        segmenter=dict(window_frames=args.window_frames, mask_scale=mask_scale, min_area_px=args.min_area_px,
+                       detect_shadows=not args.no_shadows),
+        max_frames=args.max_frames,
+        stats_period_s=args.stats_period,
+    )
+    # build the segmenter once here so that a bad value stops start-up with its name
+    from camera_worker.segmentation import ForegroundSegmenter
+
+    ForegroundSegmenter(**settings.segmenter)
+    conf = zenoh_config(site.zenoh, mode=args.mode, listen=args.listen, connect=args.connect)
+    return settings, conf
+
+
+def _from_site(site, spec: str) -> str:
+    """A source spec from the site file, a relative path made absolute against the file's folder."""
+    if not spec or spec.isdigit() or spec.startswith(("synthetic", "/dev/")) or "://" in spec:
+        return spec
+    return str(site.resolve(spec))
+
+
+def _quiet_opencv() -> None:
+    """OpenCV's own warnings (failed opens) would repeat what the worker reports more clearly."""
+    import cv2
+
+    try:
+        cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_ERROR)
+    except AttributeError:  # pragma: no cover - builds without the logging module
+        pass
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

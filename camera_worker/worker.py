@@ -1,0 +1,611 @@
+"""The camera worker's process adapter: frames in, compressed masks out over zenoh.
+
+:func:`run` is the only part that talks to zenoh, reads the clock or
+sleeps. Per frame it calls the pure pieces: :meth:`HoldBook.boxes` (hold
+regions still in force), ``ForegroundSegmenter.apply`` and
+:func:`build_mask_frame` (:func:`step` is the two together).
+
+What :func:`run` does:
+
+* learns the background clip (if any), then reads the source; a recorded
+  source plays at its own rate (``paced``) or as fast as possible, and ends
+  the run (exit 0) unless ``loop``; a live source is read on a thread into a
+  one-slot newest-wins buffer (older frames dropped and counted) and
+  reopened with exponential back-off when it drops, the worker reporting
+  itself ``degraded`` meanwhile;
+* publishes one :class:`~common.messages.MaskFrame` per frame on
+  ``<p>/cam/<cam>/mask`` (congestion control DROP: masks are newest-wins),
+  declares the liveliness token ``<p>/alive/cam/<cam>``, and takes
+  :class:`~common.messages.HoldRegions` from ``<p>/cam/<cam>/hold`` through a
+  ring channel (never a growing queue); broken hold messages are counted and
+  dropped with a rate-limited log line;
+* counts frames read, dropped and published, and the time of each stage
+  (read, segment, encode, publish), logged every ``stats_period_s``.
+
+:func:`measure_worker` times the same stages on a synthetic 640x480 clip for
+the benchmark command.
+"""
+
+from __future__ import annotations
+
+import logging
+import statistics
+import tempfile
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Sequence
+
+import cv2
+import numpy as np
+
+from camera_worker.segmentation import Box, ForegroundSegmenter, SegmentStats
+from camera_worker.sources import (
+    Frame,
+    FrameSource,
+    LiveReader,
+    SourceError,
+    VideoFileSource,
+    open_source,
+)
+from common import keys, maskcodec, messages
+from common.messages import HoldRegions, MaskFrame, WireError
+
+__all__ = [
+    "STAGES",
+    "HoldBook",
+    "WorkerCounters",
+    "WorkerSettings",
+    "build_mask_frame",
+    "measure_worker",
+    "run",
+    "step",
+]
+
+log = logging.getLogger("voxelwatch.camera")
+
+STAGES = ("read", "segment", "encode", "publish")
+"""The timed stages of one frame, in order."""
+
+
+@dataclass(frozen=True)
+class WorkerSettings:
+    """Everything :func:`run` needs; built by the command line from the site file and flags.
+
+    ``source``/``background``: spec strings (see ``camera_worker.sources``),
+    relative paths against ``base_dir``. ``fps`` overrides a recording's own
+    rate; ``default_fps`` (the site's camera fps) serves image folders and
+    files without a rate. ``start_ns``: stamp of the first
+    recorded frame (None: the host clock at start). ``paced``: play recorded
+    sources at their rate. ``segmenter``: keyword arguments of
+    :class:`ForegroundSegmenter`. ``max_frames``: stop after this many frames
+    (None: no limit).
+    """
+
+    cam: str
+    prefix: str
+    source: str
+    background: str = ""
+    background_frames: int | None = None
+    fps: float | None = None
+    default_fps: float = 15.0
+    start_ns: int | None = None
+    paced: bool = True
+    loop: bool = False
+    seed: int = 0
+    codec: str = maskcodec.DEFAULT_CODEC
+    segmenter: dict[str, Any] = field(default_factory=dict)
+    base_dir: Path | None = None
+    max_frames: int | None = None
+    stats_period_s: float = 10.0
+    backoff_s: float = 0.5
+    max_backoff_s: float = 30.0
+    hold_queue: int = 8
+
+    def __post_init__(self) -> None:
+        keys.validate_chunk(self.cam, "camera id")
+        keys.validate_prefix(self.prefix)
+        if self.codec not in maskcodec.CODECS:
+            raise ValueError(f"codec must be one of {', '.join(maskcodec.CODECS)}, got {self.codec!r}")
+        if self.max_frames is not None and self.max_frames < 1:
+            raise ValueError(f"max_frames must be >= 1, got {self.max_frames!r}")
+        if not self.stats_period_s > 0:
+            raise ValueError(f"stats_period_s must be > 0, got {self.stats_period_s!r}")
+        if self.hold_queue < 1:
+            raise ValueError(f"hold_queue must be >= 1, got {self.hold_queue!r}")
+
+
+@dataclass
+class WorkerCounters:
+    """What a worker has done since it started; ``state`` is ``ok``, ``degraded`` or ``stopped``.
+
+    ``dropped``: frames captured but never segmented (newest-wins buffer
+    overwrote them). ``stage_s``: total seconds per stage; ``timed``: frames
+    timed.
+    """
+
+    read: int = 0
+    dropped: int = 0
+    published: int = 0
+    publish_errors: int = 0
+    holds_accepted: int = 0
+    holds_rejected: int = 0
+    source_failures: int = 0
+    reconnects: int = 0
+    light_changes: int = 0
+    state: str = "ok"
+    stage_s: dict[str, float] = field(default_factory=lambda: {s: 0.0 for s in STAGES})
+    timed: int = 0
+
+    def stage_ms(self) -> dict[str, float]:
+        """Mean milliseconds per frame for each stage."""
+        n = max(self.timed, 1)
+        return {s: 1e3 * self.stage_s[s] / n for s in STAGES}
+
+
+class HoldRegionsRejected(ValueError):
+    """A hold message that does not apply to this camera or comes too late."""
+
+
+class HoldBook:
+    """The hold boxes in force for one camera.
+
+    Each accepted :class:`HoldRegions` replaces the previous set (an empty
+    list releases all). Its time-to-live is counted in this camera's own
+    time, from ``now_ns`` (the stamp of the latest frame) when it arrived, so
+    a fusion host whose clock differs cannot make a hold last forever.
+    Messages for another camera, or older (``stamp_ns``) than the one in
+    force, are rejected.
+    """
+
+    def __init__(self, cam: str) -> None:
+        self.cam = cam
+        self._boxes: list[Box] = []
+        self._stamp_ns = -1
+        self._expires_ns = -1
+
+    def offer(self, msg: HoldRegions, now_ns: int) -> None:
+        """Take ``msg`` into force at ``now_ns``; raise :class:`HoldRegionsRejected` if it does not apply."""
+        if msg.cam != self.cam:
+            raise HoldRegionsRejected(f"HoldRegions for camera {msg.cam!r} received by camera {self.cam!r}")
+        if msg.stamp_ns < self._stamp_ns:
+            raise HoldRegionsRejected(f"HoldRegions stamped {msg.stamp_ns} is older than the one in force "
+                                      f"({self._stamp_ns})")
+        self._stamp_ns = msg.stamp_ns
+        self._boxes = [tuple(int(v) for v in b) for b in msg.boxes]
+        self._expires_ns = int(now_ns) + int(msg.ttl_ms) * 1_000_000
+
+    def boxes(self, now_ns: int) -> list[Box]:
+        """Boxes ``(x0, y0, x1, y1)`` (full-resolution pixels, exclusive) in force at ``now_ns``."""
+        if not self._boxes or now_ns > self._expires_ns:
+            return []
+        return list(self._boxes)
+
+
+def build_mask_frame(
+    mask: np.ndarray,
+    *,
+    cam: str,
+    seq: int,
+    stamp_ns: int,
+    src_size: tuple[int, int],
+    codec: str = maskcodec.DEFAULT_CODEC,
+    fg_fraction: float | None = None,
+) -> MaskFrame:
+    """The wire message of one mask. ``mask``: ``(h, w) uint8`` 0/255; ``src_size``: capture ``(W, H)``."""
+    h, w = mask.shape
+    if fg_fraction is None:
+        fg_fraction = float(np.count_nonzero(mask)) / mask.size
+    return MaskFrame(
+        cam=cam, seq=int(seq), stamp_ns=int(stamp_ns), width=int(w), height=int(h),
+        src_width=int(src_size[0]), src_height=int(src_size[1]), codec=codec,
+        data=maskcodec.encode_mask(mask, codec), fg_fraction=min(1.0, max(0.0, float(fg_fraction))),
+    )
+
+
+def step(
+    segmenter: ForegroundSegmenter,
+    frame: Frame,
+    *,
+    cam: str,
+    seq: int,
+    holds: Sequence[Box] = (),
+    codec: str = maskcodec.DEFAULT_CODEC,
+) -> tuple[MaskFrame, np.ndarray, SegmentStats]:
+    """Segment one frame and wrap its mask for the wire: ``(message, mask, stats)``."""
+    mask, stats = segmenter.apply(frame.image, holds=holds)
+    h, w = frame.image.shape[:2]
+    msg = build_mask_frame(mask, cam=cam, seq=seq, stamp_ns=frame.stamp_ns, src_size=(w, h), codec=codec,
+                           fg_fraction=stats.fg_fraction)
+    return msg, mask, stats
+
+
+# --- the adapter ---------------------------------------------------------------------------------
+
+
+def run(session: Any, settings: WorkerSettings, *, stop: threading.Event | None = None,
+        counters: WorkerCounters | None = None) -> int:
+    """Run one camera worker on an open zenoh ``session`` until the source ends or ``stop`` is set.
+
+    Returns the process exit code: 0 after a recorded source ended (or on
+    ``stop``), 1 when a source or the background clip cannot be used (the
+    reason is logged, naming it). The caller owns and closes the session.
+    """
+    import zenoh
+
+    stop = stop or threading.Event()
+    counters = counters if counters is not None else WorkerCounters()
+    start_ns = settings.start_ns if settings.start_ns is not None else time.time_ns()
+    try:
+        segmenter = ForegroundSegmenter(**settings.segmenter)
+        source = open_source(settings.source, cam_id=settings.cam, start_ns=start_ns, fps=settings.fps,
+                             seed=settings.seed, base_dir=settings.base_dir, default_fps=settings.default_fps)
+    except (SourceError, ValueError, TypeError) as exc:
+        log.error("camera %s: %s", settings.cam, exc)
+        return 1
+
+    if not source.live:
+        try:
+            source.open()
+        except SourceError as exc:
+            log.error("camera %s: %s", settings.cam, exc)
+            return 1
+    try:
+        if settings.background:
+            _learn_background(segmenter, settings, start_ns)
+    except (SourceError, ValueError) as exc:
+        log.error("camera %s: %s", settings.cam, exc)
+        source.close()
+        return 1
+
+    token = session.liveliness().declare_token(keys.alive_camera_key(settings.prefix, settings.cam))
+    publisher = session.declare_publisher(
+        keys.mask_key(settings.prefix, settings.cam), encoding=messages.MSGPACK_ENCODING,
+        congestion_control=zenoh.CongestionControl.DROP, express=True)
+    hold_sub = session.declare_subscriber(keys.hold_key(settings.prefix, settings.cam),
+                                          zenoh.handlers.RingChannel(settings.hold_queue))
+    loop = _Loop(settings, segmenter, source, publisher, hold_sub, counters, stop)
+    try:
+        return loop.run()
+    finally:
+        counters.state = "stopped"
+        loop.close()
+        for entity in (hold_sub, publisher, token):
+            try:
+                entity.undeclare()
+            except Exception:  # noqa: BLE001 - the session may already be closing
+                pass
+        log.info("camera %s: stopped: %s", settings.cam, _summary(counters))
+
+
+class _Loop:
+    """The per-frame loop of :func:`run` (state that the loop shares between its stages)."""
+
+    def __init__(self, settings: WorkerSettings, segmenter: ForegroundSegmenter, source: FrameSource,
+                 publisher: Any, hold_sub: Any, counters: WorkerCounters, stop: threading.Event) -> None:
+        self.s = settings
+        self.segmenter = segmenter
+        self.source = source
+        self.publisher = publisher
+        self.hold_sub = hold_sub
+        self.c = counters
+        self.stop = stop
+        self.holds = HoldBook(settings.cam)
+        self.reader: LiveReader | None = None
+        self.seq_offset = 0          # added to a recorded source's index: sequence numbers go on when looping
+        self.last_seq = -1
+        self.last_stamp_ns = 0
+        self._failed_recorded = False
+        self.pace_origin: tuple[float, int] | None = None   # (monotonic s, stamp_ns) of the paced start
+        self._bad_holds = _RateLimited(f"camera {settings.cam}: hold message dropped")
+        self._next_stats = time.monotonic() + settings.stats_period_s
+
+    def run(self) -> int:
+        if self.source.live:
+            self.reader = LiveReader(self.source, backoff_s=self.s.backoff_s, max_backoff_s=self.s.max_backoff_s,
+                                     on_event=self._source_event).start()
+        log.info("camera %s: reading %s, publishing on %s", self.s.cam, self.source.name,
+                 keys.mask_key(self.s.prefix, self.s.cam))
+        frames = 0
+        while not self.stop.is_set():
+            t0 = time.perf_counter()
+            frame = self._next_frame()
+            if frame is None:
+                if self.source.live:
+                    continue
+                return 0 if self.stop.is_set() or not self._failed_recorded else 1
+            t1 = time.perf_counter()
+            self._take_holds(frame.stamp_ns)
+            try:
+                mask, stats = self.segmenter.apply(frame.image, holds=self.holds.boxes(frame.stamp_ns))
+            except ValueError as exc:   # the frame size changed (a camera reopened at another size)
+                log.warning("camera %s: %s; starting a new background model", self.s.cam, exc)
+                self.segmenter.reset()
+                continue
+            t2 = time.perf_counter()
+            h, w = frame.image.shape[:2]
+            self.last_seq = self.seq_offset + frame.index
+            msg = build_mask_frame(mask, cam=self.s.cam, seq=self.last_seq,
+                                   stamp_ns=frame.stamp_ns, src_size=(w, h), codec=self.s.codec,
+                                   fg_fraction=stats.fg_fraction)
+            payload = messages.encode(msg)
+            t3 = time.perf_counter()
+            try:
+                self.publisher.put(payload)
+                self.c.published += 1
+            except Exception as exc:  # noqa: BLE001 - zenoh errors must not stop the camera
+                self.c.publish_errors += 1
+                log.warning("camera %s: publish failed: %s", self.s.cam, exc)
+            t4 = time.perf_counter()
+            if stats.light_change:
+                self.c.light_changes += 1
+                log.info("camera %s: sudden light change at frame %d: re-learning the background",
+                         self.s.cam, msg.seq)
+            for name, dt in zip(STAGES, (t1 - t0, t2 - t1, t3 - t2, t4 - t3)):
+                self.c.stage_s[name] += dt
+            self.c.timed += 1
+            frames += 1
+            self._maybe_log_stats()
+            if self.s.max_frames is not None and frames >= self.s.max_frames:
+                break
+        return 0
+
+    def _next_frame(self) -> Frame | None:
+        if self.reader is not None:
+            frame = self.reader.get(timeout_s=0.5)
+            self.c.read, self.c.dropped = self.reader.read, self.reader.dropped
+            self.c.source_failures, self.c.reconnects = self.reader.failures, self.reader.reconnects
+            self.c.state = "degraded" if self.reader.degraded else "ok"
+            if frame is not None:
+                self.last_stamp_ns = frame.stamp_ns
+            return frame
+        try:
+            frame = self.source.read()
+            if frame is None and self.s.loop and not self.stop.is_set():
+                frame = self._restart_recorded()
+        except SourceError as exc:
+            log.error("camera %s: %s", self.s.cam, exc)
+            self._failed_recorded = True
+            return None
+        if frame is None:
+            return None
+        self.c.read += 1
+        self.last_stamp_ns = frame.stamp_ns
+        if self.s.paced:
+            self._pace(frame.stamp_ns)
+        return frame
+
+    def _restart_recorded(self) -> Frame | None:
+        """Play a recorded source again, its stamps and sequence numbers carrying on."""
+        period_ns = int(round(1e9 / (self.source.fps or 15.0)))
+        self.source.close()
+        self.source.start_ns = self.last_stamp_ns + period_ns
+        self.source.open()
+        self.seq_offset = self.last_seq + 1
+        return self.source.read()
+
+    def _pace(self, stamp_ns: int) -> None:
+        now = time.monotonic()
+        if self.pace_origin is None:
+            self.pace_origin = (now, stamp_ns)
+            return
+        due = self.pace_origin[0] + (stamp_ns - self.pace_origin[1]) / 1e9
+        if due > now:
+            self.stop.wait(due - now)
+
+    def _take_holds(self, now_ns: int) -> None:
+        while True:
+            sample = self.hold_sub.try_recv()
+            if sample is None:
+                return
+            try:
+                msg = messages.decode(sample.payload.to_bytes(), HoldRegions)
+                self.holds.offer(msg, now_ns)
+                self.c.holds_accepted += 1
+            except (WireError, HoldRegionsRejected) as exc:
+                self.c.holds_rejected += 1
+                self._bad_holds.log(str(exc))
+
+    def _source_event(self, text: str) -> None:
+        log.warning("camera %s: %s", self.s.cam, text)
+
+    def _maybe_log_stats(self) -> None:
+        now = time.monotonic()
+        if now >= self._next_stats:
+            self._next_stats = now + self.s.stats_period_s
+            log.info("camera %s: %s", self.s.cam, _summary(self.c))
+
+    def close(self) -> None:
+        if self.reader is not None:
+            self.reader.stop()
+        self.source.close()
+
+
+def _learn_background(segmenter: ForegroundSegmenter, settings: WorkerSettings, start_ns: int) -> int:
+    """Learn every frame of the background clip; returns the number of frames learned."""
+    bg = open_source(settings.background, cam_id=settings.cam, start_ns=start_ns, fps=settings.fps,
+                     seed=settings.seed, base_dir=settings.base_dir, background=True,
+                     n_frames=settings.background_frames, default_fps=settings.default_fps)
+    if bg.live:
+        raise SourceError(f"background {bg.name}: must be a recording (file, folder or synthetic), not live")
+    try:
+        bg.open()
+    except SourceError as exc:
+        raise SourceError(f"background {exc}") from None
+    n = 0
+    try:
+        while settings.background_frames is None or n < settings.background_frames:
+            frame = bg.read()
+            if frame is None:
+                break
+            try:
+                segmenter.learn(frame.image)
+            except ValueError as exc:
+                raise SourceError(f"background {bg.name}: {exc}") from None
+            n += 1
+    finally:
+        bg.close()
+    if n == 0:
+        raise SourceError(f"background {bg.name}: holds no frames")
+    log.info("camera %s: learned the background from %d frames of %s", settings.cam, n, bg.name)
+    return n
+
+
+class _RateLimited:
+    """One log line per ``period_s`` at most, with the count of lines it held back."""
+
+    def __init__(self, prefix: str, period_s: float = 5.0) -> None:
+        self.prefix = prefix
+        self.period_s = period_s
+        self._next = 0.0
+        self._held = 0
+
+    def log(self, text: str) -> None:
+        now = time.monotonic()
+        if now < self._next:
+            self._held += 1
+            return
+        more = f" (and {self._held} more since the last report)" if self._held else ""
+        log.warning("%s: %s%s", self.prefix, text, more)
+        self._held = 0
+        self._next = now + self.period_s
+
+
+def _summary(c: WorkerCounters) -> str:
+    ms = c.stage_ms()
+    stages = ", ".join(f"{s} {ms[s]:.2f}" for s in STAGES)
+    return (f"state {c.state}, read {c.read}, dropped {c.dropped}, published {c.published}, "
+            f"holds {c.holds_accepted} (rejected {c.holds_rejected}), source failures {c.source_failures}, "
+            f"ms/frame: {stages}")
+
+
+# --- benchmark -----------------------------------------------------------------------------------
+
+
+def measure_worker(
+    *,
+    n_frames: int = 300,
+    width: int = 640,
+    height: int = 480,
+    codec: str = maskcodec.DEFAULT_CODEC,
+    mask_scale: float = 1.0,
+    holds: bool = False,
+    n_people: int = 2,
+    seed: int = 0,
+    session: Any = None,
+) -> dict[str, Any]:
+    """Time the worker's stages on one core; return figures (nothing is printed).
+
+    A synthetic clip of a room with ``n_people`` walking figures (``seed``) is
+    written to a temporary MJPG video and read back, so ``read`` is a real
+    decode. Each frame is segmented (with a hold box over the first figure
+    when ``holds``), encoded as a MaskFrame, and put on a zenoh publisher
+    (``session``, or a private peer session with no network). OpenCV runs
+    with one thread for the measurement.
+
+    Returns ``{"frames", "width", "height", "mask_width", "mask_height",
+    "ms": {stage: mean ms, "total": ...}, "fps": {stage: frames/s, "total": ...},
+    "mask_bytes_median", "mask_bytes_p95", "message_bytes_median", "fg_fraction_median"}``.
+    """
+    import zenoh
+
+    if n_frames < 10:
+        raise ValueError(f"n_frames must be >= 10, got {n_frames!r}")
+    rng = np.random.default_rng(seed)
+    threads = cv2.getNumThreads()
+    cv2.setNumThreads(1)
+    own_session = None
+    try:
+        if session is None:
+            conf = zenoh.Config()
+            conf.insert_json5("scouting/multicast/enabled", "false")
+            conf.insert_json5("transport/shared_memory/enabled", "false")
+            own_session = session = zenoh.open(conf)
+        publisher = session.declare_publisher("voxelwatch/bench/cam/bench/mask",
+                                              congestion_control=zenoh.CongestionControl.DROP, express=True)
+        segmenter = ForegroundSegmenter(window_frames=500, mask_scale=mask_scale)
+        with tempfile.TemporaryDirectory(prefix="vw-bench-") as tmp:
+            path = Path(tmp) / "clip.avi"
+            boxes = _write_clip(path, n_frames, width, height, n_people, rng)
+            stage_s = {s: 0.0 for s in STAGES}
+            sizes: list[int] = []
+            msg_sizes: list[int] = []
+            fg: list[float] = []
+            with VideoFileSource(path, fps=15.0) as source:
+                i = 0
+                while True:
+                    t0 = time.perf_counter()
+                    frame = source.read()
+                    if frame is None:
+                        break
+                    t1 = time.perf_counter()
+                    mask, stats = segmenter.apply(frame.image, holds=[boxes[i]] if holds else ())
+                    t2 = time.perf_counter()
+                    msg = build_mask_frame(mask, cam="bench", seq=i, stamp_ns=frame.stamp_ns,
+                                           src_size=(width, height), codec=codec, fg_fraction=stats.fg_fraction)
+                    payload = messages.encode(msg)
+                    t3 = time.perf_counter()
+                    publisher.put(payload)
+                    t4 = time.perf_counter()
+                    if i >= 5:   # the first frames initialise the model and the codec
+                        for name, dt in zip(STAGES, (t1 - t0, t2 - t1, t3 - t2, t4 - t3)):
+                            stage_s[name] += dt
+                        sizes.append(len(msg.data))
+                        msg_sizes.append(len(payload))
+                        fg.append(stats.fg_fraction)
+                    i += 1
+        publisher.undeclare()
+    finally:
+        cv2.setNumThreads(threads)
+        if own_session is not None:
+            own_session.close()
+    n = len(sizes)
+    ms = {s: 1e3 * stage_s[s] / n for s in STAGES}
+    ms["total"] = sum(ms.values())
+    mh, mw = mask.shape
+    return {
+        "frames": n,
+        "width": width,
+        "height": height,
+        "mask_width": mw,
+        "mask_height": mh,
+        "ms": ms,
+        "fps": {k: (1e3 / v if v > 0 else float("inf")) for k, v in ms.items()},
+        "mask_bytes_median": float(statistics.median(sizes)),
+        "mask_bytes_p95": float(np.percentile(sizes, 95)),
+        "message_bytes_median": float(statistics.median(msg_sizes)),
+        "fg_fraction_median": float(statistics.median(fg)),
+    }
+
+
+def _write_clip(path: Path, n_frames: int, width: int, height: int, n_people: int,
+                rng: np.random.Generator) -> list[Box]:
+    """A room (smooth textured walls, floor) with figures walking across; returns the first figure's boxes."""
+    base = rng.normal(0, 1, (height // 8, width // 8, 3)).astype(np.float32)
+    room = cv2.resize(cv2.GaussianBlur(base, (0, 0), 2), (width, height), interpolation=cv2.INTER_LINEAR)
+    room = np.clip(128 + 40 * room / (np.abs(room).max() + 1e-6), 0, 255).astype(np.uint8)
+    room[height * 2 // 3:] = (60, 110, 40)
+    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), 15.0, (width, height))
+    if not writer.isOpened():
+        raise RuntimeError(f"OpenCV cannot write an MJPG video to {path}")
+    starts = rng.uniform(0.1, 0.9, n_people) * width
+    speeds = rng.uniform(0.5, 2.0, n_people) * rng.choice([-1, 1], n_people)
+    colours = rng.integers(20, 235, (n_people, 3))
+    boxes: list[Box] = []
+    try:
+        for i in range(n_frames):
+            img = room.copy()
+            for k in range(n_people):
+                cx = int((starts[k] + speeds[k] * i) % width)
+                bw, bh = width // 14, height // 3
+                top = height // 3
+                cv2.ellipse(img, (cx, top + bh // 2), (bw // 2, bh // 2), 0, 0, 360, colours[k].tolist(), -1)
+                cv2.circle(img, (cx, top - bw // 3), bw // 3, (90, 120, 170), -1)
+                if k == 0:
+                    boxes.append((max(cx - bw, 0), top - bw, min(cx + bw, width), top + bh + 4))
+            noise = rng.normal(0, 2.0, img.shape).astype(np.float32)
+            writer.write(np.clip(img + noise, 0, 255).astype(np.uint8))
+    finally:
+        writer.release()
+    return boxes
