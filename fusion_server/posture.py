@@ -19,7 +19,7 @@ Pipeline per track (:class:`PostureEstimator`):
    height (learnt only while they confidently stand), and
    :func:`posture_log_likelihoods` scores each posture with a robust
    diagonal Gaussian model (:class:`PostureModel`).
-4. An HMM forward filter over the postures (the online form of the seed's
+4. An HMM forward filter over the states (the online form of the seed's
    Viterbi recursion over standing/fallen states) and a minimum duration for
    any change keep the reported posture from flickering.
 
@@ -42,7 +42,15 @@ from typing import Iterable, Mapping, Protocol, Sequence
 import numpy as np
 
 POSTURES: tuple[str, ...] = ("standing", "sitting", "bending", "lying")
-"""Posture labels, in the order of every per-posture array in this module."""
+"""Reported posture labels, in the order of :attr:`PostureReading.probabilities`."""
+
+STATES: tuple[str, ...] = ("standing", "sitting", "bending", "lying", "kneeling")
+"""Internal states of the posture model (rows of :class:`PostureModel`). Kneeling
+has its own state because its profile differs from bending over, but it is
+reported as ``bending`` (a person lowered to do something near the floor)."""
+
+STATE_POSTURE: tuple[int, ...] = (0, 1, 2, 3, 2)
+"""Index into :data:`POSTURES` of each state in :data:`STATES`."""
 
 FEATURE_NAMES: tuple[str, ...] = (
     "centre_rel",
@@ -51,6 +59,7 @@ FEATURE_NAMES: tuple[str, ...] = (
     "frac_mid",
     "log_flatness",
     "widest_rel",
+    "floor_frac",
 )
 """Entries of :func:`feature_vector`, in order."""
 
@@ -82,6 +91,9 @@ class PostureFeatures:
         above the bottom where shadows bloat the carving. A seated person's
         lap puts it near seat height, a standing or bending person's torso
         near hip height or above.
+    floor_frac: largest layer area within ``floor_band_m`` of the bottom over
+        the largest (running-mean) layer area: about 1 for shins lying on the
+        floor (kneeling) and for lying, 0.2-0.6 for feet and upright shins.
     volume_m3: total voxel volume.
     """
 
@@ -92,6 +104,7 @@ class PostureFeatures:
     frac_mid: float
     horizontal_m: float
     widest_m: float
+    floor_frac: float
     volume_m3: float
 
     @property
@@ -104,8 +117,9 @@ class PostureFeatures:
 class PostureModel:
     """Per-posture robust Gaussian over :data:`FEATURE_NAMES`.
 
-    mean, sigma: (4, 6) float64, rows in :data:`POSTURES` order.
-    weight: (6,) float64, how much each feature counts (top height is kept
+    mean, sigma: (5, 7) float64, rows in :data:`STATES` order, columns in
+        :data:`FEATURE_NAMES` order.
+    weight: (7,) float64, how much each feature counts (top height is kept
         weak on purpose: hats, masks and raised arms move it).
     clip: the most one feature may cost, in units of ``0.5 * z**2``, so one
         odd feature cannot veto a posture on its own.
@@ -117,7 +131,7 @@ class PostureModel:
     clip: float = 8.0
 
     def __post_init__(self) -> None:
-        shape = (len(POSTURES), len(FEATURE_NAMES))
+        shape = (len(STATES), len(FEATURE_NAMES))
         for name in ("mean", "sigma"):
             arr = np.asarray(getattr(self, name), dtype=np.float64)
             if arr.shape != shape or not np.all(np.isfinite(arr)):
@@ -136,20 +150,22 @@ class PostureModel:
 def default_model() -> PostureModel:
     """Class parameters worked out from articulated synthetic bodies 1.5-1.95 m tall,
     with and without visual-hull fattening (see tests/test_posture.py)."""
-    #            centre_rel top_rel frac_low frac_mid log_flat widest_rel
+    #   centre_rel top_rel frac_low frac_mid log_flat widest_rel floor_frac
     mean = [
-        [0.52, 1.00, 0.23, 0.33, 1.30, 0.63],  # standing
-        [0.38, 0.77, 0.32, 0.52, 0.80, 0.37],  # sitting
-        [0.41, 0.71, 0.28, 0.50, 0.60, 0.54],  # bending
-        [0.09, 0.18, 0.99, 0.01, -1.20, 0.10],  # lying
+        [0.52, 1.00, 0.23, 0.33, 1.30, 0.63, 0.45],  # standing
+        [0.38, 0.77, 0.32, 0.52, 0.80, 0.37, 0.30],  # sitting
+        [0.41, 0.71, 0.28, 0.50, 0.60, 0.54, 0.30],  # bending
+        [0.09, 0.18, 0.99, 0.01, -1.20, 0.10, 1.05],  # lying
+        [0.35, 0.77, 0.38, 0.45, 1.00, 0.30, 1.00],  # kneeling
     ]
     sigma = [
-        [0.04, 0.08, 0.08, 0.10, 0.30, 0.08],
-        [0.06, 0.15, 0.10, 0.10, 0.30, 0.07],
-        [0.05, 0.08, 0.10, 0.12, 0.30, 0.08],
-        [0.05, 0.08, 0.05, 0.05, 0.30, 0.06],
+        [0.04, 0.08, 0.08, 0.10, 0.30, 0.08, 0.20],
+        [0.06, 0.15, 0.10, 0.10, 0.30, 0.07, 0.12],
+        [0.05, 0.08, 0.10, 0.12, 0.30, 0.08, 0.15],
+        [0.05, 0.08, 0.05, 0.05, 0.30, 0.06, 0.15],
+        [0.05, 0.08, 0.12, 0.12, 0.35, 0.15, 0.15],
     ]
-    weight = [1.0, 0.4, 0.6, 0.6, 1.0, 1.5]
+    weight = [1.0, 0.4, 0.6, 0.6, 1.0, 1.5, 1.0]
     return PostureModel(mean=np.array(mean), sigma=np.array(sigma), weight=np.array(weight))
 
 
@@ -160,6 +176,7 @@ def profile_features(
     bottom_mass_frac: float = 0.01,
     wide_frac: float = 0.8,
     floor_skip_m: float = 0.1,
+    floor_band_m: float = 0.25,
 ) -> PostureFeatures | None:
     """Shape features of one height profile; None when the profile is empty.
 
@@ -168,6 +185,7 @@ def profile_features(
     bottom_mass_frac: layers at the bottom holding less than this share of
         the voxels each are treated as floor noise (shadows) for ``bottom_m``.
     wide_frac, floor_skip_m: see :attr:`PostureFeatures.widest_m`.
+    floor_band_m: see :attr:`PostureFeatures.floor_frac`.
     """
     counts = np.asarray(height_profile)
     if counts.ndim != 1:
@@ -191,7 +209,9 @@ def profile_features(
     frac_mid = float(counts[(rel >= 0.5) & (rel < 1.0)].sum() / total)
     area = counts * voxel_m * voxel_m
     smooth = np.convolve(area, np.ones(3) / 3.0, mode="same") if nz >= 3 else area
-    horizontal_m = float(math.sqrt(max(smooth.max(), area.max() / 3.0)))
+    largest = max(float(smooth.max()), float(area.max()) / 3.0)
+    horizontal_m = math.sqrt(largest)
+    floor_frac = float(area[(rel >= 0) & (rel < floor_band_m)].max()) / largest
     # A body no taller than the skipped band (lying) keeps all its layers.
     considered = rel >= floor_skip_m
     if not np.any(considered & (counts > 0)):
@@ -206,12 +226,13 @@ def profile_features(
         frac_mid=frac_mid,
         horizontal_m=horizontal_m,
         widest_m=widest_m,
+        floor_frac=floor_frac,
         volume_m3=total * voxel_m**3,
     )
 
 
 def feature_vector(features: PostureFeatures, standing_height_m: float) -> np.ndarray:
-    """(6,) float64 in :data:`FEATURE_NAMES` order; heights relative to the bottom
+    """(7,) float64 in :data:`FEATURE_NAMES` order; heights relative to the bottom
     of the body and divided by the person's standing height."""
     if not standing_height_m > 0:
         raise ValueError(f"standing_height_m must be positive, got {standing_height_m}")
@@ -226,14 +247,15 @@ def feature_vector(features: PostureFeatures, standing_height_m: float) -> np.nd
             features.frac_mid,
             math.log(vertical / horizontal),
             (features.widest_m - features.bottom_m) / h,
+            features.floor_frac,
         ],
         dtype=np.float64,
     )
 
 
 def posture_log_likelihoods(vector: np.ndarray, model: PostureModel | None = None) -> np.ndarray:
-    """(4,) float64 log-likelihood of each posture (:data:`POSTURES` order) for one
-    (6,) feature vector, up to a shared constant."""
+    """(5,) float64 log-likelihood of each state (:data:`STATES` order) for one
+    (7,) feature vector, up to a shared constant."""
     model = model or default_model()
     v = np.asarray(vector, dtype=np.float64)
     if v.shape != (len(FEATURE_NAMES),):
@@ -246,7 +268,7 @@ def posture_log_likelihoods(vector: np.ndarray, model: PostureModel | None = Non
 def classify(features: PostureFeatures, standing_height_m: float, model: PostureModel | None = None) -> str:
     """Single-frame posture, no smoothing: the most likely of :data:`POSTURES`."""
     ll = posture_log_likelihoods(feature_vector(features, standing_height_m), model)
-    return POSTURES[int(np.argmax(ll))]
+    return POSTURES[STATE_POSTURE[int(np.argmax(ll))]]
 
 
 def fir_smooth(history: np.ndarray, taps: np.ndarray | None = None) -> np.ndarray:
@@ -402,7 +424,7 @@ class PostureEstimator:
             feature_vector(smoothed, self.standing_height_m), self.model
         )
         self._log_alpha = _forward_step(self._log_alpha, ll, self.switch_rate_hz, dt_s)
-        prob = np.exp(self._log_alpha)
+        prob = np.bincount(STATE_POSTURE, weights=np.exp(self._log_alpha), minlength=len(POSTURES))
         best = int(np.argmax(prob))
         self._debounce(best, stamp_ns)
         self._learn_height(prob, raw, dt_s)
@@ -489,6 +511,7 @@ _FIELDS = (
     "frac_mid",
     "horizontal_m",
     "widest_m",
+    "floor_frac",
     "volume_m3",
 )
 
