@@ -11,7 +11,7 @@ labels, a moving flag and presence, deterministically for a seed.
 
 Transition timing: sitting down 1.5 s, standing up 1.8 s, falling 0.9 s
 (accelerating drop), bending 1.0 s down / 1.0 s up, kneeling 1.5 s / 1.8 s,
-getting up from the floor 4 s, turning in place about 2 rad/s; walking
+getting up from the floor 4 s (5.2 s from the back), turning in place about 2 rad/s; walking
 speed as scripted (0.6..1.4 m/s) with +-5 % per-seed variation and a
 1.5 m/s^2 start/stop ramp.
 
@@ -19,8 +19,8 @@ Posture labels and the events they imply switch at documented instants:
 ``sit_down`` / ``stand_up`` at the middle of the transition (half-way
 down / up), ``fall`` when the body reaches the floor (the end of the
 drop), bending/kneeling ('bending') half-way down and back to 'standing'
-half-way up, getting up: 'bending' once kneeling, ``stand_up`` at 80 % of
-the rise.
+half-way up, getting up: 'bending' once on hands and knees, ``stand_up``
+half-way from kneeling to standing.
 """
 
 from __future__ import annotations
@@ -33,7 +33,7 @@ import numpy as np
 
 from common.synth.body import (
     N_Q, Q_ELBOW, Q_HIP_ABD, Q_HIP_FLEX, Q_KNEE, Q_NECK, Q_PITCH, Q_ROLL, Q_SHOULDER_ABD, Q_SHOULDER_FLEX,
-    Q_SPINE, Q_YAW, TRUNK_PARTS, BodyShape, lowest_point_m, standing_pose,
+    Q_SPINE, Q_TWIST, Q_YAW, TRUNK_PARTS, BodyShape, lowest_point_m, standing_pose,
 )
 from common.synth.scene import Room
 
@@ -46,7 +46,6 @@ Point = Union[str, tuple[float, float]]
 SIT_DOWN_S = 1.5
 STAND_UP_S = 1.8
 FALL_S = 0.9
-GET_UP_S = 4.0
 TURN_RATE = 2.0  # rad/s
 WALK_ACCEL = 1.5  # m/s^2
 SPEED_RANGE = (0.3, 2.0)
@@ -560,15 +559,49 @@ class _Builder:
         keys[-1] = lying
         self._keys(duration * s, keys, ease=False,
                    switches=[(duration, LYING, "fall", {"direction": direction})])
+        if axis == Q_ROLL:
+            # The same orientation as a prone body turned about its long axis, so that
+            # getting up interpolates a roll onto the front rather than a swing through upright.
+            q = self.q.copy()
+            q[Q_YAW] -= sgn * 0.5 * np.pi
+            q[Q_PITCH], q[Q_ROLL], q[Q_TWIST] = 0.5 * np.pi, 0.0, sgn * 0.5 * np.pi
+            self.q = q
 
     def get_up(self) -> None:
+        """From lying: (sit up if on the back,) onto hands and knees, kneel, stand."""
         q0 = self.q.copy()
         yaw = q0[Q_YAW]
-        kneel = self._kneel_pose(q0[0], q0[1], yaw)
-        stand = self._grounded(standing_pose(self.shape, kneel[0], kneel[1], yaw))
-        d = GET_UP_S
-        self._keys([0.0, 0.45 * d, d], [q0, kneel, stand],
-                   switches=[(0.45 * d, BENDING, "", {}), (0.8 * d, STANDING, "stand_up", {"from": "lying"})])
+        sh = self.shape
+        keys, times = [q0], [0.0]
+        if q0[Q_PITCH] < -0.5:
+            sit = standing_pose(sh, q0[0], q0[1], yaw)
+            sit[Q_SPINE] = 0.3
+            for side in (0, 1):
+                sit[Q_HIP_FLEX[side]], sit[Q_KNEE[side]] = 1.5, 0.4
+            keys.append(self._grounded(sit))
+            times.append(1.2)
+        if abs(q0[Q_TWIST]) > 0.1:
+            front = q0.copy()
+            front[Q_TWIST] = 0.0
+            for side in (0, 1):
+                front[Q_SHOULDER_FLEX[side]], front[Q_HIP_FLEX[side]], front[Q_KNEE[side]] = 2.4, 0.2, 0.3
+            keys.append(self._lifted(front))
+            times.append(1.0)
+        fours = standing_pose(sh, q0[0], q0[1], yaw)
+        fours[Q_PITCH] = 1.25
+        for side in (0, 1):
+            fours[Q_HIP_FLEX[side]], fours[Q_KNEE[side]] = 1.25, 0.5 * np.pi
+            fours[Q_SHOULDER_FLEX[side]], fours[Q_ELBOW[side]] = 1.35, 0.1
+        keys.append(self._grounded(fours))
+        times.append(times[-1] + 1.4)
+        t_fours = times[-1]
+        keys.append(self._kneel_pose(q0[0], q0[1], yaw))
+        times.append(times[-1] + 1.0)
+        keys.append(self._grounded(standing_pose(sh, keys[-1][0], keys[-1][1], yaw)))
+        times.append(times[-1] + 1.6)
+        self._keys(times, keys, switches=[(t_fours, BENDING, "", {}),
+                                          (times[-2] + 0.5 * (times[-1] - times[-2]), STANDING, "stand_up",
+                                           {"from": "lying"})])
 
     def bend(self, step: Bend) -> None:
         q0 = self.q.copy()

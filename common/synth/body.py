@@ -9,11 +9,12 @@ standing height ``H``).
 
 A pose is a vector ``q`` of :data:`N_Q` floats (radians and metres, named
 by the ``Q_*`` indices): pelvis position (the midpoint of the hip joints,
-world), root yaw / pitch / roll (``R = Rz(yaw) Ry(pitch) Rx(roll)``; body
-frame x forward, y left, z up; positive pitch tips the body forward,
-positive roll tips it onto its right side), spine forward bend, neck bend,
-and per side (left, right) hip flexion, hip abduction, knee flexion,
-shoulder flexion (arm forward), shoulder abduction and elbow flexion.
+world), root yaw / pitch / roll and twist (``R = Rz(yaw) Ry(pitch) Rx(roll)
+Rz(twist)``; body frame x forward, y left, z up; positive pitch tips the
+body forward, positive roll tips it onto its right side, twist turns it
+about its own long axis), spine forward bend, neck bend, and per side
+(left, right) hip flexion, hip abduction, knee flexion, shoulder flexion
+(arm forward), shoulder abduction and elbow flexion.
 
 :func:`forward_kinematics` is vectorised over a batch of poses so that the
 ground truth of a ten-minute scenario is computed in one call.
@@ -25,7 +26,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-N_Q = 20
+N_Q = 21
 Q_PELVIS = slice(0, 3)
 Q_YAW, Q_PITCH, Q_ROLL = 3, 4, 5
 Q_SPINE, Q_NECK = 6, 7
@@ -35,6 +36,7 @@ Q_KNEE = (12, 13)
 Q_SHOULDER_FLEX = (14, 15)
 Q_SHOULDER_ABD = (16, 17)
 Q_ELBOW = (18, 19)
+Q_TWIST = 20
 
 PART_NAMES = (
     "pelvis", "torso", "neck", "head",
@@ -243,7 +245,7 @@ def forward_kinematics(shape: BodyShape, q: np.ndarray) -> tuple[np.ndarray, np.
     H = shape.height_m
     w = shape.width
     pelvis = q[:, Q_PELVIS]
-    R_root = _rz(q[:, Q_YAW]) @ _ry(q[:, Q_PITCH]) @ _rx(q[:, Q_ROLL])
+    R_root = _rz(q[:, Q_YAW]) @ _ry(q[:, Q_PITCH]) @ _rx(q[:, Q_ROLL]) @ _rz(q[:, Q_TWIST])
     R_spine = R_root @ _ry(q[:, Q_SPINE])
     R_head = R_spine @ _ry(q[:, Q_NECK])
     centers = np.empty((F, N_PARTS, 3))

@@ -215,7 +215,6 @@ def default_room() -> Room:
         seats.append(Seat(name, "sofa", (x, 2.14), 0.42, -90.0, (x, 1.3)))
     boxes += [
         Box("kitchen counter", "kitchen", (0.8, 5.4, 0.0), (3.4, 6.0, 0.9), (205, 205, 200)),
-        Box("kitchen cabinets", "kitchen", (0.8, 5.65, 1.45), (3.4, 6.0, 2.2), (190, 196, 196)),
         Box("fridge", "kitchen", (3.4, 5.3, 0.0), (4.1, 6.0, 1.9), (228, 228, 226)),
         Box("bookshelf", "shelf", (7.6, 3.0, 0.0), (8.0, 4.5, 1.8), (50, 80, 120)),
     ]

@@ -88,6 +88,13 @@ class Truth:
     def events_of(self, kind: str) -> list[TruthEvent]:
         return [e for e in self.events if e.kind == kind]
 
+    def cut(self, n_frames: int) -> "Truth":
+        """The truth of frames ``0 .. n_frames - 1`` only."""
+        keep = self.frame < n_frames
+        return Truth(frame=self.frame[keep], stamp_ns=self.stamp_ns[keep], person=self.person[keep], x=self.x[keep],
+                     y=self.y[keep], z_top=self.z_top[keep], posture=self.posture[keep],
+                     events=[e for e in self.events if e.frame < n_frames])
+
 
 def derive_truth(scenario) -> Truth:
     """Ground truth of a :class:`common.synth.scenario.Scenario` (pure, deterministic)."""
@@ -147,11 +154,14 @@ def derive_truth(scenario) -> Truth:
                  posture=np.array([POSTURES[int(v)] for v in lab], dtype=str).reshape(-1), events=events)
 
 
-def write_truth(scenario, out_dir, truth: Truth | None = None) -> dict[str, Path]:
-    """Write ``OUT/tracks.csv``, ``OUT/events.jsonl`` and ``OUT/meta.json``; returns their paths."""
+def write_truth(scenario, out_dir, truth: Truth | None = None, *, n_frames: int | None = None) -> dict[str, Path]:
+    """Write ``OUT/tracks.csv``, ``OUT/events.jsonl`` and ``OUT/meta.json``; returns their paths.
+    ``n_frames`` limits everything to the first frames (a partial render)."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     truth = truth or derive_truth(scenario)
+    n_frames = scenario.n_frames if n_frames is None else int(n_frames)
+    truth = truth.cut(n_frames)
     tracks = out / "tracks.csv"
     with tracks.open("w", newline="", encoding="utf-8") as fh:
         w = csv.writer(fh, lineterminator="\n")
@@ -169,7 +179,7 @@ def write_truth(scenario, out_dir, truth: Truth | None = None) -> dict[str, Path
         "description": scenario.spec.description,
         "seed": scenario.seed,
         "fps": scenario.fps,
-        "n_frames": scenario.n_frames,
+        "n_frames": n_frames,
         "start_ns": scenario.start_ns,
         "start_local": scenario.spec.start_local,
         "date": scenario.spec.date,

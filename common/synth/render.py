@@ -1,0 +1,529 @@
+"""Rendering the synthetic house into one camera, fast enough for live use.
+
+Per camera, once (:class:`CameraRenderer`): the world ray of every pixel
+(through the camera's own lens model, so distortion and the fisheye come for
+free), the background hit of every ray (room, doorway corridor, furniture)
+with its depth, the lit and textured background image, the same hits on a
+4x coarser grid for shadows, and a bank of sensor noise.
+
+Per frame (:meth:`CameraRenderer.render`): for each body part (an ellipsoid)
+only the rays inside its projected bounding box are intersected, vectorised
+in numpy, into a depth buffer; a pixel shows the person when the body is
+nearer than the background there (furniture occludes correctly). Shadows:
+each coarse background point looks towards the ceiling light; the soft
+occlusion of that segment by the body parts, fading with the distance to
+the occluder, darkens it (a contact shadow under the feet that widens and
+fades further away, on the floor and on nearby walls and furniture). Then
+the frame is ``saturate(gain * scene + noise - 32)`` in one OpenCV call,
+with the noise taken from the bank at a per-frame random offset.
+
+Every output is a pure function of (room, camera, seed, bodies, gain, frame
+key): scratch buffers are reset before use.
+
+Units: world metres; pixels in OpenCV convention (integer = pixel centre).
+"""
+
+from __future__ import annotations
+
+import zlib
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from common.camera import Camera
+from common.synth.body import FOREARM_PARTS, HEAD_PART, HAIR, PART_MATERIAL, SKIN, Body
+from common.synth.scene import Room
+
+NOISE_OFFSET = 32
+SHADOW_STRIDE = 4
+SHADOW_STRENGTH = 0.55
+SHADOW_REACH_M = 1.3
+AMBIENT = 0.5
+DIFFUSE = 0.65
+
+SURF_FLOOR, SURF_CEILING = 0, 1
+SURF_WALL_X0, SURF_WALL_X1, SURF_WALL_Y0, SURF_WALL_Y1 = 2, 3, 4, 5
+SURF_CORRIDOR = 6
+SURF_FURNITURE = 10
+SURF_NONE = -1
+
+
+@dataclass(frozen=True)
+class BackgroundHits:
+    """Where rays from one origin first hit the empty room.
+
+    t: (N,) float64 distance along the (unit) ray, metres (0 where the ray is invalid).
+    surface: (N,) int16 surface code (SURF_*, furniture ``SURF_FURNITURE + box index``).
+    normal: (N, 3) float64 unit normal facing the ray origin. point: (N, 3) float64 world.
+    """
+
+    t: np.ndarray
+    surface: np.ndarray
+    normal: np.ndarray
+    point: np.ndarray
+
+
+def raycast_room(room: Room, origin_m, dirs) -> BackgroundHits:
+    """Cast rays from ``origin_m`` (3,) (inside the room) along ``dirs`` (N, 3) unit world
+    directions (NaN rows allowed) against walls, floor, ceiling, the corridor behind the
+    door and the furniture boxes."""
+    o = np.asarray(origin_m, dtype=np.float64)
+    d = np.asarray(dirs, dtype=np.float64).reshape(-1, 3)
+    n = d.shape[0]
+    ok = np.all(np.isfinite(d), axis=1)
+    d = np.where(ok[:, None], d, np.array([0.0, 0.0, -1.0]))
+    t, axis = _slab_far(o, d, np.zeros(3), np.asarray(room.size_m, dtype=np.float64))
+    neg = np.take_along_axis(d, axis[:, None], axis=1)[:, 0] < 0
+    surface = np.select(
+        [axis == 2, axis == 0, axis == 1],
+        [np.where(neg, SURF_FLOOR, SURF_CEILING), np.where(neg, SURF_WALL_X0, SURF_WALL_X1),
+         np.where(neg, SURF_WALL_Y0, SURF_WALL_Y1)],
+    ).astype(np.int16)
+    normal = _axis_normal(axis, d)
+    p = o + t[:, None] * d
+    for door in room.doors:
+        through = (surface == SURF_WALL_X0) & (p[:, 1] >= door.y_range_m[0]) & (p[:, 1] <= door.y_range_m[1]) & (
+            p[:, 2] <= door.height_m)
+        if through.any():
+            tc, ac = _slab_far(o, d[through], np.asarray(door.corridor_min_m), np.asarray(door.corridor_max_m))
+            t[through] = tc
+            surface[through] = SURF_CORRIDOR
+            normal[through] = _axis_normal(ac, d[through])
+    for k, box in enumerate(room.boxes):
+        tn, an, hit = _slab_near(o, d, np.asarray(box.min_m), np.asarray(box.max_m))
+        hit &= tn < t
+        if hit.any():
+            t[hit] = tn[hit]
+            surface[hit] = SURF_FURNITURE + k
+            normal[hit] = _axis_normal(an[hit], d[hit])
+    t = np.where(ok, t, 0.0)
+    surface = np.where(ok, surface, SURF_NONE).astype(np.int16)
+    return BackgroundHits(t=t, surface=surface, normal=normal, point=o + t[:, None] * d)
+
+
+def background_colour(room: Room, hits: BackgroundHits) -> np.ndarray:
+    """(N, 3) float32 lit BGR colour (0..255 scale, may exceed) of background hits."""
+    p = hits.point
+    s = hits.surface
+    n = p.shape[0]
+    albedo = np.zeros((n, 3), dtype=np.float64)
+    tex = _Textures()
+    floor = s == SURF_FLOOR
+    albedo[floor] = tex.wood(p[floor, 0], p[floor, 1])
+    walls = (s >= SURF_WALL_X0) & (s <= SURF_WALL_Y1)
+    if walls.any():
+        along = np.where((s[walls] == SURF_WALL_X0) | (s[walls] == SURF_WALL_X1), p[walls, 1], p[walls, 0])
+        albedo[walls] = tex.paint(along, p[walls, 2], s[walls])
+    albedo[s == SURF_CEILING] = (232, 234, 236)
+    corr = s == SURF_CORRIDOR
+    if corr.any():
+        is_floor = hits.normal[corr, 2] > 0.5
+        c = np.where(is_floor[:, None], tex.tiles(p[corr, 0], p[corr, 1]), np.array([150.0, 165.0, 172.0]))
+        albedo[corr] = c
+    for k, box in enumerate(room.boxes):
+        m = s == SURF_FURNITURE + k
+        if m.any():
+            albedo[m] = tex.fabric(p[m], hits.normal[m], box.colour_bgr)
+    for dec in room.decals:
+        _apply_decal(albedo, p, s, dec, tex)
+    shade = lambert(room, p, hits.normal)
+    # The ceiling is lit by light bounced off the floor and walls, not by the lamp under it.
+    shade[s == SURF_CEILING] = np.maximum(shade[s == SURF_CEILING], 0.8)
+    shade[corr] *= 0.75
+    out = albedo * shade[:, None]
+    out[s == SURF_NONE] = 0.0
+    return out.astype(np.float32)
+
+
+def lambert(room: Room, points, normals) -> np.ndarray:
+    """(N,) float64 shading factor at world points with unit normals under the ceiling light."""
+    lvec = np.asarray(room.light_m) - points
+    dist = np.linalg.norm(lvec, axis=1)
+    cos = np.einsum("ni,ni->n", normals, lvec) / np.maximum(dist, 1e-9)
+    return AMBIENT + DIFFUSE * np.clip(cos, 0.0, 1.0) / (1.0 + (dist / 4.0) ** 2) * 1.6
+
+
+class CameraRenderer:
+    """One camera's precomputed view of the empty room and its per-frame renderer.
+
+    camera: the calibrated camera. room: the scene. seed: noise seed.
+    noise_std: sensor noise, grey levels per channel. shadows: draw cast shadows.
+    """
+
+    def __init__(self, camera: Camera, room: Room, *, seed: int = 0, noise_std: float = 2.5,
+                 shadows: bool = True) -> None:
+        if not (0.0 <= noise_std <= 10.0):
+            raise ValueError(f"noise_std must lie in 0..10, got {noise_std}")
+        self.camera = camera
+        self.room = room
+        self.seed = int(seed)
+        self.shadows = bool(shadows)
+        self.cam_key = zlib.crc32(camera.id.encode("utf-8"))
+        H, W = camera.height, camera.width
+        self.center = camera.center.astype(np.float64)
+        rays = camera.pixel_rays()
+        self.valid = np.all(np.isfinite(rays), axis=2)
+        rays[~self.valid] = camera.forward.astype(np.float32)
+        self.rays = rays
+        dx, dy, dz = rays[..., 0], rays[..., 1], rays[..., 2]
+        self.rays6 = np.stack([dx * dx, dy * dy, dz * dz, 2 * dx * dy, 2 * dx * dz, 2 * dy * dz], axis=2)
+        hits = raycast_room(room, self.center, rays.reshape(-1, 3).astype(np.float64))
+        depth = hits.t.reshape(H, W).astype(np.float32)
+        depth[~self.valid] = 0.0
+        self.bg_depth = depth
+        look = np.random.default_rng([self.seed, self.cam_key, 11])
+        self.white_balance = (1.0 + 0.03 * (2 * look.random(3) - 1)) * (1.0 + 0.04 * (2 * look.random() - 1))
+        fwd = camera.forward
+        cos_off = np.clip(rays.reshape(-1, 3) @ fwd, 0.0, 1.0).reshape(H, W)
+        angle = np.arccos(cos_off)
+        self.vignette = (1.0 - 0.22 * (angle / (np.pi / 2)) ** 2).astype(np.float32)
+        colour = background_colour(room, hits).reshape(H, W, 3) * self.white_balance[None, None, :]
+        colour *= self.vignette[..., None]
+        colour[~self.valid] = 0.0
+        self.bg_bgr = np.clip(np.rint(colour), 0, 255).astype(np.uint8)
+        # Shadows are soft: they are computed on every SHADOW_STRIDE-th pixel and upsampled.
+        s = SHADOW_STRIDE
+        sub = (slice(s // 2, None, s), slice(s // 2, None, s))
+        self.coarse_points = hits.point.reshape(H, W, 3)[sub].astype(np.float32)
+        surf = hits.surface.reshape(H, W)[sub]
+        self.coarse_valid = (surf >= 0) & (surf != SURF_CEILING) & self.valid[sub]
+        bank_rng = np.random.default_rng([self.seed, self.cam_key, 5])
+        self._n_px = H * W * 3
+        bank = bank_rng.normal(NOISE_OFFSET, noise_std, size=2 * self._n_px)
+        self.noise_bank = np.clip(np.rint(bank), 0, 2 * NOISE_OFFSET).astype(np.uint8)
+        self._zbuf = np.full((H, W), np.inf, dtype=np.float32)
+        self._part = np.full((H, W), -1, dtype=np.int16)
+
+    # ------------------------------------------------------------------ frames
+
+    def noise(self, key: tuple[int, ...]) -> np.ndarray:
+        """(H, W, 3) uint8 noise frame (offset :data:`NOISE_OFFSET`) for a frame key."""
+        rng = np.random.default_rng([self.seed, self.cam_key, *key])
+        off = int(rng.integers(0, self._n_px))
+        return self.noise_bank[off: off + self._n_px].reshape(self.camera.height, self.camera.width, 3)
+
+    def background(self, gain: float, key: tuple[int, ...]) -> np.ndarray:
+        """(H, W, 3) uint8 BGR frame of the empty room."""
+        return cv2.addWeighted(self.bg_bgr, float(gain), self.noise(key), 1.0, -float(NOISE_OFFSET))
+
+    def render(self, bodies: list[Body], gain: float, key: tuple[int, ...]) -> tuple[np.ndarray, np.ndarray]:
+        """One frame.
+
+        bodies: people to draw. gain: scene illumination gain. key: frame key for the noise.
+        Returns ``bgr`` (H, W, 3) uint8 and ``labels`` (H, W) uint8: the person id whose body
+        is visible at each pixel, 0 for background.
+        """
+        H, W = self.camera.height, self.camera.width
+        labels = np.zeros((H, W), dtype=np.uint8)
+        if not bodies:
+            return self.background(gain, key), labels
+        scene = self.bg_bgr.copy()
+        plans = [self._plan(b) for b in bodies]
+        plans = [p for p in plans if p is not None]
+        if self.shadows:
+            for body, plan in zip(bodies, plans):
+                self._shadow(scene, body)
+        zbuf, part = self._zbuf, self._part
+        for plan in plans:
+            x0, y0, x1, y1 = plan.roi
+            zbuf[y0:y1, x0:x1] = np.inf
+            part[y0:y1, x0:x1] = -1
+        for pi, plan in enumerate(plans):
+            self._raycast(plan, pi)
+        for pi, plan in enumerate(plans):
+            self._shade(scene, labels, plan, pi, plans)
+        return cv2.addWeighted(scene, float(gain), self.noise(key), 1.0, -float(NOISE_OFFSET)), labels
+
+    # ------------------------------------------------------------------ internals
+
+    def _plan(self, body: Body) -> "_BodyPlan | None":
+        cam = self.camera
+        ext = body.extents_m
+        pts = body.centers_m[:, None, :] + ext[:, None, :] * _BOX_POINTS[None, :, :]
+        uv, _ = cam.project(pts.reshape(-1, 3))
+        uv = uv.reshape(len(ext), -1, 2)
+        finite = np.all(np.isfinite(uv), axis=(1, 2))
+        # A part reaching behind the camera or beyond the lens's range may cover anything.
+        lo = np.where(finite[:, None], np.min(np.where(np.isfinite(uv), uv, np.inf), axis=1), 0.0)
+        hi = np.where(finite[:, None], np.max(np.where(np.isfinite(uv), uv, -np.inf), axis=1),
+                      [cam.width - 1, cam.height - 1])
+        # Margin covers the lens bending box edges between the sampled points.
+        margin = 3.0 if cam.model == "pinhole" else 6.0
+        x0 = np.clip(np.floor(lo[:, 0] - margin), 0, cam.width).astype(int)
+        y0 = np.clip(np.floor(lo[:, 1] - margin), 0, cam.height).astype(int)
+        x1 = np.clip(np.ceil(hi[:, 0] + margin) + 1, 0, cam.width).astype(int)
+        y1 = np.clip(np.ceil(hi[:, 1] + margin) + 1, 0, cam.height).astype(int)
+        keep = (x1 > x0) & (y1 > y0)
+        if not keep.any():
+            return None
+        roi = (int(x0[keep].min()), int(y0[keep].min()), int(x1[keep].max()), int(y1[keep].max()))
+        inv = body.inverse_axes
+        o = np.einsum("pij,pj->pi", inv, self.center[None, :] - body.centers_m)
+        return _BodyPlan(body=body, roi=roi, boxes=np.stack([x0, y0, x1, y1], axis=1), keep=keep, inv=inv, o=o)
+
+    def _raycast(self, plan: "_BodyPlan", pi: int) -> None:
+        zbuf, part = self._zbuf, self._part
+        for k in np.nonzero(plan.keep)[0]:
+            x0, y0, x1, y1 = plan.boxes[k]
+            inv, o = plan.inv[k], plan.o[k]
+            Q = inv.T @ inv
+            q6 = np.array([Q[0, 0], Q[1, 1], Q[2, 2], Q[0, 1], Q[0, 2], Q[1, 2]], dtype=np.float32)
+            pvec = (inv.T @ o).astype(np.float32)
+            a = self.rays6[y0:y1, x0:x1] @ q6
+            b = self.rays[y0:y1, x0:x1] @ pvec
+            c = np.float32(o @ o - 1.0)
+            disc = b * b - a * c
+            hit = disc > 0
+            if not hit.any():
+                continue
+            t = (-b - np.sqrt(np.maximum(disc, 0.0))) / a
+            zb = zbuf[y0:y1, x0:x1]
+            closer = hit & (t > 0) & (t < zb)
+            np.copyto(zb, t, where=closer)
+            np.copyto(part[y0:y1, x0:x1], np.int16(pi * 32 + k), where=closer)
+
+    def _shade(self, scene: np.ndarray, labels: np.ndarray, plan: "_BodyPlan", pi: int, plans) -> None:
+        x0, y0, x1, y1 = plan.roi
+        zb = self._zbuf[y0:y1, x0:x1]
+        pb = self._part[y0:y1, x0:x1]
+        visible = (pb >= pi * 32) & (pb < pi * 32 + 32) & (zb < self.bg_depth[y0:y1, x0:x1])
+        if not visible.any():
+            return
+        body = plan.body
+        iy, ix = np.nonzero(visible)
+        k = pb[iy, ix] - pi * 32
+        t = zb[iy, ix].astype(np.float64)
+        d = self.rays[y0 + iy, x0 + ix].astype(np.float64)
+        u = plan.o[k] + np.einsum("nij,nj->ni", plan.inv[k], d) * t[:, None]
+        normal = np.einsum("nji,nj->ni", plan.inv[k], u)
+        normal /= np.maximum(np.linalg.norm(normal, axis=1, keepdims=True), 1e-12)
+        point = self.center + d * t[:, None]
+        shade = lambert(self.room, point, normal)
+        material = PART_MATERIAL[k].astype(np.int64)
+        head = k == HEAD_PART
+        material[head & ((u[:, 2] > 0.3) | ((u[:, 0] < -0.25) & (u[:, 2] > -0.35)))] = HAIR
+        hand = np.isin(k, FOREARM_PARTS) & (u[:, 2] < (-0.45 if body.shape.long_sleeves else 1.1))
+        material[hand] = SKIN
+        colours = body.shape.colours_bgr[material].astype(np.float64)
+        # Cloth texture: faint stripes on shirts across the body, so the colour is not flat.
+        colours *= (1.0 + 0.05 * np.sin(40.0 * point[:, 2]))[:, None]
+        rgb = colours * shade[:, None] * self.white_balance[None, :] * self.vignette[y0 + iy, x0 + ix][:, None]
+        scene[y0 + iy, x0 + ix] = np.clip(np.rint(rgb), 0, 255).astype(np.uint8)
+        labels[y0 + iy, x0 + ix] = np.uint8(body.person_id)
+
+    def _shadow(self, scene: np.ndarray, body: Body) -> None:
+        cam = self.camera
+        s = SHADOW_STRIDE
+        lo, hi = body.aabb()
+        lo = np.array([lo[0] - SHADOW_REACH_M, lo[1] - SHADOW_REACH_M, 0.0])
+        hi = np.array([hi[0] + SHADOW_REACH_M, hi[1] + SHADOW_REACH_M, max(hi[2], 0.3)])
+        corners = lo + (hi - lo) * (0.5 + 0.5 * _BOX_POINTS)
+        uv, _ = cam.project(corners)
+        if not np.all(np.isfinite(uv)):
+            cx0, cy0, cx1, cy1 = 0, 0, self.coarse_points.shape[1], self.coarse_points.shape[0]
+        else:
+            cx0 = int(np.clip(np.floor(uv[:, 0].min() / s) - 1, 0, self.coarse_points.shape[1]))
+            cy0 = int(np.clip(np.floor(uv[:, 1].min() / s) - 1, 0, self.coarse_points.shape[0]))
+            cx1 = int(np.clip(np.ceil(uv[:, 0].max() / s) + 2, 0, self.coarse_points.shape[1]))
+            cy1 = int(np.clip(np.ceil(uv[:, 1].max() / s) + 2, 0, self.coarse_points.shape[0]))
+        if cx1 <= cx0 or cy1 <= cy0:
+            return
+        pts = self.coarse_points[cy0:cy1, cx0:cx1].reshape(-1, 3).astype(np.float64)
+        valid = self.coarse_valid[cy0:cy1, cx0:cx1].ravel()
+        near = valid & np.all(pts >= lo - 1e-6, axis=1) & np.all(pts <= hi + 1e-6, axis=1)
+        occ = np.zeros(pts.shape[0])
+        if near.any():
+            occ[near] = soft_occlusion(body, pts[near], np.asarray(self.room.light_m, dtype=np.float64))
+        if not occ.any():
+            return
+        factor = (1.0 - SHADOW_STRENGTH * occ).reshape(cy1 - cy0, cx1 - cx0).astype(np.float32)
+        H, W = cam.height, cam.width
+        full = cv2.resize(factor, ((cx1 - cx0) * s, (cy1 - cy0) * s), interpolation=cv2.INTER_LINEAR)
+        fy0, fx0 = cy0 * s, cx0 * s
+        fy1, fx1 = min(cy1 * s, H), min(cx1 * s, W)
+        full = full[: fy1 - fy0, : fx1 - fx0]
+        roi = scene[fy0:fy1, fx0:fx1]
+        scene[fy0:fy1, fx0:fx1] = np.clip(roi.astype(np.float32) * full[..., None] + 0.5, 0, 255).astype(np.uint8)
+
+
+def soft_occlusion(body: Body, points_m: np.ndarray, light_m: np.ndarray) -> np.ndarray:
+    """(N,) float64 in 0..1: how much ``body`` blocks the ceiling light seen from ``points_m`` (N, 3).
+
+    The segment point -> light is tested against every part in the part's unit-ball frame:
+    the closest approach ``r`` (1 = touching the surface) gives a soft edge whose width grows
+    with the distance from the point to the occluder, and the darkening fades with it too.
+    """
+    inv = body.inverse_axes
+    P = len(inv)
+    pts = np.asarray(points_m, dtype=np.float64)
+    # o: point in each part's unit frame; d: segment to the light in that frame (light - point).
+    o = (pts @ inv.transpose(0, 2, 1).transpose(1, 0, 2).reshape(3, 3 * P)).reshape(-1, P, 3)
+    o -= np.einsum("pij,pj->pi", inv, body.centers_m)[None, :, :]
+    lc = np.einsum("pij,pj->pi", inv, light_m[None, :] - body.centers_m)
+    d = lc[None, :, :] - o
+    od = np.einsum("npi,npi->np", o, d)
+    dd = np.einsum("npi,npi->np", d, d)
+    oo = np.einsum("npi,npi->np", o, o)
+    s = np.clip(-od / np.maximum(dd, 1e-12), 0.0, 1.0)
+    r = np.sqrt(np.maximum(oo + 2 * s * od + s * s * dd, 0.0))
+    dist = s * np.linalg.norm(light_m[None, :] - pts, axis=1)[:, None]
+    w = 0.35 + 1.2 * dist
+    edge = np.clip((1.0 + w - r) / (2.0 * w), 0.0, 1.0)
+    return np.max(edge * np.exp(-dist / 1.1), axis=1)
+
+
+# ---------------------------------------------------------------------- helpers
+
+
+@dataclass
+class _BodyPlan:
+    body: Body
+    roi: tuple[int, int, int, int]
+    boxes: np.ndarray
+    keep: np.ndarray
+    inv: np.ndarray
+    o: np.ndarray
+
+
+def _box_points() -> np.ndarray:
+    """(27, 3) the unit cube's corners, edge midpoints, face centres and centre, in -1..1."""
+    g = np.array([-1.0, 0.0, 1.0])
+    return np.stack(np.meshgrid(g, g, g, indexing="ij"), axis=-1).reshape(-1, 3)
+
+
+_BOX_POINTS = _box_points()
+
+
+def _slab_far(o, d, lo, hi) -> tuple[np.ndarray, np.ndarray]:
+    """Exit distance of rays from inside (or entering) box [lo, hi] and the exit axis."""
+    far = []
+    for ax in range(3):
+        da = d[:, ax]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t = np.where(da > 0, (hi[ax] - o[ax]) / da, (lo[ax] - o[ax]) / da)
+        far.append(np.where(da != 0, t, np.inf))
+    tf = np.minimum(np.minimum(far[0], far[1]), far[2])
+    axis = np.where(tf == far[0], 0, np.where(tf == far[1], 1, 2))
+    return tf, axis
+
+
+def _slab_near(o, d, lo, hi) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Entry distance into box [lo, hi], entry axis and whether the ray hits it in front."""
+    tmin, tmax = [], []
+    for ax in range(3):
+        da = np.where(np.abs(d[:, ax]) < 1e-12, 1e-12, d[:, ax])
+        t1 = (lo[ax] - o[ax]) / da
+        t2 = (hi[ax] - o[ax]) / da
+        tmin.append(np.minimum(t1, t2))
+        tmax.append(np.maximum(t1, t2))
+    near = np.maximum(np.maximum(tmin[0], tmin[1]), tmin[2])
+    far = np.minimum(np.minimum(tmax[0], tmax[1]), tmax[2])
+    axis = np.where(near == tmin[0], 0, np.where(near == tmin[1], 1, 2))
+    return near, axis, (near <= far) & (near > 1e-9)
+
+
+def _axis_normal(axis: np.ndarray, d: np.ndarray) -> np.ndarray:
+    """Unit normals along ``axis`` facing against ``d``."""
+    n = np.zeros((axis.shape[0], 3))
+    comp = np.take_along_axis(d, axis[:, None], axis=1)[:, 0]
+    n[np.arange(axis.shape[0]), axis] = -np.sign(comp)
+    return n
+
+
+def _apply_decal(albedo, p, s, dec, tex) -> None:
+    surf = {"floor": SURF_FLOOR, "x0": SURF_WALL_X0, "x1": SURF_WALL_X1, "y0": SURF_WALL_Y0, "y1": SURF_WALL_Y1}[dec.surface]
+    if dec.surface == "floor":
+        u, v = p[:, 0], p[:, 1]
+    elif dec.surface in ("x0", "x1"):
+        u, v = p[:, 1], p[:, 2]
+    else:
+        u, v = p[:, 0], p[:, 2]
+    u0, v0, u1, v1 = dec.rect_m
+    m = (s == surf) & (u >= u0) & (u <= u1) & (v >= v0) & (v <= v1)
+    if not m.any():
+        return
+    base = np.array(dec.colour_bgr, dtype=np.float64)
+    uu, vv = u[m], v[m]
+    col = np.repeat(base[None, :], uu.shape[0], axis=0)
+    if dec.pattern == "stripes":
+        col *= (0.85 + 0.15 * (np.sin(uu * 25.0) > 0))[:, None]
+    elif dec.pattern == "frame":
+        border = np.minimum.reduce([uu - u0, u1 - uu, vv - v0, v1 - vv]) < 0.04
+        col[border] = (40, 45, 50)
+        col[~border] *= (0.8 + 0.4 * tex.noise(uu[~border] * 6, vv[~border] * 6))[:, None]
+    elif dec.pattern == "window":
+        border = (np.minimum.reduce([uu - u0, u1 - uu, vv - v0, v1 - vv]) < 0.05) | (
+            np.abs(uu - 0.5 * (u0 + u1)) < 0.025) | (np.abs(vv - 0.5 * (v0 + v1)) < 0.025)
+        col[border] = (225, 228, 230)
+    albedo[m] = col
+
+
+class _Textures:
+    """Procedural textures from world coordinates (fixed, seed-independent: the house looks the same)."""
+
+    def __init__(self) -> None:
+        self.grid = np.random.default_rng(20240305).random((64, 64))
+
+    def noise(self, u: np.ndarray, v: np.ndarray) -> np.ndarray:
+        """Smooth value noise in 0..1 at (u, v) in grid cells (wraps every 64 cells)."""
+        iu = np.floor(u).astype(np.int64)
+        iv = np.floor(v).astype(np.int64)
+        fu = u - iu
+        fv = v - iv
+        fu = fu * fu * (3 - 2 * fu)
+        fv = fv * fv * (3 - 2 * fv)
+        g = self.grid
+        a = g[iv % 64, iu % 64]
+        b = g[iv % 64, (iu + 1) % 64]
+        c = g[(iv + 1) % 64, iu % 64]
+        d = g[(iv + 1) % 64, (iu + 1) % 64]
+        return (a * (1 - fu) + b * fu) * (1 - fv) + (c * (1 - fu) + d * fu) * fv
+
+    def wood(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        width = 0.16
+        row = np.floor(y / width).astype(np.int64)
+        offset = _hash01(row, 7) * 1.4
+        col = np.floor((x + offset) / 1.4).astype(np.int64)
+        tone = 0.8 + 0.35 * _hash01(row * 131 + col, 3)
+        grain = 0.88 + 0.24 * self.noise(x * 3.0 + row * 5.3, y * 40.0)
+        seam = (np.mod(y, width) < 0.006) | (np.mod(x + offset, 1.4) < 0.006)
+        base = np.array([70.0, 112.0, 160.0])
+        col_bgr = base[None, :] * (tone * grain)[:, None]
+        col_bgr[seam] *= 0.55
+        return col_bgr
+
+    def tiles(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        grout = (np.mod(x, 0.3) < 0.01) | (np.mod(y, 0.3) < 0.01)
+        c = np.repeat(np.array([[128.0, 132.0, 136.0]]), x.shape[0], axis=0)
+        c *= (0.9 + 0.2 * self.noise(x * 4, y * 4))[:, None]
+        c[grout] = (90.0, 92.0, 95.0)
+        return c
+
+    def paint(self, along: np.ndarray, z: np.ndarray, surface: np.ndarray) -> np.ndarray:
+        tint = {SURF_WALL_X0: (186, 204, 216), SURF_WALL_X1: (196, 206, 214), SURF_WALL_Y0: (180, 200, 214),
+                SURF_WALL_Y1: (192, 210, 220)}
+        base = np.zeros((surface.shape[0], 3))
+        for code, bgr in tint.items():
+            base[surface == code] = bgr
+        m = 0.92 + 0.1 * self.noise(along * 1.5, z * 1.5) + 0.04 * self.noise(along * 14 + 17, z * 14 + 5)
+        c = base * m[:, None]
+        skirting = z < 0.08
+        c[skirting] = (222.0, 224.0, 226.0)
+        return c
+
+    def fabric(self, p: np.ndarray, normal: np.ndarray, colour) -> np.ndarray:
+        base = np.array(colour, dtype=np.float64)
+        u = p[:, 0] * np.abs(normal[:, 1] + normal[:, 2]) + p[:, 1] * np.abs(normal[:, 0])
+        v = p[:, 2] * (1 - np.abs(normal[:, 2])) + p[:, 1] * np.abs(normal[:, 2])
+        m = 0.9 + 0.2 * self.noise(u * 12 + 3, v * 12 + 9)
+        top = np.where(normal[:, 2] > 0.5, 1.08, 1.0)
+        return base[None, :] * (m * top)[:, None]
+
+
+def _hash01(a: np.ndarray, salt: int) -> np.ndarray:
+    """Deterministic hash of integers to [0, 1)."""
+    h = (np.asarray(a, dtype=np.int64) * 73856093 + salt * 19349663) & 0xFFFFFFFF
+    h = (h ^ (h >> 13)) * 1274126177 & 0xFFFFFFFF
+    h = h ^ (h >> 16)
+    return (h & 0xFFFF) / 65536.0

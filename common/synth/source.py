@@ -1,0 +1,125 @@
+"""The synthetic house as a frame source: one camera of one scenario, frame by frame.
+
+``SyntheticCamera(scenario, cam_id, seed)`` renders frame ``index`` as a pure
+function of (scenario, seed, camera, index), so each camera worker renders
+its own camera independently and any frame can be rendered on its own
+(random access, no state carried between frames).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from common.camera import Camera
+from common.synth.render import CameraRenderer
+from common.synth.scenario import Scenario, ScenarioSpec
+from common.synth.scenarios import DEFAULT_SCENARIO, get_scenario
+from common.synth.scene import default_cameras
+
+BACKGROUND_S = 3.0
+_FRAME_STREAM, _BACKGROUND_STREAM = 0, 1
+
+
+class SyntheticCamera:
+    """Frames of one camera of a synthetic scenario.
+
+    scenario: a library name, a :class:`ScenarioSpec` or a compiled :class:`Scenario`.
+    cam_id: camera id (cam1..cam5 in the default site).
+    seed: people's variations, lighting and noise (ignored for the people of an
+        already compiled Scenario, which keeps its own).
+    site: optional :class:`common.site.Site` or site file path whose calibration of
+        ``cam_id`` is used instead of the default camera.
+    camera: optional :class:`Camera` used as is (overrides ``site``), e.g. a scaled-down
+        default camera for fast tests.
+    noise_std: sensor noise, grey levels. shadows: draw cast shadows.
+    """
+
+    def __init__(
+        self,
+        scenario: str | ScenarioSpec | Scenario = DEFAULT_SCENARIO,
+        cam_id: str = "cam1",
+        seed: int = 0,
+        site=None,
+        *,
+        camera: Camera | None = None,
+        noise_std: float = 2.5,
+        shadows: bool = True,
+        background_s: float = BACKGROUND_S,
+    ) -> None:
+        self.scenario = get_scenario(scenario, seed)
+        self.seed = int(seed)
+        if camera is None:
+            camera = _site_camera(site, cam_id) if site is not None else _default_camera(cam_id)
+        elif camera.id != cam_id:
+            raise ValueError(f"camera id {camera.id!r} does not match cam_id {cam_id!r}")
+        self.camera = camera
+        self.cam_id = cam_id
+        self.renderer = CameraRenderer(camera, self.scenario.room, seed=self.seed, noise_std=noise_std, shadows=shadows)
+        self.n_background_frames = int(round(background_s * self.scenario.fps))
+
+    @property
+    def n_frames(self) -> int:
+        return self.scenario.n_frames
+
+    @property
+    def fps(self) -> float:
+        return self.scenario.fps
+
+    @property
+    def width(self) -> int:
+        return self.camera.width
+
+    @property
+    def height(self) -> int:
+        return self.camera.height
+
+    def stamp_ns(self, index: int) -> int:
+        """Capture time of frame ``index``: ``start_ns + round(index * 1e9 / fps)``."""
+        return self.scenario.stamp_ns(index)
+
+    def frame(self, index: int) -> tuple[np.ndarray, np.ndarray]:
+        """Frame ``index``: BGR (H, W, 3) uint8 and the true person mask (H, W) uint8 (255 = person)."""
+        bgr, labels = self.frame_labels(index)
+        return bgr, np.where(labels > 0, np.uint8(255), np.uint8(0))
+
+    def frame_labels(self, index: int) -> tuple[np.ndarray, np.ndarray]:
+        """Frame ``index``: BGR (H, W, 3) uint8 and the visible person id per pixel (H, W) uint8 (0 = nobody)."""
+        self._check(index, self.n_frames)
+        sc = self.scenario
+        return self.renderer.render(sc.bodies(index), sc.gain(index), (_FRAME_STREAM, int(index)))
+
+    def background_frame(self, index: int) -> np.ndarray:
+        """Frame ``index`` (0..n_background_frames-1) of a clip of the empty room recorded just before
+        the scenario (same lighting drift and noise statistics): BGR (H, W, 3) uint8."""
+        self._check(index, self.n_background_frames)
+        t = (index - self.n_background_frames) / self.fps
+        return self.renderer.background(float(self.scenario.gain_at(t)), (_BACKGROUND_STREAM, int(index)))
+
+    def frames(self, start: int = 0, stop: int | None = None):
+        """Iterate ``(index, stamp_ns, bgr, mask)`` over frames ``start..stop-1``."""
+        stop = self.n_frames if stop is None else min(stop, self.n_frames)
+        for i in range(start, stop):
+            bgr, mask = self.frame(i)
+            yield i, self.stamp_ns(i), bgr, mask
+
+    @staticmethod
+    def _check(index, n: int) -> None:
+        if isinstance(index, bool) or not isinstance(index, (int, np.integer)) or not (0 <= index < n):
+            raise ValueError(f"frame index must be an int in 0..{n - 1}, got {index!r}")
+
+
+def _default_camera(cam_id: str) -> Camera:
+    cams = default_cameras()
+    if cam_id not in cams:
+        raise ValueError(f"no camera {cam_id!r} in the synthetic house; cameras are {sorted(cams)}")
+    return cams[cam_id]
+
+
+def _site_camera(site, cam_id: str) -> Camera:
+    from common.site import load_site
+
+    if isinstance(site, (str, Path)):
+        site = load_site(site)
+    return site.load_camera(cam_id)
