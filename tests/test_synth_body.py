@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from common.synth.body import (
-    N_PARTS, Q_HIP_FLEX, Q_KNEE, Q_PITCH, BodyShape, forward_kinematics, highest_point_m, lowest_point_m,
+    N_PARTS, N_Q, Q_HIP_FLEX, Q_KNEE, Q_PITCH, BodyShape, forward_kinematics, highest_point_m, lowest_point_m,
     pose_body, standing_pose,
 )
 
@@ -36,7 +36,7 @@ def test_random_shapes_vary_within_the_documented_range():
 def test_batched_kinematics_equal_single_poses():
     shape = BodyShape(height_m=1.8, width=1.1)
     rng = np.random.default_rng(0)
-    q = np.repeat(standing_pose(shape)[None, :], 5, axis=0) + rng.normal(0, 0.3, (5, 20)) * (np.arange(20) >= 3)
+    q = np.repeat(standing_pose(shape)[None, :], 5, axis=0) + rng.normal(0, 0.3, (5, N_Q)) * (np.arange(N_Q) >= 3)
     centers, axes = forward_kinematics(shape, q)
     assert centers.shape == (5, N_PARTS, 3) and axes.shape == (5, N_PARTS, 3, 3)
     for i in range(5):
