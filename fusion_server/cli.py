@@ -37,6 +37,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--cache-dir", type=Path, default=None, help="where carving lookup tables are cached (default ~/.cache/voxelwatch)")
     p.add_argument("--min-cameras", type=int, default=None, help="fewest cameras a frame set needs to be fused (default: the carving vote's min_cameras)")
     p.add_argument("--exit-after-idle", type=float, default=None, metavar="SECONDS", help="stop when no mask has arrived for this long (for replays and tests)")
+    p.add_argument("--max-clock-skew-ms", type=float, default=None, metavar="MS", help="mark a camera skewed when its stamps run this far from the server's clock (default 250)")
     p.add_argument("-v", "--verbose", action="store_true", help="log debug messages")
     return p
 

@@ -1,0 +1,407 @@
+"""The fusion server process over real zenoh on loopback.
+
+Each test writes a tiny site (three pinhole cameras around a 3 x 3 x 2 m
+room, coarse voxels), starts ``voxelwatch-fusion`` as a real process,
+publishes masks of a box-shaped "person" projected through each camera, and
+reads what the server publishes: tracks, status, events and history.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import cv2
+import msgpack
+import numpy as np
+import pytest
+
+zenoh = pytest.importorskip("zenoh")
+
+from common import keys, maskcodec, messages  # noqa: E402
+from common.calibration import save_voxelwatch  # noqa: E402
+from common.camera import Camera, look_at  # noqa: E402
+from common.evaluation.io import read_events, read_tracks  # noqa: E402
+from common.messages import Event, MaskFrame, Status, TrackFrame, decode, decode_event, encode  # noqa: E402
+
+ROOT = Path(__file__).resolve().parents[1]
+FPS = 30.0
+PERIOD_NS = int(1e9 / FPS)
+BOX_XY = (1.5, 1.4)
+CAMERA_CENTRES = {"c1": (-0.5, -0.5, 2.5), "c2": (3.5, -0.5, 2.5), "c3": (1.5, 3.6, 2.5)}
+W, H = 160, 120
+
+
+# --------------------------------------------------------------------------- the tiny site
+
+
+@pytest.fixture(scope="module")
+def site(tmp_path_factory) -> tuple[Path, dict[str, Camera]]:
+    """(site file, cameras): three cameras looking at the middle of a 3 x 3 x 2 m room."""
+    d = tmp_path_factory.mktemp("site")
+    cams = {}
+    for cid, centre in CAMERA_CENTRES.items():
+        R, t = look_at(centre, (1.5, 1.5, 0.8))
+        cams[cid] = Camera.pinhole(cid, W, H, hfov_deg=80.0, R=R, t=t)
+        save_voxelwatch(cams[cid], d / f"{cid}.toml")
+    text = (
+        'name = "tiny"\n\n[volume]\nmin_m = [0.0, 0.0, 0.0]\nmax_m = [3.0, 3.0, 2.0]\n\n'
+        "[carving]\nvoxel_sizes_m = [0.4, 0.2, 0.1]\nmin_cameras = 2\n"
+    )
+    for cid in cams:
+        text += f'\n[[cameras]]\nid = "{cid}"\ncalibration = "{cid}.toml"\nfps = {FPS}\n'
+    (d / "site.toml").write_text(text)
+    return d / "site.toml", cams
+
+
+def box_mask(cam: Camera, x: float, y: float, *, width_m: float = 0.5, depth_m: float = 0.4,
+             height_m: float = 1.7) -> np.ndarray:
+    """(H, W) uint8 0/255: the silhouette of an upright box standing at floor point (x, y)."""
+    corners = np.array([[x + sx * width_m / 2, y + sy * depth_m / 2, z]
+                        for sx in (-1, 1) for sy in (-1, 1) for z in (0.0, height_m)])
+    uv, ok = cam.project(corners)
+    assert ok.all()
+    mask = np.zeros((cam.height, cam.width), np.uint8)
+    cv2.fillConvexPoly(mask, cv2.convexHull(np.round(uv).astype(np.int32)), 255)
+    return mask
+
+
+def mask_frame(cam: Camera, seq: int, stamp_ns: int, mask: np.ndarray | None = None, **changes) -> MaskFrame:
+    mask = box_mask(cam, *BOX_XY) if mask is None else mask
+    fields = dict(cam=cam.id, seq=seq, stamp_ns=stamp_ns, width=mask.shape[1], height=mask.shape[0],
+                  src_width=cam.width, src_height=cam.height, codec="rle-zlib",
+                  data=maskcodec.encode_mask(mask), fg_fraction=float(np.count_nonzero(mask)) / mask.size)
+    fields.update(changes)
+    return MaskFrame(**fields)
+
+
+# --------------------------------------------------------------------------- processes and sessions
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _open_peer(listen: str) -> "zenoh.Session":
+    conf = zenoh.Config()
+    conf.insert_json5("mode", '"peer"')
+    conf.insert_json5("scouting/multicast/enabled", "false")
+    conf.insert_json5("transport/shared_memory/enabled", "false")
+    conf.insert_json5("listen/endpoints", json.dumps([listen]))
+    conf.insert_json5("connect/endpoints", "[]")
+    return zenoh.open(conf)
+
+
+class Net:
+    """The test's own zenoh session (listening on a free port) and what it has heard."""
+
+    def __init__(self, prefix: str) -> None:
+        self.prefix = prefix
+        self.endpoint = f"tcp/127.0.0.1:{_free_port()}"
+        self.session = _open_peer(self.endpoint)
+        self.lock = threading.Lock()
+        self.tracks: list[TrackFrame] = []
+        self.status: list[Status] = []
+        self.events: list[Event] = []
+        self.fusion_alive = threading.Event()
+        self._entities = [
+            self.session.declare_subscriber(keys.tracks_key(prefix), self._on(self.tracks, TrackFrame)),
+            self.session.declare_subscriber(keys.status_key(prefix), self._on(self.status, Status)),
+            self.session.declare_subscriber(keys.events_wildcard(prefix), self._on_event),
+            self.session.liveliness().declare_subscriber(keys.alive_fusion_key(prefix), self._on_alive, history=True),
+        ]
+        self.pubs = {}
+
+    def _on(self, into: list, cls) -> Callable:
+        def callback(sample) -> None:
+            msg = decode(sample.payload.to_bytes(), cls)
+            with self.lock:
+                into.append(msg)
+        return callback
+
+    def _on_event(self, sample) -> None:
+        assert str(sample.encoding).startswith("application/json")
+        event = Event.from_json(sample.payload.to_string())  # plain text, as a stock client prints it
+        with self.lock:
+            self.events.append(event)
+
+    def _on_alive(self, sample) -> None:
+        if sample.kind == zenoh.SampleKind.PUT:
+            self.fusion_alive.set()
+        else:
+            self.fusion_alive.clear()
+
+    def put_mask(self, cam: str, payload: bytes) -> None:
+        if cam not in self.pubs:
+            self.pubs[cam] = self.session.declare_publisher(keys.mask_key(self.prefix, cam))
+        self.pubs[cam].put(payload)
+
+    def publish_box(self, cams: dict[str, Camera], frames: range, *, offsets_ns: dict[str, int] | None = None,
+                    between: Callable[[int], None] | None = None) -> None:
+        """Publish ``frames`` at the site rate, stamped with this host's clock (plus per-camera offsets)."""
+        offsets_ns = offsets_ns or {}
+        masks = {cid: box_mask(cam, *BOX_XY) for cid, cam in cams.items()}
+        for seq in frames:
+            now = time.time_ns()
+            for cid, cam in cams.items():
+                self.put_mask(cid, encode(mask_frame(cam, seq, now + offsets_ns.get(cid, 0), masks[cid])))
+            if between is not None:
+                between(seq)
+            time.sleep(1.0 / FPS)
+
+    def latest_status(self) -> Status | None:
+        with self.lock:
+            return self.status[-1] if self.status else None
+
+    def history(self, parameters: str = "", *, key: str | None = None) -> tuple[list[Event], list[str]]:
+        """(events, error texts) from one history query on the history key (or ``key``).
+
+        On the history key itself every reply shares one key, so the query asks for no
+        consolidation; under ``<p>/history/events/**`` each event has its own key and
+        zenoh's default consolidation (what stock clients use) keeps them all.
+        """
+        selector = (key or keys.history_key(self.prefix)) + (f"?{parameters}" if parameters else "")
+        options = {} if key else {"consolidation": zenoh.ConsolidationMode.NONE}
+        events, errors = [], []
+        for reply in self.session.get(selector, timeout=5.0, **options):
+            if reply.ok is not None:
+                events.append(decode_event(reply.ok.payload.to_bytes()))
+            else:
+                errors.append(reply.err.payload.to_string())
+        return events, errors
+
+    def close(self) -> None:
+        for entity in self._entities + list(self.pubs.values()):
+            entity.undeclare()
+        self.session.close()
+
+
+class Server:
+    """A ``voxelwatch-fusion`` process connected to the test's session."""
+
+    def __init__(self, site_file: Path, tmp: Path, net: Net, *extra: str) -> None:
+        self.log_path = tmp / f"server-{time.monotonic_ns()}.log"
+        self.cmd = [sys.executable, "-m", "fusion_server.cli", "--site", str(site_file),
+                    "--listen", f"tcp/127.0.0.1:{_free_port()}", "--connect", net.endpoint,
+                    "--cache-dir", str(site_file.parent / "cache"), *extra]
+        self._log = self.log_path.open("w")
+        self.proc = subprocess.Popen(self.cmd, stdout=self._log, stderr=subprocess.STDOUT, cwd=ROOT,
+                                     env={**os.environ, "PYTHONUNBUFFERED": "1"})
+        self.net = net
+
+    def wait_ready(self, timeout_s: float = 30.0) -> None:
+        deadline = time.monotonic() + timeout_s
+        while not self.net.fusion_alive.wait(0.1):
+            assert self.proc.poll() is None, f"server exited with {self.proc.returncode}:\n{self.output()}"
+            assert time.monotonic() < deadline, f"server not ready after {timeout_s} s:\n{self.output()}"
+
+    def stop(self, timeout_s: float = 20.0) -> int:
+        if self.proc.poll() is None:
+            self.proc.send_signal(signal.SIGTERM)
+        try:
+            return self.proc.wait(timeout=timeout_s)
+        finally:
+            self._log.close()
+
+    def kill(self) -> None:
+        if self.proc.poll() is None:
+            self.proc.kill()
+            self.proc.wait(timeout=10)
+        self._log.close()
+
+    def output(self) -> str:
+        if not self._log.closed:
+            self._log.flush()
+        return self.log_path.read_text()
+
+
+@pytest.fixture
+def net(site):
+    n = Net(keys.default_prefix("tiny"))
+    try:
+        yield n
+    finally:
+        n.close()
+
+
+@pytest.fixture
+def start_server(site, tmp_path, net):
+    started: list[Server] = []
+
+    def start(*extra: str) -> Server:
+        server = Server(site[0], tmp_path, net, *extra)
+        started.append(server)
+        server.wait_ready()
+        return server
+
+    yield start
+    for server in started:
+        server.kill()
+
+
+def wait_for(predicate: Callable[[], object], timeout_s: float, what: str) -> object:
+    deadline = time.monotonic() + timeout_s
+    while True:
+        value = predicate()
+        if value:
+            return value
+        if time.monotonic() > deadline:
+            raise AssertionError(f"timed out waiting for {what}")
+        time.sleep(0.05)
+
+
+def _near_box(frame: TrackFrame, tol_m: float = 0.2) -> bool:
+    return len(frame.tracks) == 1 and np.hypot(frame.tracks[0].x - BOX_XY[0], frame.tracks[0].y - BOX_XY[1]) < tol_m
+
+
+# --------------------------------------------------------------------------- tests
+
+
+def test_tracks_a_box_and_writes_files_then_exits_when_idle(site, tmp_path, net, start_server):
+    site_file, cams = site
+    out = tmp_path / "out"
+    server = start_server("--store", str(tmp_path / "events.sqlite"), "--out", str(out), "--exit-after-idle", "2.0")
+    net.publish_box(cams, range(30))
+    assert server.proc.wait(timeout=20) == 0, server.output()
+    with net.lock:
+        frames = list(net.tracks)
+    assert len(frames) >= 20, server.output()
+    assert all(f.cameras == ["c1", "c2", "c3"] for f in frames)
+    assert [f.frame for f in frames] == sorted({f.frame for f in frames})
+    tracked = [f for f in frames if f.tracks]
+    assert len(tracked) >= 15 and all(_near_box(f) for f in tracked), [f.tracks for f in tracked]
+    assert tracked[0].tracks[0].z_top > 1.2 and tracked[-1].tracks[0].posture == "standing"
+    table = read_tracks(out / "tracks.csv")
+    assert len(table) == sum(len(f.tracks) for f in frames)
+    assert np.allclose(table.x, BOX_XY[0], atol=0.2) and np.allclose(table.y, BOX_XY[1], atol=0.2)
+    assert read_events(out / "events.jsonl") == [] or all(e.kind in messages.EVENT_KINDS for e in read_events(out / "events.jsonl"))
+    text = server.output()
+    assert "fusion stopped:" in text and "frames fused" in text and "Traceback" not in text
+
+
+def test_garbage_masks_are_counted_and_tracking_goes_on(site, tmp_path, net, start_server):
+    site_file, cams = site
+    server = start_server("--store", str(tmp_path / "events.sqlite"))
+    c1, c2 = cams["c1"], cams["c2"]
+    good = encode(mask_frame(c2, 1000, time.time_ns()))
+    wrong_version = msgpack.packb({**msgpack.unpackb(good), "v": 2})
+    small = np.zeros((60, 80), np.uint8)
+    small[10:40, 30:50] = 255
+    garbage = [
+        os.urandom(500),                                                           # not msgpack at all
+        good[: len(good) // 2],                                                    # truncated
+        wrong_version,                                                             # schema version 2
+        b"\x00" * (messages.MAX_MESSAGE_BYTES + 1),                                # oversize
+        encode(mask_frame(c2, 1001, time.time_ns(), np.zeros((100, 100), np.uint8))),  # not the camera's shape
+        encode(mask_frame(c1, 1002, time.time_ns())),                              # c1's mask on c2's key
+        encode(mask_frame(c2, 1003, time.time_ns(), data=maskcodec.encode_mask(small))),  # 80x60 data said 160x120
+    ]
+
+    def between(seq: int) -> None:
+        if 10 <= seq < 10 + len(garbage):
+            net.put_mask("c2", garbage[seq - 10])
+        if seq == 20:
+            net.put_mask("c9", good)  # a camera the site does not know
+
+    net.publish_box(cams, range(40), between=between)
+
+    def settled() -> Status | None:
+        st = net.latest_status()
+        if st is None:
+            return None
+        got = {c.cam: c for c in st.cameras}
+        return st if got["c1"].received == 40 and got["c2"].undecodable == len(garbage) else None
+
+    status = wait_for(settled, 10.0, "a status with every mask counted")
+    by_cam = {c.cam: c for c in status.cameras}
+    assert [by_cam[c].received for c in ("c1", "c2", "c3")] == [40, 40, 40]
+    assert [by_cam[c].undecodable for c in ("c1", "c2", "c3")] == [0, len(garbage), 0]
+    assert all(by_cam[c].state in ("ok", "degraded") for c in by_cam)
+    assert all(abs(by_cam[c].clock_offset_ms) < 250 for c in by_cam)
+    assert status.frame_sets >= 35
+    assert server.proc.poll() is None
+    with net.lock:
+        after = [f for f in net.tracks if f.frame > 10 + len(garbage)]
+    assert len(after) >= 20 and all(f.cameras == ["c1", "c2", "c3"] for f in after)
+    assert sum(_near_box(f) for f in after) >= len(after) - 1
+    assert server.stop() == 0
+    text = server.output()
+    assert "undecodable mask dropped" in text and "not in the site" in text and "Traceback" not in text
+
+
+def test_events_are_stored_published_and_answered_after_a_restart(site, tmp_path, net, start_server):
+    site_file, cams = site
+    store = tmp_path / "events.sqlite"
+    args = ("--store", str(store), "--max-clock-skew-ms", "250")
+    server = start_server(*args)
+    # a camera that comes, goes and comes back
+    token = net.session.liveliness().declare_token(keys.alive_camera_key(net.prefix, "c3"))
+    wait_for(lambda: (st := net.latest_status()) and {c.cam: c.state for c in st.cameras}["c3"] == "degraded",
+             10.0, "c3 alive (but sending nothing) in the status")
+    token.undeclare()
+    wait_for(lambda: any(e.kind == "camera_lost" for e in net.events), 10.0, "a camera_lost event")
+    wait_for(lambda: {c.cam: c.state for c in net.latest_status().cameras}["c3"] == "lost", 5.0, "c3 lost in the status")
+    token = net.session.liveliness().declare_token(keys.alive_camera_key(net.prefix, "c3"))
+    wait_for(lambda: any(e.kind == "camera_back" for e in net.events), 10.0, "a camera_back event")
+    # a camera whose clock runs a second ahead
+    net.publish_box(cams, range(15), offsets_ns={"c1": 1_000_000_000})
+    wait_for(lambda: any(e.kind == "clock_skew" for e in net.events), 10.0, "a clock_skew event")
+    skewed = wait_for(lambda: (st := net.latest_status()) and {c.cam: c for c in st.cameras}["c1"].state == "skewed"
+                      and st, 5.0, "c1 skewed in the status")
+    assert {c.cam: c for c in skewed.cameras}["c1"].clock_offset_ms == pytest.approx(1000.0, abs=100.0)
+
+    with net.lock:
+        published = list(net.events)
+    kinds = [e.kind for e in published]
+    assert kinds.count("camera_lost") == 1 and kinds.count("camera_back") == 1 and kinds.count("clock_skew") == 1
+    lost = next(e for e in published if e.kind == "camera_lost")
+    assert lost.track == -1 and lost.details["camera"] == "c3"
+    skew = next(e for e in published if e.kind == "clock_skew")
+    assert skew.details["camera"] == "c1" and skew.details["offset_ms"] == pytest.approx(1000.0, abs=100.0)
+
+    history, errors = net.history()
+    assert errors == [] and history == sorted(published, key=lambda e: e.stamp_ns)
+    as_stock_client, errors = net.history(key=keys.history_key(net.prefix) + "/**")
+    assert errors == [] and sorted(as_stock_client, key=lambda e: e.stamp_ns) == history
+    only_lost, _ = net.history("kind=camera_lost;format=msgpack")
+    assert only_lost == [lost]
+    later, _ = net.history(f"since={lost.stamp_ns + 1}")
+    assert lost not in later and len(later) == len(published) - 1
+    none, errors = net.history("since=yesterday")
+    assert none == [] and len(errors) == 1 and "since" in errors[0]
+    none, errors = net.history("kind=teleport")
+    assert none == [] and "teleport" in errors[0]
+    assert server.stop() == 0
+    token.undeclare()
+
+    again = start_server(*args)
+    history_after, errors = net.history()
+    assert errors == [] and history_after == history
+    assert again.stop() == 0
+
+
+def test_a_bad_site_file_stops_with_exit_code_2_and_one_message(site, tmp_path):
+    site_file, _ = site
+    bad = tmp_path / "bad.toml"
+    bad.write_text(site_file.read_text().replace("[0.4, 0.2, 0.1]", "[0.4, 0.3]"))
+    result = subprocess.run([sys.executable, "-m", "fusion_server.cli", "--site", str(bad)], cwd=ROOT,
+                            capture_output=True, text=True, timeout=60)
+    assert result.returncode == 2
+    lines = [line for line in result.stderr.splitlines() if line.strip()]
+    assert len(lines) == 1, result.stderr
+    assert str(bad) in lines[0] and "carving.voxel_sizes_m" in lines[0] and "halve" in lines[0]
+
+    missing = tmp_path / "nowhere.toml"
+    result = subprocess.run([sys.executable, "-m", "fusion_server.cli", "--site", str(missing)], cwd=ROOT,
+                            capture_output=True, text=True, timeout=60)
+    assert result.returncode == 2 and "not found" in result.stderr and len(result.stderr.strip().splitlines()) == 1
