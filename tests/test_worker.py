@@ -1,0 +1,328 @@
+"""Camera worker: the pure pieces (hold book, mask messages, step), the benchmark, and real
+``voxelwatch-camera`` processes talking to a plain zenoh subscriber on loopback."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+import zenoh
+
+from camera_worker.segmentation import ForegroundSegmenter
+from camera_worker.sources import Frame
+from camera_worker.worker import (
+    HoldBook,
+    WorkerSettings,
+    build_mask_frame,
+    measure_worker,
+    step,
+)
+from camera_worker.worker import HoldRegionsRejected
+from common import keys, maskcodec, messages
+from common.messages import HoldRegions, MaskFrame
+
+CAMERA = Path(sys.executable).parent / "voxelwatch-camera"
+W, H, FPS = 160, 120, 25.0
+BOX_FROM = 20                       # the walker enters at this frame
+
+
+# --- pure pieces ---------------------------------------------------------------------------------
+
+
+def _hold(cam="cam1", stamp=1_000, boxes=((1, 2, 30, 40),), ttl_ms=500) -> HoldRegions:
+    return HoldRegions(cam=cam, stamp_ns=stamp, boxes=list(boxes), ttl_ms=ttl_ms)
+
+
+def test_hold_book_applies_boxes_for_their_ttl_in_camera_time():
+    book = HoldBook("cam1")
+    assert book.boxes(0) == []
+    book.offer(_hold(stamp=10**18), now_ns=5_000_000_000)     # a fusion clock far from the camera's
+    assert book.boxes(5_000_000_000) == [(1, 2, 30, 40)]
+    assert book.boxes(5_500_000_000) == [(1, 2, 30, 40)]       # ttl counted from arrival, camera time
+    assert book.boxes(5_500_000_001) == []
+
+
+def test_hold_book_replaces_releases_and_rejects():
+    book = HoldBook("cam1")
+    book.offer(_hold(stamp=100, boxes=((0, 0, 5, 5), (6, 6, 9, 9))), now_ns=0)
+    assert len(book.boxes(0)) == 2
+    book.offer(_hold(stamp=200, boxes=()), now_ns=1)            # an empty list releases every hold
+    assert book.boxes(1) == []
+    with pytest.raises(HoldRegionsRejected, match="camera 'cam2'"):
+        book.offer(_hold(cam="cam2", stamp=300), now_ns=2)
+    with pytest.raises(HoldRegionsRejected, match="older"):
+        book.offer(_hold(stamp=150), now_ns=2)
+
+
+def test_build_mask_frame_round_trips_through_the_wire():
+    mask = np.zeros((60, 80), np.uint8)
+    mask[10:30, 20:35] = 255
+    msg = build_mask_frame(mask, cam="cam3", seq=7, stamp_ns=123, src_size=(160, 120))
+    back = messages.decode(messages.encode(msg), MaskFrame)
+    assert (back.cam, back.seq, back.stamp_ns, back.width, back.height, back.src_width, back.src_height) == \
+        ("cam3", 7, 123, 80, 60, 160, 120)
+    assert back.codec == maskcodec.DEFAULT_CODEC
+    assert back.fg_fraction == pytest.approx(300 / 4800)
+    assert np.array_equal(maskcodec.decode_mask(back.data, back.codec, back.width, back.height), mask)
+
+
+def test_step_segments_and_wraps_one_frame():
+    rng = np.random.default_rng(0)
+    room = np.clip(rng.normal(120, 30, (H, W, 3)), 0, 255).astype(np.uint8)
+    seg = ForegroundSegmenter(min_area_px=20, mask_scale=0.5)
+    for _ in range(10):
+        seg.learn(room)
+    person = room.copy()
+    person[30:90, 60:80] = (30, 200, 40)
+    msg, mask, stats = step(seg, Frame(4, 99, person), cam="cam1", seq=4)
+    assert (msg.width, msg.height, msg.src_width, msg.src_height) == (W // 2, H // 2, W, H)
+    assert msg.seq == 4 and msg.stamp_ns == 99 and msg.fg_fraction == stats.fg_fraction
+    # the person's 30 x 10 mask pixels, less the four corners the elliptic opening rounds off
+    assert np.count_nonzero(mask[15:45, 30:40]) >= 296 and np.count_nonzero(mask) == np.count_nonzero(mask[15:45, 30:40])
+
+
+def test_worker_settings_name_bad_values():
+    with pytest.raises(ValueError, match="camera id"):
+        WorkerSettings(cam="a/b", prefix="voxelwatch/x", source="0")
+    with pytest.raises(ValueError, match="codec"):
+        WorkerSettings(cam="c", prefix="voxelwatch/x", source="0", codec="gif")
+    with pytest.raises(ValueError, match="max_frames"):
+        WorkerSettings(cam="c", prefix="voxelwatch/x", source="0", max_frames=0)
+
+
+def test_measure_worker_reports_every_stage():
+    result = measure_worker(n_frames=20, width=W, height=H)
+    assert result["frames"] == 15 and (result["width"], result["height"]) == (W, H)
+    assert set(result["ms"]) == {"read", "segment", "encode", "publish", "total"}
+    assert all(v > 0 for v in result["ms"].values())
+    assert result["fps"]["total"] == pytest.approx(1e3 / result["ms"]["total"])
+    assert 0 < result["mask_bytes_median"] <= result["message_bytes_median"]
+    assert result["fg_fraction_median"] > 0
+
+
+# --- real processes on loopback ------------------------------------------------------------------
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _write_clips(folder: Path, n: int = 60) -> None:
+    """``bg.avi``: 15 frames of an empty textured room; ``clip.avi``: ``n`` frames, a walker from frame 20."""
+    rng = np.random.default_rng(3)
+    base = cv2.resize(rng.normal(0, 1, (H // 8, W // 8, 3)).astype(np.float32), (W, H))
+    room = np.clip(120 + 60 * base, 0, 255).astype(np.uint8)
+    for name, frames in (("bg.avi", 15), ("clip.avi", n)):
+        writer = cv2.VideoWriter(str(folder / name), cv2.VideoWriter_fourcc(*"MJPG"), FPS, (W, H))
+        for i in range(frames):
+            img = room.copy()
+            if name == "clip.avi" and i >= BOX_FROM:
+                x = 10 + 2 * i
+                img[30:100, x:x + 24] = (40, 40, 200)
+            writer.write(img)
+        writer.release()
+
+
+def _write_site(folder: Path) -> Path:
+    site = folder / "site.toml"
+    site.write_text(
+        'name = "worker-test"\n'
+        "[zenoh]\nmulticast_scouting = false\nshared_memory = false\n"
+        '[[cameras]]\nid = "cam1"\ncalibration = "none.toml"\n'
+        f"resolution = [{W}, {H}]\nfps = {FPS}\n"
+        'source = "clip.avi"\nbackground = "bg.avi"\n'
+    )
+    return site
+
+
+class Listener:
+    """A plain zenoh peer that collects masks and liveliness changes of ``voxelwatch/worker-test``."""
+
+    prefix = "voxelwatch/worker-test"
+
+    def __init__(self) -> None:
+        self.endpoint = f"tcp/127.0.0.1:{_free_port()}"
+        conf = zenoh.Config()
+        conf.insert_json5("mode", '"peer"')
+        conf.insert_json5("listen/endpoints", json.dumps([self.endpoint]))
+        conf.insert_json5("scouting/multicast/enabled", "false")
+        conf.insert_json5("transport/shared_memory/enabled", "false")
+        self.session = zenoh.open(conf)
+        self.lock = threading.Lock()
+        self.payloads: list[bytes] = []
+        self.alive: list[tuple[str, str]] = []
+        self.sub = self.session.declare_subscriber(keys.mask_key(self.prefix, "cam1"), self._on_mask)
+        self.live = self.session.liveliness().declare_subscriber(
+            keys.alive_cameras_wildcard(self.prefix), self._on_alive, history=True)
+        self.hold_pub = self.session.declare_publisher(keys.hold_key(self.prefix, "cam1"))
+
+    def _on_mask(self, sample) -> None:
+        with self.lock:
+            self.payloads.append(sample.payload.to_bytes())
+
+    def _on_alive(self, sample) -> None:
+        with self.lock:
+            self.alive.append((str(sample.kind), str(sample.key_expr)))
+
+    def masks(self) -> list[MaskFrame]:
+        with self.lock:
+            payloads = list(self.payloads)
+        return [messages.decode(p, MaskFrame) for p in payloads]
+
+    def count(self) -> int:
+        with self.lock:
+            return len(self.payloads)
+
+    def close(self) -> None:
+        self.sub.undeclare()
+        self.live.undeclare()
+        self.hold_pub.undeclare()
+        self.session.close()
+
+
+@pytest.fixture
+def listener():
+    lst = Listener()
+    yield lst
+    lst.close()
+
+
+def _start(site: Path, listener: Listener, *extra: str) -> subprocess.Popen:
+    cmd = [str(CAMERA), "--site", str(site), "--camera", "cam1", "--connect", listener.endpoint,
+           "--listen", f"tcp/127.0.0.1:{_free_port()}", "--stats-period", "60", *extra]
+    return subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            env={**os.environ, "PYTHONUNBUFFERED": "1"})
+
+
+def _wait(cond, timeout_s: float = 20.0) -> bool:
+    end = time.monotonic() + timeout_s
+    while time.monotonic() < end:
+        if cond():
+            return True
+        time.sleep(0.05)
+    return cond()
+
+
+def _check_masks(masks: list[MaskFrame], start_ns: int | None, period_ns: int) -> None:
+    seqs = [m.seq for m in masks]
+    assert all(a < b for a, b in zip(seqs, seqs[1:])), seqs
+    for m in masks:
+        assert (m.cam, m.width, m.height, m.src_width, m.src_height) == ("cam1", W, H, W, H)
+        mask = maskcodec.decode_mask(m.data, m.codec, m.width, m.height)
+        assert mask.shape == (H, W)
+        assert m.fg_fraction == pytest.approx(np.count_nonzero(mask) / mask.size)
+        if start_ns is not None:
+            assert m.stamp_ns == start_ns + m.seq * period_ns
+
+
+def test_worker_process_publishes_decodable_masks_in_order(tmp_path, listener):
+    """A recorded clip played at its own rate: every mask decodes, seq increases, stamps are
+    start + seq / fps, the walker is in the masks; holds over zenoh are taken (a broken one is
+    counted and dropped); the process exits 0 at the end of the clip and its liveliness goes."""
+    _write_clips(tmp_path)
+    site = _write_site(tmp_path)
+    start_ns = 1_700_000_000_000_000_000
+    proc = _start(site, listener, "--start-ns", str(start_ns))
+    try:
+        assert _wait(lambda: listener.count() >= 5), proc.stderr.read() if proc.poll() is not None else ""
+        hold = HoldRegions(cam="cam1", stamp_ns=start_ns, boxes=[(0, 0, 8, 8)], ttl_ms=200)
+        listener.hold_pub.put(messages.encode(hold))
+        listener.hold_pub.put(b"\x92broken")
+        out, err = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    assert proc.returncode == 0, err
+    masks = listener.masks()
+    assert len(masks) >= 45, len(masks)                  # 60 frames; DROP may lose a few
+    _check_masks(masks, start_ns, int(1e9 / FPS))
+    late = [m for m in masks if m.seq >= BOX_FROM + 5]
+    for m in late:
+        mask = maskcodec.decode_mask(m.data, m.codec, m.width, m.height)
+        x = 10 + 2 * m.seq
+        assert np.count_nonzero(mask[30:100, x:x + 24]) >= 0.9 * 70 * 24
+        assert m.fg_fraction <= 1.3 * 70 * 24 / (W * H)
+    assert "holds 1 (rejected 1)" in err
+    assert "learned the background from 15 frames" in err
+    alive_key = keys.alive_camera_key(Listener.prefix, "cam1")
+    assert _wait(lambda: ("SampleKind.DELETE", alive_key) in listener.alive, 5.0), listener.alive
+    assert listener.alive[0] == ("SampleKind.PUT", alive_key)
+
+
+def test_worker_process_stops_cleanly_on_sigterm_while_looping(tmp_path, listener):
+    _write_clips(tmp_path, n=30)
+    site = _write_site(tmp_path)
+    proc = _start(site, listener, "--loop", "--fast", "--no-background")
+    try:
+        assert _wait(lambda: listener.count() >= 80)       # more than the clip: it loops
+        proc.send_signal(signal.SIGTERM)
+        out, err = proc.communicate(timeout=20)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    assert proc.returncode == 0, err
+    assert "SIGTERM received, stopping" in err
+    masks = listener.masks()
+    _check_masks(masks, None, 0)
+    assert masks[-1].seq >= 80
+    stamps = [m.stamp_ns for m in masks]
+    assert all(a < b for a, b in zip(stamps, stamps[1:]))
+
+
+def test_worker_process_reads_a_live_stream(tmp_path, listener):
+    from test_sources import MjpegServer
+
+    server = MjpegServer()
+    site = _write_site(tmp_path)
+    before = time.time_ns()
+    proc = _start(site, listener, "--source", server.url, "--no-background", "--min-area-px", "1")
+    try:
+        assert _wait(lambda: listener.count() >= 20), proc.stderr.read() if proc.poll() is not None else ""
+        proc.send_signal(signal.SIGINT)
+        out, err = proc.communicate(timeout=20)
+    finally:
+        server.close()
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    after = time.time_ns()
+    assert proc.returncode == 0, err
+    masks = listener.masks()
+    seqs = [m.seq for m in masks]
+    assert all(a < b for a, b in zip(seqs, seqs[1:]))
+    assert all(before <= m.stamp_ns <= after for m in masks)      # capture time, host clock
+    assert all((m.width, m.height, m.src_width, m.src_height) == (64, 48, 64, 48) for m in masks)
+    assert "delivering frames" in err
+
+
+def test_missing_source_file_is_named_and_exits_non_zero(tmp_path, listener):
+    site = _write_site(tmp_path)
+    proc = _start(site, listener, "--source", str(tmp_path / "absent.avi"))
+    out, err = proc.communicate(timeout=30)
+    assert proc.returncode == 1
+    assert f"video file {tmp_path / 'absent.avi'}: not found" in err
+    assert "Traceback" not in err
+
+
+def test_bad_site_and_camera_exit_2_with_one_line(tmp_path):
+    site = _write_site(tmp_path)
+    proc = subprocess.run([str(CAMERA), "--site", str(site), "--camera", "cam7"], capture_output=True, text=True,
+                          timeout=30)
+    assert proc.returncode == 2
+    assert "no camera 'cam7'" in proc.stderr and "Traceback" not in proc.stderr
+    proc = subprocess.run([str(CAMERA), "--help"], capture_output=True, text=True, timeout=30)
+    assert proc.returncode == 0 and "--source" in proc.stdout and "rtsp://" in proc.stdout
