@@ -133,8 +133,10 @@ def body_voxels(carver: Carver, bodies: Sequence[Cylinder | Box]) -> np.ndarray:
 
 def measure_carving(carver: Carver, mask_sets: Sequence[Mapping[str, np.ndarray]], *, repeats: int = 3,
                     dense: bool = True) -> dict[str, float]:
-    """Time the carver's stages over ``mask_sets`` (best of ``repeats`` passes, per frame set).
+    """Time the carver's stages over ``mask_sets``.
 
+    Each stage of each frame set runs ``repeats`` times and keeps its fastest run (robust
+    to other processes sharing the core); the figures are means over the frame sets.
     Returns seconds per frame set for ``distance_s``, ``octree_s``, ``floor_s``,
     ``octree_total_s`` and (with ``dense``) ``dense_s``, ``dense_total_s``; frame sets per
     second ``octree_fps`` / ``dense_fps``; ``voxels`` (mean foreground voxels per set),
@@ -143,13 +145,12 @@ def measure_carving(carver: Carver, mask_sets: Sequence[Mapping[str, np.ndarray]
     """
     if not mask_sets:
         raise ValueError("mask_sets must not be empty")
-    n = len(mask_sets)
-    best = {"distance_s": np.inf, "octree_s": np.inf, "floor_s": np.inf, "dense_s": np.inf}
+    stages = ["distance_s", "octree_s", "floor_s"] + (["dense_s"] if dense else [])
+    total = dict.fromkeys(stages, 0.0)
     voxels = dense_voxels = missed = 0
-    for _ in range(max(1, repeats)):
-        acc = dict.fromkeys(best, 0.0)
-        voxels = dense_voxels = missed = 0
-        for masks in mask_sets:
+    for masks in mask_sets:
+        best = dict.fromkeys(stages, np.inf)
+        for _ in range(max(1, repeats)):
             t0 = time.perf_counter()
             dists = carver.distance_stage(masks)
             t1 = time.perf_counter()
@@ -157,19 +158,21 @@ def measure_carving(carver: Carver, mask_sets: Sequence[Mapping[str, np.ndarray]
             t2 = time.perf_counter()
             carver.result(ijk, 0, dists)
             t3 = time.perf_counter()
-            acc["distance_s"] += t1 - t0
-            acc["octree_s"] += t2 - t1
-            acc["floor_s"] += t3 - t2
-            voxels += len(ijk)
+            best["distance_s"] = min(best["distance_s"], t1 - t0)
+            best["octree_s"] = min(best["octree_s"], t2 - t1)
+            best["floor_s"] = min(best["floor_s"], t3 - t2)
             if dense:
                 t4 = time.perf_counter()
                 ijk_dense = carver.dense_stage(dists)
-                acc["dense_s"] += time.perf_counter() - t4
-                dense_voxels += len(ijk_dense)
-                missed += len(ijk_dense) - len(ijk)
-        for key in best:
-            best[key] = min(best[key], acc[key] / n)
-    out = {k: float(v) for k, v in best.items() if dense or k != "dense_s"}
+                best["dense_s"] = min(best["dense_s"], time.perf_counter() - t4)
+        voxels += len(ijk)
+        if dense:
+            dense_voxels += len(ijk_dense)
+            missed += len(ijk_dense) - len(ijk)
+        for key in stages:
+            total[key] += best[key]
+    n = len(mask_sets)
+    out = {key: float(value / n) for key, value in total.items()}
     out["octree_total_s"] = out["distance_s"] + out["octree_s"] + out["floor_s"]
     out["octree_fps"] = 1.0 / out["octree_total_s"]
     if dense:

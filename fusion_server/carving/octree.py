@@ -95,8 +95,12 @@ def children(parent: np.ndarray, parent_dims: tuple[int, int, int], child_dims: 
 
 def level_ijk(index: np.ndarray, dims: tuple[int, int, int]) -> np.ndarray:
     """(M,) linear indices on a level with ``dims`` -> (M, 3) int32 ``(I, J, K)``."""
-    i, j, k = np.unravel_index(np.asarray(index, dtype=np.int64), dims)
-    return np.stack([i, j, k], axis=1).astype(np.int32)
+    _, ny, nz = dims
+    ij, k = np.divmod(np.asarray(index, dtype=np.int64), nz)
+    i, j = np.divmod(ij, ny)
+    out = np.empty((len(k), 3), dtype=np.int32)
+    out[:, 0], out[:, 1], out[:, 2] = i, j, k
+    return out
 
 
 def descend(layout: OctreeLayout, test: Callable[[int, np.ndarray], np.ndarray]) -> np.ndarray:
