@@ -22,37 +22,48 @@ brackets):
     is not fast enough (it may become a ``long_lie``).
 ``long_lie``
     Lying on the floor (low, as above, and reading ``lying`` or very low)
-    continuously for ``long_lie_s`` [60 s], whether or not a fall was seen.
-    Lying on a bed or sofa is not low, so it never counts.
+    continuously for ``long_lie_s`` [30 s] since the fall (or since lying
+    down, when no fall was seen). Lying on a bed or sofa is not low, so it
+    never counts.
 ``sit_down`` / ``stand_up``
-    The reported posture moves from standing to sitting / from sitting to
-    standing (``bending`` in between is ignored; ``stand_up_from`` may add
-    ``"lying"``).
+    The reported posture moves from standing to sitting / from sitting (or,
+    per ``stand_up_from``, lying) to standing; ``bending`` in between (which
+    includes kneeling) is ignored.
 ``enter`` / ``exit``
-    A track that is first seen inside a door zone or within
-    ``edge_margin_m`` [0.4 m] of the monitored area's border, once it is
-    confirmed; a confirmed track whose last position was in such a place
-    when it disappears. Tracks that appear or vanish mid-room are neither.
+    A track first seen inside a door zone (or, when ``bounds_xy_m`` is
+    given, within ``edge_margin_m`` [0.4 m] of the monitored area's border)
+    enters when the tracker confirms it; people already there during the
+    first ``startup_s`` [1 s] do not enter. A present track whose last
+    confirmed position is in such a place exits when the tracker stops
+    confirming it or stops reporting it, whichever comes first (the
+    tracker coasts a departed person unconfirmed for a couple of seconds
+    before deleting them). A track that has exited and is confirmed again
+    enters again. Tracks that appear, lose confirmation (occlusion) or
+    vanish mid-room are neither.
 ``dwell_start`` / ``dwell_end``
     :class:`fusion_server.hotspots.DwellDetector` per track (the seed
     paper's variance-of-position test), with the hot spot's name, label and
     kind.
 ``visit``
-    More than ``residents`` people present for ``visit_min_s`` [300 s]
-    (dips shorter than ``visit_gap_s`` [30 s] forgiven), once per visit,
-    with the hot spot where they spent the most person-time and a time of
-    day label from the local time (``utc_offset_h``): "for breakfast", "for
-    lunch", "for tea", "for dinner" inside the meal windows, else "in the
-    morning" / "in the afternoon" / "in the evening" / "at night".
+    More than ``residents`` people present for at least ``visit_min_s``
+    [10 s] (dips shorter than ``visit_gap_s`` [30 s] forgiven) and, with
+    ``visit_gathering`` [on] and hot spots configured, at least two of them
+    dwelling at the same hot spot; once per episode of extra people. Details:
+    the hot spot where they gather (with gathering off: where they spent the
+    most person-time), ``people``, and ``reason``, a time of day label from
+    the local time (``utc_offset_h``): "for breakfast", "for lunch", "for
+    tea", "for dinner" inside the meal windows, else "in the morning" / "in
+    the afternoon" / "in the evening" / "at night".
 ``inactivity``
     A person who is present, not lying on the floor (that is ``long_lie``)
     and not inside a hot spot whose kind is in ``rest_kinds`` [bed], has
     kept the same posture and stayed within ``inactivity_std_m`` [0.15 m]
     (position variance over ``inactivity_window_s`` [30 s]) for
-    ``inactivity_s`` [1800 s]. Once per still period; moving re-arms it.
+    ``inactivity_s`` [1800 s]. Once per still period; moving or changing
+    posture re-arms it.
 
-Only tracks the tracker has confirmed at least once take part; a confirmed
-track stays present until the tracker stops reporting it.
+Only tracks the tracker has confirmed take part; a confirmed track that
+loses confirmation mid-room (occlusion) keeps its state until it vanishes.
 
 Pure logic: no clock, no I/O. Frames whose stamp goes backwards and tracks
 with non-finite positions are dropped and counted, never raised.
@@ -265,13 +276,15 @@ class EventReasoner:
         low_centre_frac: float = 0.25,
         flat_top_frac: float = 0.45,
         low_gap_s: float = 0.5,
-        long_lie_s: float = 60.0,
-        stand_up_from: Iterable[str] = ("sitting",),
+        long_lie_s: float = 30.0,
+        stand_up_from: Iterable[str] = ("sitting", "lying"),
         dwell_window_s: float = 10.0,
         dwell_still_std_m: float = 0.15,
         dwell_move_std_m: float = 0.30,
-        visit_min_s: float = 300.0,
+        visit_min_s: float = 10.0,
         visit_gap_s: float = 30.0,
+        visit_gathering: bool = True,
+        startup_s: float = 1.0,
         inactivity_s: float = 1800.0,
         inactivity_window_s: float = 30.0,
         inactivity_std_m: float = 0.15,
@@ -307,7 +320,7 @@ class EventReasoner:
             if not (isinstance(val, (int, float)) and math.isfinite(val) and val > 0):
                 raise ValueError(f"{name} must be a positive number, got {val!r}")
         non_negative = dict(edge_margin_m=edge_margin_m, fall_confirm_s=fall_confirm_s, low_gap_s=low_gap_s,
-                            visit_gap_s=visit_gap_s)
+                            visit_gap_s=visit_gap_s, startup_s=startup_s)
         for name, val in non_negative.items():
             if not (isinstance(val, (int, float)) and math.isfinite(val) and val >= 0):
                 raise ValueError(f"{name} must be a number >= 0, got {val!r}")
@@ -346,12 +359,15 @@ class EventReasoner:
         self.long_lie_ns = _ns(long_lie_s)
         self.visit_min_ns = _ns(visit_min_s)
         self.visit_gap_ns = _ns(visit_gap_s)
+        self.visit_gathering = bool(visit_gathering)
+        self.startup_ns = _ns(startup_s)
         self.inactivity_ns = _ns(inactivity_s)
         self.inactivity_window_s = float(inactivity_window_s)
         self.inactivity_var_m2 = float(inactivity_std_m) ** 2
         self._buffer_ns = _ns(2 * fall_window_s + fall_confirm_s + 0.5)
         self._tracks: dict[int, _TrackState] = {}
         self._last_stamp_ns: int | None = None
+        self._first_stamp_ns: int | None = None
         self._visit = _VisitState(len(self.hotspots))
         self.rejected_frames = 0
         self.rejected_tracks = 0
@@ -380,6 +396,8 @@ class EventReasoner:
             self.rejected_frames += 1
             return []
         dt_ns = 0 if self._last_stamp_ns is None else stamp_ns - self._last_stamp_ns
+        if self._first_stamp_ns is None:
+            self._first_stamp_ns = stamp_ns
         self._last_stamp_ns = stamp_ns
         postures = postures or {}
         current: dict[int, TrackLike] = {}
@@ -415,13 +433,15 @@ class EventReasoner:
                 still=PositionWindow(window_s=self.inactivity_window_s),
             )
         st.last_xy, st.last_ns = (x, y), stamp_ns
-        if not st.confirmed:
-            if not bool(getattr(tr, "confirmed", True)):
-                return
-            st.confirmed = True
-            place = self._entry_place(*st.first_xy)
-            if place is not None:
-                emit("enter", tid, x, y, door=place, first_seen_ns=st.first_ns)
+        confirmed = bool(getattr(tr, "confirmed", True))
+        if confirmed and not st.present:
+            self._arrived(tid, st, x, y, emit)
+        elif not confirmed and st.present:
+            self._departed(tid, st, emit)
+        if confirmed:
+            st.present_xy, st.present_ns = (x, y), stamp_ns
+        if not st.present and (st.exited or not st.confirmed_once):
+            return  # not yet a person, or gone through a door: nothing to reason about
         posture, top_m, centre_m, height_m = self._observe(tr, reading)
         if posture != st.posture:
             st.posture, st.posture_changed_ns = posture, stamp_ns
@@ -565,14 +585,41 @@ class EventReasoner:
             hotspot=spot.name if spot is not None else None,
         )
 
-    def _vanished(self, tid: int, st: "_TrackState", emit: "_Emitter") -> None:
-        if not st.confirmed:
-            return
+    def _arrived(self, tid: int, st: "_TrackState", x: float, y: float, emit: "_Emitter") -> None:
+        """The track is confirmed (again): an entry if it came in through a door or the edge."""
+        st.present = True
+        if not st.confirmed_once:
+            st.confirmed_once = True
+            place = self._entry_place(*st.first_xy)
+            # People already in the room when monitoring starts did not enter.
+            if place is not None and st.first_ns - self._first_stamp_ns > self.startup_ns:
+                emit("enter", tid, x, y, door=place, first_seen_ns=st.first_ns)
+        elif st.exited:
+            st.exited = False
+            place = self._entry_place(x, y) or st.exit_place
+            emit("enter", tid, x, y, door=place, first_seen_ns=st.last_ns)
+
+    def _departed(self, tid: int, st: "_TrackState", emit: "_Emitter", vanished: bool = False) -> None:
+        """The track lost its confirmation or vanished: an exit if it was last seen
+        in a door zone or at the edge. The tracker keeps reporting a departed
+        person unconfirmed for a while before it deletes them; the exit is
+        decided at the first of the two."""
+        st.present = False
+        place = self._entry_place(*st.present_xy)
+        if place is None and not vanished:
+            return  # occluded mid-room: still here
         for ch in st.dwell.lost(emit.stamp_ns):
             emit(ch.kind, tid, ch.x, ch.y, **_dwell_details(ch))
-        place = self._entry_place(*st.last_xy)
         if place is not None:
-            emit("exit", tid, st.last_xy[0], st.last_xy[1], door=place, last_seen_ns=st.last_ns)
+            st.exited, st.exit_place = True, place
+            emit("exit", tid, st.present_xy[0], st.present_xy[1], door=place, last_seen_ns=st.present_ns)
+
+    def _vanished(self, tid: int, st: "_TrackState", emit: "_Emitter") -> None:
+        if st.present:
+            self._departed(tid, st, emit, vanished=True)
+        elif st.confirmed_once and not st.exited:
+            for ch in st.dwell.lost(emit.stamp_ns):
+                emit(ch.kind, tid, ch.x, ch.y, **_dwell_details(ch))
 
     def _entry_place(self, x: float, y: float) -> str | None:
         """Name of the door zone containing the point, ``"edge"`` near the border, else None."""
@@ -589,7 +636,7 @@ class EventReasoner:
 
     def _visit_step(self, stamp_ns: int, dt_ns: int, emit: "_Emitter", hour: float | None) -> None:
         vs = self._visit
-        present = [(tid, st) for tid, st in sorted(self._tracks.items()) if st.confirmed and st.last_ns == stamp_ns]
+        present = [(tid, st) for tid, st in sorted(self._tracks.items()) if st.present]
         n = len(present)
         if n > self.residents:
             if vs.since_ns is None:
@@ -602,13 +649,21 @@ class EventReasoner:
                     vs.person_ns[k] += dt_ns
         elif vs.since_ns is not None and stamp_ns - vs.last_over_ns > self.visit_gap_ns:
             vs.since_ns = None
-        if vs.since_ns is None or vs.emitted or stamp_ns - vs.since_ns < self.visit_min_ns or n <= self.residents:
+        if vs.since_ns is None or vs.emitted or n <= self.residents or stamp_ns - vs.since_ns < self.visit_min_ns:
             return
+        spot = None
+        if self.visit_gathering and self.hotspots:
+            dwelling = [st.dwell.current.name for _, st in present if st.dwell.current is not None]
+            counts = {h.name: dwelling.count(h.name) for h in self.hotspots}
+            best = max(counts.values(), default=0)
+            if best < 2:
+                return  # extra people, but not (yet) together somewhere
+            spot = next(h for h in self.hotspots if counts[h.name] == best)
+        elif self.hotspots and vs.person_ns.max() > 0:
+            spot = self.hotspots[int(np.argmax(vs.person_ns))]
         vs.emitted = True
         h = local_hour(stamp_ns, self.utc_offset_h) if hour is None else float(hour) % 24.0
-        spot = None
-        if self.hotspots and vs.person_ns.max() > 0:
-            spot = self.hotspots[int(np.argmax(vs.person_ns))]
+        minutes = int(round(h * 60)) % 1440
         if spot is not None:
             cx, cy = (float(v) for v in spot.centroid_m)
         else:
@@ -620,8 +675,8 @@ class EventReasoner:
             residents=self.residents,
             since_ns=vs.since_ns,
             duration_s=round((stamp_ns - vs.since_ns) * 1e-9, 3),
-            time_of_day=time_of_day_label(h, self.meals),
-            local_time=f"{int(h):02d}:{int(round((h % 1) * 60)) % 60:02d}",
+            reason=time_of_day_label(h, self.meals),
+            local_time=f"{minutes // 60:02d}:{minutes % 60:02d}",
             hotspot=spot.name if spot is not None else None,
             hotspot_label=spot.label if spot is not None else None,
             hotspot_kind=spot.kind if spot is not None else None,
@@ -660,7 +715,12 @@ class _TrackState:
     first_ns: int
     dwell: DwellDetector
     still: PositionWindow
-    confirmed: bool = False
+    confirmed_once: bool = False
+    present: bool = False
+    exited: bool = False
+    exit_place: str = ""
+    present_xy: tuple[float, float] = (0.0, 0.0)
+    present_ns: int = 0
     last_xy: tuple[float, float] = (0.0, 0.0)
     last_ns: int = 0
     posture: str | None = None

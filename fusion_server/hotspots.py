@@ -10,8 +10,9 @@ variance of the person's floor position about its mean (the mean squared
 distance from the mean 2D location) is compared to a threshold. A dwell
 starts when the person has been that still for a whole window and the mean
 of the window lies inside a hot spot; it ends when they move (the variance
-over the window exceeds a larger threshold), leave (the mean of the last
-``leave_window_s`` is outside the hot spot) or the track is lost.
+over the window exceeds a larger threshold, or their recent position is more
+than ``move_radius_m`` from where they settled), leave (their recent
+position is outside the hot spot) or the track is lost.
 
 Pure math: no clock, no I/O; time is ``stamp_ns``.
 """
@@ -236,8 +237,10 @@ class DwellDetector:
         at or below this.
     move_std_m: a dwell ends when it rises above this (larger than
         ``still_std_m``, so tracker jitter does not toggle the dwell).
-    leave_window_s: a dwell ends when the mean position over this many
-        recent seconds is outside the hot spot.
+    move_radius_m: a dwell ends when the recent position is farther than
+        this from the mean position at the dwell's start (walking away ends
+        a dwell within a second, long before the window's variance grows).
+    recent_s: the "recent position" is the mean over this many seconds.
     """
 
     def __init__(
@@ -247,7 +250,8 @@ class DwellDetector:
         window_s: float = 10.0,
         still_std_m: float = 0.15,
         move_std_m: float = 0.30,
-        leave_window_s: float = 2.0,
+        move_radius_m: float = 0.5,
+        recent_s: float = 0.5,
     ) -> None:
         self.hotspots = tuple(hotspots)
         for h in self.hotspots:
@@ -257,15 +261,19 @@ class DwellDetector:
             raise ValueError(f"still_std_m must be positive, got {still_std_m}")
         if not move_std_m >= still_std_m:
             raise ValueError(f"move_std_m ({move_std_m}) must be at least still_std_m ({still_std_m})")
-        if not leave_window_s > 0:
-            raise ValueError(f"leave_window_s must be positive, got {leave_window_s}")
+        if not move_radius_m > 0:
+            raise ValueError(f"move_radius_m must be positive, got {move_radius_m}")
+        if not recent_s > 0:
+            raise ValueError(f"recent_s must be positive, got {recent_s}")
         self.window = PositionWindow(window_s=window_s)
         self.still_radius_m = float(still_std_m)
         self.still_var_m2 = float(still_std_m) ** 2
         self.move_var_m2 = float(move_std_m) ** 2
-        self.leave_ns = int(round(leave_window_s * 1e9))
+        self.move_radius_m = float(move_radius_m)
+        self.recent_ns = int(round(recent_s * 1e9))
         self.current: Hotspot | None = None
         self.start_ns = 0
+        self.anchor_xy = np.zeros(2)
 
     def update(self, stamp_ns: int, x: float, y: float) -> list[DwellChange]:
         """Add one position; returns the dwell changes it causes (0, 1 or 2)."""
@@ -274,9 +282,9 @@ class DwellDetector:
         changes: list[DwellChange] = []
         var = self.window.variance_m2() if self.window.full else None
         if self.current is not None:
-            recent = self.window.mean_xy(stamp_ns - self.leave_ns)
+            recent = self.window.mean_xy(stamp_ns - self.recent_ns)
             reason = ""
-            if var is not None and var > self.move_var_m2:
+            if (var is not None and var > self.move_var_m2) or np.hypot(*(recent - self.anchor_xy)) > self.move_radius_m:
                 reason = "moved"
             elif not bool(self.current.contains(recent)[0]):
                 reason = "left"
@@ -285,9 +293,12 @@ class DwellDetector:
         if self.current is None and var is not None and var <= self.still_var_m2:
             mean = self.window.mean_xy()
             spot = hotspot_at(self.hotspots, mean[0], mean[1])
-            # The recent mean must agree, or a slow drift out would end and restart the dwell every frame.
-            if spot is not None and bool(spot.contains(self.window.mean_xy(stamp_ns - self.leave_ns))[0]):
+            # The recent position must agree, or a dwell that just ended (moved, drifted out) would restart.
+            recent = self.window.mean_xy(stamp_ns - self.recent_ns)
+            settled_here = np.hypot(*(recent - mean)) <= 0.5 * self.move_radius_m
+            if spot is not None and settled_here and bool(spot.contains(recent)[0]):
                 self.current, self.start_ns = spot, self.window.settled_since_ns(self.still_radius_m)
+                self.anchor_xy = mean
                 changes.append(DwellChange("dwell_start", spot, stamp_ns, self.start_ns, float(mean[0]), float(mean[1])))
         return changes
 
