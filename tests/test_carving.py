@@ -422,6 +422,7 @@ def test_measure_carving_reports_stages(carver, renderer):
     ({"voxel_sizes_m": (0.4, 0.25)}, "voxel_sizes_m"),
     ({"voxel_sizes_m": ()}, "voxel_sizes_m"),
     ({"min_cameras": 0}, "min_cameras"),
+    ({"min_cameras": 6}, "min_cameras"),
     ({"min_ratio": 1.5}, "min_ratio"),
     ({"mask_scale": 0}, "mask_scale"),
     ({"volume_max_m": (0.0, 6.0, 2.5)}, "volume"),

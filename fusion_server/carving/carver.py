@@ -85,6 +85,8 @@ class Carver:
         sizes = _check_voxel_sizes(voxel_sizes_m)
         if isinstance(min_cameras, bool) or not isinstance(min_cameras, (int, np.integer)) or min_cameras < 1:
             raise ValueError(f"min_cameras must be an int >= 1, got {min_cameras!r}")
+        if min_cameras > len(cameras):
+            raise ValueError(f"min_cameras {min_cameras} exceeds the {len(cameras)} cameras: nothing could be carved")
         if not isinstance(min_ratio, (int, float)) or not 0.0 <= float(min_ratio) <= 1.0:
             raise ValueError(f"min_ratio must be in [0, 1], got {min_ratio!r}")
         if not isinstance(mask_scale, (int, float)) or not (math.isfinite(mask_scale) and 0 < mask_scale <= 4):
