@@ -29,8 +29,10 @@ What :func:`run` does:
   written to ``events.jsonl`` when ``out_dir`` is set. An event whose id is
   already stored is not published again.
 * **holds**: per camera, :class:`~common.messages.HoldRegions` on
-  ``<p>/cam/<cam>/hold`` whenever the boxes change and at least every
+  ``<p>/cam/<cam>/hold`` whenever the boxes change (by more than
+  ``hold_slack_px`` on some side, or in number) and at least every
   ``hold_ttl_ms / 2`` while there are any; an empty list when they end.
+  They are sent only after fused frames: when fusion stops, holds lapse.
 * **liveliness**: the token ``<p>/alive/fusion``; a liveliness subscriber on
   ``<p>/alive/cam/*`` (with history). A camera whose token goes away is
   ``lost`` (a ``camera_lost`` event) and ``camera_back`` when it returns;
@@ -139,6 +141,7 @@ class FusionSettings:
     seed: int = 0
     status_period_s: float = 1.0
     hold_ttl_ms: int = 2000
+    hold_slack_px: int = 2
     max_clock_skew_ms: float = 250.0
     skew_window: int = 30
     inbox_per_camera: int = 32
@@ -159,6 +162,8 @@ class FusionSettings:
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, (int, float)) or not (math.isfinite(value) and value > 0):
                 raise ValueError(f"{name} must be a positive number, got {value!r}")
+        if isinstance(self.hold_slack_px, bool) or not isinstance(self.hold_slack_px, int) or self.hold_slack_px < 0:
+            raise ValueError(f"hold_slack_px must be an int >= 0, got {self.hold_slack_px!r}")
         for name in ("hold_ttl_ms", "skew_window", "inbox_per_camera", "max_ready_sets", "sync_buffer", "history_queue"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or value < 1:
@@ -681,7 +686,8 @@ class _Server:
         for cam in self.camera_ids:
             boxes = _clean_boxes(fused.holds.get(cam, []))
             last, sent_mono = self.holds_sent[cam]
-            if boxes == last and not (boxes and mono - sent_mono >= self.s.hold_ttl_ms / 2000.0):
+            due = bool(boxes) and mono - sent_mono >= self.s.hold_ttl_ms / 2000.0
+            if not due and _same_boxes(boxes, last, self.s.hold_slack_px):
                 continue
             try:
                 msg = HoldRegions(cam=cam, stamp_ns=int(fused.stamp_ns), boxes=boxes, ttl_ms=self.s.hold_ttl_ms)
@@ -854,6 +860,11 @@ def _clean_boxes(boxes: Any) -> list[tuple[int, int, int, int]]:
         if x0 < x1 and y0 < y1:
             out.append((x0, y0, x1, y1))
     return out[: messages.MAX_HOLD_BOXES]
+
+
+def _same_boxes(a: list, b: list, slack_px: int) -> bool:
+    """Same number of boxes, each within ``slack_px`` of its counterpart on every side."""
+    return len(a) == len(b) and all(max(abs(u - v) for u, v in zip(p, q)) <= slack_px for p, q in zip(a, b))
 
 
 def _wire_event(rec: EventRecord) -> Event:

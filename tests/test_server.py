@@ -30,7 +30,7 @@ from common import keys, maskcodec, messages  # noqa: E402
 from common.calibration import save_voxelwatch  # noqa: E402
 from common.camera import Camera, look_at  # noqa: E402
 from common.evaluation.io import read_events, read_tracks  # noqa: E402
-from common.messages import Event, MaskFrame, Status, TrackFrame, decode, decode_event, encode  # noqa: E402
+from common.messages import Event, HoldRegions, MaskFrame, Status, TrackFrame, decode, decode_event, encode  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 FPS = 30.0
@@ -113,8 +113,11 @@ class Net:
         self.tracks: list[TrackFrame] = []
         self.status: list[Status] = []
         self.events: list[Event] = []
+        self.holds: dict[str, list[HoldRegions]] = {cid: [] for cid in CAMERA_CENTRES}
         self.fusion_alive = threading.Event()
         self._entities = [
+            *(self.session.declare_subscriber(keys.hold_key(prefix, cid), self._on(self.holds[cid], HoldRegions))
+              for cid in CAMERA_CENTRES),
             self.session.declare_subscriber(keys.tracks_key(prefix), self._on(self.tracks, TrackFrame)),
             self.session.declare_subscriber(keys.status_key(prefix), self._on(self.status, Status)),
             self.session.declare_subscriber(keys.events_wildcard(prefix), self._on_event),
@@ -147,14 +150,17 @@ class Net:
         self.pubs[cam].put(payload)
 
     def publish_box(self, cams: dict[str, Camera], frames: range, *, offsets_ns: dict[str, int] | None = None,
-                    between: Callable[[int], None] | None = None) -> None:
-        """Publish ``frames`` at the site rate, stamped with this host's clock (plus per-camera offsets)."""
+                    between: Callable[[int], None] | None = None, box_until: int | None = None) -> None:
+        """Publish ``frames`` at the site rate, stamped with this host's clock (plus per-camera offsets);
+        from frame ``box_until`` on, the masks are empty (the person has left)."""
         offsets_ns = offsets_ns or {}
         masks = {cid: box_mask(cam, *BOX_XY) for cid, cam in cams.items()}
+        empty = np.zeros((H, W), np.uint8)
         for seq in frames:
             now = time.time_ns()
             for cid, cam in cams.items():
-                self.put_mask(cid, encode(mask_frame(cam, seq, now + offsets_ns.get(cid, 0), masks[cid])))
+                mask = masks[cid] if box_until is None or seq < box_until else empty
+                self.put_mask(cid, encode(mask_frame(cam, seq, now + offsets_ns.get(cid, 0), mask)))
             if between is not None:
                 between(seq)
             time.sleep(1.0 / FPS)
@@ -267,20 +273,31 @@ def _near_box(frame: TrackFrame, tol_m: float = 0.2) -> bool:
 # --------------------------------------------------------------------------- tests
 
 
-def test_tracks_a_box_and_writes_files_then_exits_when_idle(site, tmp_path, net, start_server):
+def test_tracks_a_box_holds_it_and_writes_files_then_exits_when_idle(site, tmp_path, net, start_server):
     site_file, cams = site
     out = tmp_path / "out"
     server = start_server("--store", str(tmp_path / "events.sqlite"), "--out", str(out), "--exit-after-idle", "2.0")
-    net.publish_box(cams, range(30))
+    net.publish_box(cams, range(70), box_until=45)  # 1.5 s standing still, then gone
     assert server.proc.wait(timeout=20) == 0, server.output()
     with net.lock:
         frames = list(net.tracks)
-    assert len(frames) >= 20, server.output()
+        holds = {cid: list(msgs) for cid, msgs in net.holds.items()}
+    assert len(frames) >= 50, server.output()
     assert all(f.cameras == ["c1", "c2", "c3"] for f in frames)
     assert [f.frame for f in frames] == sorted({f.frame for f in frames})
     tracked = [f for f in frames if f.tracks]
-    assert len(tracked) >= 15 and all(_near_box(f) for f in tracked), [f.tracks for f in tracked]
+    assert len(tracked) >= 30 and all(_near_box(f) for f in tracked), [f.tracks for f in tracked]
+    assert all(f.frame < 55 for f in tracked) and any(f.frame >= 60 for f in frames), str([(f.frame, len(f.tracks)) for f in frames])
     assert tracked[0].tracks[0].z_top > 1.2 and tracked[-1].tracks[0].posture == "standing"
+    # the still person is held in every camera, and released when gone
+    for cid, cam in cams.items():
+        uv, _ = cam.project(np.array([[BOX_XY[0], BOX_XY[1], 0.85]]))
+        u, v = uv[0]
+        held = [m for m in holds[cid] if m.boxes]
+        assert held, f"no hold regions for {cid}"
+        assert all(m.cam == cid and m.ttl_ms == 2000 and len(m.boxes) == 1 for m in held)
+        assert all(x0 <= u < x1 and y0 <= v < y1 for m in held for (x0, y0, x1, y1) in m.boxes)
+        assert holds[cid][-1].boxes == [] and holds[cid][0].boxes != []
     table = read_tracks(out / "tracks.csv")
     assert len(table) == sum(len(f.tracks) for f in frames)
     assert np.allclose(table.x, BOX_XY[0], atol=0.2) and np.allclose(table.y, BOX_XY[1], atol=0.2)
@@ -337,6 +354,31 @@ def test_garbage_masks_are_counted_and_tracking_goes_on(site, tmp_path, net, sta
     assert server.stop() == 0
     text = server.output()
     assert "undecodable mask dropped" in text and "not in the site" in text and "Traceback" not in text
+
+
+def test_a_flood_of_masks_is_dropped_and_counted_and_tracking_goes_on(site, tmp_path, net, start_server):
+    site_file, cams = site
+    server = start_server("--store", str(tmp_path / "events.sqlite"))
+    n_flood = 300
+    masks = {cid: box_mask(cam, *BOX_XY) for cid, cam in cams.items()}
+    start_ns = time.time_ns() - n_flood * PERIOD_NS  # ten seconds of frames, all at once
+    for seq in range(n_flood):
+        for cid, cam in cams.items():
+            net.put_mask(cid, encode(mask_frame(cam, seq, start_ns + seq * PERIOD_NS, masks[cid])))
+    net.publish_box(cams, range(n_flood, n_flood + 45))
+
+    def settled() -> Status | None:
+        st = net.latest_status()
+        return st if st and all(c.received >= 45 and c.state == "ok" for c in st.cameras) else None
+
+    status = wait_for(settled, 10.0, "a status with every camera back to normal")
+    assert server.proc.poll() is None
+    lost = status.frame_sets_dropped + sum(c.dropped for c in status.cameras)
+    assert lost > 0 and status.frame_sets < n_flood
+    with net.lock:
+        paced = [f for f in net.tracks if f.frame >= n_flood + 5]
+    assert len(paced) >= 30 and all(_near_box(f) for f in paced)
+    assert server.stop() == 0
 
 
 def test_events_are_stored_published_and_answered_after_a_restart(site, tmp_path, net, start_server):
