@@ -111,6 +111,8 @@ log = logging.getLogger("voxelwatch.fusion")
 DEFAULT_STORE_NAME = "voxelwatch-events.sqlite"
 """The event store's file name next to the site file when ``--store`` is not given."""
 
+_FLAGS = {"min_cameras": "--min-cameras", "exit_after_idle_s": "--exit-after-idle",
+          "max_clock_skew_ms": "--max-clock-skew-ms", "mode": "--mode"}
 _SYNC_DROPS = ("duplicate", "superseded", "dropped_overflow")
 _SYNC_LATE = ("out_of_order", "stale", "unmatched")
 
@@ -202,7 +204,11 @@ class FusionSettings:
                 **extra,
             )
         except ValueError as exc:
-            raise ValueError(f"settings: {exc}") from None
+            text = str(exc)
+            for name, flag in _FLAGS.items():
+                if text.startswith(name + " "):
+                    text = flag + text[len(name):]
+            raise ValueError(text) from None
 
 
 @dataclass
@@ -241,6 +247,9 @@ def run_forever(settings: FusionSettings) -> int:
     except ValueError as exc:
         log.error("%s", exc)
         return 2
+    except KeyboardInterrupt:  # interrupted while the lookup tables were being built
+        log.info("fusion: interrupted before start")
+        return 130
     stop = threading.Event()
     previous = _install_signal_handlers(stop)
     try:
@@ -627,8 +636,14 @@ class _Server:
             return
         health.on_mask(msg.seq, msg.stamp_ns, recv_ns, mono)
         self._check_skew(health, mono)
+        count = self.sync.counters[cam]
+        before = dict(count)
         for fs in self.sync.push(cam, msg.seq, msg.stamp_ns, mask):
             self._queue_set(fs)
+        for name in _SYNC_DROPS + _SYNC_LATE:
+            if count[name] > before[name]:
+                self.rlog.warn(f"camera {cam}", name, f"a mask was dropped by the frame-set synchroniser "
+                               f"({name.replace('_', ' ')}; on arrival of mask {msg.seq})", mono)
 
     def _check_shape(self, msg: MaskFrame) -> None:
         cam = self.cameras.get(msg.cam)

@@ -443,6 +443,20 @@ def test_a_bad_site_file_stops_with_exit_code_2_and_one_message(site, tmp_path):
     assert len(lines) == 1, result.stderr
     assert str(bad) in lines[0] and "carving.voxel_sizes_m" in lines[0] and "halve" in lines[0]
 
+    calibration_gone = tmp_path / "gone" / "site.toml"
+    calibration_gone.parent.mkdir()
+    calibration_gone.write_text(site_file.read_text())  # its calibration files are not beside it
+    result = subprocess.run([sys.executable, "-m", "fusion_server.cli", "--site", str(calibration_gone),
+                             "--store", str(tmp_path / "events.sqlite")], cwd=ROOT, capture_output=True, text=True,
+                            timeout=60)
+    assert result.returncode == 2, result.stderr
+    lines = [line for line in result.stderr.splitlines() if line.strip()]
+    assert len(lines) == 1 and "c1.toml" in lines[0] and "not found" in lines[0], result.stderr
+
+    result = subprocess.run([sys.executable, "-m", "fusion_server.cli", "--site", str(site_file),
+                             "--min-cameras", "4"], cwd=ROOT, capture_output=True, text=True, timeout=60)
+    assert result.returncode == 2 and "--min-cameras" in result.stderr and len(result.stderr.strip().splitlines()) == 1
+
     missing = tmp_path / "nowhere.toml"
     result = subprocess.run([sys.executable, "-m", "fusion_server.cli", "--site", str(missing)], cwd=ROOT,
                             capture_output=True, text=True, timeout=60)
