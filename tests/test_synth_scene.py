@@ -10,7 +10,8 @@ from common.synth.scene import CAMERA_IDS, default_cameras, default_room, defaul
 
 
 def _inside_box_xy(xy, box, margin=0.0) -> bool:
-    return (box.min_m[0] - margin <= xy[0] <= box.max_m[0] + margin) and (box.min_m[1] - margin <= xy[1] <= box.max_m[1] + margin)
+    return (box.min_m[0] - margin <= xy[0] <= box.max_m[0] + margin
+            and box.min_m[1] - margin <= xy[1] <= box.max_m[1] + margin)
 
 
 def test_room_layout_is_consistent():

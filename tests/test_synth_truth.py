@@ -47,7 +47,8 @@ def test_postures_match_heights_in_every_scenario(truths):
             change = tr.frame[rows][1:][tr.posture[rows][1:] != tr.posture[rows][:-1]]
             for f in change:
                 steady[rows[np.abs(tr.frame[rows] - f) <= 22]] = False
-        for post, lo, hi in (("lying", 0.0, 0.7), ("sitting", 1.0, 1.6), ("standing", 1.45, 2.0), ("bending", 0.9, 1.8)):
+        limits = (("lying", 0.0, 0.7), ("sitting", 1.0, 1.6), ("standing", 1.45, 2.0), ("bending", 0.9, 1.8))
+        for post, lo, hi in limits:
             m = (tr.posture == post) & steady
             if m.any():
                 assert lo <= tr.z_top[m].min() and tr.z_top[m].max() <= hi, (name, post)

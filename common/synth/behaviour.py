@@ -759,10 +759,9 @@ class _WalkPlan:
             q[:, Q_SHOULDER_FLEX[side]] = self.base[Q_SHOULDER_FLEX[side]] - env * 0.8 * hip
             q[:, Q_ELBOW[side]] = self.base[Q_ELBOW[side]] + env * (0.15 + 0.15 * np.maximum(0.0, -sgn * sin_l))
         sh = self.shape
-        ext = np.maximum.reduce([
-            sh.thigh_m * np.cos(q[:, Q_HIP_FLEX[side]]) + sh.shank_m * np.cos(q[:, Q_HIP_FLEX[side]] - q[:, Q_KNEE[side]])
-            for side in (0, 1)
-        ])
+        hip = q[:, Q_HIP_FLEX[0]], q[:, Q_HIP_FLEX[1]]
+        knee = q[:, Q_KNEE[0]], q[:, Q_KNEE[1]]
+        ext = np.maximum(*(sh.thigh_m * np.cos(h) + sh.shank_m * np.cos(h - k) for h, k in zip(hip, knee)))
         q[:, 0], q[:, 1], q[:, 2] = x, y, sh.ankle_m + ext
         q[:, Q_YAW] = yaw
         q[:, Q_SPINE] = self.base[Q_SPINE] + env * 0.05

@@ -147,6 +147,11 @@ def lambert(room: Room, points, normals) -> np.ndarray:
 class CameraRenderer:
     """One camera's precomputed view of the empty room and its per-frame renderer.
 
+    Precomputed arrays (H, W = image size): ``rays`` (H, W, 3) float32 world unit rays,
+    ``valid`` (H, W) bool pixels with a ray, ``bg_depth`` (H, W) float32 distance to the
+    empty room along the ray (0 where invalid), ``bg_points`` (H, W, 3) float32 its world
+    point, ``bg_bgr`` (H, W, 3) uint8 the lit, textured empty room.
+
     camera: the calibrated camera. room: the scene. seed: noise seed.
     noise_std: sensor noise, grey levels per channel. shadows: draw cast shadows.
     """
@@ -172,6 +177,7 @@ class CameraRenderer:
         depth = hits.t.reshape(H, W).astype(np.float32)
         depth[~self.valid] = 0.0
         self.bg_depth = depth
+        self.bg_points = hits.point.reshape(H, W, 3).astype(np.float32)
         look = np.random.default_rng([self.seed, self.cam_key, 11])
         self.white_balance = (1.0 + 0.03 * (2 * look.random(3) - 1)) * (1.0 + 0.04 * (2 * look.random() - 1))
         fwd = camera.forward
@@ -185,7 +191,7 @@ class CameraRenderer:
         # Shadows are soft: they are computed on every SHADOW_STRIDE-th pixel and upsampled.
         s = SHADOW_STRIDE
         sub = (slice(s // 2, None, s), slice(s // 2, None, s))
-        self.coarse_points = hits.point.reshape(H, W, 3)[sub].astype(np.float32)
+        self.coarse_points = self.bg_points[sub]
         surf = hits.surface.reshape(H, W)[sub]
         self.coarse_valid = (surf >= 0) & (surf != SURF_CEILING) & self.valid[sub]
         bank_rng = np.random.default_rng([self.seed, self.cam_key, 5])
@@ -343,6 +349,10 @@ class CameraRenderer:
         fy0, fx0 = cy0 * s, cx0 * s
         fy1, fx1 = min(cy1 * s, H), min(cx1 * s, W)
         full = full[: fy1 - fy0, : fx1 - fx0]
+        # Upsampling blurs across depth edges; keep the shadow on surfaces near the person only.
+        bp = self.bg_points[fy0:fy1, fx0:fx1]
+        near_px = (bp[..., 0] >= lo[0]) & (bp[..., 0] <= hi[0]) & (bp[..., 1] >= lo[1]) & (bp[..., 1] <= hi[1])
+        full = np.where(near_px, full, np.float32(1.0))
         roi = scene[fy0:fy1, fx0:fx1]
         scene[fy0:fy1, fx0:fx1] = np.clip(roi.astype(np.float32) * full[..., None] + 0.5, 0, 255).astype(np.uint8)
 
@@ -432,7 +442,8 @@ def _axis_normal(axis: np.ndarray, d: np.ndarray) -> np.ndarray:
 
 
 def _apply_decal(albedo, p, s, dec, tex) -> None:
-    surf = {"floor": SURF_FLOOR, "x0": SURF_WALL_X0, "x1": SURF_WALL_X1, "y0": SURF_WALL_Y0, "y1": SURF_WALL_Y1}[dec.surface]
+    surf = {"floor": SURF_FLOOR, "x0": SURF_WALL_X0, "x1": SURF_WALL_X1, "y0": SURF_WALL_Y0,
+            "y1": SURF_WALL_Y1}[dec.surface]
     if dec.surface == "floor":
         u, v = p[:, 0], p[:, 1]
     elif dec.surface in ("x0", "x1"):

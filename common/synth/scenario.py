@@ -126,7 +126,8 @@ class Scenario:
         """Scene illumination gain at scenario time(s) ``t_s``: slow drift times light switches."""
         t = np.asarray(t_s, dtype=np.float64)
         p = self._drift_phase
-        g = 1.0 + self.spec.drift * (0.7 * np.sin(2 * np.pi * t / 97.0 + p[0]) + 0.3 * np.sin(2 * np.pi * t / 31.0 + p[1]))
+        wave = 0.7 * np.sin(2 * np.pi * t / 97.0 + p[0]) + 0.3 * np.sin(2 * np.pi * t / 31.0 + p[1])
+        g = 1.0 + self.spec.drift * wave
         for lc in self.spec.lights:
             f = np.clip((t - lc.at_s) / max(lc.ramp_s, 1e-6), 0.0, 1.0)
             g = g * (1.0 + (lc.factor - 1.0) * f)

@@ -200,7 +200,8 @@ def default_room() -> Room:
         boxes.append(Box(f"dinner table leg {i + 1}", "table", (x, y, 0.0), (x + 0.06, y + 0.06, 0.71), table_top))
     seats: list[Seat] = []
     chair = (70, 104, 140)
-    for i, (cx, cy, facing) in enumerate(((1.85, 1.2, 90.0), (2.55, 1.2, 90.0), (1.85, 3.2, -90.0), (2.55, 3.2, -90.0))):
+    chairs = ((1.85, 1.2, 90.0), (2.55, 1.2, 90.0), (1.85, 3.2, -90.0), (2.55, 3.2, -90.0))
+    for i, (cx, cy, facing) in enumerate(chairs):
         name = f"chair {i + 1}"
         sgn = 1.0 if facing > 0 else -1.0
         boxes.append(Box(f"{name} seat", "chair", (cx - 0.22, cy - 0.22, 0.42), (cx + 0.22, cy + 0.22, 0.46), chair))
@@ -289,7 +290,8 @@ def default_cameras(*, scale: float = 1.0) -> dict[str, Camera]:
              (-0.065, 0.012, 0.0003, 0.0002, 0.0), (-0.058, 0.009, -0.0003, -0.0002, 0.0))
     for i, ((x, y), dist) in enumerate(zip(corners, dists)):
         R, t = look_at((x, y, 2.4), target)
-        cam = Camera.pinhole(CAMERA_IDS[i], 640, 480, fx=300.0, fy=300.0, cx=319.5 + (i - 1.5), cy=239.5 + (1.5 - i) * 0.7,
+        cam = Camera.pinhole(CAMERA_IDS[i], 640, 480, fx=300.0, fy=300.0, cx=319.5 + (i - 1.5),
+                             cy=239.5 + (1.5 - i) * 0.7,
                              dist=dist, R=R, t=t)
         cams[cam.id] = cam
     R, t = look_at((4.0, 3.0, 2.47), (4.0, 3.0, 0.0), up=(0.0, 1.0, 0.0))
@@ -330,7 +332,8 @@ def site_dict(
             }
             for cam_id, cam in cameras.items()
         ],
-        "hotspots": [{"name": h.name, "kind": h.kind, "polygon_m": [list(p) for p in h.polygon_m]} for h in room.hotspots],
+        "hotspots": [{"name": h.name, "kind": h.kind, "polygon_m": [list(p) for p in h.polygon_m]}
+                     for h in room.hotspots],
         "doors": [{"name": d.name, "polygon_m": [list(p) for p in d.polygon_m]} for d in room.doors],
     }
 
@@ -358,7 +361,8 @@ def default_site(
     (out / "calib").mkdir(parents=True, exist_ok=True)
     for cam_id, cam in cameras.items():
         save_voxelwatch(cam, out / "calib" / f"{cam_id}.toml")
-    site = site_from_dict(site_dict(room, cameras, sources=sources, backgrounds=backgrounds, fps=fps), base_dir=out.resolve())
+    content = site_dict(room, cameras, sources=sources, backgrounds=backgrounds, fps=fps)
+    site = site_from_dict(content, base_dir=out.resolve())
     path = write_site(site, out / "site.toml")
     return load_site(path)
 
