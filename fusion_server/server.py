@@ -231,9 +231,9 @@ class FusionCounters:
 def run_forever(settings: FusionSettings) -> int:
     """Build the pipeline, open the zenoh session and :func:`run` until stopped.
 
-    Returns the exit code: 0 after a stop (signal or idle), 1 when zenoh or
-    the store cannot be used, 2 when the calibrations or zenoh settings are
-    unusable (the reason is logged).
+    Returns the exit code: 0 after a stop (signal or idle), 1 when the zenoh
+    session cannot be opened, 2 when the calibrations, zenoh settings, event
+    store or output folder are unusable (the reason is logged).
     """
     from common.transport import zenoh_config
     from fusion_server.pipeline import FusionPipeline
@@ -271,7 +271,7 @@ def run(session: Any, settings: FusionSettings, stop_event: threading.Event, *, 
     """Serve on an open zenoh ``session`` until ``stop_event`` is set (or the idle timeout).
 
     pipeline: a ``FusionPipeline`` (default: built from the site). The caller
-    owns and closes the session. Returns 0 on a normal stop, 1 when the event
+    owns and closes the session. Returns 0 on a normal stop, 2 when the event
     store or the output folder cannot be opened.
     """
     if pipeline is None:
@@ -283,7 +283,7 @@ def run(session: Any, settings: FusionSettings, stop_event: threading.Event, *, 
         store = EventStore(settings.store_path)
     except ValueError as exc:
         log.error("%s", exc)
-        return 1
+        return 2
     outputs = None
     try:
         if settings.out_dir is not None:
@@ -291,7 +291,7 @@ def run(session: Any, settings: FusionSettings, stop_event: threading.Event, *, 
     except ValueError as exc:
         log.error("%s", exc)
         store.close()
-        return 1
+        return 2
     server = _Server(session, settings, pipeline, store, outputs, counters or FusionCounters(), stop_event)
     try:
         server.declare()
