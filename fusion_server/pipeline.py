@@ -174,28 +174,6 @@ class FusionPipeline:
             for person_uv, person_valid in zip(uv, valid):
                 if not person_valid.any():
                     continue
-                # corners off the image still bound the box where they project at all
-                seen = person_uv[np.all(np.isfinite(person_uv), axis=1)]
-                x0, y0 = np.floor(seen.min(axis=0)).astype(int)
-                x1, y1 = np.ceil(seen.max(axis=0)).astype(int) + 1
-                box = (max(0, x0), max(0, y0), min(cam.width, x1), min(cam.height, y1))
-                if box[2] > box[0] and box[3] > box[1]:
-                    holds[cam_id].append(tuple(int(v) for v in box))
-        return holds
-        r = self.hold_radius_m
-        corners = []
-        for est in still:
-            top = max(float(est.z_top_m), 0.5) + 0.1
-            for dx, dy, z in itertools.product((-r, r), (-r, r), (0.0, top)):
-                corners.append((est.x + dx, est.y + dy, z))
-        pts = np.asarray(corners, dtype=np.float64).reshape(len(still), 8, 3)
-        for cam_id, cam in self.cameras.items():
-            uv, valid = cam.project(pts.reshape(-1, 3))
-            uv = uv.reshape(len(still), 8, 2)
-            valid = valid.reshape(len(still), 8)
-            for person_uv, person_valid in zip(uv, valid):
-                if not person_valid.any():
-                    continue
                 seen = person_uv[person_valid]
                 x0, y0 = np.floor(seen.min(axis=0)).astype(int)
                 x1, y1 = np.ceil(seen.max(axis=0)).astype(int) + 1
