@@ -17,6 +17,7 @@ import socket
 import subprocess
 import sys
 import threading
+import time
 import tomllib
 from pathlib import Path
 
@@ -385,6 +386,104 @@ def test_two_peers_configured_from_peer_json5_talk_without_a_router():
         finally:
             sub.undeclare()
     assert got.is_set()
+
+
+def _clip(path: Path, n_frames: int) -> None:
+    """A 640x480 MJPG clip: an empty textured room, then a dark block walking across."""
+    import cv2
+
+    rng = np.random.default_rng(3)
+    room = cv2.GaussianBlur((rng.random((480, 640, 3)) * 60 + 80).astype(np.uint8), (0, 0), 5)
+    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), 15.0, (640, 480))
+    for i in range(n_frames):
+        frame = room.copy()
+        if i >= n_frames // 3:
+            x = 200 + 3 * (i - n_frames // 3)
+            cv2.rectangle(frame, (x, 150), (x + 60, 400), (20, 30, 200), -1)
+        writer.write(frame)
+    writer.release()
+
+
+def _logs(folder: Path) -> str:
+    return "\n".join(f"--- {log.name}\n{log.read_text()}" for log in sorted(folder.glob("*.log")))
+
+
+def _script(name: str) -> list[str]:
+    mains = {"voxelwatch": "common.cli", "voxelwatch-fusion": "fusion_server.cli", "voxelwatch-camera": "camera_worker.cli"}
+    return [sys.executable, "-c", f"import sys; from {mains[name]} import main; sys.exit(main())"]
+
+
+@pytest.mark.slow
+def test_units_run_together_router_fusion_and_two_cameras(tmp_path):
+    """The three units' commands on loopback (paths and endpoints swapped for
+    the test's): two workers replay a clip, the fusion server fuses, stores the
+    camera_lost events when they stop and answers a history query through the
+    router with JSON, one reply per event with zenoh's default consolidation,
+    as the README's z_get example expects."""
+    endpoint = f"tcp/127.0.0.1:{_free_port()}"
+    clip = tmp_path / "clip.avi"
+    _clip(clip, 45)
+    env = {**ENV, "VOXELWATCH_SITE": str(SITE)}
+
+    def argv_of(unit: str, instance: str = "") -> list[str]:
+        argv = _exec_argv(_unit(UNITS / unit)["ExecStart"][0], env, instance)
+        swaps = {"tcp/0.0.0.0:7447": endpoint, "tcp/127.0.0.1:7447": endpoint,
+                 "/var/lib/voxelwatch/events.sqlite": str(tmp_path / "events.sqlite"),
+                 "/var/cache/voxelwatch": str(tmp_path / "cache")}
+        return _script(Path(argv[0]).name) + [swaps.get(a, a) for a in argv[1:]]
+
+    logs = {}
+
+    def start(name: str, argv: list[str]) -> subprocess.Popen:
+        logs[name] = open(tmp_path / f"{name}.log", "w")
+        return subprocess.Popen(argv, cwd=REPO, stdout=logs[name], stderr=subprocess.STDOUT, text=True)
+
+    procs = {"router": start("router", argv_of("voxelwatch-router.service"))}
+    try:
+        procs["fusion"] = start("fusion", argv_of("voxelwatch-fusion.service") + ["--out", str(tmp_path / "out")])
+        conf = zenoh.Config.from_file(str(DEPLOY / "zenoh" / "client.json5"))
+        conf.insert_json5("connect/endpoints", json.dumps([endpoint]))
+        selector = "voxelwatch/maple-court-flat-4/history/events/**?since=2000-01-01T00:00:00Z;kind=camera_lost"
+        lost: set[str] = set()
+        with zenoh.open(conf) as session:
+            # the fusion server is ready once its liveliness token is up (its first start computes carving tables)
+            for _ in range(600):
+                if list(session.liveliness().get("voxelwatch/maple-court-flat-4/alive/fusion", timeout=1.0)):
+                    break
+                assert procs["fusion"].poll() is None, _logs(tmp_path)
+                time.sleep(0.5)
+            else:
+                pytest.fail(f"the fusion server never came up\n{_logs(tmp_path)}")
+            start_ns = str(time.time_ns())
+            for cam in ("cam1", "cam2"):
+                extra = ["--source", str(clip), "--start-ns", start_ns, "--connect", endpoint]
+                procs[cam] = start(cam, argv_of("voxelwatch-camera@.service", cam) + extra)
+            for cam in ("cam1", "cam2"):
+                assert procs[cam].wait(timeout=120) == 0, _logs(tmp_path)
+            for _ in range(60):  # the liveliness of a stopped worker lapses shortly after it exits
+                lost = set()
+                for reply in session.get(selector, timeout=5.0):
+                    event = json.loads(reply.ok.payload.to_string())
+                    assert event["kind"] == "camera_lost"
+                    lost.add(event["details"]["camera"])
+                if lost >= {"cam1", "cam2"}:
+                    break
+                time.sleep(0.5)
+        assert lost >= {"cam1", "cam2"}, _logs(tmp_path)
+        procs["fusion"].terminate()
+        assert procs["fusion"].wait(timeout=60) == 0, _logs(tmp_path)
+        rows = (tmp_path / "out" / "tracks.csv").read_text().splitlines()
+        assert rows[0] == "frame,stamp_ns,id,x,y,z_top,posture"
+    finally:
+        for proc in procs.values():
+            if proc.poll() is None:
+                proc.terminate()
+                try:
+                    proc.wait(timeout=30)
+                except subprocess.TimeoutExpired:
+                    proc.kill()
+        for log in logs.values():
+            log.close()
 
 
 # ---------------------------------------------------------------- compose and image
