@@ -10,6 +10,7 @@ import argparse
 import logging
 import sys
 from collections.abc import Callable, Sequence
+from pathlib import Path
 
 DESCRIPTION = """\
 voxelwatch: multi-camera 3D sensing of people at home.
@@ -21,6 +22,12 @@ posture, dwelling and falls, and publishes tracks and events.
 
 EPILOG = """\
 examples:
+  voxelwatch demo                             the synthetic house as a distributed system on this machine
+  voxelwatch synth --scenario demo --out out/demo     render a scenario with its ground truth
+  voxelwatch replay --site out/demo/site.toml --input out/demo --out out/run
+  voxelwatch eval --truth out/demo --run out/run       score a run against ground truth
+  voxelwatch eval --suite                     the whole scenario library
+  voxelwatch bench                            speed and size of every stage on this machine
   voxelwatch site check deploy/site.toml      validate a site file and its calibrations
   voxelwatch router --listen tcp/0.0.0.0:7447  a zenoh router for client-mode hosts
   voxelwatch camera --help                    the camera worker (same as voxelwatch-camera)
@@ -125,4 +132,154 @@ def _router(args: argparse.Namespace) -> int:
     return 0
 
 
-_SUBCOMMANDS: list[Callable] = [_register_site, _register_router, _register_passthrough]
+def _register_synth(sub) -> None:
+    p = sub.add_parser("synth", help="render a synthetic-house scenario: videos, site file, ground truth")
+    p.add_argument("--scenario", default=None, help="scenario name (default: the demo scenario); --list shows them")
+    p.add_argument("--out", type=Path, help="output folder")
+    p.add_argument("--seed", type=int, default=0, help="random seed (every scenario is deterministic for a seed)")
+    p.add_argument("--cameras", default=None, help="comma-separated camera ids (default all five)")
+    p.add_argument("--frames", type=int, default=None, help="render only the first N frames")
+    p.add_argument("--masks", action="store_true", help="also write the true silhouettes as PNG")
+    p.add_argument("--codec", default="MJPG", choices=["MJPG", "FFV1"], help="video codec")
+    p.add_argument("--workers", type=int, default=1, help="render cameras in this many processes")
+    p.add_argument("--list", action="store_true", help="list the scenarios and exit")
+    p.set_defaults(handler=_synth)
+
+
+def _synth(args: argparse.Namespace) -> int:
+    from common import synth
+
+    if args.list:
+        for name in synth.list_scenarios():
+            spec = synth.scenario_spec(name)
+            print(f"{name:18s} {spec.duration_s / 60:5.1f} min  {len(spec.people)} people  {spec.description}")
+        return 0
+    if args.out is None:
+        raise ValueError("--out is required (the folder to write into)")
+    name = args.scenario or synth.DEFAULT_SCENARIO
+    cameras = args.cameras.split(",") if args.cameras else None
+    out = synth.write_scenario(
+        name, args.out, seed=args.seed, cameras=cameras, frames=args.frames, masks=args.masks,
+        codec=args.codec, workers=args.workers,
+    )
+    print(f"scenario {name}: {out.n_frames} frames of {len(out.videos)} cameras in {out.out_dir}")
+    print(f"  site {out.site}\n  truth {out.tracks}, {out.events}")
+    return 0
+
+
+def _register_replay(sub) -> None:
+    p = sub.add_parser("replay", help="run the pipeline offline in one process and write tracks and events")
+    p.add_argument("--site", type=Path, help="the site TOML file (default with --synthetic: the synthetic house)")
+    src = p.add_mutually_exclusive_group(required=True)
+    src.add_argument("--input", type=Path, help="folder with one sub-folder per camera: video.*, background.*, or masks/")
+    src.add_argument("--synthetic", metavar="SCENARIO", help="render a synthetic-house scenario in this process")
+    p.add_argument("--out", type=Path, required=True, help="output folder for tracks.csv and events.jsonl")
+    p.add_argument("--cameras", default=None, help="comma-separated subset of the site's cameras")
+    p.add_argument("--frames", type=int, default=None, help="stop after N frame sets")
+    p.add_argument("--seed", type=int, default=0, help="seed of the tracker (and of the synthetic scenario)")
+    p.add_argument("--cache-dir", type=Path, default=None, help="carving lookup-table cache")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.set_defaults(handler=_replay)
+
+
+def _replay(args: argparse.Namespace) -> int:
+    from common.site import load_site
+    from fusion_server.replay import replay
+
+    site = _replay_site(args)
+    cameras = args.cameras.split(",") if args.cameras else None
+    summary = replay(
+        site, args.out, input_dir=args.input, synthetic=args.synthetic, cameras=cameras, max_frames=args.frames,
+        seed=args.seed, cache_dir=args.cache_dir, progress=None if args.quiet else _progress_bar(),
+    )
+    if not args.quiet:
+        print(file=sys.stderr)
+    print(
+        f"replay: {summary.frames} frame sets of {len(summary.cameras)} cameras in {summary.elapsed_s:.1f} s "
+        f"({summary.fps:.1f}/s), {summary.track_rows} track rows, {summary.events} events -> {args.out}"
+    )
+    return 0
+
+
+def _replay_site(args: argparse.Namespace):
+    from common.site import load_site
+
+    if args.site is not None:
+        return load_site(args.site)
+    if args.synthetic is None:
+        raise ValueError("--site is required with --input")
+    from common.synth import default_site
+
+    return default_site(args.out / "site")
+
+
+def _progress_bar():
+    import time
+
+    start = time.perf_counter()
+
+    def show(done: int, total: int | None, fused) -> None:
+        if done % 15 and done != total:
+            return
+        rate = done / max(time.perf_counter() - start, 1e-9)
+        width = 30
+        bar = "#" * int(width * done / total) if total else ""
+        of = f"/{total}" if total else ""
+        print(f"\r[{bar:<{width}}] {done}{of} frames {rate:5.1f}/s  tracks {len(fused.tracks)}", end="", file=sys.stderr, flush=True)
+
+    return show
+
+
+def _register_eval(sub) -> None:
+    p = sub.add_parser("eval", help="score runs against ground truth (one run, or the scenario suite)")
+    p.add_argument("--truth", type=Path, help="ground-truth folder (truth/tracks.csv, truth/events.jsonl)")
+    p.add_argument("--run", type=Path, help="run folder (tracks.csv, events.jsonl)")
+    p.add_argument("--json", type=Path, default=None, help="also write the results as JSON here")
+    p.add_argument("--plots", type=Path, default=None, help="draw the plan view and posture timeline into this folder")
+    p.add_argument("--suite", action="store_true", help="replay and score the synthetic scenario library")
+    p.add_argument("--scenarios", default=None, help="with --suite: comma-separated scenario names (default all)")
+    p.add_argument("--quick", action="store_true", help="with --suite: a few short scenarios, first 45 s of each")
+    p.add_argument("--cameras", default="5", help="with --suite: comma-separated camera counts to run, e.g. 5,4,3,2")
+    p.add_argument("--frames", type=int, default=None, help="with --suite: only the first N frames of each scenario")
+    p.add_argument("--out", type=Path, default=Path("voxelwatch-suite"), help="with --suite: working folder")
+    p.add_argument("--seed", type=int, default=0)
+    p.set_defaults(handler=_eval)
+
+
+def _eval(args: argparse.Namespace) -> int:
+    if args.suite:
+        from fusion_server.suite import run_suite
+
+        return run_suite(
+            out_dir=args.out, scenarios=args.scenarios.split(",") if args.scenarios else None, quick=args.quick,
+            camera_counts=[int(c) for c in args.cameras.split(",")], max_frames=args.frames, seed=args.seed,
+            json_path=args.json,
+        )
+    if args.truth is None or args.run is None:
+        raise ValueError("give --truth and --run, or --suite")
+    from common.evaluation import evaluate, format_table, write_json
+
+    results = evaluate(args.truth, args.run)
+    print(format_table(results))
+    if args.json:
+        write_json(results, args.json)
+    if args.plots:
+        from common.evaluation import plots
+
+        args.plots.mkdir(parents=True, exist_ok=True)
+        plots.plan_view(args.run, _site_near(args.truth), args.plots / "plan.png", truth_dir=args.truth)
+        plots.timeline(args.run, args.truth, args.plots / "timeline.png")
+        print(f"pictures in {args.plots}")
+    return 0
+
+
+def _site_near(folder: Path):
+    from common.site import load_site
+
+    path = folder / "site.toml"
+    return load_site(path) if path.is_file() else None
+
+
+_SUBCOMMANDS: list[Callable] = [
+    _register_synth, _register_replay, _register_eval, _register_site, _register_router, _register_passthrough,
+]

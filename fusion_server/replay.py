@@ -1,0 +1,257 @@
+"""Offline replay: the live pipeline in one process, as fast as the machine allows.
+
+Every camera's frames are read in lock step (frame ``i`` of every camera
+forms frame set ``i``), segmented with the camera worker's own segmenter,
+fused with :class:`~fusion_server.pipeline.FusionPipeline`, and the hold
+regions of still people go back to the segmenters for the next frame, as
+the live server sends them over zenoh.
+
+Inputs per camera, under ``INPUT/<camera id>/``:
+
+* ``video.*`` (or the only video file there): frames to segment;
+  ``background.*`` beside it is learnt first when present;
+* ``masks/``: a folder of recorded masks (one image per frame, 0 background,
+  255 foreground), fused as they are;
+* otherwise the folder itself as an image folder.
+
+Or ``synthetic=SCENARIO``: every camera of the synthetic house rendered in
+this process (the site must be the synthetic house's).
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from camera_worker.segmentation import ForegroundSegmenter
+from camera_worker.sources import FrameSource, SourceError, open_source
+from common.site import Site
+from fusion_server.outputs import RunOutputs
+from fusion_server.pipeline import FusedFrame, FusionPipeline
+
+VIDEO_SUFFIXES = (".avi", ".mp4", ".mkv", ".mov", ".m4v", ".webm")
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".pgm", ".ppm", ".tif", ".tiff")
+
+
+@dataclass
+class ReplaySummary:
+    """What a replay did; ``stage_s`` sums wall time per stage."""
+
+    frames: int = 0
+    events: int = 0
+    track_rows: int = 0
+    cameras: tuple[str, ...] = ()
+    elapsed_s: float = 0.0
+    stage_s: dict[str, float] = field(default_factory=lambda: {"read": 0.0, "segment": 0.0, "fuse": 0.0, "write": 0.0})
+
+    @property
+    def fps(self) -> float:
+        return self.frames / self.elapsed_s if self.elapsed_s > 0 else 0.0
+
+
+class _MaskFolder:
+    """Recorded masks: one image per frame, sorted by name."""
+
+    def __init__(self, folder: Path, fps: float) -> None:
+        self.files = sorted(p for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
+        if not self.files:
+            raise SourceError(f"mask folder {folder}: no mask images ({', '.join(IMAGE_SUFFIXES)})")
+        self.fps = fps
+        self.index = 0
+
+    def read(self) -> tuple[int, np.ndarray] | None:
+        if self.index >= len(self.files):
+            return None
+        path = self.files[self.index]
+        mask = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
+        if mask is None:
+            raise SourceError(f"mask folder: cannot read {path}")
+        self.index += 1
+        return self.index - 1, np.where(mask > 127, 255, 0).astype(np.uint8)
+
+    def close(self) -> None:
+        pass
+
+
+class _SegmentedCamera:
+    """A frame source and its segmenter."""
+
+    def __init__(self, source: FrameSource, background: FrameSource | None, segmenter: ForegroundSegmenter) -> None:
+        self.source = source
+        self.segmenter = segmenter
+        self.last_stamp_ns = 0
+        source.open()
+        if background is not None:
+            with background:
+                while (frame := background.read()) is not None:
+                    segmenter.learn(frame.image)
+
+    def read_frame(self):
+        return self.source.read()
+
+    def close(self) -> None:
+        self.source.close()
+
+
+def replay(
+    site: Site,
+    out_dir: str | Path,
+    *,
+    input_dir: str | Path | None = None,
+    synthetic: str | None = None,
+    cameras: Sequence[str] | None = None,
+    max_frames: int | None = None,
+    seed: int = 0,
+    cache_dir: str | Path | None = None,
+    background_frames: int = 45,
+    progress: Callable[[int, int | None, FusedFrame], None] | None = None,
+    pipeline: FusionPipeline | None = None,
+) -> ReplaySummary:
+    """Run the pipeline over recorded inputs and write ``tracks.csv`` and ``events.jsonl``.
+
+    Exactly one of ``input_dir`` and ``synthetic`` names the input.
+    cameras: the subset of the site's cameras to use (default all).
+    """
+    if (input_dir is None) == (synthetic is None):
+        raise ValueError("give exactly one of input_dir and synthetic")
+    cam_ids = list(cameras) if cameras else site.camera_ids
+    for cam in cam_ids:
+        site.camera(cam)  # names the unknown camera
+    all_cameras = site.load_cameras()
+    used = {cam: all_cameras[cam] for cam in cam_ids}
+    if pipeline is None:
+        min_cameras = min(site.carving.min_cameras, len(used))
+        pipeline = FusionPipeline.from_site(site, cameras=used, cache_dir=cache_dir, seed=seed, min_cameras=min_cameras)
+        if min_cameras < site.carving.min_cameras:
+            pipeline.carver.min_cameras = min_cameras
+    inputs = _open_inputs(site, cam_ids, input_dir, synthetic, seed, background_frames)
+    summary = ReplaySummary(cameras=tuple(cam_ids))
+    holds: dict[str, list] = {}
+    total = _expected_frames(inputs, max_frames)
+    start = time.perf_counter()
+    try:
+        with RunOutputs(out_dir) as outputs:
+            while max_frames is None or summary.frames < max_frames:
+                t0 = time.perf_counter()
+                masks, stamp_ns, frame_index, t_segment = _next_masks(inputs, holds)
+                if masks is None:
+                    break
+                t1 = time.perf_counter()
+                fused = pipeline.step(masks, stamp_ns, frame_index)
+                holds = fused.holds
+                t2 = time.perf_counter()
+                summary.track_rows += outputs.write_frame(fused.frame, fused.stamp_ns, fused.tracks)
+                for event in fused.events:
+                    outputs.write_event(event)
+                t3 = time.perf_counter()
+                summary.frames += 1
+                summary.events += len(fused.events)
+                summary.stage_s["read"] += t1 - t0 - t_segment
+                summary.stage_s["segment"] += t_segment
+                summary.stage_s["fuse"] += t2 - t1
+                summary.stage_s["write"] += t3 - t2
+                if progress is not None:
+                    progress(summary.frames, total, fused)
+    finally:
+        for item in inputs.values():
+            item.close()
+    summary.elapsed_s = time.perf_counter() - start
+    return summary
+
+
+def _open_inputs(site, cam_ids, input_dir, synthetic, seed, background_frames) -> dict:
+    inputs: dict[str, object] = {}
+    try:
+        for cam in cam_ids:
+            spec = site.camera(cam)
+            segmenter = ForegroundSegmenter(mask_scale=site.carving.mask_scale)
+            if synthetic is not None:
+                start_ns = _scenario_start_ns(synthetic, seed, site.utc_offset_hours)
+                source = open_source(f"synthetic:{synthetic}", cam_id=cam, seed=seed, start_ns=start_ns)
+                background = open_source(
+                    f"synthetic:{synthetic}", cam_id=cam, seed=seed, background=True, n_frames=background_frames
+                )
+                inputs[cam] = _SegmentedCamera(source, background, segmenter)
+                continue
+            folder = Path(input_dir) / cam
+            if not folder.is_dir():
+                raise SourceError(f"replay input {input_dir}: no folder for camera {cam!r} ({folder})")
+            if (folder / "masks").is_dir():
+                inputs[cam] = _MaskFolder(folder / "masks", spec.fps)
+                continue
+            video = _find_video(folder, "video")
+            background = _find_video(folder, "background")
+            source = open_source(str(video or folder), cam_id=cam, fps=None if video else spec.fps)
+            back = open_source(str(background), cam_id=cam) if background else None
+            inputs[cam] = _SegmentedCamera(source, back, segmenter)
+    except BaseException:
+        for item in inputs.values():
+            item.close()
+        raise
+    return inputs
+
+
+def _next_masks(inputs: dict, holds: dict):
+    """The next frame set: (masks, stamp_ns, frame index, seconds spent segmenting),
+    or (None, ...) when any camera's recording has ended."""
+    masks: dict[str, np.ndarray] = {}
+    stamps: list[int] = []
+    indices: list[int] = []
+    t_segment = 0.0
+    for cam, item in inputs.items():
+        if isinstance(item, _MaskFolder):
+            got = item.read()
+            if got is None:
+                return None, 0, 0, t_segment
+            index, mask = got
+            masks[cam] = mask
+            indices.append(index)
+            stamps.append(int(round(index * 1e9 / item.fps)))
+            continue
+        frame = item.read_frame()
+        if frame is None:
+            return None, 0, 0, t_segment
+        t = time.perf_counter()
+        masks[cam], _ = item.segmenter.apply(frame.image, holds=holds.get(cam, ()))
+        t_segment += time.perf_counter() - t
+        indices.append(frame.index)
+        stamps.append(frame.stamp_ns)
+    return masks, int(np.median(stamps)), int(np.median(indices)), t_segment
+
+
+def _expected_frames(inputs: dict, max_frames: int | None) -> int | None:
+    counts = []
+    for item in inputs.values():
+        if isinstance(item, _MaskFolder):
+            counts.append(len(item.files))
+        else:
+            n = getattr(item.source, "n_frames", None)
+            if isinstance(n, int) and n > 0:
+                counts.append(n)
+    total = min(counts) if counts else None
+    if max_frames is not None:
+        total = max_frames if total is None else min(total, max_frames)
+    return total
+
+
+def _find_video(folder: Path, stem: str) -> Path | None:
+    for suffix in VIDEO_SUFFIXES:
+        path = folder / f"{stem}{suffix}"
+        if path.is_file():
+            return path
+    if stem == "video":
+        videos = [p for p in folder.iterdir() if p.suffix.lower() in VIDEO_SUFFIXES and not p.stem.startswith(("background", "checkerboard"))]
+        if len(videos) == 1:
+            return videos[0]
+    return None
+
+
+def _scenario_start_ns(name: str, seed: int, utc_offset_hours: float) -> int:
+    from common.synth import get_scenario
+
+    return get_scenario(name, seed, utc_offset_hours=utc_offset_hours).start_ns
