@@ -108,6 +108,13 @@ def test_seated_hips_are_at_seat_height():
         np.testing.assert_allclose(q[0, :2], s.xy_m)
 
 
+def test_side_by_side_walkers_stay_abreast():
+    a, b = get_scenario("side_by_side", 3).states
+    both = a["present"] & b["present"]
+    np.testing.assert_allclose(a["xy"][both, 0], b["xy"][both, 0], atol=1e-9)
+    np.testing.assert_allclose(np.abs(a["xy"][both, 1] - b["xy"][both, 1]), 0.6, atol=1e-9)
+
+
 def test_same_seed_same_people_other_seed_other_people():
     a = get_scenario("two_pass", 5)
     b = get_scenario("two_pass", 5)

@@ -10,7 +10,9 @@ Main entry points::
 
 from common.synth.house import HouseOutput, measure_render, write_scenario
 from common.synth.scenario import LightChange, Scenario, ScenarioSpec
-from common.synth.scenarios import DEFAULT_SCENARIO, get_scenario, list_scenarios, scenario_spec
+from common.synth.scenarios import (
+    DEFAULT_SCENARIO, get_scenario, list_scenarios, scenario_descriptions, scenario_spec,
+)
 from common.synth.scene import CAMERA_IDS, default_cameras, default_room, default_site
 from common.synth.source import SyntheticCamera
 from common.synth.truth import Truth, TruthEvent, derive_truth, write_truth
@@ -18,5 +20,5 @@ from common.synth.truth import Truth, TruthEvent, derive_truth, write_truth
 __all__ = [
     "CAMERA_IDS", "DEFAULT_SCENARIO", "HouseOutput", "LightChange", "Scenario", "ScenarioSpec", "SyntheticCamera",
     "Truth", "TruthEvent", "default_cameras", "default_room", "default_site", "derive_truth", "get_scenario",
-    "list_scenarios", "measure_render", "scenario_spec", "write_scenario", "write_truth",
+    "list_scenarios", "measure_render", "scenario_descriptions", "scenario_spec", "write_scenario", "write_truth",
 ]

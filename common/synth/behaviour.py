@@ -11,8 +11,9 @@ labels, a moving flag and presence, deterministically for a seed.
 
 Transition timing: sitting down 1.5 s, standing up 1.8 s, falling 0.9 s
 (accelerating drop), bending 1.0 s down / 1.0 s up, kneeling 1.5 s / 1.8 s,
-getting up from the floor 4 s (5.2 s from the back), turning in place about 2 rad/s; walking
-speed as scripted (0.6..1.4 m/s) with +-5 % per-seed variation and a
+getting up from the floor 4 s (5 s from the side, 5.2 s from the back),
+turning in place about 2 rad/s; walking speed as scripted (0.6..1.4 m/s)
+with +-5 % per-seed variation (unless ``speed_jitter`` is off) and a
 1.5 m/s^2 start/stop ramp.
 
 Posture labels and the events they imply switch at documented instants:
@@ -174,6 +175,7 @@ class PersonScript:
     start_s: when they appear (scenario seconds).
     resident: lives here (more people present than residents makes a visit).
     height_m: fixed height, or None for a random one (1.5..1.95 m) from the seed.
+    speed_jitter: vary the walking speed by +-5 % with the seed (off to keep people in step).
     """
 
     person_id: int
@@ -182,6 +184,7 @@ class PersonScript:
     start_s: float = 0.0
     resident: bool = True
     height_m: float | None = None
+    speed_jitter: bool = True
 
 
 # ---------------------------------------------------------------------- timeline
@@ -285,6 +288,8 @@ def compile_person(script: PersonScript, room: Room, rng: np.random.Generator, d
         raise ValueError(f"person_id must be an int in 1..255, got {script.person_id!r}")
     shape = BodyShape.random(rng, height_m=script.height_m)
     b = _Builder(room, shape, rng, script.person_id)
+    if not script.speed_jitter:
+        b.speed_factor = 1.0
     steps = list(script.steps)
     if script.start is None:
         if not steps or not isinstance(steps[0], Enter):

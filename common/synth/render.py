@@ -338,12 +338,30 @@ class CameraRenderer:
         pts = self.coarse_points[cy0:cy1, cx0:cx1].reshape(-1, 3).astype(np.float64)
         valid = self.coarse_valid[cy0:cy1, cx0:cx1].ravel()
         near = valid & np.all(pts >= lo - 1e-6, axis=1) & np.all(pts <= hi + 1e-6, axis=1)
-        occ = np.zeros(pts.shape[0])
-        if near.any():
-            occ[near] = soft_occlusion(body, pts[near], np.asarray(self.room.light_m, dtype=np.float64))
-        if not occ.any():
+        idx = np.nonzero(near)[0]
+        if idx.size == 0:
             return
-        factor = (1.0 - SHADOW_STRENGTH * occ).reshape(cy1 - cy0, cx1 - cx0).astype(np.float32)
+        light = np.asarray(self.room.light_m, dtype=np.float64)
+        # Only segments to the light that pass near the body's bounding sphere can be shadowed.
+        blo, bhi = body.aabb()
+        centre, radius = 0.5 * (blo + bhi), 0.5 * float(np.linalg.norm(bhi - blo))
+        P = pts[idx]
+        D = light - P
+        t = np.clip(np.einsum("ni,ni->n", centre - P, D) / np.einsum("ni,ni->n", D, D), 0.0, 1.0)
+        passing = np.linalg.norm(P + t[:, None] * D - centre, axis=1) < radius + 0.5
+        occ = np.zeros(pts.shape[0])
+        occ[idx[passing]] = soft_occlusion(body, P[passing], light)
+        occ = occ.reshape(cy1 - cy0, cx1 - cx0)
+        rows = np.nonzero((occ > 0.003).any(axis=1))[0]
+        cols = np.nonzero((occ > 0.003).any(axis=0))[0]
+        if rows.size == 0:
+            return
+        # Crop to the shadowed cells (plus one for the upsampling) before working at full resolution.
+        r0, r1 = max(rows[0] - 1, 0), min(rows[-1] + 2, occ.shape[0])
+        c0, c1 = max(cols[0] - 1, 0), min(cols[-1] + 2, occ.shape[1])
+        factor = (1.0 - SHADOW_STRENGTH * occ[r0:r1, c0:c1]).astype(np.float32)
+        cy0, cx0 = cy0 + r0, cx0 + c0
+        cy1, cx1 = cy0 + (r1 - r0), cx0 + (c1 - c0)
         H, W = cam.height, cam.width
         full = cv2.resize(factor, ((cx1 - cx0) * s, (cy1 - cy0) * s), interpolation=cv2.INTER_LINEAR)
         fy0, fx0 = cy0 * s, cx0 * s

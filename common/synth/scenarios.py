@@ -149,9 +149,9 @@ def _side_by_side() -> ScenarioSpec:
         "side_by_side", "Two people walk side by side, 0.6 m apart, stop, and walk back.", 35.0,
         (
             PersonScript(1, (Walk(((6.8, 4.5),), 1.0), Stand(4.0), Walk(((1.0, 4.5),), 1.0)),
-                         start=(1.0, 4.5, 0.0)),
+                         start=(1.0, 4.5, 0.0), speed_jitter=False),
             PersonScript(2, (Walk(((6.8, 3.9),), 1.0), Stand(4.0), Walk(((1.0, 3.9),), 1.0)),
-                         start=(1.0, 3.9, 0.0)),
+                         start=(1.0, 3.9, 0.0), speed_jitter=False),
         ),
         residents=2,
     )
@@ -272,6 +272,11 @@ SCENARIOS: dict[str, Callable[[], ScenarioSpec]] = {
 def list_scenarios() -> list[str]:
     """Names of the library's scenarios, the default first."""
     return [DEFAULT_SCENARIO] + sorted(n for n in SCENARIOS if n != DEFAULT_SCENARIO)
+
+
+def scenario_descriptions() -> dict[str, str]:
+    """Name -> one-line description, the default first (for a command line's listing)."""
+    return {name: f"{SCENARIOS[name]().description} ({SCENARIOS[name]().duration_s:.0f} s)" for name in list_scenarios()}
 
 
 def scenario_spec(name: str) -> ScenarioSpec:
