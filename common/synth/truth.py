@@ -18,11 +18,14 @@ of each kind:
 * ``enter``: the first frame the pelvis is inside the volume after being
   outside (people present from frame 0 do not enter); ``exit``: the first
   frame outside after being inside.
-* ``dwell_start``: a person still (not walking) inside a hot spot for
-  :data:`DWELL_WINDOW_S` seconds; the event is at the end of that window (as
-  a detector that watches a still window decides), details: hotspot,
-  since_frame (when they became still). ``dwell_end``: the first frame they
-  walk again. details: hotspot.
+* ``dwell_start``: a person who stopped walking inside a hot spot (standing,
+  sitting down, sitting ...) and stays at least :data:`DWELL_WINDOW_S`
+  seconds; the event is at the end of that window (as a detector that
+  watches a still window decides), details: hotspot, since_frame (when they
+  stopped). ``dwell_end``: the first frame they walk again. details:
+  hotspot. (Fed through ``fusion_server.hotspots.DwellDetector`` with its
+  defaults, the true positions give starts and ends within about 2 s of
+  these frames.)
 * ``long_lie``: :data:`LONG_LIE_S` seconds after a fall, if still lying.
 * ``visit``: more people present than the site's residents and two of them
   dwelling at the same hot spot: at the later of their dwell starts, once per
