@@ -482,10 +482,10 @@ class EventReasoner:
         while fs.samples and fs.samples[0][0] < stamp_ns - self._buffer_ns:
             fs.samples.popleft()
         # A median over the last three frames keeps one bad carve from toggling "low".
-        recent = list(fs.samples)[-3:]
-        top_med = float(np.median([s[1] for s in recent]))
+        recent = [fs.samples[-k] for k in range(1, min(3, len(fs.samples)) + 1)]
+        top_med = _median([s[1] for s in recent])
         cen = [s[2] for s in recent if s[2] is not None]
-        centre_med = float(np.median(cen)) if cen else None
+        centre_med = _median(cen) if cen else None
         low = top_med <= self.low_top_frac * height_m and (
             centre_med is None or centre_med <= self.low_centre_frac * height_m
         )
@@ -684,6 +684,12 @@ class EventReasoner:
 
 
 # --------------------------------------------------------------------------- helpers
+
+
+def _median(values: list[float]) -> float:
+    v = sorted(values)
+    n = len(v)
+    return float(v[n // 2]) if n % 2 else 0.5 * (v[n // 2 - 1] + v[n // 2])
 
 
 def _ns(seconds: float) -> int:

@@ -54,12 +54,13 @@ class Hotspot:
             raise ValueError(f"hot spot {self.name!r}: polygon_m encloses no area")
         poly.setflags(write=False)
         object.__setattr__(self, "polygon_m", poly)
+        object.__setattr__(self, "_edges", _edges(poly))
         if not self.label:
             object.__setattr__(self, "label", self.name)
 
     def contains(self, xy: np.ndarray) -> np.ndarray:
         """(N, 2) or (2,) floor points -> (N,) bool (even-odd rule)."""
-        return points_in_polygon(xy, self.polygon_m)
+        return _inside(np.atleast_2d(np.asarray(xy, dtype=np.float64)), self._edges)
 
     @property
     def centroid_m(self) -> np.ndarray:
@@ -82,14 +83,24 @@ def points_in_polygon(xy: np.ndarray, polygon_m: np.ndarray) -> np.ndarray:
     poly = np.asarray(polygon_m, dtype=np.float64)
     if pts.shape[-1] != 2 or poly.ndim != 2 or poly.shape[1] != 2:
         raise ValueError(f"points must be (N, 2) and polygon (K, 2), got {pts.shape} and {poly.shape}")
-    x, y = pts[:, 0:1], pts[:, 1:2]
-    xi, yi = poly[:, 0], poly[:, 1]
+    return _inside(pts, _edges(poly))
+
+
+def _edges(poly: np.ndarray) -> tuple[np.ndarray, ...]:
+    """Per edge (i, i-1): x_i, y_i, y_(i-1), and dx/dy (0 for horizontal edges, which never straddle)."""
+    xi, yi = poly[:, 0].copy(), poly[:, 1].copy()
     xj, yj = np.roll(xi, 1), np.roll(yi, 1)
+    dy = yj - yi
+    slope = np.divide(xj - xi, dy, out=np.zeros_like(dy), where=dy != 0)
+    return xi, yi, yj, slope
+
+
+def _inside(pts: np.ndarray, edges: tuple[np.ndarray, ...]) -> np.ndarray:
+    xi, yi, yj, slope = edges
+    x, y = pts[:, 0:1], pts[:, 1:2]
     straddles = (yi > y) != (yj > y)  # (N, K): edge crosses the horizontal line through the point
-    dy = np.where(yj == yi, 1.0, yj - yi)
-    x_cross = xi + (xj - xi) * (y - yi) / dy
-    crossings = np.count_nonzero(straddles & (x < x_cross), axis=1)
-    return (crossings % 2) == 1
+    x_cross = xi + slope * (y - yi)
+    return (np.count_nonzero(straddles & (x < x_cross), axis=1) % 2) == 1
 
 
 def polygon_area(polygon_m: np.ndarray) -> float:
@@ -127,61 +138,66 @@ class PositionWindow:
     """Floor positions of one track over the last ``window_s`` seconds.
 
     Keeps one sample at or before the window start, so :attr:`span_s`
-    reaches ``window_s`` exactly when the history is long enough.
+    reaches ``window_s`` exactly when the history is long enough. Samples
+    live in numpy arrays (amortised O(1) append, slices without copies).
     """
 
     def __init__(self, *, window_s: float) -> None:
         if not window_s > 0:
             raise ValueError(f"window_s must be positive, got {window_s}")
         self.window_ns = int(round(window_s * 1e9))
-        self._t: deque[int] = deque()
-        self._xy: deque[tuple[float, float]] = deque()
+        self._t = np.zeros(64, dtype=np.int64)
+        self._xy = np.zeros((64, 2), dtype=np.float64)
+        self._lo = 0
+        self._hi = 0
 
     def add(self, stamp_ns: int, x: float, y: float) -> None:
         stamp_ns = int(stamp_ns)
-        if self._t and stamp_ns < self._t[-1]:
-            raise ValueError(f"stamp_ns {stamp_ns} is older than the previous sample {self._t[-1]}")
-        self._t.append(stamp_ns)
-        self._xy.append((float(x), float(y)))
+        if self._hi > self._lo and stamp_ns < self._t[self._hi - 1]:
+            raise ValueError(f"stamp_ns {stamp_ns} is older than the previous sample {self._t[self._hi - 1]}")
+        if self._hi == len(self._t):
+            self._compact()
+        self._t[self._hi] = stamp_ns
+        self._xy[self._hi] = (x, y)
+        self._hi += 1
+        # Drop samples while the next one still reaches back to the window start.
         start = stamp_ns - self.window_ns
-        while len(self._t) >= 2 and self._t[1] <= start:
-            self._t.popleft()
-            self._xy.popleft()
+        drop = int(np.searchsorted(self._t[self._lo + 1: self._hi], start, side="right"))
+        self._lo += drop
 
     def clear(self) -> None:
-        self._t.clear()
-        self._xy.clear()
+        self._lo = self._hi = 0
 
     def __len__(self) -> int:
-        return len(self._t)
+        return self._hi - self._lo
 
     @property
     def span_s(self) -> float:
         """Time from the oldest kept sample to the newest, seconds."""
-        return (self._t[-1] - self._t[0]) * 1e-9 if self._t else 0.0
+        return (self._t[self._hi - 1] - self._t[self._lo]) * 1e-9 if len(self) else 0.0
 
     @property
     def full(self) -> bool:
         """True when the samples cover the whole window."""
-        return bool(self._t) and self._t[-1] - self._t[0] >= self.window_ns
+        return len(self) > 0 and self._t[self._hi - 1] - self._t[self._lo] >= self.window_ns
 
     @property
     def start_ns(self) -> int:
         """Stamp of the oldest kept sample."""
-        if not self._t:
+        if not len(self):
             raise ValueError("empty position window")
-        return self._t[0]
-
-    def positions(self, since_ns: int | None = None) -> np.ndarray:
-        """(N, 2) float64 positions, oldest first, optionally only those at or after ``since_ns``."""
-        xy = np.array(self._xy, dtype=np.float64).reshape(-1, 2)
-        if since_ns is None:
-            return xy
-        return xy[self.stamps() >= since_ns]
+        return int(self._t[self._lo])
 
     def stamps(self) -> np.ndarray:
-        """(N,) int64 stamps of the kept samples, oldest first."""
-        return np.fromiter(self._t, dtype=np.int64, count=len(self._t))
+        """(N,) int64 stamps of the kept samples, oldest first (a view)."""
+        return self._t[self._lo: self._hi]
+
+    def positions(self, since_ns: int | None = None) -> np.ndarray:
+        """(N, 2) float64 positions, oldest first, optionally only those at or after ``since_ns`` (a view)."""
+        lo = self._lo
+        if since_ns is not None:
+            lo += int(np.searchsorted(self._t[self._lo: self._hi], since_ns, side="left"))
+        return self._xy[lo: self._hi]
 
     def settled_since_ns(self, radius_m: float) -> int:
         """Stamp of the first sample after the last one farther than ``radius_m``
@@ -201,6 +217,17 @@ class PositionWindow:
         if len(xy) == 0:
             xy = self.positions()[-1:]
         return xy.mean(axis=0)
+
+    def _compact(self) -> None:
+        n = len(self)
+        if n * 2 > len(self._t):  # more than half in use: grow
+            t = np.zeros(2 * len(self._t), dtype=np.int64)
+            xy = np.zeros((2 * len(self._t), 2), dtype=np.float64)
+        else:
+            t, xy = self._t, self._xy
+        t[:n] = self._t[self._lo: self._hi]
+        xy[:n] = self._xy[self._lo: self._hi]
+        self._t, self._xy, self._lo, self._hi = t, xy, 0, n
 
 
 @dataclass(frozen=True)
