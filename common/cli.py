@@ -280,6 +280,23 @@ def _site_near(folder: Path):
     return load_site(path) if path.is_file() else None
 
 
+def _register_bench(sub) -> None:
+    p = sub.add_parser("bench", help="measure every stage's speed and size on this machine")
+    p.add_argument("--sections", default=None, help="comma-separated subset of: codec, worker, render, carving, tracking, latency")
+    p.add_argument("--quick", action="store_true", help="fewer frames and configurations (a minute or two)")
+    p.add_argument("--json", type=Path, default=None, help="also write the figures as JSON here")
+    p.set_defaults(handler=_bench)
+
+
+def _bench(args: argparse.Namespace) -> int:
+    from common.benchmark import SECTIONS, run_bench
+
+    sections = args.sections.split(",") if args.sections else SECTIONS
+    run_bench(sections=sections, quick=args.quick, json_path=args.json)
+    return 0
+
+
 _SUBCOMMANDS: list[Callable] = [
+    _register_bench,
     _register_synth, _register_replay, _register_eval, _register_site, _register_router, _register_passthrough,
 ]

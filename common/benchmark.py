@@ -1,0 +1,428 @@
+"""``voxelwatch bench``: speed and size of every stage, measured in one run on this machine.
+
+Each section calls the ``measure_*`` function of the stage it measures (the
+stages themselves stay free of clocks). Comparisons are ratios taken in the
+same run; every figure carries the machine it was measured on. Single-core
+figures pin this process to one core and OpenCV to one thread.
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import json
+import os
+import platform
+import sys
+import time
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+SECTIONS = ("codec", "worker", "render", "carving", "tracking", "latency")
+
+
+def machine() -> dict[str, Any]:
+    """What this machine is: CPU model, cores, Python and library versions, date."""
+    import cv2
+
+    cpu = "unknown CPU"
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                cpu = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    return {
+        "date": _dt.date.today().isoformat(),
+        "cpu": cpu,
+        "cores": os.cpu_count(),
+        "python": platform.python_version(),
+        "numpy": np.__version__,
+        "opencv": cv2.__version__,
+        "platform": platform.platform(terse=True),
+    }
+
+
+def run_bench(
+    *,
+    sections: Sequence[str] = SECTIONS,
+    quick: bool = False,
+    json_path: str | Path | None = None,
+    stream=sys.stdout,
+    log: Callable[[str], None] | None = None,
+) -> dict[str, Any]:
+    """Run the chosen sections, print their tables, return (and optionally write) the figures."""
+    import cv2
+
+    log = log or (lambda msg: print(msg, file=sys.stderr, flush=True))
+    unknown = sorted(set(sections) - set(SECTIONS))
+    if unknown:
+        raise ValueError(f"unknown bench sections {unknown}; sections are {list(SECTIONS)}")
+    results: dict[str, Any] = {"machine": machine()}
+    m = results["machine"]
+    print(f"voxelwatch bench, {m['date']}, {m['cpu']}, {m['cores']} cores, Python {m['python']}, OpenCV {m['opencv']}", file=stream)
+    pinned = _pin_one_core()
+    threads = cv2.getNumThreads()
+    cv2.setNumThreads(1)
+    try:
+        for name in SECTIONS:
+            if name not in sections or name == "latency":
+                continue
+            log(f"bench: {name} ...")
+            results[name] = _SECTION_FUNCS[name](quick)
+            print(_SECTION_TABLES[name](results[name]), file=stream, flush=True)
+    finally:
+        cv2.setNumThreads(threads)
+        _unpin(pinned)
+    if "latency" in sections:
+        log("bench: latency over zenoh (real processes, all cores) ...")
+        results["latency"] = measure_latency(seconds=8.0 if quick else 20.0)
+        print(_latency_table(results["latency"]), file=stream, flush=True)
+    if json_path is not None:
+        Path(json_path).parent.mkdir(parents=True, exist_ok=True)
+        Path(json_path).write_text(json.dumps(results, indent=2, default=float) + "\n")
+    return results
+
+
+# ---------------------------------------------------------------- sections
+
+
+def bench_codec(quick: bool) -> list[dict[str, Any]]:
+    from common import maskcodec
+
+    rng = np.random.default_rng(0)
+    rows = []
+    for people in (0, 1, 2, 4):
+        masks = [maskcodec.sample_room_mask(people, rng) for _ in range(11 if quick else 31)]
+        for row in maskcodec.measure_codecs(masks):
+            rows.append({"people": people, **row})
+    return rows
+
+
+def bench_worker(quick: bool) -> list[dict[str, Any]]:
+    from camera_worker.worker import measure_worker
+
+    n = 100 if quick else 300
+    rows = []
+    for scale in (1.0, 0.5):
+        rows.append({"mask_scale": scale, **measure_worker(n_frames=n, mask_scale=scale)})
+    return rows
+
+
+def bench_render(quick: bool) -> dict[str, Any]:
+    from common.synth import measure_render
+
+    frames = 10 if quick else 30
+    fps = measure_render(frames=frames, cpu_time=True)
+    return {"camera_frames_per_s": fps, "cameras": 5, "width": 640, "height": 480, "realtime_need": 5 * 15.0}
+
+
+def bench_carving(quick: bool) -> list[dict[str, Any]]:
+    """Octree against dense carving over people, cameras and voxel size, 8 x 6 x 2.5 m."""
+    import tempfile
+
+    from fusion_server.carving import Carver
+    from fusion_server.carving.bench import MaskRenderer, measure_carving, random_people, room_rig
+
+    rows = []
+    configs: list[tuple[int, float, tuple[int, ...]]] = [(5, 0.05, (0, 1, 2, 4)), (8, 0.05, (2,)), (16, 0.05, (2,))]
+    if not quick:
+        configs.append((5, 0.025, (2,)))
+    with tempfile.TemporaryDirectory() as cache:
+        for n_cams, voxel_m, people_counts in configs:
+            cams = room_rig(n_cameras=n_cams)
+            sizes = [0.4 * voxel_m / 0.05 / (2**i) for i in range(4)] if voxel_m == 0.05 else [0.4, 0.2, 0.1, 0.05, 0.025]
+            t0 = time.perf_counter()
+            carver = Carver(cameras=cams, volume_min_m=(0, 0, 0), volume_max_m=(8, 6, 2.5), voxel_sizes_m=sizes, cache_dir=cache)
+            build_s = time.perf_counter() - t0
+            renderer = MaskRenderer(cams)
+            rng = np.random.default_rng(1)
+            for people in people_counts:
+                sets = [renderer.render(random_people(people, rng)) for _ in range(3 if quick else 6)]
+                fig = measure_carving(carver, sets, repeats=2 if quick else 3, dense=not (quick and voxel_m < 0.05))
+                rows.append({"cameras": n_cams, "voxel_m": voxel_m, "people": people, "lut_build_s": build_s, **fig})
+            del carver, renderer
+    return rows
+
+
+def bench_tracking(quick: bool) -> list[dict[str, Any]]:
+    """Cost per frame of detection, association + filtering, posture and reasoning for 1, 4, 8 people."""
+    import itertools
+    import tempfile
+
+    from fusion_server.carving import Carver
+    from fusion_server.carving.bench import Cylinder, MaskRenderer, random_people, room_rig
+    from fusion_server.detection import detect_blobs
+    from fusion_server.events import EventReasoner
+    from fusion_server.posture import PostureEstimator
+    from fusion_server.tracker import Tracker
+
+    cams = room_rig(n_cameras=5)
+    frames = 20 if quick else 45
+    rows = []
+    with tempfile.TemporaryDirectory() as cache:
+        carver = Carver(cameras=cams, volume_min_m=(0, 0, 0), volume_max_m=(8, 6, 2.5), cache_dir=cache)
+        renderer = MaskRenderer(cams)
+        for people in (1, 4, 8):
+            rng = np.random.default_rng(people)
+            start = random_people(people, rng)
+            heading = rng.uniform(0, 2 * np.pi, size=people)
+            carves = []
+            for f in range(frames):  # walking at 1 m/s, 15 fps
+                bodies = [
+                    Cylinder(p.x_m + f / 15 * np.cos(h) * 0.5, p.y_m + f / 15 * np.sin(h) * 0.5, p.radius_m, p.height_m)
+                    for p, h in zip(start, heading)
+                ]
+                carves.append(carver.carve(renderer.render(bodies), int(f * 1e9 / 15)))
+            tracker = Tracker(rng=np.random.default_rng(0), id_source=itertools.count(1))
+            reasoner = EventReasoner(bounds_xy_m=(0, 0, 8, 6))
+            postures: dict[int, PostureEstimator] = {}
+            t = {"detect": 0.0, "track": 0.0, "posture": 0.0, "reason": 0.0}
+            for f, carve in enumerate(carves):
+                t0 = time.perf_counter()
+                blobs = detect_blobs(carve)
+                t1 = time.perf_counter()
+                estimates = tracker.step(carve, blobs, carve.stamp_ns)
+                t2 = time.perf_counter()
+                readings = {}
+                for est in estimates:
+                    pe = postures.setdefault(est.id, PostureEstimator(voxel_m=carver.grid.voxel_m))
+                    reading = pe.update(carve.stamp_ns, est.height_profile)
+                    if reading is not None:
+                        readings[est.id] = reading
+                t3 = time.perf_counter()
+                reasoner.step(carve.stamp_ns, f, estimates, readings)
+                t4 = time.perf_counter()
+                for key, dt in zip(t, (t1 - t0, t2 - t1, t3 - t2, t4 - t3)):
+                    t[key] += dt
+            ms = {k: 1e3 * v / frames for k, v in t.items()}
+            ms["total"] = sum(ms.values())
+            rows.append({"people": people, "frames": frames, "tracks_at_end": len(estimates), "ms": ms})
+    return rows
+
+
+def measure_latency(*, seconds: float = 20.0, fps: float = 15.0, n_cameras: int = 5) -> dict[str, Any]:
+    """Capture-to-track and capture-to-event latency over zenoh on loopback.
+
+    A real ``voxelwatch-fusion`` process serves the synthetic house; this
+    process publishes the five cameras' true silhouettes of the demo scenario
+    as encoded masks, stamped with the host clock at the moment of capture,
+    at ``fps``; a subscriber in this process notes when each track frame and
+    event arrives. Latency = arrival time - capture stamp of its frame set.
+    """
+    import subprocess
+    import tempfile
+    import threading
+
+    import zenoh
+
+    from common import keys, maskcodec, messages, synth
+    from common.transport import zenoh_config
+
+    with tempfile.TemporaryDirectory() as tmp:
+        tmp_path = Path(tmp)
+        site = synth.default_site(tmp_path / "site")
+        port = _free_port()
+        endpoint = f"tcp/127.0.0.1:{port}"
+        scenario = synth.get_scenario("fall_forward", 0)
+        cams = site.camera_ids[:n_cameras]
+        n_frames = int(seconds * fps)
+        sources = {c: synth.SyntheticCamera(scenario, c, 0) for c in cams}
+        payloads = []  # pre-rendered so publishing costs only the encode and the put
+        for i in range(min(n_frames, scenario.n_frames)):
+            payloads.append({c: maskcodec.encode_mask(sources[c].frame(i)[1]) for c in cams})
+        server = subprocess.Popen(
+            [sys.executable, "-m", "fusion_server.cli", "--site", str(site.base_dir / "site.toml"), "--listen", endpoint,
+             "--store", str(tmp_path / "events.sqlite"), "--cache-dir", str(tmp_path / "cache"), "--exit-after-idle", "3"],
+            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
+        )
+        track_lat: list[float] = []
+        event_lat: list[float] = []
+        sent: dict[int, int] = {}
+        lock = threading.Lock()
+
+        def on_tracks(sample) -> None:
+            now = time.time_ns()
+            try:
+                msg = messages.decode(sample.payload.to_bytes(), messages.TrackFrame)
+            except messages.WireError:
+                return
+            with lock:
+                track_lat.append((now - msg.stamp_ns) / 1e6)
+
+        def on_event(sample) -> None:
+            now = time.time_ns()
+            try:
+                event = messages.decode_event(sample.payload.to_bytes())
+            except messages.WireError:
+                return
+            if event.kind in ("camera_lost", "camera_back", "clock_skew"):
+                return
+            with lock:
+                event_lat.append((now - event.stamp_ns) / 1e6)
+
+        conf = zenoh_config(site.zenoh, mode="peer", listen=[], connect=[endpoint])
+        try:
+            with zenoh.open(conf) as session:
+                _wait_for(session, keys.alive_fusion_key(site.prefix), timeout_s=120)
+                subs = [
+                    session.declare_subscriber(keys.tracks_key(site.prefix), on_tracks),
+                    session.declare_subscriber(keys.events_wildcard(site.prefix), on_event),
+                ]
+                pubs = {c: session.declare_publisher(keys.mask_key(site.prefix, c)) for c in cams}
+                tokens = [session.liveliness().declare_token(keys.alive_camera_key(site.prefix, c)) for c in cams]
+                period_ns = int(1e9 / fps)
+                t0 = time.time_ns()
+                for i, frame in enumerate(payloads):
+                    due = t0 + i * period_ns
+                    wait = (due - time.time_ns()) / 1e9
+                    if wait > 0:
+                        time.sleep(wait)
+                    stamp = time.time_ns()
+                    for c in cams:
+                        cam = site.camera(c)
+                        width, height = cam.resolution or (640, 480)
+                        msg = messages.MaskFrame(
+                            cam=c, seq=i, stamp_ns=stamp, width=width, height=height, src_width=width, src_height=height,
+                            codec=maskcodec.DEFAULT_CODEC, data=frame[c], fg_fraction=0.01,
+                        )
+                        pubs[c].put(messages.encode(msg))
+                    sent[i] = stamp
+                time.sleep(1.0)
+                for token in tokens:
+                    token.undeclare()
+                for sub in subs:
+                    sub.undeclare()
+        finally:
+            server.terminate()
+            try:
+                server.wait(timeout=20)
+            except subprocess.TimeoutExpired:
+                server.kill()
+    return {
+        "cameras": len(cams),
+        "fps": fps,
+        "frames_sent": len(payloads),
+        "track_frames": len(track_lat),
+        "track_ms": _percentiles(track_lat),
+        "events": len(event_lat),
+        "event_ms": _percentiles(event_lat),
+    }
+
+
+# ---------------------------------------------------------------- tables
+
+
+def _codec_table(rows) -> str:
+    lines = ["\nmask codec (640x480, zlib level 1)", "people  codec      median B  max B  enc+dec ms"]
+    for r in rows:
+        lines.append(f"{r['people']:>6}  {r['codec']:<9}  {r['median_bytes']:>8.0f}  {r['max_bytes']:>5.0f}  {r['median_total_ms']:>10.3f}")
+    return "\n".join(lines)
+
+
+def _worker_table(rows) -> str:
+    lines = ["\ncamera worker, one core (frames per second per stage; 640x480 capture)"]
+    stages = list(rows[0]["fps"])
+    lines.append("mask scale  " + "  ".join(f"{s:>9}" for s in stages) + "  mask B (median)")
+    for r in rows:
+        lines.append(f"{r['mask_scale']:>10}  " + "  ".join(f"{r['fps'][s]:>9.0f}" for s in stages) + f"  {r['mask_bytes_median']:>15.0f}")
+    return "\n".join(lines)
+
+
+def _render_table(r) -> str:
+    return (
+        f"\nsynthetic house rendering, one core: {r['camera_frames_per_s']:.0f} camera-frames/s at 640x480 "
+        f"(five cameras at 15 fps need {r['realtime_need']:.0f}/s; {r['camera_frames_per_s'] / r['realtime_need']:.2f}x real time per core)"
+    )
+
+
+def _carving_table(rows) -> str:
+    lines = [
+        "\nfusion carving, one core, 8 x 6 x 2.5 m (frame sets per second; dense = brute-force oracle)",
+        "cameras  voxel cm  people  distance ms  octree ms  octree /s  dense /s  octree/dense  missed %  LUT MB",
+    ]
+    for r in rows:
+        dense = r.get("dense_fps")
+        ratio = f"{r['octree_fps'] / dense:>12.1f}" if dense else f"{'-':>12}"
+        dense_s = f"{dense:>8.1f}" if dense else f"{'-':>8}"
+        missed = f"{100 * r['missed_fraction']:>8.2f}" if dense else f"{'-':>8}"
+        lines.append(
+            f"{r['cameras']:>7}  {100 * r['voxel_m']:>8.1f}  {r['people']:>6}  {1e3 * r['distance_s']:>11.2f}  "
+            f"{1e3 * r['octree_s']:>9.2f}  {r['octree_fps']:>9.1f}  {dense_s}  {ratio}  {missed}  {r['lut_bytes'] / 1e6:>6.1f}"
+        )
+    return "\n".join(lines)
+
+
+def _tracking_table(rows) -> str:
+    lines = ["\ntracking and reasoning, one core (ms per frame)", "people  detect  associate+filter  posture  reason  total"]
+    for r in rows:
+        ms = r["ms"]
+        lines.append(f"{r['people']:>6}  {ms['detect']:>6.2f}  {ms['track']:>16.2f}  {ms['posture']:>7.2f}  {ms['reason']:>6.2f}  {ms['total']:>5.2f}")
+    return "\n".join(lines)
+
+
+def _latency_table(r) -> str:
+    t, e = r["track_ms"], r["event_ms"]
+    line = (
+        f"\ncapture-to-track latency over zenoh on loopback, {r['cameras']} cameras x {r['fps']:.0f} fps: "
+        f"median {t['median']:.1f} ms, p99 {t['p99']:.1f} ms over {r['track_frames']} of {r['frames_sent']} frame sets"
+    )
+    if r["events"]:
+        line += f"\ncapture-to-event latency: median {e['median']:.1f} ms, p99 {e['p99']:.1f} ms over {r['events']} events"
+    return line
+
+
+_SECTION_FUNCS = {
+    "codec": bench_codec, "worker": bench_worker, "render": bench_render, "carving": bench_carving, "tracking": bench_tracking,
+}
+_SECTION_TABLES = {
+    "codec": _codec_table, "worker": _worker_table, "render": _render_table, "carving": _carving_table, "tracking": _tracking_table,
+}
+
+
+# ---------------------------------------------------------------- helpers
+
+
+def _percentiles(values: list[float]) -> dict[str, float]:
+    if not values:
+        return {"median": float("nan"), "p99": float("nan"), "max": float("nan")}
+    arr = np.asarray(values)
+    return {"median": float(np.median(arr)), "p99": float(np.percentile(arr, 99)), "max": float(arr.max())}
+
+
+def _pin_one_core():
+    if not hasattr(os, "sched_setaffinity"):
+        return None
+    before = os.sched_getaffinity(0)
+    os.sched_setaffinity(0, {min(before)})
+    return before
+
+
+def _unpin(before) -> None:
+    if before is not None:
+        os.sched_setaffinity(0, before)
+
+
+def _free_port() -> int:
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _wait_for(session, key: str, *, timeout_s: float) -> None:
+    """Wait until a liveliness token on ``key`` exists."""
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        replies = list(session.liveliness().get(key, timeout=1.0))
+        if any(r.ok is not None for r in replies):
+            return
+        time.sleep(0.2)
+    raise RuntimeError(f"no fusion server appeared on {key} within {timeout_s:.0f} s")
+
+
+__all__ = ["SECTIONS", "machine", "measure_latency", "run_bench"]
