@@ -280,6 +280,22 @@ def _site_near(folder: Path):
     return load_site(path) if path.is_file() else None
 
 
+def _register_demo(sub) -> None:
+    p = sub.add_parser("demo", help="the synthetic house as a distributed system on this machine (the default job)")
+    p.add_argument("--scenario", default=None, help="scenario name (default: the demo scenario); voxelwatch synth --list shows them")
+    p.add_argument("--out", type=Path, default=Path("voxelwatch-demo"), help="output folder (default ./voxelwatch-demo)")
+    p.add_argument("--seed", type=int, default=0, help="random seed of the scenario")
+    p.add_argument("--frames", type=int, default=None, help="run only the first N frames")
+    p.add_argument("--port", type=int, default=None, help="loopback port of the demo's zenoh router (default: a free one)")
+    p.set_defaults(handler=_demo)
+
+
+def _demo(args: argparse.Namespace) -> int:
+    from common.demo import run_demo
+
+    return run_demo(scenario=args.scenario, out_dir=args.out, seed=args.seed, frames=args.frames, port=args.port)
+
+
 def _register_bench(sub) -> None:
     p = sub.add_parser("bench", help="measure every stage's speed and size on this machine")
     p.add_argument("--sections", default=None, help="comma-separated subset of: codec, worker, render, carving, tracking, latency")
@@ -297,6 +313,7 @@ def _bench(args: argparse.Namespace) -> int:
 
 
 _SUBCOMMANDS: list[Callable] = [
+    _register_demo,
     _register_bench,
     _register_synth, _register_replay, _register_eval, _register_site, _register_router, _register_passthrough,
 ]

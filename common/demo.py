@@ -1,0 +1,271 @@
+"""``voxelwatch demo``: the synthetic house as a real distributed system on this machine.
+
+One ``voxelwatch-camera`` process per camera renders and segments its own
+view of a scenario, one ``voxelwatch-fusion`` process fuses them, all over
+zenoh on loopback with multicast scouting off: this process is the zenoh
+router the others connect to as clients, and it subscribes to the events and
+tracks like any user would. It prints events as they happen with a progress
+line, and ends with a summary, the tracks and events files, a score against
+the scenario's ground truth and an annotated plan view.
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import json
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+from collections import Counter
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TextIO
+
+START_DELAY_S = 6.0
+"""Workers' first frame is stamped this long after launch, so all start in step."""
+
+
+@dataclass
+class _Live:
+    """What the demo has heard, updated from zenoh callbacks."""
+
+    lock: threading.Lock = field(default_factory=threading.Lock)
+    frame: int = -1
+    tracks: list = field(default_factory=list)
+    track_frames: int = 0
+    first_track_s: float | None = None
+    events: list = field(default_factory=list)
+    cameras: dict = field(default_factory=dict)
+
+
+def run_demo(
+    *,
+    scenario: str | None = None,
+    out_dir: str | Path = "voxelwatch-demo",
+    seed: int = 0,
+    frames: int | None = None,
+    port: int | None = None,
+    stream: TextIO = sys.stdout,
+) -> int:
+    """Run the scenario end to end; returns the process exit code."""
+    import zenoh
+
+    from common import keys, messages, synth
+
+    name = scenario or synth.DEFAULT_SCENARIO
+    spec = synth.scenario_spec(name)  # unknown names stop here with the list
+    out = Path(out_dir).resolve()
+    run_dir = out / "run"
+    for stale in ("tracks.csv", "events.jsonl", "events.sqlite"):
+        (run_dir / stale).unlink(missing_ok=True)
+    run_dir.mkdir(parents=True, exist_ok=True)
+    site = synth.default_site(out / "site")
+    site_path = site.base_dir / "site.toml"
+    sc = synth.get_scenario(name, seed, utc_offset_hours=site.utc_offset_hours)
+    n_frames = sc.n_frames if frames is None else min(frames, sc.n_frames)
+    synth.write_truth(sc, out / "truth", n_frames=n_frames)
+    endpoint = f"tcp/127.0.0.1:{port or _free_port()}"
+    conf = zenoh.Config()
+    for key, value in {
+        "mode": "router",
+        "listen/endpoints": [endpoint],
+        "scouting/multicast/enabled": False,
+        "transport/shared_memory/enabled": False,
+    }.items():
+        conf.insert_json5(key, json.dumps(value))
+
+    print(f"voxelwatch demo: scenario {name!r} ({spec.description}), {n_frames / sc.fps:.0f} s, "
+          f"{len(site.camera_ids)} cameras, zenoh router {endpoint}", file=stream, flush=True)
+    live = _Live()
+    t_launch = time.monotonic()
+    procs: dict[str, subprocess.Popen] = {}
+    logs = out / "logs"
+    logs.mkdir(exist_ok=True)
+    zenoh_args = ["--mode", "client", "--connect", endpoint]
+    with zenoh.open(conf) as session:
+        subs = [
+            session.declare_subscriber(keys.events_wildcard(site.prefix), lambda s: _on_event(s, live, stream, t_launch, sc)),
+            session.declare_subscriber(keys.tracks_key(site.prefix), lambda s: _on_tracks(s, live, t_launch)),
+            session.declare_subscriber(keys.status_key(site.prefix), lambda s: _on_status(s, live)),
+        ]
+        try:
+            procs["fusion"] = _spawn(
+                ["voxelwatch-fusion", "--site", str(site_path), "--out", str(run_dir), "--store", str(run_dir / "events.sqlite"),
+                 "--cache-dir", str(out / "cache"), "--exit-after-idle", "4", *zenoh_args],
+                logs / "fusion.log",
+            )
+            _wait_alive(session, keys.alive_fusion_key(site.prefix), procs["fusion"], stream)
+            start_ns = time.time_ns() + int(START_DELAY_S * 1e9)
+            for cam in site.camera_ids:
+                procs[cam] = _spawn(
+                    ["voxelwatch-camera", "--site", str(site_path), "--camera", cam, "--source", f"synthetic:{name}",
+                     "--seed", str(seed), "--start-ns", str(start_ns), "--max-frames", str(n_frames), "-q", *zenoh_args],
+                    logs / f"{cam}.log",
+                )
+            print(f"started {len(site.camera_ids)} camera workers and the fusion server; logs in {logs}", file=stream, flush=True)
+            _watch(procs, live, site.camera_ids, n_frames, sc.fps, stream)
+        except KeyboardInterrupt:
+            print("\ninterrupted: stopping the processes", file=stream)
+        finally:
+            _stop_all(procs)
+            for sub in subs:
+                sub.undeclare()
+    return _summary(out, run_dir, live, procs, stream)
+
+
+# ---------------------------------------------------------------- callbacks (only record and print)
+
+
+def _on_event(sample, live: _Live, stream: TextIO, t_launch: float, sc) -> None:
+    from common import messages
+
+    try:
+        event = messages.decode_event(sample.payload.to_bytes())
+    except messages.WireError as exc:
+        print(f"  (unreadable event on {sample.key_expr}: {exc})", file=stream)
+        return
+    with live.lock:
+        live.events.append(event)
+    t = event.frame / sc.fps if event.frame >= 0 else 0.0
+    where = f" at ({event.x:.1f}, {event.y:.1f}) m" if event.track >= 0 else ""
+    details = ", ".join(f"{k}={v}" for k, v in event.details.items() if k in ("hotspot", "reason", "camera", "door", "to_posture"))
+    track = f"person {event.track}" if event.track >= 0 else ""
+    print(f"\r\033[K[{t:6.1f} s] {event.kind.upper():<12} {track}{where}{'  ' + details if details else ''}", file=stream, flush=True)
+
+
+def _on_tracks(sample, live: _Live, t_launch: float) -> None:
+    from common import messages
+
+    try:
+        msg = messages.decode(sample.payload.to_bytes(), messages.TrackFrame)
+    except messages.WireError:
+        return
+    with live.lock:
+        live.frame = msg.frame
+        live.tracks = list(msg.tracks)
+        live.track_frames += 1
+        if live.first_track_s is None:
+            live.first_track_s = time.monotonic()
+
+
+def _on_status(sample, live: _Live) -> None:
+    from common import messages
+
+    try:
+        msg = messages.decode(sample.payload.to_bytes(), messages.Status)
+    except messages.WireError:
+        return
+    with live.lock:
+        live.cameras = {c.cam: c for c in msg.cameras}
+
+
+# ---------------------------------------------------------------- processes
+
+
+def _spawn(cmd: list[str], log_path: Path) -> subprocess.Popen:
+    exe = Path(sys.executable).parent / cmd[0]
+    argv = [str(exe) if exe.exists() else cmd[0], *cmd[1:]]
+    log = open(log_path, "w")
+    return subprocess.Popen(argv, stdout=log, stderr=subprocess.STDOUT, start_new_session=True)
+
+
+def _wait_alive(session, key: str, proc: subprocess.Popen, stream: TextIO, timeout_s: float = 300.0) -> None:
+    print("starting the fusion server (the first start computes the carving tables) ...", file=stream, flush=True)
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if proc.poll() is not None:
+            raise RuntimeError(f"the fusion server exited with code {proc.returncode} during start-up (see its log)")
+        if any(r.ok is not None for r in session.liveliness().get(key, timeout=1.0)):
+            return
+        time.sleep(0.2)
+    raise RuntimeError(f"the fusion server did not come up within {timeout_s:.0f} s")
+
+
+def _watch(procs, live: _Live, cam_ids, n_frames: int, fps: float, stream: TextIO) -> None:
+    last_frames, last_t = 0, time.monotonic()
+    rate = 0.0
+    while True:
+        time.sleep(1.0)
+        workers_done = all(procs[c].poll() is not None for c in cam_ids)
+        if procs["fusion"].poll() is not None:
+            return
+        with live.lock:
+            frame, tracks, count, cams = live.frame, list(live.tracks), live.track_frames, dict(live.cameras)
+        now = time.monotonic()
+        rate = 0.7 * rate + 0.3 * (count - last_frames) / max(now - last_t, 1e-6) if last_frames else (count - last_frames) / max(now - last_t, 1e-6)
+        last_frames, last_t = count, now
+        people = ", ".join(f"{t.id}:{t.posture}" for t in tracks) or "nobody"
+        ok = sum(1 for c in cams.values() if c.state == "ok")
+        progress = f"frame {max(frame, 0):>5}/{n_frames}  {rate:4.1f} fused/s  cameras {ok}/{len(cam_ids)} ok  people: {people}"
+        print(f"\r\033[K{progress}", end="", file=stream, flush=True)
+        if workers_done:
+            # the recording has ended; the fusion server exits once idle
+            try:
+                procs["fusion"].wait(timeout=30)
+            except subprocess.TimeoutExpired:
+                pass
+            return
+
+
+def _stop_all(procs: dict[str, subprocess.Popen]) -> None:
+    for proc in procs.values():
+        if proc.poll() is None:
+            proc.send_signal(signal.SIGTERM)
+    deadline = time.monotonic() + 15
+    for proc in procs.values():
+        try:
+            proc.wait(timeout=max(0.1, deadline - time.monotonic()))
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
+
+
+def _summary(out: Path, run_dir: Path, live: _Live, procs, stream: TextIO) -> int:
+    from common.evaluation import evaluate
+
+    print("\n", file=stream)
+    kinds = Counter(e.kind for e in live.events)
+    print(f"summary: {live.track_frames} fused frames, {len(live.events)} events "
+          f"({', '.join(f'{k} {n}' for k, n in sorted(kinds.items())) or 'none'})", file=stream)
+    failed = {name: p.returncode for name, p in procs.items() if p.returncode not in (0, None, -signal.SIGTERM)}
+    if failed:
+        print(f"processes that failed: {failed} (logs in {out / 'logs'})", file=stream)
+    if not (run_dir / "tracks.csv").is_file():
+        print("no tracks were written", file=stream)
+        return 1
+    try:
+        result = evaluate(out / "truth", run_dir)
+        tr = result["tracking"]
+        line = f"against ground truth: MOTA {_pct(tr.get('mota'))}, IDF1 {_pct(tr.get('idf1'))}, MOTP {tr.get('motp_m') or 0:.3f} m"
+        ev = result.get("events") or {}
+        fall = (ev.get("per_kind") or {}).get("fall")
+        if fall and (fall.get("tp", 0) + fall.get("fn", 0)):
+            line += f", falls found {fall['tp']}/{fall['tp'] + fall['fn']}"
+        print(line, file=stream)
+    except Exception as exc:  # the summary must not hide the files already written
+        print(f"(could not score against ground truth: {exc})", file=stream)
+    try:
+        from common.evaluation import plots
+        from common.site import load_site
+
+        plots.plan_view(run_dir, load_site(out / "site" / "site.toml"), run_dir / "plan.png", truth_dir=out / "truth")
+        print(f"plan view: {run_dir / 'plan.png'}", file=stream)
+    except ImportError as exc:
+        print(f"(no plan view: {exc})", file=stream)
+    print(f"tracks: {run_dir / 'tracks.csv'}\nevents: {run_dir / 'events.jsonl'}", file=stream)
+    return 1 if failed else 0
+
+
+def _pct(value) -> str:
+    return "-" if value is None else f"{100 * value:.1f} %"
+
+
+def _free_port() -> int:
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
