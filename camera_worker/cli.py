@@ -58,7 +58,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="recording of the empty room to learn first; default: the camera's 'background'")
     g.add_argument("--no-background", action="store_true", help="ignore the site's background clip")
     g.add_argument("--background-frames", type=int, metavar="N",
-                   help="learn at most N background frames (the synthetic house: default 100)")
+                   help="learn at most N frames of the background clip (default: all of it)")
     g.add_argument("--fps", type=float, metavar="HZ",
                    help="frame rate of a recording, overriding its own (default: the file's, else the camera's fps)")
     g.add_argument("--fast", action="store_true", help="play recordings as fast as possible instead of at their rate")
@@ -166,6 +166,7 @@ def _configure(args: argparse.Namespace):
                        detect_shadows=not args.no_shadows),
         max_frames=args.max_frames,
         stats_period_s=args.stats_period,
+        expected_size=tuple(spec.resolution),
     )
     # build the segmenter once here so that a bad value stops start-up with its name
     from camera_worker.segmentation import ForegroundSegmenter

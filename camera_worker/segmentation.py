@@ -31,19 +31,21 @@ needs from a camera:
   without holds pay nothing. (OpenCV's ``apply(image, knownForegroundMask)``
   was tried: it still learns the masked pixels, so it cannot hold.)
 * **Sudden light change.** When more than ``light_change_fraction`` of the
-  image differs from the background (foreground or shadow, before clean-up)
-  and the change covers at least 14 of the 16 cells of a 4x4 grid (a person
-  close to the lens does not), the new light is adopted at once: the
-  background times a per-channel gain (median ratio frame/background)
-  predicts the frame, pixels it does not explain (people) and hold boxes are
-  filled with that prediction, and the model learns the result at rate 1/2;
-  the frame is then segmented again against the updated model. The mask is
-  therefore clean from the frame of the change on (0 frames of garbage for a
-  global change; tested). The next ``relearn_frames`` frames continue the
-  restarted window schedule (rates 1/3, 1/4, ...) with their foreground
-  masked out of the update, so the new light settles without people being
-  learned. Local changes the gain cannot explain (one lamp in a corner) are
-  absorbed at the normal rate like any other static change.
+  live image (pixels whose background is not black, so a fisheye's corners
+  do not count) differs from the background (foreground or shadow, before
+  clean-up) and the change covers at least 14/16 of the live cells of a
+  4x4 grid (a person close to the lens does not), the model is
+  re-initialised (rate 1, the window schedule's ``n = 1``) with its own
+  background re-lit: each pixel's most probable background mode times a
+  per-channel gain, the median ratio frame/background. Nothing in view at
+  that moment is learned -- people, their soft shadows, hold boxes -- and
+  the frame is segmented again against the re-lit model, so the mask is
+  clean from the frame of the change on (recovery within 0 frames for a
+  global change; tested on drawn scenes and on the synthetic house's lamp).
+  The next ``relearn_frames`` frames continue the restarted schedule (rates
+  1/2, 1/3, ...) with their foreground and shadows masked out of the update.
+  A change the gain cannot explain (one lamp lighting one corner) is left to
+  the normal rate, like any other static change.
 * **Downscaling.** With ``mask_scale < 1`` the frame is reduced (area
   averaging) before segmentation, which is cheaper and gives the smaller
   mask the fusion wants anyway. Sizes in pixels given to the constructor are
@@ -63,13 +65,13 @@ import numpy as np
 
 Box = tuple[int, int, int, int]
 
-_RELEARN_FIRST_RATE = 0.5     # rate on the frame that shows a light change: 1/n with n = 2
-_LIGHT_RESIDUAL = 30          # grey levels the gained background may miss by before a pixel counts as a person
-_PROTECT_KERNEL = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (5, 5))
+_RELEARN_FIRST_RATE = 1.0     # the frame that shows a light change re-initialises the model: 1/n with n = 1
+_PROTECT_KERNEL = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (5, 5))   # foreground edges kept out of re-learning
 _BG_REFRESH_FRAMES = 8       # hold boxes use a background image at most this many frames old
 _LIGHT_GRID = 4               # a light change covers most cells of a 4x4 grid ...
 _LIGHT_CELL_FRACTION = 0.25   # ... each cell at least this much changed ...
 _LIGHT_MIN_CELLS = 14         # ... in at least this many cells (a person close to the lens covers fewer)
+_DEAD_LEVEL = 8               # background pixels at most this bright (a fisheye's corners) never count
 
 __all__ = [
     "Box",
@@ -273,19 +275,19 @@ class ForegroundSegmenter:
         n_pix = float(raw.size)
         changed = cv2.countNonZero(raw) / n_pix
 
-        light_change = learn and not first and self._is_light_change(raw, changed)
+        light_change = learn and not first and self._is_light_change(small, raw, changed)
         if light_change:
             self._adopt_light(small, boxes)
             raw = self._model.apply(small, learningRate=0.0)
             rate = _RELEARN_FIRST_RATE
-            self._relearn_n = 3 if self.relearn_frames > 0 else 0
+            self._relearn_n = 2 if self.relearn_frames > 0 else 0
         elif selective:
-            protect = cv2.dilate(cv2.threshold(raw, 200, 255, cv2.THRESH_BINARY)[1], _PROTECT_KERNEL) \
-                if relearning else None
+            # people and shadows (both non-zero) stay out of the re-learning
+            protect = cv2.dilate(raw, _PROTECT_KERNEL) if relearning else None
             self._update_selective(small, boxes, protect, rate)
             if relearning:
                 self._relearn_n += 1
-                if self._relearn_n > self.relearn_frames + 2:
+                if self._relearn_n > self.relearn_frames + 1:
                     self._relearn_n = 0
 
         fg_raw = cv2.threshold(raw, 200, 255, cv2.THRESH_BINARY)[1]   # 255 foreground, 127 shadow, 0 background
@@ -326,18 +328,40 @@ class ForegroundSegmenter:
             frame = cv2.resize(frame, _scaled_size(size, self.mask_scale), interpolation=cv2.INTER_AREA)
         return frame
 
-    def _is_light_change(self, raw: np.ndarray, changed: float) -> bool:
-        if self.light_change_fraction is None or changed <= self.light_change_fraction:
+    def _is_light_change(self, small: np.ndarray, raw: np.ndarray, changed: float) -> bool:
+        """Most of the live image changed, spread over most of it (a person close to the lens is not).
+
+        Live pixels are those whose background is not black: a fisheye's
+        corners never change and must not count against a light change.
+        """
+        if self.light_change_fraction is None or changed <= 0.5 * self.light_change_fraction:
             return False
-        # A global light change is spread over the whole image; a person close to the lens is not.
-        cells = cv2.resize((raw != 0).astype(np.float32), (_LIGHT_GRID, _LIGHT_GRID), interpolation=cv2.INTER_AREA)
-        return int(np.count_nonzero(cells >= _LIGHT_CELL_FRACTION)) >= _LIGHT_MIN_CELLS
+        bg = self._background(small, fresh=False)
+        live = cv2.threshold(bg if bg.ndim == 2 else bg.max(axis=2), _DEAD_LEVEL, 1, cv2.THRESH_BINARY)[1]
+        n_live = cv2.countNonZero(live)
+        if n_live == 0:
+            return False
+        moved = cv2.bitwise_and(cv2.threshold(raw, 0, 1, cv2.THRESH_BINARY)[1], live)
+        if cv2.countNonZero(moved) / n_live <= self.light_change_fraction:
+            return False
+        grid = (_LIGHT_GRID, _LIGHT_GRID)
+        cell_live = cv2.resize(live.astype(np.float32), grid, interpolation=cv2.INTER_AREA)
+        cell_moved = cv2.resize(moved.astype(np.float32), grid, interpolation=cv2.INTER_AREA)
+        cells = cell_live >= 0.25
+        spread = cells & (cell_moved >= _LIGHT_CELL_FRACTION * cell_live)
+        return int(np.count_nonzero(spread)) >= math.ceil(_LIGHT_MIN_CELLS / _LIGHT_GRID ** 2 * np.count_nonzero(cells))
 
     def _background(self, small: np.ndarray, *, fresh: bool) -> np.ndarray:
         # The background moves at the rate alpha: refreshing it every few frames is plenty,
         # except while re-learning after a light change.
         if fresh or self._bg is None or self._relearn_n or self._frames - self._bg_frame >= _BG_REFRESH_FRAMES:
-            bg = self._model.getBackgroundImage()
+            # the most probable mode of each pixel only: with the usual ratio the image is a
+            # weighted mean of every background mode, shadows learned at a low weight included
+            self._model.setBackgroundRatio(1e-3)
+            try:
+                bg = self._model.getBackgroundImage()
+            finally:
+                self._model.setBackgroundRatio(self._params["background_ratio"])
             if bg.shape != small.shape:   # grey input: MOG2 keeps a grey model
                 bg = bg.reshape(small.shape)
             self._bg, self._bg_frame = bg, self._frames
@@ -357,25 +381,21 @@ class ForegroundSegmenter:
         self._model.apply(composite, learningRate=rate)
 
     def _adopt_light(self, small: np.ndarray, boxes: list[Box]) -> None:
-        """Learn a sudden global light change at rate 1/2 without learning the people in view.
+        """Re-initialise the model with its own background re-lit by the measured gain.
 
-        The new light is modelled as a per-channel gain on the background;
-        pixels that the gained background does not explain (people, by
-        their residual) and hold boxes are filled with the gained
-        background before the update.
+        The new light is modelled as a per-channel gain on the background
+        (each pixel's most probable mode), so nothing in view now -- people,
+        their soft shadows, hold boxes -- is learned. Where the background
+        was clipped at white, the frame may raise the prediction.
         """
         bg = self._background(small, fresh=True)
         gain = _gain(small, bg, boxes)
-        pred = bg if gain is None else _scaled(bg, gain)
-        resid = cv2.absdiff(small, pred)
-        if resid.ndim == 3:
-            resid = resid.max(axis=2)
-        people = cv2.dilate(cv2.threshold(resid, _LIGHT_RESIDUAL, 255, cv2.THRESH_BINARY)[1], _PROTECT_KERNEL)
-        for x0, y0, x1, y1 in boxes:
-            people[y0:y1, x0:x1] = 255
-        composite = small.copy()
-        np.copyto(composite, pred, where=(people > 0) if small.ndim == 2 else (people > 0)[..., None])
-        self._model.apply(composite, learningRate=_RELEARN_FIRST_RATE)
+        relit = bg if gain is None else _scaled(bg, gain)
+        # where the background was clipped at white its true level is unknown: when the light
+        # drops, such a pixel may be brighter than the gain predicts, never darker
+        clipped = bg >= 250 if bg.ndim == 2 else (bg >= 250).any(axis=2, keepdims=True)
+        np.copyto(relit, cv2.max(relit, small), where=np.broadcast_to(clipped, relit.shape))
+        self._model.apply(relit, learningRate=_RELEARN_FIRST_RATE)
         self._bg = None
 
 
@@ -465,8 +485,8 @@ def _kernel(size_px: int, scale: float) -> np.ndarray | None:
 def _gain(frame: np.ndarray, bg: np.ndarray, boxes: list[Box]) -> np.ndarray | None:
     """Per-channel brightness ratio frame/background, the median over an 8-pixel grid outside ``boxes``.
 
-    The median ignores people (a minority of the pixels); dark background
-    pixels (< 16) are left out. None when every channel is within 2 % of
+    The median ignores people (a minority of the pixels); dark (< 16) and
+    clipped (> 250) pixels are left out. None when every channel is within 2 % of
     one or too few pixels are left.
     """
     step = 8
@@ -480,7 +500,7 @@ def _gain(frame: np.ndarray, bg: np.ndarray, boxes: list[Box]) -> np.ndarray | N
     b = b[sel].reshape(-1, channels)
     gain = np.ones(channels, np.float32)
     for c in range(channels):
-        ok = b[:, c] >= 16.0
+        ok = (b[:, c] >= 16.0) & (b[:, c] <= 250.0) & (f[:, c] <= 250.0)   # no dark or clipped pixels
         if np.count_nonzero(ok) < 64:
             return None
         gain[c] = np.median(f[ok, c] / b[ok, c])

@@ -274,8 +274,8 @@ class CaptureSource(FrameSource):
 class SyntheticSource(FrameSource):
     """One camera of the synthetic house (``common.synth``); recorded stamps, true masks.
 
-    ``background=True`` yields the empty room (``background_frame(i)``) for
-    ``n_frames`` frames (default: the scenario's length), for learning.
+    ``background=True`` yields the clip of the empty room recorded before the
+    scenario (``background_frame(i)``), for learning. ``n_frames`` caps either.
     """
 
     live = False
@@ -295,12 +295,12 @@ class SyntheticSource(FrameSource):
 
     def open(self) -> None:
         try:
-            from common import synth
+            from common.synth.source import SyntheticCamera
         except ImportError as exc:
             raise SourceError(f"{self.name}: the synthetic house is not available ({exc})") from None
         try:
-            camera = synth.SyntheticCamera(self.scenario, self.cam_id, self.seed) if self.scenario \
-                else synth.SyntheticCamera(cam_id=self.cam_id, seed=self.seed)
+            camera = SyntheticCamera(self.scenario, self.cam_id, self.seed) if self.scenario \
+                else SyntheticCamera(cam_id=self.cam_id, seed=self.seed)
         except (KeyError, ValueError) as exc:
             raise SourceError(f"{self.name}: {exc}") from None
         self._camera = camera
@@ -309,13 +309,11 @@ class SyntheticSource(FrameSource):
 
     @property
     def n_frames(self) -> int:
-        """Frames this source yields: the scenario's length (capped by ``n_frames``);
-        for the empty room ``n_frames`` or 100."""
+        """Frames this source yields, capped by ``n_frames``: the scenario's length, or for the
+        empty room the clip recorded before the scenario (3 s)."""
         if self._camera is None:
             raise SourceError(f"{self.name}: not open")
-        total = int(self._camera.n_frames)
-        if self.background:
-            return self._n_frames if self._n_frames is not None else min(total, 100)
+        total = int(self._camera.n_background_frames if self.background else self._camera.n_frames)
         return total if self._n_frames is None else min(total, self._n_frames)
 
     def read(self) -> Frame | None:

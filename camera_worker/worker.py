@@ -80,7 +80,8 @@ class WorkerSettings:
     recorded frame (None: the host clock at start). ``paced``: play recorded
     sources at their rate. ``segmenter``: keyword arguments of
     :class:`ForegroundSegmenter`. ``max_frames``: stop after this many frames
-    (None: no limit).
+    (None: no limit). ``expected_size``: the ``(width, height)`` the site
+    states for this camera; frames of another size are reported once.
     """
 
     cam: str
@@ -102,6 +103,7 @@ class WorkerSettings:
     backoff_s: float = 0.5
     max_backoff_s: float = 30.0
     hold_queue: int = 8
+    expected_size: tuple[int, int] | None = None
 
     def __post_init__(self) -> None:
         keys.validate_chunk(self.cam, "camera id")
@@ -297,6 +299,7 @@ class _Loop:
         self.last_seq = -1
         self.last_stamp_ns = 0
         self._failed_recorded = False
+        self._size_warned: tuple[int, int] | None = None
         self.pace_origin: tuple[float, int] | None = None   # (monotonic s, stamp_ns) of the paced start
         self._bad_holds = _RateLimited(f"camera {settings.cam}: hold message dropped")
         self._next_stats = time.monotonic() + settings.stats_period_s
@@ -316,6 +319,7 @@ class _Loop:
                     continue
                 return 0 if self.stop.is_set() or not self._failed_recorded else 1
             t1 = time.perf_counter()
+            self._check_size(frame)
             self._take_holds(frame.stamp_ns)
             try:
                 mask, stats = self.segmenter.apply(frame.image, holds=self.holds.boxes(frame.stamp_ns))
@@ -393,6 +397,14 @@ class _Loop:
         due = self.pace_origin[0] + (stamp_ns - self.pace_origin[1]) / 1e9
         if due > now:
             self.stop.wait(due - now)
+
+    def _check_size(self, frame: Frame) -> None:
+        size = (frame.image.shape[1], frame.image.shape[0])
+        if self.s.expected_size is not None and size != tuple(self.s.expected_size) and size != self._size_warned:
+            self._size_warned = size
+            log.warning("camera %s: frames are %dx%d but the site file says %dx%d (cameras[].resolution); "
+                        "the fusion projects masks with the site's size", self.s.cam, size[0], size[1],
+                        *self.s.expected_size)
 
     def _take_holds(self, now_ns: int) -> None:
         while True:

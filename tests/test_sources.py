@@ -281,3 +281,31 @@ def test_live_reader_waits_for_a_source_that_is_not_there_yet(tmp_path):
 def test_live_reader_rejects_bad_backoff():
     with pytest.raises(ValueError, match="backoff"):
         LiveReader(CaptureSource(0), backoff_s=0.0)
+
+
+# --- the synthetic house ---------------------------------------------------------------------------
+
+
+def test_synthetic_source_gives_frames_truth_and_the_empty_room():
+    pytest.importorskip("common.synth.source")
+    src = open_source("synthetic:walk", cam_id="cam2", seed=1, start_ns=1_000, n_frames=3)
+    with src:
+        assert src.fps == 15.0 and src.n_frames == 3 and not src.live
+        frames = [src.read() for _ in range(3)]
+        assert src.read() is None
+    assert [f.stamp_ns for f in frames] == [recorded_stamp_ns(1_000, i, 15.0) for i in range(3)]
+    assert frames[0].image.shape == (480, 640, 3) and frames[0].truth.shape == (480, 640)
+    assert set(np.unique(frames[0].truth)) <= {0, 255}
+    bg = open_source("synthetic:walk", cam_id="cam2", seed=1, background=True)
+    with bg:
+        assert bg.n_frames == 45                    # 3 s of empty room at 15 fps
+        empty = bg.read()
+    assert empty.truth is None and empty.image.shape == (480, 640, 3)
+
+
+def test_synthetic_source_names_an_unknown_scenario_or_camera():
+    pytest.importorskip("common.synth.source")
+    with pytest.raises(SourceError, match="synthetic:nowhere"):
+        open_source("synthetic:nowhere", cam_id="cam1").open()
+    with pytest.raises(SourceError, match="cam9"):
+        open_source("synthetic", cam_id="cam9").open()

@@ -326,3 +326,19 @@ def test_bad_site_and_camera_exit_2_with_one_line(tmp_path):
     assert "no camera 'cam7'" in proc.stderr and "Traceback" not in proc.stderr
     proc = subprocess.run([str(CAMERA), "--help"], capture_output=True, text=True, timeout=30)
     assert proc.returncode == 0 and "--source" in proc.stdout and "rtsp://" in proc.stdout
+
+
+def test_worker_process_plays_the_synthetic_house(tmp_path, listener):
+    """The synthetic house as source and background: masks of the walking person, as fast as possible."""
+    pytest.importorskip("common.synth.source")
+    site = _write_site(tmp_path)
+    proc = _start(site, listener, "--source", "synthetic:walk", "--background", "synthetic:walk", "--fast",
+                  "--max-frames", "30", "--start-ns", "0")
+    out, err = proc.communicate(timeout=60)
+    assert proc.returncode == 0, err
+    masks = listener.masks()
+    assert len(masks) >= 20
+    assert all((m.width, m.height) == (640, 480) and m.stamp_ns == round(m.seq * 1e9 / 15.0) for m in masks)
+    assert all(m.fg_fraction > 0.002 for m in masks)              # the person is in every mask
+    assert "learned the background from 45 frames" in err
+    assert "frames are 640x480 but the site file says 160x120" in err
