@@ -23,7 +23,7 @@ needs from a camera:
   this way: the foreground of the real frame is computed with
   ``learningRate=0`` (no update), then the model is updated with the normal
   rate on a copy of the frame whose hold boxes are replaced by the model's
-  own background image (gain-corrected for global brightness changes,
+  own background image (gain-corrected for global brightness changes; both
   refreshed every 8 frames). The model keeps learning everywhere else and
   sees background inside the boxes, so the still person stays foreground
   however long the hold lasts. The cost is a second ``apply`` (about 2.3 ms
@@ -205,8 +205,10 @@ class ForegroundSegmenter:
         self._settled = False       # a background clip was learned: live frames use alpha
         self._relearn_n = 0         # > 0: inside the re-learn window, next rate 1/_relearn_n
         self._full_size: tuple[int, int] | None = None   # (W, H) of input frames
-        self._bg: np.ndarray | None = None   # cached background image for hold boxes
+        self._bg: np.ndarray | None = None   # cached background image for hold boxes ...
         self._bg_frame = 0
+        self._pred: np.ndarray | None = None  # ... and the same times the current gain
+        self._pred_frame = -1
 
     @property
     def frames_seen(self) -> int:
@@ -371,8 +373,11 @@ class ForegroundSegmenter:
                           rate: float) -> None:
         """Update with the frame, except hold boxes and ``protect`` pixels, which get the background."""
         bg = self._background(small, fresh=False)
-        gain = _gain(small, bg, boxes)
-        pred = bg if gain is None else _scaled(bg, gain)
+        if self._pred is None or self._pred_frame != self._bg_frame:   # re-lit with the background
+            gain = _gain(small, bg, boxes)
+            self._pred = bg if gain is None else _scaled(bg, gain)
+            self._pred_frame = self._bg_frame
+        pred = self._pred
         composite = small.copy()
         for x0, y0, x1, y1 in boxes:
             composite[y0:y1, x0:x1] = pred[y0:y1, x0:x1]
