@@ -316,6 +316,10 @@ class SyntheticSource(FrameSource):
         total = int(self._camera.n_background_frames if self.background else self._camera.n_frames)
         return total if self._n_frames is None else min(total, self._n_frames)
 
+    def seek(self, index: int) -> None:
+        """Jump to frame ``index`` (rendering is random access: skipped frames cost nothing)."""
+        self._index = max(0, int(index))
+
     def read(self) -> Frame | None:
         if self._camera is None:
             raise SourceError(f"{self.name}: read before open")

@@ -55,6 +55,7 @@ from common.messages import HoldRegions, MaskFrame, WireError
 __all__ = [
     "STAGES",
     "HoldBook",
+    "HoldRegionsRejected",
     "WorkerCounters",
     "WorkerSettings",
     "build_mask_frame",
@@ -255,7 +256,7 @@ def run(session: Any, settings: WorkerSettings, *, stop: threading.Event | None 
             return 1
     try:
         if settings.background:
-            _learn_background(segmenter, settings, start_ns)
+            _learn_background(segmenter, settings, start_ns, stop)
     except (SourceError, ValueError) as exc:
         log.error("camera %s: %s", settings.cam, exc)
         source.close()
@@ -375,10 +376,31 @@ class _Loop:
         if frame is None:
             return None
         self.c.read += 1
+        if self.s.paced and self.s.start_ns is not None:
+            frame = self._catch_up(frame)
+            if frame is None:
+                return None
         self.last_stamp_ns = frame.stamp_ns
         if self.s.paced:
             self._pace(frame.stamp_ns)
         return frame
+
+    def _catch_up(self, frame: Frame) -> Frame | None:
+        """On the host clock, a worker that fell behind drops the frames it is late
+        for (counted) instead of publishing ever older ones."""
+        period_ns = 1e9 / (self.source.fps or 15.0)
+        behind = int((time.time_ns() - frame.stamp_ns) / period_ns)
+        if behind < 2:
+            return frame
+        seek = getattr(self.source, "seek", None)
+        if seek is None:
+            return frame  # a file must be decoded in order anyway: publish late rather than decode twice
+        seek(frame.index + behind)
+        self.c.dropped += behind
+        nxt = self.source.read()
+        if nxt is not None:
+            self.c.read += 1
+        return nxt
 
     def _restart_recorded(self) -> Frame | None:
         """Play a recorded source again, its stamps and sequence numbers carrying on."""
@@ -390,6 +412,13 @@ class _Loop:
         return self.source.read()
 
     def _pace(self, stamp_ns: int) -> None:
+        if self.s.start_ns is not None:
+            # A shared start stamp puts every worker on the host clock: frame i is
+            # published at its own stamp, so workers started apart stay in step.
+            wait_s = (stamp_ns - time.time_ns()) / 1e9
+            if wait_s > 0:
+                self.stop.wait(wait_s)
+            return
         now = time.monotonic()
         if self.pace_origin is None:
             self.pace_origin = (now, stamp_ns)
@@ -434,8 +463,9 @@ class _Loop:
         self.source.close()
 
 
-def _learn_background(segmenter: ForegroundSegmenter, settings: WorkerSettings, start_ns: int) -> int:
-    """Learn every frame of the background clip; returns the number of frames learned."""
+def _learn_background(segmenter: ForegroundSegmenter, settings: WorkerSettings, start_ns: int,
+                      stop: threading.Event) -> int:
+    """Learn every frame of the background clip (until ``stop``); returns the number of frames learned."""
     bg = open_source(settings.background, cam_id=settings.cam, start_ns=start_ns, fps=settings.fps,
                      seed=settings.seed, base_dir=settings.base_dir, background=True,
                      n_frames=settings.background_frames, default_fps=settings.default_fps)
@@ -447,7 +477,7 @@ def _learn_background(segmenter: ForegroundSegmenter, settings: WorkerSettings, 
         raise SourceError(f"background {exc}") from None
     n = 0
     try:
-        while settings.background_frames is None or n < settings.background_frames:
+        while (settings.background_frames is None or n < settings.background_frames) and not stop.is_set():
             frame = bg.read()
             if frame is None:
                 break
@@ -458,7 +488,7 @@ def _learn_background(segmenter: ForegroundSegmenter, settings: WorkerSettings, 
             n += 1
     finally:
         bg.close()
-    if n == 0:
+    if n == 0 and not stop.is_set():
         raise SourceError(f"background {bg.name}: holds no frames")
     log.info("camera %s: learned the background from %d frames of %s", settings.cam, n, bg.name)
     return n
