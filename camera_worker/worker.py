@@ -79,7 +79,10 @@ class WorkerSettings:
     rate; ``default_fps`` (the site's camera fps) serves image folders and
     files without a rate. ``start_ns``: stamp of the first
     recorded frame (None: the host clock at start). ``paced``: play recorded
-    sources at their rate. ``segmenter``: keyword arguments of
+    sources at their rate -- from the first frame read, or, when ``start_ns``
+    is given, on the host clock (each frame at its stamp, so workers given the
+    same start stay in step; frames already late are skipped where the source
+    can seek). ``segmenter``: keyword arguments of
     :class:`ForegroundSegmenter`. ``max_frames``: stop after this many frames
     (None: no limit). ``expected_size``: the ``(width, height)`` the site
     states for this camera; frames of another size are reported once.
