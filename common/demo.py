@@ -26,6 +26,8 @@ from typing import TextIO
 
 START_DELAY_S = 6.0
 """Workers' first frame is stamped this long after launch, so all start in step."""
+BACKGROUND_FRAMES = 45
+"""Frames of the empty room each worker learns before the scenario (as replay does)."""
 
 
 @dataclass
@@ -102,6 +104,7 @@ def run_demo(
             for cam in site.camera_ids:
                 procs[cam] = _spawn(
                     ["voxelwatch-camera", "--site", str(site_path), "--camera", cam, "--source", f"synthetic:{name}",
+                     "--background", f"synthetic:{name}", "--background-frames", str(BACKGROUND_FRAMES),
                      "--seed", str(seed), "--start-ns", str(start_ns), "--max-frames", str(n_frames), "-q", *zenoh_args],
                     logs / f"{cam}.log",
                 )
