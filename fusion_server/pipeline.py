@@ -155,17 +155,30 @@ class FusionPipeline:
         )
 
     def hold_regions(self, still: list[TrackEstimate]) -> dict[str, list[tuple[int, int, int, int]]]:
-        """Per camera, the image boxes of the given people (a floor square of
-        ``hold_radius_m`` around each, from the floor to their top)."""
+        """Per camera, the image boxes of the given people: a floor rectangle
+        covering the square of ``hold_radius_m`` around each and the floor
+        extent of their matched blob, from the floor to their top.
+
+        The blob matters for anyone whose body reaches beyond the square
+        around their floor position: a seated person's lower legs and feet,
+        a person lying down. Left out of the hold, those parts would be
+        learned into the background while the rest of the body is held.
+        """
         holds: dict[str, list[tuple[int, int, int, int]]] = {cam: [] for cam in self.cameras}
         if not still:
             return holds
         r = self.hold_radius_m
         corners = []
         for est in still:
-            top = max(float(est.z_top_m), 0.5) + 0.1
-            for dx, dy, z in itertools.product((-r, r), (-r, r), (0.0, top)):
-                corners.append((est.x + dx, est.y + dy, z))
+            x0, x1, y0, y1 = est.x - r, est.x + r, est.y - r, est.y + r
+            top = float(est.z_top_m)
+            if est.blob is not None:
+                (bx0, by0, _), (bx1, by1, bz1) = est.blob.bbox_m
+                x0, x1, y0, y1 = min(x0, bx0), max(x1, bx1), min(y0, by0), max(y1, by1)
+                top = max(top, float(bz1))
+            top = max(top, 0.5) + 0.1
+            for x, y, z in itertools.product((x0, x1), (y0, y1), (0.0, top)):
+                corners.append((x, y, z))
         pts = np.asarray(corners, dtype=np.float64).reshape(len(still), 8, 3)
         for cam_id, cam in self.cameras.items():
             uv, valid = cam.project(pts.reshape(-1, 3))

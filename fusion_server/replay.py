@@ -36,6 +36,13 @@ from fusion_server.pipeline import FusedFrame, FusionPipeline
 
 VIDEO_SUFFIXES = (".avi", ".mp4", ".mkv", ".mov", ".m4v", ".webm")
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".pgm", ".ppm", ".tif", ".tiff")
+SEGMENTER_WINDOW_S = 500 / 15.0
+"""The segmenters' learning window in seconds: the segmenter's default 500
+frames at the 15 fps it was tuned for. The window is converted to frames at
+each recording's own rate, because a still person is learned into the
+background after about ``0.105 * window_frames`` frames: 3.5 s at 15 fps,
+but only 1.1 s at 50 fps with 500 frames, before the tracker (1 s still
+window) can hold them."""
 
 
 @dataclass
@@ -81,15 +88,18 @@ class _MaskFolder:
 class _SegmentedCamera:
     """A frame source and its segmenter."""
 
-    def __init__(self, source: FrameSource, background: FrameSource | None, segmenter: ForegroundSegmenter) -> None:
+    def __init__(self, source: FrameSource, background: FrameSource | None, *, mask_scale: float, default_fps: float) -> None:
         self.source = source
-        self.segmenter = segmenter
         self.last_stamp_ns = 0
         source.open()
+        fps = source.fps or default_fps
+        self.segmenter = ForegroundSegmenter(
+            mask_scale=mask_scale, window_frames=max(1, int(round(SEGMENTER_WINDOW_S * fps)))
+        )
         if background is not None:
             with background:
                 while (frame := background.read()) is not None:
-                    segmenter.learn(frame.image)
+                    self.segmenter.learn(frame.image)
 
     def read_frame(self):
         return self.source.read()
@@ -169,14 +179,14 @@ def _open_inputs(site, cam_ids, input_dir, synthetic, seed, background_frames) -
     try:
         for cam in cam_ids:
             spec = site.camera(cam)
-            segmenter = ForegroundSegmenter(mask_scale=site.carving.mask_scale)
+            seg_args = dict(mask_scale=site.carving.mask_scale, default_fps=spec.fps)
             if synthetic is not None:
                 start_ns = _scenario_start_ns(synthetic, seed, site.utc_offset_hours)
                 source = open_source(f"synthetic:{synthetic}", cam_id=cam, seed=seed, start_ns=start_ns)
                 background = open_source(
                     f"synthetic:{synthetic}", cam_id=cam, seed=seed, background=True, n_frames=background_frames
                 )
-                inputs[cam] = _SegmentedCamera(source, background, segmenter)
+                inputs[cam] = _SegmentedCamera(source, background, **seg_args)
                 continue
             folder = Path(input_dir) / cam
             if not folder.is_dir():
@@ -188,7 +198,7 @@ def _open_inputs(site, cam_ids, input_dir, synthetic, seed, background_frames) -
             background = _find_video(folder, "background")
             source = open_source(str(video or folder), cam_id=cam, fps=None if video else spec.fps)
             back = open_source(str(background), cam_id=cam) if background else None
-            inputs[cam] = _SegmentedCamera(source, back, segmenter)
+            inputs[cam] = _SegmentedCamera(source, back, **seg_args)
     except BaseException:
         for item in inputs.values():
             item.close()
