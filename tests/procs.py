@@ -248,6 +248,7 @@ class Listener:
     _entities: list = field(default_factory=list)
 
     def __post_init__(self) -> None:
+        self.changed = threading.Condition(self.lock)
         import zenoh
 
         from common import keys, messages
@@ -261,8 +262,9 @@ class Listener:
                     with self.lock:
                         self.unreadable.append(f"{sample.key_expr}: {exc}")
                     return
-                with self.lock:
+                with self.changed:
                     into.append(Heard(msg, now))
+                    self.changed.notify_all()
             return callback
 
         def on_alive(sample) -> None:
@@ -312,6 +314,19 @@ class Listener:
     def last_frame(self) -> int:
         with self.lock:
             return self.tracks[-1].msg.frame if self.tracks else -1
+
+    def wait_frame(self, frame: int, proc: Proc, timeout_s: float = 60.0) -> object:
+        """Until the newest TrackFrame is numbered ``frame`` or later (frames only grow); returns it."""
+        deadline = time.monotonic() + timeout_s
+        with self.changed:
+            while not (self.tracks and self.tracks[-1].msg.frame >= frame):
+                if proc.popen.poll() is not None:
+                    raise AssertionError(f"waiting for fused frame {frame}: {proc.name} exited with "
+                                         f"{proc.popen.returncode}\n{proc.tail()}")
+                if time.monotonic() > deadline:
+                    raise AssertionError(f"timed out after {timeout_s:.0f} s waiting for fused frame {frame}")
+                self.changed.wait(0.2)
+            return self.tracks[-1].msg
 
     def wait_fusion(self, proc: Proc, timeout_s: float = 120.0) -> None:
         """Until the fusion server's liveliness token is seen (it declares it once serving)."""

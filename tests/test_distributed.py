@@ -26,6 +26,7 @@ from __future__ import annotations
 import csv
 import json
 import math
+import re
 import signal
 import time
 from pathlib import Path
@@ -48,8 +49,9 @@ from procs import (  # noqa: E402
     wait_for,
 )
 
-from common import keys, messages, synth  # noqa: E402
+from common import keys, maskcodec, messages, synth  # noqa: E402
 from common.evaluation import evaluate  # noqa: E402
+from common.messages import MaskFrame  # noqa: E402
 
 NEAR_M = 0.5
 """A track is 'near the truth' within this floor distance (the evaluation's CLEAR-MOT radius)."""
@@ -225,3 +227,328 @@ def test_fall_is_raised_over_processes_and_a_killed_camera_is_left_out_then_rejo
                     motp_m=round(tracking["motp_m"], 3),
                     events={k: v.get("run", 0) for k, v in scores["events"]["per_kind"].items()})
     print("measured:", measured)
+
+
+# --------------------------------------------------------------------------- masks fed by the test
+
+
+FED_SCENARIO = "fall_forward"
+FED_FRAMES = 150        # 10 s: the truth fall is at frame 101
+NO_SKEW = ("--max-clock-skew-ms", "1e13")  # fed masks carry the scenario's own (2024) stamps
+
+
+@pytest.fixture(scope="module")
+def fed(house):
+    """The true silhouettes of FED_FRAMES frames of FED_SCENARIO in every camera, encoded once:
+    ``(cam ids, stamps_ns, {cam: [(data, fg_fraction), ...]})``."""
+    site = house[0]
+    sc = synth.get_scenario(FED_SCENARIO, 0)
+    masks = {}
+    for cam in site.camera_ids:
+        view = synth.SyntheticCamera(sc, cam, 0, site=site, noise_std=0.0, shadows=False)
+        frames = []
+        for i in range(FED_FRAMES):
+            _, mask = view.frame(i)
+            frames.append((maskcodec.encode_mask(mask), float(np.count_nonzero(mask)) / mask.size))
+        masks[cam] = frames
+    return tuple(site.camera_ids), [sc.stamp_ns(i) for i in range(FED_FRAMES)], masks
+
+
+def mask_message(cam: str, seq: int, stamp_ns: int, data: bytes, fg_fraction: float, *, width: int = 640,
+                 height: int = 480) -> bytes:
+    return messages.encode(MaskFrame(cam=cam, seq=seq, stamp_ns=stamp_ns, width=width, height=height, src_width=640,
+                                     src_height=480, codec="rle-zlib", data=data, fg_fraction=fg_fraction))
+
+
+class Feeder:
+    """Puts on the test's session, one publisher per key (declared on first use)."""
+
+    def __init__(self, session, prefix: str) -> None:
+        self.session = session
+        self.prefix = prefix
+        self.pubs: dict[str, object] = {}
+
+    def put(self, key: str, payload: bytes) -> None:
+        pub = self.pubs.get(key)
+        if pub is None:
+            # BLOCK: the test's own messages (a 4 MiB one too) must all reach the server
+            pub = self.pubs[key] = self.session.declare_publisher(key, congestion_control=zenoh.CongestionControl.BLOCK)
+        pub.put(payload)
+
+    def put_mask(self, cam: str, payload: bytes) -> None:
+        self.put(keys.mask_key(self.prefix, cam), payload)
+
+    def close(self) -> None:
+        for pub in self.pubs.values():
+            pub.undeclare()
+        self.pubs.clear()
+
+
+def feed_lockstep(listener: Listener, feeder: Feeder, fed, frames: range, fusion: Proc, *,
+                  before=None, after=None, seq_offset: int = 0) -> None:
+    """Publish each frame's masks in camera order and wait for its TrackFrame before the next:
+    the server sees the same frame sets in the same order on every run."""
+    cams, stamps, masks = fed
+    for i in frames:
+        j = i % FED_FRAMES
+        stamp = stamps[j] + (i - j) * PERIOD_NS
+        if before is not None:
+            before(i)
+        for cam in cams:
+            feeder.put_mask(cam, mask_message(cam, i + seq_offset, stamp, *masks[cam][j]))
+        if after is not None:
+            after(i)
+        listener.wait_frame(i + seq_offset, fusion)
+
+
+PERIOD_NS = round(1e9 / 15)
+SUMMARY = re.compile(r"fusion stopped: (?P<fused>\d+) frames fused; (?P<events>\d+) events; (?P<slow>\d+) frame sets "
+                     r"dropped \(slow\); (?P<few>\d+) with too few cameras; (?P<inbox>\d+) masks dropped on arrival; "
+                     r"(?P<unknown>\d+) from unknown cameras")
+
+
+def summary_counts(log_text: str) -> dict[str, int]:
+    """The counters of the fusion server's last 'fusion stopped:' line."""
+    found = SUMMARY.findall(log_text)
+    assert found, "no 'fusion stopped:' line in the log"
+    names = ("fused", "events", "slow", "few", "inbox", "unknown")
+    return dict(zip(names, map(int, found[-1])))
+
+
+def fed_run(house, folder: Path, router: Router, fed, *, extra: tuple[str, ...] = (), before=None, after=None,
+            settled=lambda status: True):
+    """One fusion server fed FED_FRAMES frames in lockstep; returns (final Status, counters, log text).
+    The final status is the first that counts every frame and satisfies ``settled``."""
+    site, site_file, cache = house
+    folder.mkdir()
+    listener = Listener(router.session, site.prefix)
+    feeder = Feeder(router.session, site.prefix)
+    fusion = start_fusion(site_file, endpoint=router.endpoint, store=folder / "events.sqlite", out=folder / "run",
+                          cache_dir=cache, log_dir=folder, extra=(*NO_SKEW, *extra))
+    try:
+        listener.wait_fusion(fusion)
+        feed_lockstep(listener, feeder, fed, range(FED_FRAMES), fusion, before=before, after=after)
+        n = FED_FRAMES
+        status = wait_for(lambda: (st := listener.latest_status()) and st.frame_sets >= n
+                          and all(c.received >= n for c in st.cameras) and settled(st) and st, 30,
+                          "a status counting every frame", procs=[fusion])
+        assert fusion.alive()
+        assert fusion.stop() == 0, fusion.tail()
+        return status, summary_counts(fusion.output()), fusion.output()
+    finally:
+        fusion.stop()
+        feeder.close()
+        listener.close()
+
+
+# --------------------------------------------------------------------------- 4: garbage during a run
+
+
+def rejected(payload: bytes, cam: str) -> bool:
+    """Whether the fusion server must drop ``payload`` on ``cam``'s mask key as undecodable: not a
+    MaskFrame, another camera's, not the camera's 4:3 shape, or data that does not decode."""
+    try:
+        msg = messages.decode(payload, MaskFrame)
+        if msg.cam != cam or abs(msg.width - msg.height * 4 / 3) > 1.0 + 0.01 * msg.height * 4 / 3:
+            return True
+        maskcodec.decode_mask(msg.data, msg.codec, msg.width, msg.height)
+    except (messages.WireError, maskcodec.MaskCodecError):
+        return True
+    return False
+
+
+class Garbage:
+    """Malformed messages for a camera's mask key, built from the real ones around frame ``i``.
+
+    Every message :meth:`make` returns is one the server must reject; bit flips
+    and field mutations that happen to leave a valid mask (another sequence
+    number, say) are not garbage and are redrawn (counted in ``redrawn``).
+    """
+
+    KINDS = ("random", "truncated", "bitflip", "version", "type", "other_message", "shape", "field", "header",
+             "other_camera")
+
+    def __init__(self, fed, prefix: str, seed: int = 0) -> None:
+        self.cams, self.stamps, self.masks = fed
+        self.prefix = prefix
+        self.rng = np.random.default_rng(seed)
+        self.redrawn = 0
+        self.made: dict[str, int] = dict.fromkeys(self.KINDS, 0)
+
+    def real(self, cam: str, i: int) -> bytes:
+        j = i % FED_FRAMES
+        return mask_message(cam, i, self.stamps[j], *self.masks[cam][j])
+
+    def make(self, cam: str, i: int) -> bytes:
+        kind = self.KINDS[int(self.rng.integers(len(self.KINDS)))]
+        for _ in range(100):
+            payload = getattr(self, f"_{kind}")(cam, i)
+            if rejected(payload, cam):
+                self.made[kind] += 1
+                return payload
+            self.redrawn += 1
+        raise AssertionError(f"no rejected {kind} message in 100 draws")
+
+    def _random(self, cam: str, i: int) -> bytes:
+        return self.rng.bytes(int(self.rng.integers(0, 3000)))
+
+    def _truncated(self, cam: str, i: int) -> bytes:
+        good = self.real(cam, i)
+        return good[: int(self.rng.integers(0, len(good)))]
+
+    def _bitflip(self, cam: str, i: int) -> bytes:
+        data = bytearray(self.real(cam, i))
+        for pos in self.rng.integers(0, 8 * len(data), int(self.rng.integers(1, 4))):
+            data[pos // 8] ^= 1 << (pos % 8)
+        return bytes(data)
+
+    def _fields(self, cam: str, i: int) -> dict:
+        import msgpack
+
+        return msgpack.unpackb(self.real(cam, i))
+
+    def _pack(self, obj) -> bytes:
+        import msgpack
+
+        return msgpack.packb(obj, use_bin_type=True)
+
+    def _version(self, cam: str, i: int) -> bytes:
+        obj = self._fields(cam, i)
+        choice = int(self.rng.integers(6))
+        if choice == 5:
+            del obj["v"]
+        else:
+            obj["v"] = [0, 2, -1, "1", 1.0][choice]
+        return self._pack(obj)
+
+    def _type(self, cam: str, i: int) -> bytes:
+        obj = self._fields(cam, i)
+        obj["type"] = [None, "hold", "tracks", "MASK", 7][int(self.rng.integers(5))]
+        return self._pack(obj)
+
+    def _other_message(self, cam: str, i: int) -> bytes:
+        stamp = self.stamps[i % FED_FRAMES]
+        choice = int(self.rng.integers(6))
+        if choice == 0:
+            return messages.encode(messages.HoldRegions(cam=cam, stamp_ns=stamp, boxes=[(10, 10, 100, 200)], ttl_ms=2000))
+        if choice == 1:
+            return messages.encode(messages.TrackFrame(frame=i, stamp_ns=stamp, tracks=[], cameras=[cam]))
+        if choice == 2:
+            return messages.encode(messages.Status(stamp_ns=stamp, cameras=[], frame_sets=i, frame_sets_dropped=0))
+        event = messages.Event(id=f"e{i}", kind="fall", track=1, stamp_ns=stamp, frame=i, x=1.0, y=2.0)
+        if choice == 3:
+            return messages.encode(event)
+        if choice == 4:
+            return event.to_json().encode()
+        return messages.encode(messages.WorkerStats(cam=cam, stamp_ns=stamp, read=i, dropped=0, published=i))
+
+    def _shape(self, cam: str, i: int) -> bytes:
+        j = i % FED_FRAMES
+        choice = int(self.rng.integers(4))
+        if choice == 0:  # a square mask: not the camera's aspect
+            mask = np.zeros((100, 100), np.uint8)
+            mask[20:80, 40:60] = 255
+            return mask_message(cam, i, self.stamps[j], maskcodec.encode_mask(mask), 0.12, width=100, height=100)
+        if choice == 1:  # a quarter-size mask's data said to be full size
+            mask = np.zeros((120, 160), np.uint8)
+            mask[30:90, 70:90] = 255
+            return mask_message(cam, i, self.stamps[j], maskcodec.encode_mask(mask), 0.06)
+        if choice == 2:  # full-size data said to be 320 x 240
+            return mask_message(cam, i, self.stamps[j], self.masks[cam][j][0], self.masks[cam][j][1],
+                                width=320, height=240)
+        obj = self._fields(cam, i)  # larger than its capture
+        obj["width"], obj["height"] = 1280, 960
+        return self._pack(obj)
+
+    def _field(self, cam: str, i: int) -> bytes:
+        obj = self._fields(cam, i)
+        name, value = [("seq", -1), ("seq", "7"), ("stamp_ns", 1.5e18), ("stamp_ns", -5), ("width", 0),
+                       ("codec", "png"), ("data", "text"), ("fg_fraction", 2.0), ("cam", "bad/cam"), ("extra", 1),
+                       ("data", b""), ("src_width", None)][int(self.rng.integers(12))]
+        obj[name] = value
+        if self.rng.random() < 0.2:
+            del obj[str(self.rng.choice(sorted(k for k in obj if k not in ("v", "type"))))]
+        return self._pack(obj)
+
+    def _header(self, cam: str, i: int) -> bytes:
+        return [b"\xdb\xff\xff\xff\xff", b"\xc6\xff\xff\xff\xff", b"\xdd\xff\xff\xff\xff", b"\xdf\xff\xff\xff\xff",
+                self._pack([1, 2, 3]), self._pack(42), self._pack("mask"), b"\x91" * 5000, b"\xc1",
+                self._pack({"v": 1, "type": "mask", "cam": {"nested": [1] * 100}})][int(self.rng.integers(10))]
+
+    def _other_camera(self, cam: str, i: int) -> bytes:
+        others = [c for c in self.cams if c != cam]
+        return self.real(others[int(self.rng.integers(len(others)))], i)
+
+
+@pytest.mark.slow
+def test_thousands_of_malformed_messages_leave_the_tracks_unchanged_and_are_counted(house, fed, tmp_path):
+    site = house[0]
+    prefix = site.prefix
+    garbage = Garbage(fed, prefix, seed=1)
+    sent = dict.fromkeys(site.camera_ids, 0)
+    per_frame = 10  # before and again after each frame's masks: 20 per frame set, 3000 in all
+    oversize_frames = {20, 75, 130}
+    extra = {"unknown_camera": 0, "tokens": 0, "queries": 0, "query_errors": 0}
+    ghosts = [f"ghost{k}" for k in range(8)]
+
+    with Router() as router:
+        clean_status, clean_counts, _ = fed_run(house, tmp_path / "clean", router, fed)
+        session = router.session
+        feeder = Feeder(session, prefix)
+        tokens = []
+
+        def throw(i: int) -> None:
+            for _ in range(per_frame):
+                cam = site.camera_ids[int(garbage.rng.integers(len(site.camera_ids)))]
+                feeder.put_mask(cam, garbage.make(cam, i))
+                sent[cam] += 1
+            if i in oversize_frames:
+                cam = site.camera_ids[int(garbage.rng.integers(len(site.camera_ids)))]
+                feeder.put_mask(cam, bytes(messages.MAX_MESSAGE_BYTES + 1))
+                sent[cam] += 1
+            if i % 10 == 0:  # cameras the site does not have, real masks and garbage
+                feeder.put(keys.mask_key(prefix, ghosts[i % len(ghosts)]), garbage.real("cam1", i))
+                feeder.put(keys.mask_key(prefix, "cam1x"), garbage.make("cam1", i))
+                extra["unknown_camera"] += 2
+                # plain puts on liveliness keys, and liveliness tokens of unknown cameras
+                feeder.put(keys.alive_camera_key(prefix, "cam1"), garbage.make("cam1", i))
+                feeder.put(keys.alive_fusion_key(prefix), b"\x00\x01")
+                tokens.append(session.liveliness().declare_token(keys.alive_camera_key(prefix, ghosts[i % 8])))
+                extra["tokens"] += 1
+                if len(tokens) > 4:
+                    tokens.pop(0).undeclare()
+            if i % 15 == 7:  # selectors the history cannot parse
+                params = ["since=yesterday", "until=-5", "kind=teleport", "format=xml", "since=1e999",
+                          "kind=fall;kind=", "limit=" + "9" * 400, "since=" + "x" * 5000, "%%%", "until=12:99"]
+                for text in params[(i // 15) % 3::3]:
+                    replies = list(session.get(f"{keys.history_key(prefix)}?{text}", timeout=10.0))
+                    extra["queries"] += 1
+                    extra["query_errors"] += sum(r.ok is None for r in replies)
+                    assert all(r.ok is None for r in replies), text
+
+        try:
+            fuzz_status, fuzz_counts, fuzz_log = fed_run(
+                house, tmp_path / "fuzzed", router, fed, before=throw, after=throw,
+                settled=lambda st: sum(c.undecodable for c in st.cameras) >= sum(sent.values()))
+        finally:
+            for token in tokens:
+                token.undeclare()
+            feeder.close()
+
+    print("garbage sent per camera:", sent, "by kind:", garbage.made, "redrawn:", garbage.redrawn, extra)
+    print("fuzzed run counters:", fuzz_counts)
+    assert sum(sent.values()) >= 2000
+    # the tracking result is exactly the clean run's
+    clean_tracks = (tmp_path / "clean/run/tracks.csv").read_text()
+    assert len(clean_tracks.splitlines()) > 100
+    assert (tmp_path / "fuzzed/run/tracks.csv").read_text() == clean_tracks
+    assert (tmp_path / "fuzzed/run/events.jsonl").read_text() == (tmp_path / "clean/run/events.jsonl").read_text()
+    # every piece of garbage counted as undecodable on its camera, no real mask lost
+    by_cam = {c.cam: c for c in fuzz_status.cameras}
+    assert {cam: by_cam[cam].undecodable for cam in sent} == sent
+    assert all((c.received, c.dropped, c.late) == (FED_FRAMES, 0, 0) for c in fuzz_status.cameras)
+    assert all(c.undecodable == 0 for c in clean_status.cameras)
+    assert fuzz_counts["unknown"] == extra["unknown_camera"] and fuzz_counts["inbox"] == 0
+    assert fuzz_counts["fused"] == clean_counts["fused"] == FED_FRAMES
+    assert extra["query_errors"] == extra["queries"] > 0
+    assert "Traceback" not in fuzz_log and "undecodable mask dropped" in fuzz_log
