@@ -56,7 +56,7 @@ from common.site import Site, load_site
 from fusion_server.carving import Carver
 from fusion_server.detection import detect_blobs
 from fusion_server.pipeline import FusedFrame
-from fusion_server.posture import STATES, feature_vector, posture_log_likelihoods, profile_features
+from fusion_server.posture import POSTURES, STATE_POSTURE, feature_vector, posture_log_likelihoods, profile_features
 from fusion_server.replay import ReplaySummary, replay
 
 pytestmark = pytest.mark.realdata
@@ -110,7 +110,7 @@ class FrameCheck:
     head_y: float               # mean y of the body's voxels above 1.3 m
     lap_y: float                # mean y of its voxels at 0.4-0.6 m (lap and knees)
     lap_front_y: float          # smallest y of those
-    log_lik: np.ndarray         # (5,) single-frame posture log-likelihoods, STATES order
+    log_lik: np.ndarray         # (4,) single-frame log-likelihood of each reported posture, POSTURES order
     tracks: list = field(default_factory=list)
     events: list = field(default_factory=list)
 
@@ -149,7 +149,7 @@ def check_frame(fused: FusedFrame) -> FrameCheck:
     order = np.argsort(-sizes)
     nan3 = np.full(3, np.nan)
     centroid, lo, hi, head_y, lap_y, lap_front_y = nan3, nan3, nan3, math.nan, math.nan, math.nan
-    log_lik = np.full(len(STATES), np.nan)
+    log_lik = np.full(len(POSTURES), np.nan)
     if n:
         ijk = np.argwhere(labels == order[0] + 1)
         centres = carve.grid.centres(ijk)
@@ -162,7 +162,9 @@ def check_frame(fused: FusedFrame) -> FrameCheck:
             lap_y, lap_front_y = float(lap[:, 1].mean()), float(lap[:, 1].min())
         profile = np.bincount(ijk[:, 2], minlength=carve.grid.shape[2])
         features = profile_features(profile, carve.grid.voxel_m)
-        log_lik = posture_log_likelihoods(feature_vector(features, 1.70))
+        by_state = posture_log_likelihoods(feature_vector(features, 1.70))
+        # a posture is as likely as its likeliest internal state
+        log_lik = np.array([max(ll for ll, p in zip(by_state, STATE_POSTURE) if p == k) for k in range(len(POSTURES))])
     return FrameCheck(
         frame=fused.frame,
         voxels=len(carve.ijk),
@@ -306,7 +308,7 @@ def test_single_frame_posture_reads_sitting_despite_the_tall_mask(half_run):
     """The top is at standing height (1.85 m, 1.09 of the default standing height) but the mass
     centre, the lap's width at 0.7 m and the mass in the 0.5-1 m band read sitting on every frame."""
     ll = np.array([f.log_lik for f in half_run.frames])
-    sitting = STATES.index("sitting")
+    sitting = POSTURES.index("sitting")
     others = np.delete(ll, sitting, axis=1)
     margin = ll[:, sitting] - others.max(axis=1)
     assert margin.min() >= POSTURE_MARGIN, f"frame {half_run.frames[int(margin.argmin())].frame}: margin {margin.min():.2f}"
