@@ -32,13 +32,13 @@ brackets):
 ``enter`` / ``exit``
     A track first seen inside a door zone (or, when ``bounds_xy_m`` is
     given, within ``edge_margin_m`` [0.4 m] of the monitored area's border)
-    enters when the tracker confirms it; people already there during the
+    enters when it is established (below); people already there during the
     first ``startup_s`` [1 s] do not enter. A present track whose last
     confirmed position is in such a place exits when the tracker stops
     confirming it or stops reporting it, whichever comes first (the
     tracker coasts a departed person unconfirmed for a couple of seconds
-    before deleting them). A track that has exited and is confirmed again
-    enters again. Tracks that appear, lose confirmation (occlusion) or
+    before deleting them). A track that has exited and is established again
+    in a door zone or at the edge enters again. Tracks that appear, lose confirmation (occlusion) or
     vanish mid-room are neither.
 ``dwell_start`` / ``dwell_end``
     :class:`fusion_server.hotspots.DwellDetector` per track (the seed
@@ -62,8 +62,12 @@ brackets):
     ``inactivity_s`` [1800 s]. Once per still period; moving or changing
     posture re-arms it.
 
-Only tracks the tracker has confirmed take part; a confirmed track that
-loses confirmation mid-room (occlusion) keeps its state until it vanishes.
+Only established tracks take part: confirmed by the tracker for
+``establish_s`` [0.8 s] in a row with a body of at least ``min_volume_m3``
+[0.04 m^3] (a person carves 0.1-0.4 m^3; tracker ghosts -- a blob split off
+a person for a second, a small blob at a wall -- do not qualify). An
+established track that loses confirmation mid-room (occlusion) keeps its
+state until it vanishes.
 
 Pure logic: no clock, no I/O. Frames whose stamp goes backwards and tracks
 with non-finite positions are dropped and counted, never raised.
@@ -285,6 +289,8 @@ class EventReasoner:
         visit_gap_s: float = 30.0,
         visit_gathering: bool = True,
         startup_s: float = 1.0,
+        establish_s: float = 0.8,
+        min_volume_m3: float = 0.04,
         inactivity_s: float = 1800.0,
         inactivity_window_s: float = 30.0,
         inactivity_std_m: float = 0.15,
@@ -320,7 +326,8 @@ class EventReasoner:
             if not (isinstance(val, (int, float)) and math.isfinite(val) and val > 0):
                 raise ValueError(f"{name} must be a positive number, got {val!r}")
         non_negative = dict(edge_margin_m=edge_margin_m, fall_confirm_s=fall_confirm_s, low_gap_s=low_gap_s,
-                            visit_gap_s=visit_gap_s, startup_s=startup_s)
+                            visit_gap_s=visit_gap_s, startup_s=startup_s, establish_s=establish_s,
+                            min_volume_m3=min_volume_m3)
         for name, val in non_negative.items():
             if not (isinstance(val, (int, float)) and math.isfinite(val) and val >= 0):
                 raise ValueError(f"{name} must be a number >= 0, got {val!r}")
@@ -361,6 +368,8 @@ class EventReasoner:
         self.visit_gap_ns = _ns(visit_gap_s)
         self.visit_gathering = bool(visit_gathering)
         self.startup_ns = _ns(startup_s)
+        self.establish_ns = _ns(establish_s)
+        self.min_volume_m3 = float(min_volume_m3)
         self.inactivity_ns = _ns(inactivity_s)
         self.inactivity_window_s = float(inactivity_window_s)
         self.inactivity_var_m2 = float(inactivity_std_m) ** 2
@@ -434,14 +443,19 @@ class EventReasoner:
             )
         st.last_xy, st.last_ns = (x, y), stamp_ns
         confirmed = bool(getattr(tr, "confirmed", True))
-        if confirmed and not st.present:
-            self._arrived(tid, st, x, y, emit)
-        elif not confirmed and st.present:
+        if not confirmed:
+            st.confirmed_since_ns = None
+        elif st.confirmed_since_ns is None:
+            st.confirmed_since_ns = stamp_ns
+        if not st.present:
+            if confirmed and stamp_ns - st.confirmed_since_ns >= self.establish_ns and self._big_enough(tr, reading):
+                self._arrived(tid, st, x, y, emit)
+        elif not confirmed:
             self._departed(tid, st, emit)
         if confirmed:
             st.present_xy, st.present_ns = (x, y), stamp_ns
         if not st.present and (st.exited or not st.confirmed_once):
-            return  # not yet a person, or gone through a door: nothing to reason about
+            return  # not (yet) a person, or gone through a door: nothing to reason about
         posture, top_m, centre_m, height_m = self._observe(tr, reading)
         if posture != st.posture:
             st.posture, st.posture_changed_ns = posture, stamp_ns
@@ -596,8 +610,18 @@ class EventReasoner:
                 emit("enter", tid, x, y, door=place, first_seen_ns=st.first_ns)
         elif st.exited:
             st.exited = False
-            place = self._entry_place(x, y) or st.exit_place
-            emit("enter", tid, x, y, door=place, first_seen_ns=st.last_ns)
+            place = self._entry_place(x, y)
+            if place is not None:  # came back in; confirmed again mid-room, they never left
+                emit("enter", tid, x, y, door=place, first_seen_ns=st.confirmed_since_ns)
+
+    def _big_enough(self, tr: TrackLike, reading: Any) -> bool:
+        """Whether the body is large enough to be a person (unknown volumes pass)."""
+        vol = reading.raw.volume_m3 if isinstance(reading, PostureReading) else getattr(tr, "volume_m3", None)
+        try:
+            vol = float(vol)
+        except (TypeError, ValueError):
+            return True
+        return not (vol > 0) or vol >= self.min_volume_m3
 
     def _departed(self, tid: int, st: "_TrackState", emit: "_Emitter", vanished: bool = False) -> None:
         """The track lost its confirmation or vanished: an exit if it was last seen
@@ -725,6 +749,7 @@ class _TrackState:
     present: bool = False
     exited: bool = False
     exit_place: str = ""
+    confirmed_since_ns: int | None = None
     present_xy: tuple[float, float] = (0.0, 0.0)
     present_ns: int = 0
     last_xy: tuple[float, float] = (0.0, 0.0)
