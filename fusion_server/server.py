@@ -40,7 +40,12 @@ What :func:`run` does:
 * **clock skew**: per camera, the median of ``stamp_ns - receive time`` over
   the last ``skew_window`` masks; beyond ``max_clock_skew_ms`` the camera is
   ``skewed`` in the status and one ``clock_skew`` event is emitted; the mark
-  clears once the median is back under 80 % of the threshold.
+  clears once the median is back under 80 % of the threshold. Apart from
+  that, a mask whose ``stamp_ns - receive time`` runs more than
+  ``max_clock_skew_ms`` ahead of the other live cameras' newest masks is
+  left out of the frame sets (counted ``late``, logged): one camera with a
+  fast clock would otherwise push the synchroniser ahead and make every
+  other camera's masks look stale.
 * **status** on ``<p>/status`` every ``status_period_s``.
 * **history**: a queryable on ``<p>/history/events/**`` (which includes
   ``<p>/history/events`` itself), declared only once the store is open.
@@ -58,7 +63,8 @@ What :func:`run` does:
 Per-camera counters in the status: ``received`` (masks that decoded),
 ``undecodable``, ``dropped`` (sequence gaps -- frames the camera, the network
 or the inbox lost -- plus duplicates, superseded frames and synchroniser
-overflow), ``late`` (out of order, stale, or off the frame lattice),
+overflow), ``late`` (out of order, stale, off the frame lattice, or stamped ahead of
+the other cameras),
 ``rate_hz`` (masks per second over the last two seconds), ``latency_ms``
 (mean receive time minus capture stamp; on one host this is the transport
 and worker latency, across hosts it includes the clock offset),
@@ -315,6 +321,7 @@ class _CameraHealth:
     received: int = 0
     undecodable: int = 0
     seq_gaps: int = 0
+    ahead: int = 0
     last_seq: int | None = None
     last_seen_ns: int = 0
     last_mono: float | None = None
@@ -636,6 +643,12 @@ class _Server:
             return
         health.on_mask(msg.seq, msg.stamp_ns, recv_ns, mono)
         self._check_skew(health, mono)
+        lead_ms = self._lead_ms(health, mono)
+        if lead_ms is not None and lead_ms > self.s.max_clock_skew_ms:
+            health.ahead += 1
+            self.rlog.warn(f"camera {cam}", "ahead", f"mask {msg.seq} is stamped {lead_ms:.0f} ms ahead of the "
+                           f"other cameras: left out of the frame sets (its clock runs fast)", mono)
+            return
         count = self.sync.counters[cam]
         before = dict(count)
         for fs in self.sync.push(cam, msg.seq, msg.stamp_ns, mask):
@@ -644,6 +657,19 @@ class _Server:
             if count[name] > before[name]:
                 self.rlog.warn(f"camera {cam}", name, f"a mask was dropped by the frame-set synchroniser "
                                f"({name.replace('_', ' ')}; on arrival of mask {msg.seq})", mono)
+
+    def _lead_ms(self, health: _CameraHealth, mono: float) -> float | None:
+        """How far the newest mask's stamp runs ahead of the other cameras' clocks, in ms: its
+        ``stamp - receive time`` less the median of the same for the other live cameras' newest
+        masks (newest against newest, so that recordings played faster than real time, where
+        every camera's stamps run ahead alike, compare equal). None when no other camera has
+        sent masks lately."""
+        others = [h.offset_ms[-1] for h in self.health.values()
+                  if h is not health and not h.lost and h.offset_ms and h.last_mono is not None
+                  and mono - h.last_mono <= self.s.stale_s]
+        if not others or not health.offset_ms:
+            return None
+        return health.offset_ms[-1] - statistics.median(others)
 
     def _check_shape(self, msg: MaskFrame) -> None:
         cam = self.cameras.get(msg.cam)
@@ -811,7 +837,7 @@ class _Server:
                 state=h.state(mono, self.s.stale_s),
                 received=h.received,
                 dropped=h.seq_gaps + sum(sc[k] for k in _SYNC_DROPS),
-                late=sum(sc[k] for k in _SYNC_LATE),
+                late=sum(sc[k] for k in _SYNC_LATE) + h.ahead,
                 undecodable=h.undecodable,
                 rate_hz=float(h.rate_hz(mono)),
                 latency_ms=float(statistics.fmean(h.latency_ms)) if h.latency_ms else 0.0,
