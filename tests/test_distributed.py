@@ -552,3 +552,148 @@ def test_thousands_of_malformed_messages_leave_the_tracks_unchanged_and_are_coun
     assert fuzz_counts["fused"] == clean_counts["fused"] == FED_FRAMES
     assert extra["query_errors"] == extra["queries"] > 0
     assert "Traceback" not in fuzz_log and "undecodable mask dropped" in fuzz_log
+
+
+# --------------------------------------------------------------------------- 5: a flood
+
+
+FLOOD_SETS = 3000           # 15 000 masks of ~10 KB, published as fast as the test can
+RSS_GROWTH_BOUND_MB = 100   # kept in memory unbounded, they alone would be ~150 MB (decoded: 4.6 GB)
+
+
+def speckled(fed, rng: np.random.Generator, n: int) -> dict[str, list[tuple[bytes, float]]]:
+    """Per camera, ``n`` true masks from the second half of the fed frames with 3 % of the pixels
+    set at random: ~10 KB encoded each, and costly to carve."""
+    cams, _, masks = fed
+    out = {}
+    for cam in cams:
+        out[cam] = []
+        for k in range(n):
+            data, _ = masks[cam][FED_FRAMES // 2 + k]
+            mask = maskcodec.decode_mask(data, "rle-zlib", 640, 480).copy()
+            mask[rng.random(mask.shape) < 0.03] = 255
+            out[cam].append((maskcodec.encode_mask(mask), float(np.count_nonzero(mask)) / mask.size))
+    return out
+
+
+@pytest.mark.slow
+def test_a_flood_drops_old_frame_sets_and_memory_stays_bounded(house, fed, tmp_path):
+    site, site_file, cache = house
+    cams, stamps, _ = fed
+    noisy = speckled(fed, np.random.default_rng(2), 8)
+    warm, tail = 60, 30
+    measured: dict[str, object] = {}
+    with Router() as router:
+        listener = Listener(router.session, site.prefix)
+        feeder = Feeder(router.session, site.prefix)
+        fusion = start_fusion(site_file, endpoint=router.endpoint, store=tmp_path / "events.sqlite", out=None,
+                              cache_dir=cache, log_dir=tmp_path, extra=NO_SKEW)
+        try:
+            listener.wait_fusion(fusion)
+            feed_lockstep(listener, feeder, fed, range(warm), fusion)
+            time.sleep(1.0)
+            rss = [fusion.rss_kb()]
+            t0 = time.monotonic()
+            for n in range(FLOOD_SETS):
+                i = warm + n
+                stamp = stamps[0] + i * PERIOD_NS
+                for cam in cams:
+                    feeder.put_mask(cam, mask_message(cam, i, stamp, *noisy[cam][n % 8]))
+                if n % 50 == 0:
+                    rss.append(fusion.rss_kb())
+            measured["flood_s"] = round(time.monotonic() - t0, 2)
+
+            def quiet():  # the server has taken in all it will: counts stop moving
+                before = listener.latest_status()
+                deadline = time.monotonic() + 2.5
+                while time.monotonic() < deadline:
+                    rss.append(fusion.rss_kb())
+                    time.sleep(0.25)
+                after = listener.latest_status()
+                return after is not None and before is not None and after.frame_sets == before.frame_sets and after
+
+            status = wait_for(quiet, 120, "the server to work off the flood", procs=[fusion], period_s=0)
+            rss.append(fusion.rss_kb())
+            # it goes on fusing every frame set once the flood is over
+            feed_lockstep(listener, feeder, fed, range(warm + FLOOD_SETS, warm + FLOOD_SETS + tail), fusion)
+            after_flood = fused_after(listener, warm + FLOOD_SETS - 1)
+            assert fusion.alive()
+            assert fusion.stop() == 0, fusion.tail()
+        finally:
+            fusion.stop()
+            feeder.close()
+            listener.close()
+    counts = summary_counts(fusion.output())
+    growth_mb = (max(rss) - rss[0]) / 1024
+    measured.update(rss_before_mb=round(rss[0] / 1024, 1), rss_peak_mb=round(max(rss) / 1024, 1),
+                    rss_end_mb=round(rss[-1] / 1024, 1), growth_mb=round(growth_mb, 1),
+                    fused_during_flood=status.frame_sets - warm, frame_sets_dropped=status.frame_sets_dropped,
+                    masks_dropped_on_arrival=counts["inbox"], camera_dropped=[c.dropped for c in status.cameras])
+    print("measured:", measured)
+    assert status.frame_sets - warm < FLOOD_SETS  # it could not keep up ...
+    assert status.frame_sets_dropped > 0 and counts["slow"] >= status.frame_sets_dropped  # ... and dropped sets
+    assert counts["inbox"] > 0 and all(c.dropped > 0 for c in status.cameras)  # and masks on arrival, counted
+    assert growth_mb < RSS_GROWTH_BOUND_MB, measured
+    assert len(after_flood) == tail and all(f.cameras == list(cams) for f in after_flood)
+    assert all(len(f.tracks) == 1 for f in after_flood[10:]), [f.tracks for f in after_flood]
+    assert "Traceback" not in fusion.output()
+
+
+# --------------------------------------------------------------------------- 6: a camera clock ahead
+
+
+SKEWED = "cam5"
+SKEW_NS = 1_000_000_000
+
+
+@pytest.mark.slow
+def test_a_camera_whose_clock_runs_a_second_ahead_is_reported_and_the_others_go_on(house, fed, tmp_path):
+    """The test publishes every camera's true masks on the host clock at the scenario's rate, as
+    workers would, with one camera's stamps a second ahead of the others'."""
+    site, site_file, cache = house
+    cams, _, masks = fed
+    truth = write_truth(FED_SCENARIO, FED_FRAMES, tmp_path / "truth")
+    with Router() as router:
+        listener = Listener(router.session, site.prefix)
+        feeder = Feeder(router.session, site.prefix)
+        fusion = start_fusion(site_file, endpoint=router.endpoint, store=tmp_path / "events.sqlite",
+                              out=tmp_path / "run", cache_dir=cache, log_dir=tmp_path,
+                              extra=("--max-clock-skew-ms", "250"))
+        try:
+            listener.wait_fusion(fusion)
+            start_ns = time.time_ns() + 500_000_000
+            for i in range(FED_FRAMES):
+                stamp = start_ns + i * PERIOD_NS
+                wait_s = (stamp - time.time_ns()) / 1e9
+                if wait_s > 0:
+                    time.sleep(wait_s)
+                for cam in (SKEWED, *(c for c in cams if c != SKEWED)):  # the skewed camera's mask first
+                    skew = SKEW_NS if cam == SKEWED else 0
+                    feeder.put_mask(cam, mask_message(cam, i, stamp + skew, *masks[cam][i]))
+                assert fusion.alive(), fusion.tail()
+            wait_for(lambda: listener.events_of("clock_skew"), 10, "a clock_skew event", procs=[fusion])
+            status = wait_for(lambda: (st := listener.latest_status()) and st.stamp_ns > stamp and st, 10,
+                              "a status after the last frame", procs=[fusion])
+            frames = [h.msg for h in listener.track_frames()]
+            assert fusion.stop() == 0, fusion.tail()
+        finally:
+            fusion.stop()
+            feeder.close()
+            listener.close()
+    (skew,) = listener.events_of("clock_skew")
+    assert skew.details["camera"] == SKEWED and skew.track == -1
+    assert skew.details["offset_ms"] == pytest.approx(SKEW_NS / 1e6, abs=100)
+    by_cam = {c.cam: c for c in status.cameras}
+    assert by_cam[SKEWED].state == "skewed" and by_cam[SKEWED].clock_offset_ms == pytest.approx(1000, abs=100)
+    assert all(by_cam[c].state == "ok" and abs(by_cam[c].clock_offset_ms) < 100 for c in cams if c != SKEWED)
+    # it is left out of the frame sets (its masks counted late) and the others go on: once the
+    # one-second upset its first mask caused is over, every set is the four others' and tracks the person
+    assert by_cam[SKEWED].late >= FED_FRAMES - 1
+    settled = [f for f in frames if f.frame >= 30]
+    print("measured:", {"offset_ms": skew.details["offset_ms"], "fused": len(frames),
+                        "with_skewed_camera": [f.frame for f in frames if SKEWED in f.cameras],
+                        "near_truth_from_frame_30": f"{sum(near_truth(f, truth) for f in settled)}/{len(settled)}",
+                        "late": {c: by_cam[c].late for c in cams}})
+    assert len(settled) >= 0.5 * (FED_FRAMES - 30)
+    assert all(f.cameras == [c for c in cams if c != SKEWED] for f in settled), [f.cameras for f in settled]
+    assert sum(near_truth(f, truth) for f in settled) >= 0.9 * len(settled)
