@@ -19,7 +19,6 @@ Pure math: no clock, no I/O; time is ``stamp_ns``.
 
 from __future__ import annotations
 
-from collections import deque
 from dataclasses import dataclass
 from typing import Iterable, Sequence
 

@@ -5,29 +5,35 @@ foreground voxels in each horizontal layer (layer ``k`` covers
 ``[k * voxel_m, (k + 1) * voxel_m)`` above the floor). Posture is read from
 the *shape* of that profile, never from the top height alone: a seated
 person wearing a tall hat or a horse mask reaches 1.6-1.8 m but still has
-most of their mass low and a wide lap, and someone bending over to pick
-something up has a wide torso layer at hip height above two thin legs.
+their mass centre low and their widest layers at the lap, and someone
+bending over to pick something up has a wide torso layer at hip height
+above two thin legs.
 
 Pipeline per track (:class:`PostureEstimator`):
 
-1. :func:`profile_features` turns one profile into :class:`PostureFeatures`
-   (top, bottom, mass centre, mass fractions, horizontal extent, lower/upper
-   area ratio).
+1. :func:`profile_features` turns one profile into :class:`PostureFeatures`:
+   top, bottom (where the body really ends, across small carving gaps),
+   mass centre, the fractions of voxels below 0.5 m and in 0.5-1.0 m, the
+   horizontal extent (for vertical vs horizontal: lying is wide and low),
+   the height of the widest layers, and how wide the body is at the floor.
 2. The features are smoothed by a short FIR filter (the seed paper's FIR on
    the posture measurement), :func:`fir_smooth`.
-3. :func:`feature_vector` normalises them by the person's long-term standing
+3. :func:`feature_vector` divides heights by the person's long-term standing
    height (learnt only while they confidently stand), and
-   :func:`posture_log_likelihoods` scores each posture with a robust
-   diagonal Gaussian model (:class:`PostureModel`).
+   :func:`posture_log_likelihoods` scores each internal state
+   (:data:`STATES`: the postures plus shapes such as kneeling or a seated
+   person whose lower legs the carving lost) with a robust diagonal Gaussian
+   model (:class:`PostureModel`).
 4. An HMM forward filter over the states (the online form of the seed's
-   Viterbi recursion over standing/fallen states) and a minimum duration for
-   any change keep the reported posture from flickering.
+   Viterbi recursion over standing/fallen states), summed per reported
+   posture, and a minimum duration for any change keep the reported
+   posture from flickering.
 
-Postures: ``standing``, ``sitting``, ``bending`` and ``lying``. Kneeling and
-squatting read ``sitting`` or ``bending`` (the seed paper: a person who
-kneels or bows may read sitting but never fallen). Whether a lying person has
-*fallen* is decided by :mod:`fusion_server.events` from how fast they got
-there.
+Postures: ``standing``, ``sitting``, ``bending`` and ``lying``. Kneeling
+reads ``bending`` (the project's ground truth labels it so; the seed paper:
+a person who kneels or bows may read sitting but never fallen); squatting
+reads ``sitting`` or ``bending``. Whether a lying person has *fallen* is
+decided by :mod:`fusion_server.events` from how fast they got there.
 
 Pure math: time comes in as ``stamp_ns``; no I/O, no clock.
 """
@@ -36,8 +42,8 @@ from __future__ import annotations
 
 import math
 from collections import deque
-from dataclasses import dataclass, field, replace
-from typing import Iterable, Mapping, Protocol, Sequence
+from dataclasses import dataclass
+from typing import Iterable, Protocol, Sequence
 
 import numpy as np
 
