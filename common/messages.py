@@ -67,8 +67,12 @@ JSON_ENCODING = "application/json"
 """Zenoh encoding string for JSON payloads (events)."""
 
 POSTURES = ("standing", "sitting", "lying", "bending", "unknown")
-EVENT_KINDS = ("fall", "long_lie", "sit_down", "stand_up", "enter", "exit", "dwell_start", "dwell_end",
-               "visit", "inactivity", "camera_lost", "camera_back", "clock_skew")
+PERSON_EVENT_KINDS = ("fall", "long_lie", "sit_down", "stand_up", "enter", "exit", "dwell_start", "dwell_end",
+                      "visit", "inactivity")
+"""Events about people: what the reasoner decides and the evaluation scores."""
+CAMERA_EVENT_KINDS = ("camera_lost", "camera_back", "clock_skew")
+"""Events about the system's health."""
+EVENT_KINDS = PERSON_EVENT_KINDS + CAMERA_EVENT_KINDS
 CAMERA_STATES = ("ok", "degraded", "lost", "skewed")
 
 _I64_MAX = 2**63 - 1

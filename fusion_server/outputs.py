@@ -24,6 +24,9 @@ from collections.abc import Iterable, Mapping
 from pathlib import Path
 from typing import Any, Protocol
 
+# the documented file formats have one home, next to their reader
+from common.evaluation.io import EVENTS_FILE, TRACK_COLUMNS, TRACKS_FILE
+
 __all__ = [
     "EVENTS_FILE",
     "TRACKS_FILE",
@@ -34,9 +37,6 @@ __all__ = [
     "plain_value",
 ]
 
-TRACKS_FILE = "tracks.csv"
-EVENTS_FILE = "events.jsonl"
-TRACK_COLUMNS: tuple[str, ...] = ("frame", "stamp_ns", "id", "x", "y", "z_top", "posture")
 _HEADER = ",".join(TRACK_COLUMNS)
 
 

@@ -28,20 +28,11 @@ from typing import Any
 
 import numpy as np
 
+from common import messages
+
 TRACK_COLUMNS: tuple[str, ...] = ("frame", "stamp_ns", "id", "x", "y", "z_top", "posture")
-POSTURES: tuple[str, ...] = ("standing", "sitting", "lying", "bending", "unknown")
-SCORED_KINDS: tuple[str, ...] = (
-    "fall",
-    "long_lie",
-    "sit_down",
-    "stand_up",
-    "enter",
-    "exit",
-    "dwell_start",
-    "dwell_end",
-    "visit",
-    "inactivity",
-)
+POSTURES: tuple[str, ...] = messages.POSTURES
+SCORED_KINDS: tuple[str, ...] = messages.PERSON_EVENT_KINDS
 TRACKS_FILE = "tracks.csv"
 EVENTS_FILE = "events.jsonl"
 META_FILE = "meta.json"
