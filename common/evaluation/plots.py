@@ -15,6 +15,7 @@ from typing import Any
 
 import numpy as np
 
+from common import messages
 from common.evaluation import io
 from common.evaluation.tracking import clear_mot
 
@@ -68,7 +69,8 @@ def plan_view(
     mpl = _matplotlib("plan_view")
     geom = site_geometry(site)
     run = io.read_run_tracks(run_dir)
-    events = io.read_run_events(run_dir, required=False)
+    # camera-health events have no place on the floor
+    events = [e for e in io.read_run_events(run_dir, required=False) if e.kind not in messages.CAMERA_EVENT_KINDS]
     truth = io.read_truth_tracks(truth_dir) if truth_dir is not None else None
 
     fig, canvas = _figure(mpl, size_px)
