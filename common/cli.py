@@ -178,6 +178,8 @@ def _register_replay(sub) -> None:
     p.add_argument("--frames", type=int, default=None, help="stop after N frame sets")
     p.add_argument("--seed", type=int, default=0, help="seed of the tracker (and of the synthetic scenario)")
     p.add_argument("--cache-dir", type=Path, default=None, help="carving lookup-table cache")
+    p.add_argument("--overlays", type=int, default=None, metavar="N",
+                   help="every N frames, write each camera's frame with its mask overlaid to OUT/overlays/")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(handler=_replay)
 
@@ -191,6 +193,7 @@ def _replay(args: argparse.Namespace) -> int:
     summary = replay(
         site, args.out, input_dir=args.input, synthetic=args.synthetic, cameras=cameras, max_frames=args.frames,
         seed=args.seed, cache_dir=args.cache_dir, progress=None if args.quiet else _progress_bar(),
+        overlay_every=args.overlays,
     )
     if not args.quiet:
         print(file=sys.stderr)

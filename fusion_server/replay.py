@@ -121,10 +121,13 @@ def replay(
     background_frames: int = 45,
     progress: Callable[[int, int | None, FusedFrame], None] | None = None,
     pipeline: FusionPipeline | None = None,
+    overlay_every: int | None = None,
 ) -> ReplaySummary:
     """Run the pipeline over recorded inputs and write ``tracks.csv`` and ``events.jsonl``.
 
     Exactly one of ``input_dir`` and ``synthetic`` names the input.
+    overlay_every: every this many frames, write each camera's frame with its
+        mask overlaid to ``OUT/overlays/<camera>-<frame>.png``.
     cameras: the subset of the site's cameras to use (default all).
     """
     if (input_dir is None) == (synthetic is None):
@@ -148,7 +151,8 @@ def replay(
         with RunOutputs(out_dir) as outputs:
             while max_frames is None or summary.frames < max_frames:
                 t0 = time.perf_counter()
-                masks, stamp_ns, frame_index, t_segment = _next_masks(inputs, holds)
+                images: dict[str, np.ndarray] | None = {} if overlay_every else None
+                masks, stamp_ns, frame_index, t_segment = _next_masks(inputs, holds, images)
                 if masks is None:
                     break
                 t1 = time.perf_counter()
@@ -165,6 +169,8 @@ def replay(
                 summary.stage_s["segment"] += t_segment
                 summary.stage_s["fuse"] += t2 - t1
                 summary.stage_s["write"] += t3 - t2
+                if images and summary.frames % overlay_every == 1:
+                    _write_overlays(Path(out_dir) / "overlays", fused.frame, images, masks)
                 if progress is not None:
                     progress(summary.frames, total, fused)
     finally:
@@ -206,9 +212,10 @@ def _open_inputs(site, cam_ids, input_dir, synthetic, seed, background_frames) -
     return inputs
 
 
-def _next_masks(inputs: dict, holds: dict):
+def _next_masks(inputs: dict, holds: dict, images: dict | None = None):
     """The next frame set: (masks, stamp_ns, frame index, seconds spent segmenting),
-    or (None, ...) when any camera's recording has ended."""
+    or (None, ...) when any camera's recording has ended. ``images`` receives
+    each segmented camera's frame."""
     masks: dict[str, np.ndarray] = {}
     stamps: list[int] = []
     indices: list[int] = []
@@ -229,9 +236,19 @@ def _next_masks(inputs: dict, holds: dict):
         t = time.perf_counter()
         masks[cam], _ = item.segmenter.apply(frame.image, holds=holds.get(cam, ()))
         t_segment += time.perf_counter() - t
+        if images is not None:
+            images[cam] = frame.image
         indices.append(frame.index)
         stamps.append(frame.stamp_ns)
     return masks, int(np.median(stamps)), int(np.median(indices)), t_segment
+
+
+def _write_overlays(folder: Path, frame: int, images: dict, masks: dict) -> None:
+    from common.evaluation.plots import mask_overlay
+
+    folder.mkdir(parents=True, exist_ok=True)
+    for cam, image in images.items():
+        mask_overlay(image, masks[cam], folder / f"{cam}-{frame:06d}.png")
 
 
 def _expected_frames(inputs: dict, max_frames: int | None) -> int | None:
