@@ -695,3 +695,90 @@ def test_a_camera_whose_clock_runs_a_second_ahead_is_reported_and_the_others_go_
     assert len(settled) >= 0.5 * (FED_FRAMES - 30)
     assert all(f.cameras == [c for c in cams if c != SKEWED] for f in settled), [f.cameras for f in settled]
     assert sum(near_truth(f, truth) for f in settled) >= 0.9 * len(settled)
+
+
+# --------------------------------------------------------------------------- 3: the fusion server restarted
+
+
+RESTART_SCENARIO = "enter_exit"
+RESTART_FRAMES = 345        # 23 s: enters at frame 62, stands still 150..220, leaves through the door at 303
+RESTART_AFTER_FRAME = 95
+
+
+def history(session, prefix: str, parameters: str = "") -> list[messages.Event]:
+    """Every event the history queryable returns (one reply per event, each on its own key)."""
+    selector = keys.history_key(prefix) + "/**" + (f"?{parameters}" if parameters else "")
+    replies = list(session.get(selector, timeout=10.0))
+    assert all(r.ok is not None for r in replies), [r.err.payload.to_string() for r in replies if r.ok is None]
+    return sorted((messages.decode_event(r.ok.payload.to_bytes()) for r in replies), key=lambda e: e.stamp_ns)
+
+
+@pytest.mark.slow
+def test_a_restarted_fusion_server_answers_the_whole_history_and_tracks_again(house, tmp_path):
+    site, site_file, cache = house
+    prefix = site.prefix
+    truth = write_truth(RESTART_SCENARIO, RESTART_FRAMES, tmp_path / "truth")
+    store = tmp_path / "events.sqlite"
+    logs = tmp_path / "logs"
+    logs.mkdir()
+    procs: list[Proc] = []
+    measured: dict[str, object] = {}
+    with Router() as router:
+        listener = Listener(router.session, prefix)
+        try:
+            first = start_fusion(site_file, endpoint=router.endpoint, store=store, out=tmp_path / "run1",
+                                 cache_dir=cache, log_dir=logs)
+            procs.append(first)
+            listener.wait_fusion(first)
+            start_ns = time.time_ns() + int(START_DELAY_S * 1e9)
+            workers = [start_camera(site_file, cam, endpoint=router.endpoint, scenario=RESTART_SCENARIO,
+                                    start_ns=start_ns, max_frames=RESTART_FRAMES, log_dir=logs)
+                       for cam in site.camera_ids]
+            procs.extend(workers)
+            wait_for(lambda: listener.events_of("enter") and listener.last_frame() >= RESTART_AFTER_FRAME,
+                     START_DELAY_S + 120, "an enter event and fused frames past the restart point",
+                     procs=[first, *workers])
+
+            # -- SIGKILL the server mid-run, start another on the same store
+            published = {h.msg.id: h.msg for h in listener.event_list()}
+            mark = listener.last_frame()
+            first.kill()
+            wait_for(lambda: not listener.fusion_alive.is_set(), 30, "the first server's token to go")
+            restart_ns = time.time_ns()
+            second = start_fusion(site_file, endpoint=router.endpoint, store=store, out=tmp_path / "run2",
+                                  cache_dir=cache, log_dir=logs, name="fusion-again")
+            procs.append(second)
+            listener.wait_fusion(second)
+            after_restart = history(router.session, prefix)
+            measured["events_before_restart"] = sorted(e.kind for e in published.values())
+
+            # -- it tracks again
+            resumed = wait_for(lambda: [f for f in fused_after(listener, mark) if near_truth(f, truth)], 60,
+                               "a track near the truth from the new server", procs=[second, *workers])
+            measured["tracking_again_after_s"] = (time.time_ns() - restart_ns) / 1e9
+            measured["frames_missed"] = resumed[0].frame - mark
+            for worker in workers:
+                assert worker.popen.wait(timeout=START_DELAY_S + RESTART_FRAMES / 15 + 120) == 0, worker.tail()
+            time.sleep(1.0)
+            frames = fused_after(listener, mark)
+            heard = {h.msg.id: h.msg for h in listener.event_list()}
+            at_end = history(router.session, prefix)
+            only_enter = history(router.session, prefix, "kind=enter")
+            assert second.stop() == 0, second.tail()
+        finally:
+            stop_all(procs)
+            listener.close()
+
+    # everything published before the restart is answered by the new server, unchanged
+    assert published and all(e.kind in messages.EVENT_KINDS for e in published.values())
+    assert {e.id: e for e in after_restart if e.id in published} == published
+    assert set(published) <= {e.id for e in after_restart}
+    # and the history keeps growing with what the new server publishes
+    assert {e.id for e in at_end} == set(heard) and all(e == heard[e.id] for e in at_end)
+    assert only_enter == [e for e in at_end if e.kind == "enter"] and only_enter
+    near = sum(near_truth(f, truth) for f in frames if truth.get(f.frame))
+    with_person = [f for f in frames if f.frame >= resumed[0].frame and truth.get(f.frame)]
+    measured.update(events_at_end=sorted(e.kind for e in at_end), fused_after_restart=len(frames),
+                    near_truth_after_restart=f"{near}/{len(with_person)}")
+    print("measured:", measured)
+    assert near >= 0.8 * len(with_person)
