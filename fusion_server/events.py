@@ -28,7 +28,11 @@ brackets):
 ``sit_down`` / ``stand_up``
     The reported posture moves from standing to sitting / from sitting (or,
     per ``stand_up_from``, lying) to standing; ``bending`` in between (which
-    includes kneeling) is ignored.
+    includes kneeling) is ignored. A sitting reading that rests on a body
+    floating at seat height (lower legs not carved: the ``sitting_raised``
+    posture state) counts only inside a hot spot whose kind is in
+    ``seat_kinds`` [sofa, table, chair, armchair, bench, bed], when the site
+    has any: someone kneeling behind a sofa looks the same.
 ``enter`` / ``exit``
     A track first seen inside a door zone (or, when ``bounds_xy_m`` is
     given, within ``edge_margin_m`` [0.4 m] of the monitored area's border)
@@ -271,6 +275,7 @@ class EventReasoner:
         utc_offset_h: float = 0.0,
         meals: Sequence[tuple[str, float, float]] = DEFAULT_MEALS,
         rest_kinds: Iterable[str] = ("bed",),
+        seat_kinds: Iterable[str] = ("sofa", "table", "chair", "armchair", "bench", "bed"),
         standing_height_m: float = 1.70,
         fall_window_s: float = 2.0,
         fall_min_drop_m: float = 0.5,
@@ -354,6 +359,8 @@ class EventReasoner:
         self.utc_offset_h = float(utc_offset_h)
         self.meals = tuple(meals)
         self.rest_kinds = frozenset(rest_kinds)
+        self.seat_kinds = frozenset(seat_kinds)
+        self._seat_spots = tuple(h for h in self.hotspots if h.kind in self.seat_kinds)
         self.standing_height_m = float(standing_height_m)
         self.fall_window_s = float(fall_window_s)
         self.fall_min_drop_m = float(fall_min_drop_m)
@@ -476,6 +483,14 @@ class EventReasoner:
     def _posture_events(self, tid, st, posture, reading, x, y, emit) -> None:
         if posture not in ("standing", "sitting", "lying"):
             return
+        if posture == "sitting":
+            # Judge each sitting episode once, when it starts: the state drifts as the person rises.
+            since = reading.since_ns if isinstance(reading, PostureReading) else None
+            if since is None or since != st.sitting_since_ns:
+                st.sitting_since_ns = since
+                st.sitting_plausible = self._seat_plausible(reading, x, y)
+            if not st.sitting_plausible:
+                return
         prev = st.stable_posture
         st.stable_posture = posture
         if prev is None or prev == posture:
@@ -487,6 +502,15 @@ class EventReasoner:
             emit("sit_down", tid, x, y, from_posture=prev, to_posture=posture, **extra)
         elif posture == "standing" and prev in self.stand_up_from:
             emit("stand_up", tid, x, y, from_posture=prev, to_posture=posture, **extra)
+
+    def _seat_plausible(self, reading: Any, x: float, y: float) -> bool:
+        """Whether a sitting reading is believable here. A body floating at seat
+        height (lower legs not carved) also looks like someone kneeling or
+        bending behind furniture; where the site marks its seats with hot spots
+        of ``seat_kinds``, it counts as sitting only inside one of them."""
+        if not self._seat_spots or not isinstance(reading, PostureReading) or reading.state != "sitting_raised":
+            return True
+        return hotspot_at(self._seat_spots, x, y) is not None
 
     def _fall_events(self, tid, st, stamp_ns, posture, top_m, centre_m, height_m, x, y, emit) -> None:
         if not math.isfinite(top_m):
@@ -758,6 +782,8 @@ class _TrackState:
     stable_posture: str | None = None
     fall: _FallState = field(default_factory=_FallState)
     posture_changed_ns: int = 0
+    sitting_since_ns: int | None = None
+    sitting_plausible: bool = True
     still_since_ns: int | None = None
     inactivity_emitted: bool = False
 

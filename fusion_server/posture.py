@@ -329,6 +329,9 @@ class PostureReading:
     raw: this frame's features; smoothed: FIR-smoothed features.
     standing_height_m: the person's long-term standing height estimate.
     stamp_ns: frame time.
+    state: the most probable internal state (:data:`STATES`) this frame,
+        e.g. ``sitting_raised`` when the reading rests on a body floating at
+        seat height.
     """
 
     posture: str
@@ -338,6 +341,7 @@ class PostureReading:
     smoothed: PostureFeatures
     standing_height_m: float
     stamp_ns: int
+    state: str = ""
 
     @property
     def confidence(self) -> float:
@@ -452,7 +456,8 @@ class PostureEstimator:
             feature_vector(smoothed, self.standing_height_m), self.model
         )
         self._log_alpha = _forward_step(self._log_alpha, ll, self.switch_rate_hz, dt_s)
-        prob = np.bincount(STATE_POSTURE, weights=np.exp(self._log_alpha), minlength=len(POSTURES))
+        state_prob = np.exp(self._log_alpha)
+        prob = np.bincount(STATE_POSTURE, weights=state_prob, minlength=len(POSTURES))
         best = int(np.argmax(prob))
         self._debounce(best, stamp_ns)
         self._learn_height(prob, raw, dt_s)
@@ -464,6 +469,7 @@ class PostureEstimator:
             smoothed=smoothed,
             standing_height_m=self.standing_height_m,
             stamp_ns=stamp_ns,
+            state=STATES[int(np.argmax(state_prob))],
         )
         return self._last
 

@@ -240,6 +240,26 @@ def test_sit_down_and_stand_up_without_fall():
     assert stand.details["from_posture"] == "sitting"
 
 
+def _hidden_below(profile: np.ndarray, height_m: float) -> np.ndarray:
+    """The profile with the layers below ``height_m`` lost (furniture hides them from some cameras)."""
+    out = profile.copy()
+    out[: int(round(height_m / VOXEL_M))] = 0
+    return out
+
+
+def test_body_floating_at_seat_height_sits_only_on_seats():
+    # kneeling behind the sofa's back and sitting on the sofa with the shins hidden carve alike
+    kneel_hidden = _hidden_below(_profile("kneeling"), 0.5)
+    sit_hidden = _hidden_below(SIT, 0.45)
+    behind = Person(1).hold(3.0, STAND, xy=(5.5, 3.0)).hold(6.0, kneel_hidden).hold(3.0, STAND)
+    on_sofa = Person(2).hold(3.0, STAND, xy=(5.0, 0.5)).hold(6.0, sit_hidden).hold(3.0, STAND)
+    events = run([behind, on_sofa], EventReasoner(hotspots=[SOFA, TABLE]))
+    assert [(e.kind, e.track) for e in events if e.kind in ("sit_down", "stand_up")] == [("sit_down", 2), ("stand_up", 2)]
+    # a site without seat hot spots believes every sitting reading
+    events = run([behind], EventReasoner())
+    assert kinds(events) == ["sit_down", "stand_up"]
+
+
 @pytest.mark.parametrize("pose", ["kneeling", "bending", "squatting"])
 def test_fast_kneel_bend_or_squat_is_never_a_fall(pose):
     p = Person(3).hold(2.0, STAND, xy=(2.0, 2.0))
