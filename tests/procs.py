@@ -137,12 +137,13 @@ class Proc:
     def tail(self, n: int = 30) -> str:
         return "\n".join(self.output().splitlines()[-n:])
 
-    def rss_kb(self) -> int:
-        """Resident set size (VmRSS) in KiB, from /proc."""
+    def rss_kb(self, field: str = "VmRSS") -> int:
+        """Resident set size in KiB from /proc/<pid>/status: ``VmRSS`` (all), ``RssAnon`` (heap and
+        other anonymous memory) or ``RssFile`` (mapped files)."""
         for line in Path(f"/proc/{self.pid}/status").read_text().splitlines():
-            if line.startswith("VmRSS:"):
+            if line.startswith(field + ":"):
                 return int(line.split()[1])
-        raise RuntimeError(f"no VmRSS for {self.name} (pid {self.pid})")
+        raise RuntimeError(f"no {field} for {self.name} (pid {self.pid})")
 
 
 def stop_all(procs: Iterable[Proc], timeout_s: float = 20.0) -> dict[str, int]:
