@@ -238,3 +238,25 @@ def _output(est: TrackEstimate, reading: PostureReading | None) -> TrackOutput:
         vy=float(est.vy),
         still=bool(est.still),
     )
+
+
+def _extend_to_border(
+    uv: np.ndarray, valid: np.ndarray, box: tuple[int, int, int, int], cam: Camera
+) -> tuple[int, int, int, int]:
+    """``box`` (pixels, exclusive ends) of the corners inside ``cam``'s image, grown
+    over the corners that project outside it.
+
+    uv: (8, 2) float64 pixel projections of a hold box's corners; valid: (8,) bool,
+    inside the image. A corner that projects off the image lies beyond a border, so
+    the box reaches past that border (the caller clips it to the image). A corner
+    that projects nowhere (behind the camera, beyond ``max_radius``; NaN) gives no
+    direction and is left out.
+    """
+    x0, y0, x1, y1 = box
+    off = uv[~valid & np.all(np.isfinite(uv), axis=1)]
+    if len(off):
+        x0 = min(x0, int(np.floor(off[:, 0].min())))
+        y0 = min(y0, int(np.floor(off[:, 1].min())))
+        x1 = max(x1, int(np.ceil(off[:, 0].max())) + 1)
+        y1 = max(y1, int(np.ceil(off[:, 1].max())) + 1)
+    return x0, y0, x1, y1
