@@ -93,7 +93,7 @@ LAP_FRONT_MAX_Y_M = -0.45       # the lap's front edge, toward cam2: -0.625 m me
 STARTUP_FRAMES = 5              # the track is confirmed on frame 2 (its third matched frame)
 FPS = 50.0
 SITTING_MIN_FRACTION = 0.95     # after the first second; 1.0 measured (every tracked frame)
-POSTURE_MARGIN = 1.0            # single-frame log-likelihood of sitting over any other state: >= 2.26 measured
+POSTURE_MARGIN = 1.0            # single-frame log-likelihood of sitting over any other posture: >= 5.4 measured
 
 
 @dataclass
