@@ -86,21 +86,11 @@ from typing import Any, Iterable, Mapping, Protocol, Sequence
 
 import numpy as np
 
+from common import messages
 from fusion_server.hotspots import DwellDetector, Hotspot, PositionWindow, hotspot_at, hotspot_index
 from fusion_server.posture import PostureReading
 
-EVENT_KINDS: tuple[str, ...] = (
-    "fall",
-    "long_lie",
-    "sit_down",
-    "stand_up",
-    "enter",
-    "exit",
-    "dwell_start",
-    "dwell_end",
-    "visit",
-    "inactivity",
-)
+EVENT_KINDS: tuple[str, ...] = messages.PERSON_EVENT_KINDS
 """Kinds :class:`EventReasoner` emits (a subset of the wire's event kinds)."""
 
 DEFAULT_MEALS: tuple[tuple[str, float, float], ...] = (
