@@ -13,6 +13,8 @@ Schema (all lengths in metres, world frame Z up, floor at Z = 0)::
     [volume]
     min_m = [0.0, 0.0, 0.0]
     max_m = [8.0, 6.0, 2.5]
+    open_edges = false           # people enter and leave across the volume's edges too
+                                 # (default: only when the site has no doors)
 
     [carving]
     voxel_sizes_m = [0.4, 0.2, 0.1, 0.05]  # octree levels, coarse to fine, halving
@@ -90,6 +92,9 @@ class Volume(_Model):
 
     min_m: tuple[float, float, float] = (0.0, 0.0, 0.0)
     max_m: tuple[float, float, float] = (8.0, 6.0, 2.5)
+    open_edges: bool | None = None
+    """People can come and go across the volume's edges (it is part of a larger
+    space); None: only where the site has no doors."""
 
     @model_validator(mode="after")
     def _ordered(self) -> "Volume":

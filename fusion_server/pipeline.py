@@ -121,7 +121,7 @@ class FusionPipeline:
         reasoner = EventReasoner(
             hotspots=[Hotspot(name=h.name, polygon_m=np.asarray(h.polygon_m), kind=h.kind) for h in site.hotspots],
             doors=[Hotspot(name=d.name, polygon_m=np.asarray(d.polygon_m), kind="door") for d in site.doors],
-            bounds_xy_m=(site.volume.min_m[0], site.volume.min_m[1], site.volume.max_m[0], site.volume.max_m[1]),
+            bounds_xy_m=_entry_edges(site),
             residents=site.residents,
             utc_offset_h=site.utc_offset_hours,
         )
@@ -223,6 +223,16 @@ class FusionPipeline:
             if reading is not None:
                 readings[est.id] = reading
         return readings
+
+
+def _entry_edges(site: Site) -> tuple[float, float, float, float] | None:
+    """The floor rectangle whose edges people cross to enter and leave, or None
+    when they come and go only through the site's doors."""
+    open_edges = site.volume.open_edges if site.volume.open_edges is not None else not site.doors
+    if not open_edges:
+        return None
+    lo, hi = site.volume.min_m, site.volume.max_m
+    return (lo[0], lo[1], hi[0], hi[1])
 
 
 def _output(est: TrackEstimate, reading: PostureReading | None) -> TrackOutput:
