@@ -70,8 +70,9 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--max-frames", type=int, metavar="N", help="stop after N frames")
 
     g = p.add_argument_group("segmentation")
-    g.add_argument("--window-frames", type=int, default=500, metavar="L",
-                   help="learning window: rate 1/n for the first L frames, then 1/L (default 500)")
+    g.add_argument("--window-frames", type=int, default=None, metavar="L",
+                   help="learning window: rate 1/n for the first L frames, then 1/L "
+                        "(default: 33 s at the source's frame rate, 500 frames at 15 fps)")
     g.add_argument("--mask-scale", type=float, metavar="S",
                    help="mask size as a fraction of the frame, 0.25..1 (default: the site's carving.mask_scale)")
     g.add_argument("--min-area-px", type=int, default=400, metavar="PX",
@@ -171,7 +172,7 @@ def _configure(args: argparse.Namespace):
     # build the segmenter once here so that a bad value stops start-up with its name
     from camera_worker.segmentation import ForegroundSegmenter
 
-    ForegroundSegmenter(**settings.segmenter)
+    ForegroundSegmenter(**{k: v for k, v in settings.segmenter.items() if v is not None})
     conf = zenoh_config(site.zenoh, mode=args.mode, listen=args.listen, connect=args.connect)
     return settings, conf
 

@@ -110,6 +110,21 @@ class SegmentStats:
     relearning: bool
 
 
+DEFAULT_WINDOW_S = 500 / 15.0
+"""The learning window in seconds: 500 frames at the 15 fps the defaults were
+tuned for. A still person is learned into the background after about
+``0.105 * window_frames`` frames (3.5 s at 15 fps, but only 1.1 s at 50 fps
+with 500 frames, before the tracker's one-second still test can hold them),
+so the window is set in seconds and converted at each source's own rate."""
+
+
+def window_frames_for(fps: float, window_s: float = DEFAULT_WINDOW_S) -> int:
+    """The learning window in frames for a source at ``fps``."""
+    if not fps > 0:
+        raise ValueError(f"fps must be positive, got {fps!r}")
+    return max(1, int(round(window_s * fps)))
+
+
 def learning_rate_schedule(n: int, *, window_frames: int, alpha: float) -> float:
     """Learning rate for the ``n``-th frame (1-based) of the window schedule.
 

@@ -40,7 +40,7 @@ from typing import Any, Sequence
 import cv2
 import numpy as np
 
-from camera_worker.segmentation import Box, ForegroundSegmenter, SegmentStats
+from camera_worker.segmentation import Box, ForegroundSegmenter, SegmentStats, window_frames_for
 from camera_worker.sources import (
     Frame,
     FrameSource,
@@ -244,7 +244,6 @@ def run(session: Any, settings: WorkerSettings, *, stop: threading.Event | None 
     counters = counters if counters is not None else WorkerCounters()
     start_ns = settings.start_ns if settings.start_ns is not None else time.time_ns()
     try:
-        segmenter = ForegroundSegmenter(**settings.segmenter)
         source = open_source(settings.source, cam_id=settings.cam, start_ns=start_ns, fps=settings.fps,
                              seed=settings.seed, base_dir=settings.base_dir, default_fps=settings.default_fps)
     except (SourceError, ValueError, TypeError) as exc:
@@ -257,6 +256,15 @@ def run(session: Any, settings: WorkerSettings, *, stop: threading.Event | None 
         except SourceError as exc:
             log.error("camera %s: %s", settings.cam, exc)
             return 1
+    seg_kwargs = dict(settings.segmenter)
+    if seg_kwargs.get("window_frames") is None:
+        seg_kwargs["window_frames"] = window_frames_for(source.fps or settings.default_fps or 15.0)
+    try:
+        segmenter = ForegroundSegmenter(**seg_kwargs)
+    except (ValueError, TypeError) as exc:
+        log.error("camera %s: %s", settings.cam, exc)
+        source.close()
+        return 1
     try:
         if settings.background:
             _learn_background(segmenter, settings, start_ns, stop)

@@ -28,7 +28,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from camera_worker.segmentation import ForegroundSegmenter
+from camera_worker.segmentation import ForegroundSegmenter, window_frames_for
 from camera_worker.sources import FrameSource, SourceError, open_source
 from common.site import Site
 from fusion_server.outputs import RunOutputs
@@ -36,15 +36,6 @@ from fusion_server.pipeline import FusedFrame, FusionPipeline
 
 VIDEO_SUFFIXES = (".avi", ".mp4", ".mkv", ".mov", ".m4v", ".webm")
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".pgm", ".ppm", ".tif", ".tiff")
-SEGMENTER_WINDOW_S = 500 / 15.0
-"""The segmenters' learning window in seconds: the segmenter's default 500
-frames at the 15 fps it was tuned for. The window is converted to frames at
-each recording's own rate, because a still person is learned into the
-background after about ``0.105 * window_frames`` frames: 3.5 s at 15 fps,
-but only 1.1 s at 50 fps with 500 frames, before the tracker (1 s still
-window) can hold them."""
-
-
 @dataclass
 class ReplaySummary:
     """What a replay did; ``stage_s`` sums wall time per stage."""
@@ -94,7 +85,7 @@ class _SegmentedCamera:
         source.open()
         fps = source.fps or default_fps
         self.segmenter = ForegroundSegmenter(
-            mask_scale=mask_scale, window_frames=max(1, int(round(SEGMENTER_WINDOW_S * fps)))
+            mask_scale=mask_scale, window_frames=window_frames_for(fps)
         )
         if background is not None:
             with background:
