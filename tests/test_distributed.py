@@ -67,7 +67,7 @@ FALL_EARLY_FRAMES = 30
 """... and no earlier than this many frames before it (the evaluation's event window)."""
 
 
-# --------------------------------------------------------------------------- fixtures and helpers
+# --------------------------------------------------------------------------- the house, its truth, comparisons
 
 
 @pytest.fixture(scope="module")
