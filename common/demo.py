@@ -24,7 +24,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TextIO
 
-START_DELAY_S = 6.0
+START_DELAY_S = 10.0
 """Workers' first frame is stamped this long after launch, so all start in step."""
 BACKGROUND_FRAMES = 45
 """Frames of the empty room each worker learns before the scenario (as replay does)."""

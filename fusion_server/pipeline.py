@@ -143,7 +143,11 @@ class FusionPipeline:
         events = self.reasoner.step(stamp_ns, frame, estimates, readings)
         confirmed = [e for e in estimates if e.confirmed]
         tracks = [_output(e, readings.get(e.id)) for e in confirmed]
-        holds = self.hold_regions([e for e in confirmed if e.still])
+        # A seated or lying person is held even when the tracker's estimate jitters
+        # (late masks, a camera rejoining): losing the hold would let the cameras
+        # learn exactly the people who must never fade, those on the floor.
+        held = [e for e, t in zip(confirmed, tracks) if e.still or t.posture in ("sitting", "lying")]
+        holds = self.hold_regions(held)
         return FusedFrame(
             frame=int(frame),
             stamp_ns=int(stamp_ns),
