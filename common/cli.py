@@ -245,6 +245,8 @@ def _register_eval(sub) -> None:
     p.add_argument("--cameras", default="5", help="with --suite: comma-separated camera counts to run, e.g. 5,4,3,2")
     p.add_argument("--frames", type=int, default=None, help="with --suite: only the first N frames of each scenario")
     p.add_argument("--out", type=Path, default=Path("voxelwatch-suite"), help="with --suite: working folder")
+    p.add_argument("--jobs", type=int, default=1, help="with --suite: scenarios replayed at once, one process each")
+    p.add_argument("--mask-scale", type=float, default=None, help="with --suite: masks downscaled by this factor")
     p.add_argument("--seed", type=int, default=0)
     p.set_defaults(handler=_eval)
 
@@ -256,7 +258,7 @@ def _eval(args: argparse.Namespace) -> int:
         return run_suite(
             out_dir=args.out, scenarios=args.scenarios.split(",") if args.scenarios else None, quick=args.quick,
             camera_counts=[int(c) for c in args.cameras.split(",")], max_frames=args.frames, seed=args.seed,
-            json_path=args.json,
+            json_path=args.json, jobs=args.jobs, mask_scale=args.mask_scale,
         )
     if args.truth is None or args.run is None:
         raise ValueError("give --truth and --run, or --suite")

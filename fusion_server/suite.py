@@ -40,38 +40,85 @@ def run_suite(
     max_frames: int | None = None,
     seed: int = 0,
     json_path: str | Path | None = None,
+    jobs: int = 1,
+    mask_scale: float | None = None,
     stream=sys.stdout,
 ) -> int:
-    """Replay and score the scenarios; print one table per camera count. Returns 0."""
+    """Replay and score the scenarios; print one table per camera count. Returns 0.
+
+    jobs: scenarios replayed at once, each in its own process.
+    mask_scale: the masks' downscale factor (default: the synthetic site's).
+    """
     from common import synth
-    from fusion_server.replay import replay
 
     out = Path(out_dir)
     names = list(scenarios) if scenarios else (list(QUICK_SCENARIOS) if quick else synth.list_scenarios())
     if quick and max_frames is None:
         max_frames = QUICK_FRAMES
     site = synth.default_site(out / "site")
-    cache = out / "cache"
+    if mask_scale is not None:
+        raw = site.model_dump(mode="json", exclude={"base_dir"})
+        raw["carving"]["mask_scale"] = mask_scale
+        site = synth_site_with(raw, out / "site")
+    plans = []
+    for count in camera_counts:
+        cams = cameras_for(count, site.camera_ids)
+        for name in names:
+            plans.append((count, cams, name))
+    results: dict[tuple[int, str], dict] = {}
+    site_path = site.base_dir / "site.toml"
+    tasks = [(str(site_path), str(out), count, cams, name, max_frames, seed) for count, cams, name in plans]
+    if jobs <= 1:
+        for task in tasks:
+            results[(task[2], task[4])] = _report(_run_one(*task))
+    else:
+        import multiprocessing
+        from concurrent.futures import ProcessPoolExecutor, as_completed
+
+        with ProcessPoolExecutor(max_workers=jobs, mp_context=multiprocessing.get_context("spawn")) as pool:
+            futures = {pool.submit(_run_one, *task): task for task in tasks}
+            for future in as_completed(futures):
+                task = futures[future]
+                results[(task[2], task[4])] = _report(future.result())
     report: dict[str, dict] = {}
     for count in camera_counts:
         cams = cameras_for(count, site.camera_ids)
-        rows: dict[str, dict] = {}
-        for name in names:
-            scenario = synth.get_scenario(name, seed, utc_offset_hours=site.utc_offset_hours)
-            n_frames = scenario.n_frames if max_frames is None else min(max_frames, scenario.n_frames)
-            truth_dir = out / "truth" / name
-            synth.write_truth(scenario, truth_dir, n_frames=n_frames)
-            run_dir = out / f"run-{count}cam" / name
-            t0 = time.perf_counter()
-            summary = replay(site, run_dir, synthetic=name, cameras=cams, max_frames=n_frames, seed=seed, cache_dir=cache)
-            rows[name] = evaluate(truth_dir, run_dir)
-            print(
-                f"  {count} cameras, {name}: {summary.frames} frames in {time.perf_counter() - t0:.0f} s",
-                file=sys.stderr, flush=True,
-            )
+        rows = {name: results[(count, name)]["scores"] for name in names}
         print(f"\n{count} cameras ({', '.join(cams)}):", file=stream)
         print(suite_table(rows), file=stream, flush=True)
         report[f"{count}cam"] = {"cameras": cams, "scenarios": rows, "total": suite_totals(rows.values())}
     if json_path is not None:
         write_json(report, json_path)
     return 0
+
+
+def synth_site_with(raw: dict, folder: Path):
+    """The synthetic site with changed settings, written back to its folder."""
+    from common.site import site_from_dict, write_site, load_site
+
+    return load_site(write_site(site_from_dict(raw, base_dir=folder.resolve()), folder / "site.toml"))
+
+
+def _run_one(site_path: str, out: str, count: int, cams: list[str], name: str, max_frames: int | None, seed: int) -> dict:
+    """Replay and score one scenario with some cameras (runs in a worker process)."""
+    from common import synth
+    from common.site import load_site
+    from fusion_server.replay import replay
+
+    out_dir = Path(out)
+    site = load_site(site_path)
+    scenario = synth.get_scenario(name, seed, utc_offset_hours=site.utc_offset_hours)
+    n_frames = scenario.n_frames if max_frames is None else min(max_frames, scenario.n_frames)
+    truth_dir = out_dir / "truth" / name
+    synth.write_truth(scenario, truth_dir, n_frames=n_frames)
+    run_dir = out_dir / f"run-{count}cam" / name
+    t0 = time.perf_counter()
+    summary = replay(site, run_dir, synthetic=name, cameras=cams, max_frames=n_frames, seed=seed, cache_dir=out_dir / "cache")
+    return {"count": count, "name": name, "frames": summary.frames, "seconds": time.perf_counter() - t0,
+            "scores": evaluate(truth_dir, run_dir)}
+
+
+def _report(result: dict) -> dict:
+    print(f"  {result['count']} cameras, {result['name']}: {result['frames']} frames in {result['seconds']:.0f} s",
+          file=sys.stderr, flush=True)
+    return result

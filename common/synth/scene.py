@@ -38,6 +38,7 @@ ROOM_SIZE_M = (8.0, 6.0, 2.5)
 CAMERA_IDS = ("cam1", "cam2", "cam3", "cam4", "cam5")
 FPS = 15.0
 SITE_NAME = "synthetic-house"
+MASK_SCALE = 0.5
 
 
 @dataclass(frozen=True)
@@ -320,6 +321,9 @@ def site_dict(
         "residents": residents,
         "utc_offset_hours": 0.0,
         "volume": {"min_m": [0.0, 0.0, 0.0], "max_m": list(room.size_m)},
+        # half-size masks: a quarter of the segmentation, distance-transform and
+        # bandwidth cost, with the same scores on the scenario suite
+        "carving": {"mask_scale": MASK_SCALE},
         "cameras": [
             {
                 "id": cam_id,
