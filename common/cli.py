@@ -59,6 +59,13 @@ def main(argv: Sequence[str] | None = None) -> int:
     except ValueError as exc:  # configuration problems carry their own clear message
         print(f"voxelwatch {args.command}: {exc}", file=sys.stderr)
         return 2
+    except Exception as exc:
+        from camera_worker.sources import SourceError
+
+        if not isinstance(exc, (SourceError, OSError)):
+            raise
+        print(f"voxelwatch {args.command}: {exc}", file=sys.stderr)  # an input that cannot be read
+        return 1
 
 
 def _camera_main() -> Callable[[Sequence[str]], int]:

@@ -132,11 +132,6 @@ def test_replay_a_camera_subset_from_videos(house, inputs, cache, tmp_path):
     assert len(set(tracks.track_id.tolist())) == 1
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="replay raises SourceError (a RuntimeError) for a missing folder and the voxelwatch command turns "
-    "only ValueError into a message, so the user sees a traceback",
-)
 @pytest.mark.parametrize("missing", ["input folder", "camera folder"])
 def test_missing_input_is_one_clear_message(missing, house, inputs, cache, tmp_path):
     if missing == "input folder":
