@@ -26,6 +26,14 @@ from fusion_server.posture import PostureEstimator, PostureReading
 from fusion_server.tracker import TrackEstimate, Tracker
 
 
+NEW_TARGET_MIN_VOLUME_M3 = 0.05
+"""Smallest blob that starts a new track. A person carves 0.1-0.5 m^3 standing (a
+body lying half hidden by furniture about 0.05-0.1 m^3, but that person was tracked
+before falling); hull voxels where two people's silhouettes cross, or behind a
+person near a wall that few cameras see, form blobs of 0.02-0.045 m^3 that last a
+few frames, long enough to be confirmed as people."""
+
+
 @dataclass(frozen=True)
 class TrackOutput:
     """A confirmed track as users see it. World frame, metres, m/s."""
@@ -88,7 +96,7 @@ class FusionPipeline:
         self.carver = carver
         self.cameras = dict(cameras)
         self.reasoner = reasoner
-        self.tracker = Tracker(rng=rng, id_source=itertools.count(1))
+        self.tracker = Tracker(rng=rng, id_source=itertools.count(1), new_target_min_volume_m3=NEW_TARGET_MIN_VOLUME_M3)
         self.hold_radius_m = float(hold_radius_m)
         self.min_cameras = int(min_cameras if min_cameras is not None else carver.min_cameras)
         self.camera_ids: tuple[str, ...] = carver.camera_ids

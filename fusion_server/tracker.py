@@ -3,11 +3,14 @@
 Seed paper 000, sections 2.2.2 and 2.3. Every frame:
 
 1. each target's 2.5D particle filter moves to the new time and refines the
-   target's floor position on the frame's floor count map;
+   target's floor position on the frame's floor count map (never beyond the
+   volume's floor: there is no evidence there);
 2. targets are matched to the detected blobs by the Hungarian method on the
    floor distance between the target and the blob's centroid, with a gate;
    a target left out that stands on a matched blob shares it (two people
-   touching above tau1 make one blob);
+   touching above tau1 make one blob) once it is old enough to be a person
+   rather than a ghost; a target alone on a low blob (a body lying on the
+   floor) is placed at the blob's centroid;
 3. each target's reliability follows the IIR filter ``r = r + l (M - r)``
    with ``M`` = 1 when matched and 0 when not, and the age-dependent learning
    rate ``l = min(l_max, 1 / age + l_min)``: a young target becomes trusted
@@ -15,7 +18,7 @@ Seed paper 000, sections 2.2.2 and 2.3. Every frame:
 4. a target is *confirmed* (trusted as a person) while ``r`` is at least
    ``confirm_reliability`` and destroyed when ``r`` drops below
    ``delete_reliability``;
-5. blobs no target matched start new targets;
+5. blobs no target matched start new targets, if large enough;
 6. two targets closer than ``merge_distance_m`` for ``merge_frames``
    consecutive frames follow the same person: the older one is kept.
 
@@ -106,6 +109,10 @@ class Tracker:
         stand closer than 0.3 m centre to centre for half a second.
     new_target_min_distance_m: an unmatched blob this close to an existing
         target does not start a new one [0.3 m].
+    new_target_min_volume_m3: an unmatched blob smaller than this does not
+        start a new target [0: every blob the detector keeps]. The fusion
+        pipeline asks for a person-sized blob (see
+        ``fusion_server.pipeline.NEW_TARGET_MIN_VOLUME_M3``).
     velocity_tau_s: time constant of the velocity smoothing [0.3 s].
     still_speed_mps, still_window_s: a target is still when its smoothed
         speed stayed below the speed for the whole window [0.15 m/s, 1.0 s].
@@ -117,6 +124,18 @@ class Tracker:
         that blob [True]. Two people touching above tau1 form one blob; the
         paper's one-to-one assignment would starve one of them. With False
         the tracker follows the paper strictly.
+    share_min_age_frames: only targets at least this old share a blob [15
+        frames, 1 s at 15 fps]. People who come to touch were tracked apart
+        before; a target a few frames old that has lost its own blob is a
+        ghost (hull voxels where two people's silhouettes cross, a fragment
+        of a body lying half hidden) and must not live on a person's blob.
+    low_top_m: a target matched on its own to a blob no higher than this
+        [0.8 m] stands on a body lying on the floor, and is placed at the
+        blob's centroid. The filter's square box settles on part of an
+        elongated body (the box fits anywhere along it, so the estimate
+        also drifts with the velocity fed back into the motion model),
+        while the centroid of a lying body lies within about 0.1 m of the
+        pelvis. Standing, sitting and kneeling bodies reach higher.
     """
 
     def __init__(
@@ -132,6 +151,7 @@ class Tracker:
         merge_distance_m: float = 0.3,
         merge_frames: int = 8,
         new_target_min_distance_m: float = 0.3,
+        new_target_min_volume_m3: float = 0.0,
         velocity_tau_s: float = 0.3,
         still_speed_mps: float = 0.15,
         still_window_s: float = 1.0,
@@ -142,6 +162,8 @@ class Tracker:
         alpha_noise_m: float = 0.1,
         resample_below: float = 0.5,
         share_blobs: bool = True,
+        share_min_age_frames: int = 15,
+        low_top_m: float = 0.8,
     ):
         if not isinstance(rng, np.random.Generator):
             raise ValueError(f"rng must be a numpy Generator, got {type(rng).__name__}")
@@ -149,8 +171,10 @@ class Tracker:
             ("gate_m", gate_m),
             ("merge_distance_m", merge_distance_m),
             ("new_target_min_distance_m", new_target_min_distance_m),
+            ("new_target_min_volume_m3", new_target_min_volume_m3),
             ("still_speed_mps", still_speed_mps),
             ("still_window_s", still_window_s),
+            ("low_top_m", low_top_m),
         ):
             if not (np.isfinite(value) and value >= 0):
                 raise ValueError(f"{name} must be a finite non-negative number, got {value}")
@@ -166,6 +190,8 @@ class Tracker:
             )
         if int(merge_frames) < 1:
             raise ValueError(f"merge_frames must be at least 1, got {merge_frames}")
+        if int(share_min_age_frames) < 0:
+            raise ValueError(f"share_min_age_frames must be non-negative, got {share_min_age_frames}")
         self._pf_args = dict(
             n_particles=n_particles,
             k_m=k_m,
@@ -188,10 +214,13 @@ class Tracker:
         self.merge_distance_m = float(merge_distance_m)
         self.merge_frames = int(merge_frames)
         self.new_target_min_distance_m = float(new_target_min_distance_m)
+        self.new_target_min_volume_m3 = float(new_target_min_volume_m3)
         self.velocity_tau_s = float(velocity_tau_s)
         self.still_speed_mps = float(still_speed_mps)
         self.still_window_s = float(still_window_s)
         self.share_blobs = bool(share_blobs)
+        self.share_min_age_frames = int(share_min_age_frames)
+        self.low_top_m = float(low_top_m)
         self._targets: list[_Target] = []
         self._close_frames: dict[tuple[int, int], int] = {}
         self._last_stamp_ns: int | None = None
@@ -217,8 +246,11 @@ class Tracker:
         self._last_stamp_ns = stamp_ns
         evidence = floor_evidence(result.floor, result.grid, max_half_m=self._max_half_m)
 
+        grid = result.grid
+        floor_lo = grid.origin_m[:2]
+        floor_hi = floor_lo + np.asarray(grid.shape[:2], dtype=np.float64) * grid.voxel_m
         for t in self._targets:
-            t.track(evidence, stamp_ns, dt_s, self.velocity_tau_s)
+            t.track(evidence, stamp_ns, dt_s, self.velocity_tau_s, (floor_lo, floor_hi))
 
         positions = np.array([[t.x, t.y] for t in self._targets]).reshape(-1, 2)
         blob_xy = np.array([[b.x, b.y] for b in blobs]).reshape(-1, 2)
@@ -240,9 +272,13 @@ class Tracker:
             if blob is not None and profile is None:
                 profile, volume_m3 = blob.height_profile, blob.volume_m3
             t.observe(blob, profile, volume_m3, result, self.rng)
+            if blob is not None and n not in parts and blob.z_top_m <= self.low_top_m:
+                t.centre_on(blob, dt_s, self.velocity_tau_s, result)
 
         for bi in unmatched_blobs:
             blob = blobs[int(bi)]
+            if blob.volume_m3 < self.new_target_min_volume_m3:
+                continue
             if any(math.hypot(t.x - blob.x, t.y - blob.y) < self.new_target_min_distance_m for t in self._targets):
                 continue
             self._targets.append(self._create(blob, evidence, result, stamp_ns))
@@ -281,7 +317,7 @@ class Tracker:
             owner[b.footprint[:, 0], b.footprint[:, 1]] = bi
         for ti in unmatched:
             t = self._targets[int(ti)]
-            if not t.pf.supported:
+            if not t.pf.supported or t.age < self.share_min_age_frames:
                 continue
             i = int(math.floor((t.x - grid.origin_m[0]) / grid.voxel_m))
             j = int(math.floor((t.y - grid.origin_m[1]) / grid.voxel_m))
@@ -348,10 +384,23 @@ class _Target:
         self.blob: Blob | None = None
         self.speeds: deque[tuple[int, float]] = deque()
         self.still = False
+        self._before = (x, y, 0.0, 0.0)  # position and velocity before this frame's filter step
 
-    def track(self, evidence: FloorEvidence, stamp_ns: int, dt_s: float, tau_s: float) -> None:
-        """Particle filter step; velocity from the change of position."""
+    def track(self, evidence: FloorEvidence, stamp_ns: int, dt_s: float, tau_s: float, bounds=None) -> None:
+        """Particle filter step; velocity from the change of position.
+
+        bounds: ((2,), (2,)) floor rectangle of the volume, world metres. The
+        floor maps hold no evidence outside it, so a target coasting on its
+        velocity (someone who walked out through a door) stops at its edge,
+        where they were last seen, instead of gliding on beyond it.
+        """
         est = self.pf.step(evidence, stamp_ns, velocity_mps=(self.vx, self.vy))
+        if bounds is not None:
+            lo, hi = bounds
+            self.pf.particles[:, :2] = np.clip(self.pf.particles[:, :2], lo, hi)
+            est = est.copy()
+            est[:2] = np.clip(est[:2], lo, hi)
+        self._before = (self.x, self.y, self.vx, self.vy)
         if dt_s > 0:
             beta = 1.0 - math.exp(-dt_s / tau_s)
             self.vx += beta * (float(est[0] - self.x) / dt_s - self.vx)
@@ -375,6 +424,23 @@ class _Target:
             self.z_top_m = top
         elif blob is not None:
             self.z_top_m = blob.z_top_m
+
+    def centre_on(self, blob: Blob, dt_s: float, tau_s: float, result: CarveResult) -> None:
+        """Place the target at ``blob``'s centroid: the particles move by the same offset,
+        the velocity follows the change of position since the last frame, the top is
+        read around the new position."""
+        dx, dy = blob.x - self.x, blob.y - self.y
+        self.pf.particles[:, 0] += dx
+        self.pf.particles[:, 1] += dy
+        x0, y0, vx0, vy0 = self._before
+        self.x, self.y = float(blob.x), float(blob.y)
+        if dt_s > 0:
+            beta = 1.0 - math.exp(-dt_s / tau_s)
+            self.vx = vx0 + beta * ((self.x - x0) / dt_s - vx0)
+            self.vy = vy0 + beta * ((self.y - y0) / dt_s - vy0)
+        top = _box_top(result, self.x, self.y, self.alpha_m)
+        if top > 0:
+            self.z_top_m = top
 
     def update_stillness(self, stamp_ns: int, window_s: float, still_speed_mps: float) -> None:
         """Still when the smoothed speed stayed below the threshold over the whole window."""
