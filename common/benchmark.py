@@ -350,7 +350,7 @@ def _carving_table(rows) -> str:
         dense_s = f"{dense:>8.1f}" if dense else f"{'-':>8}"
         missed = f"{100 * r['missed_fraction']:>8.2f}" if dense else f"{'-':>8}"
         lines.append(
-            f"{r['cameras']:>7}  {100 * r['voxel_m']:>8.1f}  {r['people']:>6}  {1e3 * r['distance_s']:>11.2f}  "
+            f"{int(r['cameras']):>7}  {100 * r['voxel_m']:>8.1f}  {int(r['people']):>6}  {1e3 * r['distance_s']:>11.2f}  "
             f"{1e3 * r['octree_s']:>9.2f}  {r['octree_fps']:>9.1f}  {dense_s}  {ratio}  {missed}  {r['lut_bytes'] / 1e6:>6.1f}"
         )
     return "\n".join(lines)
