@@ -1,0 +1,366 @@
+"""The whole fusion pipeline stepped over synthetic-house scenarios, against ground truth.
+
+Each scenario is replayed with :func:`fusion_server.replay.replay`, exactly as
+``voxelwatch replay --synthetic`` does it: the five cameras rendered frame by
+frame, each segmented by the camera worker's own segmenter after learning the
+empty room, fused by :class:`~fusion_server.pipeline.FusionPipeline`, with the
+hold regions of still people going back to the segmenters. The site is the
+synthetic house's with ``carving.mask_scale = 0.5`` (the workers' masks at
+320 x 240), which makes segmentation four times cheaper; the accuracy is the
+same as at full resolution (see the figures below).
+
+What is held against the truth:
+
+* people counted right: the number of confirmed tracks equals the number of
+  people inside the volume on (nearly) every frame after a start-up allowance;
+* positions: each person's nearest track is within a stated floor distance of
+  the pelvis (standing and walking; lying bodies get a looser bound);
+* identities: no identity switch while two people pass close;
+* falls: every fall detected within a stated delay, and no fall for sitting,
+  kneeling or bending;
+* sit-down, stand-up, enter and exit events matched one to one within the
+  +-30-frame window of :mod:`common.evaluation`, no false ones.
+
+The default run replays the first seconds of six scenarios (about 1500 frame
+sets); the complete scenarios, the other falls and the ten-minute seated
+person are marked slow. Each case prints its figures (MOTA, IDF1, MOTP,
+posture accuracy, event counts, fall delays).
+
+Measured (seed 0, 5 cameras, mask scale 0.5, complete scenarios)::
+
+    scenario        frames  MOTA    IDF1    MOTP m  events                      posture
+    walk               450  0.996   0.998   0.027   -                           1.000
+    two_pass           375  0.995   0.997   0.016   -                           1.000
+    side_by_side       525  0.199   0.586   0.036   false fall, stand up, enter 0.985
+    fall_forward       600  0.997   0.998   0.165   fall 0.93 s, long lie       0.988
+    fall_sideways      600  0.997   0.998   0.079   fall 0.93 s                 0.985
+    sit_stand         1125  0.998   0.999   0.042   2/2 sit down, 2/2 stand up  0.962
+    bend_kneel         750  0.997   0.999   0.037   no fall                     0.951
+    enter_exit         750  0.917   0.960   0.026   enter, exit                 1.000
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pytest
+from scipy.optimize import linear_sum_assignment
+
+from common import synth
+from common.evaluation import evaluate, read_events, read_tracks
+from common.synth import derive_truth
+from fusion_server.replay import replay
+
+SEED = 0
+MASK_SCALE = 0.5
+STARTUP_FRAMES = 10
+"""Frames after the start (and after a truth enter or exit) when the count may be off:
+a new track is confirmed on its third frame, a departed one is kept for about half a
+second."""
+DOOR_ALLOWANCE_FRAMES = 25
+"""Frames either side of a true enter or exit when the count may be off: the truth
+counts a person from the frame their pelvis crosses the door line, the cameras see
+their body in the doorway a little earlier and later."""
+POSITION_ERROR_M = {"standing": 0.15, "sitting": 0.25, "bending": 0.25, "lying": 0.30}
+"""Largest allowed floor distance (95th percentile over frames) between a person and
+their track, by the person's true posture. Standing and walking people are followed by
+the particle filter within a few centimetres; a seated person's track sits between
+pelvis and knees; a lying body's track sits on the centroid of what the cameras see of
+it, which furniture can bias."""
+POSTURE_CHANGE_MARGIN_FRAMES = 15
+"""Positions are not judged within this many frames of a change of the person's true
+posture: the truth switches posture half-way through sitting down, standing up or
+falling, while the body is between the two (and, when seating, partly merged with the
+chair)."""
+FALL_DELAY_MAX_S = 2.0
+"""Largest allowed delay from the true fall (body on the floor) to the fall event."""
+
+
+@dataclass(frozen=True)
+class Run:
+    """One replayed scenario and its scores."""
+
+    name: str
+    frames: int
+    truth_dir: Path
+    run_dir: Path
+    results: dict
+
+    @property
+    def tracking(self) -> dict:
+        return self.results["tracking"]
+
+    def kind(self, kind: str) -> dict:
+        return self.results["events"]["per_kind"][kind]
+
+    def run_events(self, kind: str) -> list:
+        return [e for e in read_events(self.run_dir / "events.jsonl") if e.kind == kind]
+
+    def describe(self) -> str:
+        t, ev, p = self.tracking, self.results["events"], self.results["posture"]
+        kinds = {k: (v["tp"], v["fp"], v["fn"]) for k, v in ev["per_kind"].items() if v["truth"] or v["run"]}
+        return (
+            f"{self.name}, {self.frames} frames: MOTA {t['mota']:.4f} IDF1 {t['idf1']:.4f} "
+            f"MOTP {t['motp_m']:.3f} m, FP {t['fp']} FN {t['fn']} IDSW {t['id_switches']}; "
+            f"events (tp, fp, fn) {kinds}; fall delays {ev['fall_delays_s']} s; "
+            f"posture accuracy {p['strict_accuracy']}"
+        )
+
+
+@pytest.fixture(scope="session")
+def house(tmp_path_factory):
+    """The synthetic house's site with half-resolution masks, and a lookup-table cache."""
+    root = tmp_path_factory.mktemp("scenarios")
+    site = synth.default_site(root / "site")
+    site = site.model_copy(update={"carving": site.carving.model_copy(update={"mask_scale": MASK_SCALE})})
+    return site, root
+
+
+@pytest.fixture(scope="session")
+def replayed(house):
+    """(scenario, frames) -> :class:`Run`; each scenario is replayed once per session."""
+    site, root = house
+    done: dict[tuple[str, int], Run] = {}
+
+    def get(name: str, frames: int | None = None) -> Run:
+        scenario = synth.get_scenario(name, SEED, utc_offset_hours=site.utc_offset_hours)
+        n = scenario.n_frames if frames is None else min(frames, scenario.n_frames)
+        if (name, n) not in done:
+            truth_dir, run_dir = root / f"{name}-{n}" / "truth", root / f"{name}-{n}" / "run"
+            synth.write_truth(scenario, truth_dir, n_frames=n)
+            summary = replay(site, run_dir, synthetic=name, max_frames=n, seed=SEED, cache_dir=root / "cache")
+            assert summary.frames == n
+            run = Run(name, n, truth_dir, run_dir, evaluate(truth_dir, run_dir))
+            print(f"\n{run.describe()}")
+            done[(name, n)] = run
+        return done[(name, n)]
+
+    return get
+
+
+# --------------------------------------------------------------------------- measures
+
+
+@dataclass(frozen=True)
+class FrameCheck:
+    """Per-frame comparison of a run's confirmed tracks with the truth."""
+
+    scored: int  # frames scored (after the allowances)
+    counted_right: int  # of them, frames with as many tracks as people
+    errors_m: dict[str, np.ndarray]  # true posture -> floor distance person-track, frames counted right
+
+    @property
+    def count_accuracy(self) -> float:
+        return self.counted_right / self.scored
+
+    def error_p95(self, posture: str) -> float:
+        e = self.errors_m.get(posture)
+        return float(np.percentile(e, 95)) if e is not None and len(e) else 0.0
+
+
+def frame_check(run: Run) -> FrameCheck:
+    truth = derive_truth(synth.get_scenario(run.name, SEED)).cut(run.frames)
+    tracks = read_tracks(run.run_dir / "tracks.csv")
+    skip = set(range(STARTUP_FRAMES))
+    for e in truth.events:
+        if e.kind in ("enter", "exit"):
+            skip |= set(range(e.frame - DOOR_ALLOWANCE_FRAMES, e.frame + DOOR_ALLOWANCE_FRAMES + 1))
+    changing: set[tuple[int, int]] = set()  # (person, frame) near a change of posture
+    for person in np.unique(truth.person):
+        rows = np.flatnonzero(truth.person == person)
+        switches = rows[1:][truth.posture[rows[1:]] != truth.posture[rows[:-1]]]
+        for f in truth.frame[switches]:
+            m = POSTURE_CHANGE_MARGIN_FRAMES
+            changing |= {(int(person), int(g)) for g in range(f - m, f + m + 1)}
+    scored = right = 0
+    errors: dict[str, list[float]] = {}
+    for frame in range(run.frames):
+        if frame in skip:
+            continue
+        scored += 1
+        t = truth.rows_at(frame)
+        r = np.flatnonzero(tracks.frame == frame)
+        if len(t) != len(r):
+            continue
+        right += 1
+        if not len(t):
+            continue
+        d = np.hypot(truth.x[t][:, None] - tracks.x[r][None, :], truth.y[t][:, None] - tracks.y[r][None, :])
+        rows, cols = linear_sum_assignment(d)
+        for i, j in zip(rows, cols):
+            if (int(truth.person[t[i]]), frame) in changing:
+                continue
+            errors.setdefault(str(truth.posture[t[i]]), []).append(float(d[i, j]))
+    return FrameCheck(scored, right, {k: np.asarray(v) for k, v in errors.items()})
+
+
+def check_counts_and_positions(run: Run, min_count_accuracy: float) -> FrameCheck:
+    fc = frame_check(run)
+    print(
+        f"\n{run.name}: people counted right on {fc.counted_right}/{fc.scored} frames "
+        f"({fc.count_accuracy:.3f}); position error p95 "
+        + ", ".join(f"{k} {fc.error_p95(k):.3f} m (max {v.max():.3f})" for k, v in fc.errors_m.items() if len(v))
+    )
+    assert fc.count_accuracy >= min_count_accuracy
+    for posture, errors in fc.errors_m.items():
+        if len(errors):
+            assert fc.error_p95(posture) <= POSITION_ERROR_M[posture], posture
+    return fc
+
+
+def check_events(run: Run, kinds: tuple[str, ...]) -> None:
+    """Every true event of these kinds matched, none made up."""
+    for kind in kinds:
+        score = run.kind(kind)
+        assert score["truth"] > 0, f"{run.name} has no {kind} to detect"
+        assert (score["tp"], score["fp"], score["fn"]) == (score["truth"], 0, 0), f"{kind}: {score}"
+
+
+def check_falls(run: Run) -> None:
+    check_events(run, ("fall",))
+    delays = run.results["events"]["fall_delays_s"]
+    assert len(delays) == run.kind("fall")["truth"]
+    assert all(-0.5 <= d <= FALL_DELAY_MAX_S for d in delays), delays
+
+
+def check_no_false_alarm(run: Run) -> None:
+    assert run.run_events("fall") == [] and run.run_events("long_lie") == []
+
+
+# --------------------------------------------------------------------------- the default run
+
+SHORT = {
+    "two_pass": 110,  # closest at frame 47 (0.55 m), apart again by frame 80
+    "side_by_side": 100,  # 0.6 m apart from the first frame
+    "fall_forward": 140,  # body on the floor at frame 101
+    "sit_stand": 400,  # sits down at frame 110, stands up at 361
+    "bend_kneel": 400,  # bends at frames 80-132, kneels at 253-368
+    "enter_exit": 340,  # enters at frame 62, leaves at 303
+}
+"""Frames replayed per scenario in the default run (15 fps)."""
+
+
+def test_two_people_passing_close_are_counted_and_keep_their_identities(replayed):
+    run = replayed("two_pass", SHORT["two_pass"])
+    check_counts_and_positions(run, min_count_accuracy=0.98)
+    assert run.tracking["id_switches"] == 0
+    assert run.tracking["pred_ids"] == 2
+    assert run.tracking["idf1"] >= 0.95
+
+
+def test_two_people_side_by_side_keep_their_identities(replayed):
+    """No identity switch. (Whether both are counted: the next test.)"""
+    run = replayed("side_by_side", SHORT["side_by_side"])
+    assert run.tracking["id_switches"] == 0
+
+
+@pytest.mark.xfail(
+    strict=True,
+    reason="two people 0.6 m apart from the first frame carve one blob: hull voxels between them rise to "
+    "1.40-1.45 m, above tau1, and the shorter one's head (1.55 m) only 0.10-0.15 m above that, so the "
+    "detector never separates them and the tracker never starts a second target",
+)
+def test_two_people_side_by_side_are_both_counted(replayed):
+    run = replayed("side_by_side", SHORT["side_by_side"])
+    check_counts_and_positions(run, min_count_accuracy=0.9)
+
+
+def test_fall_forward_is_detected_and_the_lying_person_located(replayed):
+    run = replayed("fall_forward", SHORT["fall_forward"])
+    check_counts_and_positions(run, min_count_accuracy=0.98)
+    check_falls(run)
+
+
+def test_sitting_down_and_standing_up_are_events_not_falls(replayed):
+    run = replayed("sit_stand", SHORT["sit_stand"])
+    check_counts_and_positions(run, min_count_accuracy=0.98)
+    check_events(run, ("sit_down", "stand_up"))
+    check_no_false_alarm(run)
+
+
+def test_bending_and_kneeling_raise_no_fall(replayed):
+    run = replayed("bend_kneel", SHORT["bend_kneel"])
+    check_counts_and_positions(run, min_count_accuracy=0.98)
+    check_no_false_alarm(run)
+
+
+def test_entering_and_leaving_are_events(replayed):
+    run = replayed("enter_exit", SHORT["enter_exit"])
+    check_counts_and_positions(run, min_count_accuracy=0.98)
+    check_events(run, ("enter", "exit"))
+    check_no_false_alarm(run)
+
+
+# --------------------------------------------------------------------------- complete scenarios
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", ["fall_forward", "fall_backward", "fall_sideways"])
+def test_every_fall_is_detected(name, replayed):
+    run = replayed(name)
+    check_counts_and_positions(run, min_count_accuracy=0.98)
+    check_falls(run)
+    assert run.tracking["mota"] >= 0.95
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", ["walk", "two_pass", "sit_stand", "bend_kneel", "behind_sofa"])
+def test_complete_scenario_tracks_one_identity_per_person(name, replayed):
+    run = replayed(name)
+    check_counts_and_positions(run, min_count_accuracy=0.98)
+    assert run.tracking["id_switches"] == 0
+    assert run.tracking["mota"] >= 0.95 and run.tracking["idf1"] >= 0.95
+    check_no_false_alarm(run)
+
+
+@pytest.mark.slow
+def test_complete_sit_stand_events(replayed):
+    run = replayed("sit_stand")
+    check_events(run, ("sit_down", "stand_up"))
+
+
+@pytest.mark.slow
+def test_complete_enter_exit(replayed):
+    run = replayed("enter_exit")
+    check_counts_and_positions(run, min_count_accuracy=0.98)
+    check_events(run, ("enter", "exit"))
+
+
+@pytest.mark.slow
+def test_complete_side_by_side_keeps_identities(replayed):
+    run = replayed("side_by_side")
+    assert run.tracking["id_switches"] == 0
+
+
+SIT_STILL_TRACKED_MIN = 0.99
+SIT_STILL_SEATED_MIN = 0.95
+
+
+@pytest.mark.slow
+def test_sitting_still_for_ten_minutes_stays_tracked_and_seated(replayed):
+    """Ten minutes seated on the sofa: hold regions keep the person out of every
+    camera's background model, so the same track reports them seated throughout."""
+    run = replayed("sit_still_10min")
+    truth = derive_truth(synth.get_scenario("sit_still_10min", SEED))
+    tracks = read_tracks(run.run_dir / "tracks.csv")
+    seated = truth.frame[truth.posture == "sitting"]
+    first, last = int(seated.min()), int(seated.max())
+    # Judge the seated period from 3 s after sitting down to 3 s before getting up.
+    frames = np.arange(first + 45, last - 45)
+    rows = {int(f): i for i, f in enumerate(tracks.frame) if first + 45 <= f < last - 45}
+    one_track = sum(1 for f in frames if np.count_nonzero(tracks.frame == f) == 1)
+    tracked = [rows[f] for f in frames if f in rows]
+    ids = {str(tracks.track_id[i]) for i in tracked}
+    sitting = sum(1 for i in tracked if tracks.posture[i] == "sitting")
+    print(
+        f"\nsit_still_10min: {len(frames)} seated frames, exactly one track on {one_track} "
+        f"({one_track / len(frames):.4f}), seated on {sitting} ({sitting / len(frames):.4f}), track ids {sorted(ids)}"
+    )
+    assert one_track / len(frames) >= SIT_STILL_TRACKED_MIN
+    assert sitting / len(frames) >= SIT_STILL_SEATED_MIN
+    assert len(ids) == 1
+    check_events(run, ("sit_down", "stand_up"))
+    check_no_false_alarm(run)
+    assert run.run_events("inactivity") == []  # inactivity needs 30 minutes
