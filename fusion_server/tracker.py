@@ -14,7 +14,8 @@ Seed paper 000, sections 2.2.2 and 2.3. Every frame:
 3. each target's reliability follows the IIR filter ``r = r + l (M - r)``
    with ``M`` = 1 when matched and 0 when not, and the age-dependent learning
    rate ``l = min(l_max, 1 / age + l_min)``: a young target becomes trusted
-   within a few frames, an old one survives a few seconds of misses;
+   within a few frames, an old one survives a few seconds of misses (but not
+   at the border of the volume, where a miss means the person walked out);
 4. a target is *confirmed* (trusted as a person) while ``r`` is at least
    ``confirm_reliability`` and destroyed when ``r`` drops below
    ``delete_reliability``;
@@ -129,6 +130,11 @@ class Tracker:
         before; a target a few frames old that has lost its own blob is a
         ghost (hull voxels where two people's silhouettes cross, a fragment
         of a body lying half hidden) and must not live on a person's blob.
+    leave_margin_m: a target left unmatched this close to the border of the
+        volume's floor loses its confirmation at once [0.1 m]. A body cannot
+        come that close to a wall, so it is someone who walked out through a
+        door (the filter stops a coasting target at the border); they are
+        gone, not hidden.
     low_top_m: a target matched on its own to a blob no higher than this
         [0.8 m] stands on a body lying on the floor, and is placed at the
         blob's centroid. The filter's square box settles on part of an
@@ -164,6 +170,7 @@ class Tracker:
         share_blobs: bool = True,
         share_min_age_frames: int = 15,
         low_top_m: float = 0.8,
+        leave_margin_m: float = 0.1,
     ):
         if not isinstance(rng, np.random.Generator):
             raise ValueError(f"rng must be a numpy Generator, got {type(rng).__name__}")
@@ -175,6 +182,7 @@ class Tracker:
             ("still_speed_mps", still_speed_mps),
             ("still_window_s", still_window_s),
             ("low_top_m", low_top_m),
+            ("leave_margin_m", leave_margin_m),
         ):
             if not (np.isfinite(value) and value >= 0):
                 raise ValueError(f"{name} must be a finite non-negative number, got {value}")
@@ -221,6 +229,7 @@ class Tracker:
         self.share_blobs = bool(share_blobs)
         self.share_min_age_frames = int(share_min_age_frames)
         self.low_top_m = float(low_top_m)
+        self.leave_margin_m = float(leave_margin_m)
         self._targets: list[_Target] = []
         self._close_frames: dict[tuple[int, int], int] = {}
         self._last_stamp_ns: int | None = None
@@ -268,6 +277,8 @@ class Tracker:
             t.age += 1
             hit = 1.0 if blob is not None else 0.0
             t.reliability += self.learning_rate(t.age) * (hit - t.reliability)
+            if blob is None and _border_distance(t.x, t.y, floor_lo, floor_hi) <= self.leave_margin_m:
+                t.reliability = min(t.reliability, np.nextafter(self.confirm_reliability, 0.0))
             profile, volume_m3 = parts.get(n, (None, None)) if blob is not None else (None, None)
             if blob is not None and profile is None:
                 profile, volume_m3 = blob.height_profile, blob.volume_m3
@@ -488,6 +499,11 @@ def _restart(pf: ParticleFilter, blob: Blob, alpha_m: float, rng: np.random.Gene
     )
     fresh.last_stamp_ns = pf.last_stamp_ns
     return fresh
+
+
+def _border_distance(x_m: float, y_m: float, lo: np.ndarray, hi: np.ndarray) -> float:
+    """Floor distance (metres) from (x, y) to the nearest side of the rectangle ``lo``..``hi``."""
+    return float(min(x_m - lo[0], y_m - lo[1], hi[0] - x_m, hi[1] - y_m))
 
 
 def _box_top(result: CarveResult, x_m: float, y_m: float, alpha_m: float) -> float:
