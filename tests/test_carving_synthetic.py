@@ -14,8 +14,10 @@ Carving gets the renderer's true person masks here, which isolates carving
 from segmentation; one case feeds it the camera worker's segmented masks of
 the same frames instead. The carver is configured as the synthetic house's
 site file configures it (octree 40/20/10/5 cm, ``min_cameras`` 2,
-``min_ratio`` 0.75). Bounds are the figures measured on this scene with a
-modest margin; each case prints its figures.
+``min_ratio`` 0.75), with masks and lookup tables at the cameras' full
+640 x 480 (the site's half-size masks are the scenario tests' business). Bounds
+are the figures measured on this scene with a modest margin; each case prints
+its figures.
 """
 
 from __future__ import annotations
