@@ -111,14 +111,21 @@ class EventsWriter:
 
 
 class RunOutputs:
-    """``tracks.csv`` and ``events.jsonl`` in one folder (created if absent)."""
+    """``tracks.csv`` and ``events.jsonl`` in one folder (created if absent).
 
-    def __init__(self, out_dir: str | Path) -> None:
+    The live server appends (a restart carries on the same files); ``fresh``
+    starts both files anew, as a replay of a whole recording must.
+    """
+
+    def __init__(self, out_dir: str | Path, *, fresh: bool = False) -> None:
         self.out_dir = Path(out_dir)
         try:
             self.out_dir.mkdir(parents=True, exist_ok=True)
+            if fresh:
+                for name in (TRACKS_FILE, EVENTS_FILE):
+                    (self.out_dir / name).unlink(missing_ok=True)
         except OSError as exc:
-            raise ValueError(f"output folder {self.out_dir}: cannot create it: {exc.strerror or exc}") from None
+            raise ValueError(f"output folder {self.out_dir}: cannot prepare it: {exc.strerror or exc}") from None
         self.tracks = TracksWriter(self.out_dir / TRACKS_FILE)
         try:
             self.events = EventsWriter(self.out_dir / EVENTS_FILE)

@@ -139,7 +139,7 @@ def replay(
     total = _expected_frames(inputs, max_frames)
     start = time.perf_counter()
     try:
-        with RunOutputs(out_dir) as outputs:
+        with RunOutputs(out_dir, fresh=True) as outputs:
             while max_frames is None or summary.frames < max_frames:
                 t0 = time.perf_counter()
                 images: dict[str, np.ndarray] | None = {} if overlay_every else None

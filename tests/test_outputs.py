@@ -109,3 +109,16 @@ def test_a_killed_writer_loses_nothing_it_wrote(tmp_path: Path) -> None:
         proc.wait(timeout=10)
     assert read_tracks(tmp_path / TRACKS_FILE).frame.tolist() == list(range(50))
     assert [e.frame for e in read_events(tmp_path / EVENTS_FILE)] == [0, 10, 20, 30, 40]
+
+
+def test_a_fresh_run_starts_both_files_anew(tmp_path):
+    """Replaying twice into one folder must not double the rows (the server appends; a replay does not)."""
+    from fusion_server.outputs import RunOutputs
+
+    row = type("Row", (), {"id": 1, "x": 1.0, "y": 2.0, "z_top": 1.7, "posture": "standing"})()
+    for _ in range(2):
+        with RunOutputs(tmp_path, fresh=True) as out:
+            out.write_frame(0, 0, [row])
+            out.write_event({"id": "e1", "kind": "enter", "track": 1, "stamp_ns": 0, "frame": 0, "x": 1.0, "y": 2.0, "details": {}})
+    assert (tmp_path / "tracks.csv").read_text().splitlines()[1:] == ["0,0,1,1.0000,2.0000,1.7000,standing"]
+    assert len((tmp_path / "events.jsonl").read_text().splitlines()) == 1
