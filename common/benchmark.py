@@ -20,6 +20,8 @@ from typing import Any
 
 import numpy as np
 
+from common.transport import free_port
+
 SECTIONS = ("codec", "worker", "render", "carving", "tracking", "latency")
 
 
@@ -225,7 +227,7 @@ def measure_latency(*, seconds: float = 20.0, fps: float = 15.0, n_cameras: int 
     with tempfile.TemporaryDirectory() as tmp:
         tmp_path = Path(tmp)
         site = synth.default_site(tmp_path / "site")
-        port = _free_port()
+        port = free_port()
         endpoint = f"tcp/127.0.0.1:{port}"
         scenario = synth.get_scenario("fall_forward", 0)
         cams = site.camera_ids[:n_cameras]
@@ -404,14 +406,6 @@ def _pin_one_core():
 def _unpin(before) -> None:
     if before is not None:
         os.sched_setaffinity(0, before)
-
-
-def _free_port() -> int:
-    import socket
-
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def _wait_for(session, key: str, *, timeout_s: float) -> None:

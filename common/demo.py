@@ -24,6 +24,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TextIO
 
+from common.transport import free_port
+
 START_DELAY_S = 10.0
 """Workers' first frame is stamped this long after launch, so all start in step."""
 BACKGROUND_FRAMES = 45
@@ -69,7 +71,7 @@ def run_demo(
     sc = synth.get_scenario(name, seed, utc_offset_hours=site.utc_offset_hours)
     n_frames = sc.n_frames if frames is None else min(frames, sc.n_frames)
     synth.write_truth(sc, out / "truth", n_frames=n_frames)
-    endpoint = f"tcp/127.0.0.1:{port or _free_port()}"
+    endpoint = f"tcp/127.0.0.1:{port or free_port()}"
     conf = zenoh.Config()
     for key, value in {
         "mode": "router",
@@ -264,11 +266,3 @@ def _summary(out: Path, run_dir: Path, live: _Live, procs, stream: TextIO) -> in
 
 def _pct(value) -> str:
     return "-" if value is None else f"{100 * value:.1f} %"
-
-
-def _free_port() -> int:
-    import socket
-
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]

@@ -44,3 +44,12 @@ def zenoh_config(
         except Exception as exc:  # zenoh raises ZError for a value it refuses
             raise TransportError(f"zenoh setting {key} = {value!r}: {exc}") from None
     return conf
+
+
+def free_port() -> int:
+    """A TCP port on loopback that nothing listens on now (for local runs and tests)."""
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
