@@ -140,7 +140,10 @@ def _router(args: argparse.Namespace) -> int:
 
 
 def _register_synth(sub) -> None:
-    p = sub.add_parser("synth", help="render a synthetic-house scenario: videos, site file, ground truth")
+    p = sub.add_parser("synth", help="render a synthetic-house scenario or a random world: media, site file, ground truth")
+    p.add_argument("--world", default="house", choices=["house", "random"],
+                   help="house: the synthetic house (default); random: a randomised world drawn from --seed "
+                        "(seeds 0-999 tune, 1000 and up evaluate)")
     p.add_argument("--scenario", default=None, help="scenario name (default: the demo scenario); --list shows them")
     p.add_argument("--out", type=Path, help="output folder")
     p.add_argument("--seed", type=int, default=0, help="random seed (every scenario is deterministic for a seed)")
@@ -163,6 +166,8 @@ def _synth(args: argparse.Namespace) -> int:
         return 0
     if args.out is None:
         raise ValueError("--out is required (the folder to write into)")
+    if args.world == "random":
+        return _synth_world(args)
     name = args.scenario or synth.DEFAULT_SCENARIO
     cameras = args.cameras.split(",") if args.cameras else None
     out = synth.write_scenario(
@@ -171,6 +176,22 @@ def _synth(args: argparse.Namespace) -> int:
     )
     print(f"scenario {name}: {out.n_frames} frames of {len(out.videos)} cameras in {out.out_dir}")
     print(f"  site {out.site}\n  truth {out.tracks}, {out.events}")
+    return 0
+
+
+def _synth_world(args: argparse.Namespace) -> int:
+    from common.synth.world import random_world, write_world
+
+    if args.scenario or args.cameras or args.masks:
+        raise ValueError("--scenario, --cameras and --masks are for --world house; a random world is all its --seed")
+    world = random_world(args.seed)
+    out = write_world(world, args.out, frames=args.frames)
+    s = world.summary()
+    room = s["room"]
+    print(f"{world.name} ({s['seed_set']} seed): {room['shape']} room {room['size_m'][0]:.1f} x {room['size_m'][1]:.1f} m, "
+          f"{s['cameras']} cameras ({s['rig_label']}{', ceiling fisheye' if s['fisheye'] else ''}), "
+          f"{s['people']} people ({', '.join(s['behaviours'])}), {out.n_frames} frames of {s['media']}")
+    print(f"  site {out.site}\n  truth {out.truth_dir}")
     return 0
 
 

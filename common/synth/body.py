@@ -81,8 +81,8 @@ class BodyShape:
     long_sleeves: bool = True
 
     def __post_init__(self) -> None:
-        if not (1.2 <= self.height_m <= 2.2):
-            raise ValueError(f"height_m must lie in 1.2..2.2, got {self.height_m}")
+        if not (0.9 <= self.height_m <= 2.2):
+            raise ValueError(f"height_m must lie in 0.9..2.2 (children included), got {self.height_m}")
         if not (0.6 <= self.width <= 1.6):
             raise ValueError(f"width must lie in 0.6..1.6, got {self.width}")
 

@@ -164,14 +164,14 @@ def _render_camera(spec, seed, cam_id, out_dir, n, video, masks, codec, backgrou
         result["masks"] = str(mask_dir)
     if video:
         bg_path = out / "background.avi"
-        writer = _open_writer(bg_path, codec, source.fps, size)
+        writer = open_video_writer(bg_path, codec, source.fps, size)
         try:
             for i in range(source.n_background_frames):
                 writer.write(source.background_frame(i))
         finally:
             writer.release()
         result["background"] = str(bg_path)
-    writer = _open_writer(out / "video.avi", codec, source.fps, size) if video else None
+    writer = open_video_writer(out / "video.avi", codec, source.fps, size) if video else None
     try:
         for i in range(n):
             bgr, mask = source.frame(i)
@@ -187,7 +187,8 @@ def _render_camera(spec, seed, cam_id, out_dir, n, video, masks, codec, backgrou
     return result
 
 
-def _open_writer(path: Path, codec: str, fps: float, size: tuple[int, int]) -> cv2.VideoWriter:
+def open_video_writer(path: Path, codec: str, fps: float, size: tuple[int, int]) -> cv2.VideoWriter:
+    """An OpenCV video writer for ``codec`` ('MJPG' at quality 95, or 'FFV1'); RuntimeError when it cannot open."""
     if codec == "MJPG":
         writer = cv2.VideoWriter(str(path), cv2.CAP_OPENCV_MJPEG, cv2.VideoWriter_fourcc(*"MJPG"), fps, size)
         if writer.isOpened():

@@ -47,6 +47,7 @@ SURF_WALL_X0, SURF_WALL_X1, SURF_WALL_Y0, SURF_WALL_Y1 = 2, 3, 4, 5
 SURF_CORRIDOR = 6
 SURF_FURNITURE = 10
 SURF_NONE = -1
+_DOOR_SURFACE = {"x0": SURF_WALL_X0, "x1": SURF_WALL_X1, "y0": SURF_WALL_Y0, "y1": SURF_WALL_Y1}
 
 
 @dataclass(frozen=True)
@@ -83,8 +84,9 @@ def raycast_room(room: Room, origin_m, dirs) -> BackgroundHits:
     normal = _axis_normal(axis, d)
     p = o + t[:, None] * d
     for door in room.doors:
-        through = (surface == SURF_WALL_X0) & (p[:, 1] >= door.y_range_m[0]) & (p[:, 1] <= door.y_range_m[1]) & (
-            p[:, 2] <= door.height_m)
+        along = p[:, 1] if door.wall in ("x0", "x1") else p[:, 0]
+        through = (surface == _DOOR_SURFACE[door.wall]) & (along >= door.y_range_m[0]) & (
+            along <= door.y_range_m[1]) & (p[:, 2] <= door.height_m)
         if through.any():
             tc, ac = _slab_far(o, d[through], np.asarray(door.corridor_min_m), np.asarray(door.corridor_max_m))
             t[through] = tc
@@ -157,7 +159,7 @@ class CameraRenderer:
     """
 
     def __init__(self, camera: Camera, room: Room, *, seed: int = 0, noise_std: float = 2.5,
-                 shadows: bool = True) -> None:
+                 shadows: bool = True, colour: bool = True) -> None:
         if not (0.0 <= noise_std <= 10.0):
             raise ValueError(f"noise_std must lie in 0..10, got {noise_std}")
         self.camera = camera
@@ -178,6 +180,10 @@ class CameraRenderer:
         depth[~self.valid] = 0.0
         self.bg_depth = depth
         self.bg_points = hits.point.reshape(H, W, 3).astype(np.float32)
+        self._zbuf = np.full((H, W), np.inf, dtype=np.float32)
+        self._part = np.full((H, W), -1, dtype=np.int16)
+        if not colour:  # silhouettes only (:meth:`labels`)
+            return
         look = np.random.default_rng([self.seed, self.cam_key, 11])
         self.white_balance = (1.0 + 0.03 * (2 * look.random(3) - 1)) * (1.0 + 0.04 * (2 * look.random() - 1))
         fwd = camera.forward
@@ -198,8 +204,6 @@ class CameraRenderer:
         self._n_px = H * W * 3
         bank = bank_rng.normal(NOISE_OFFSET, noise_std, size=2 * self._n_px)
         self.noise_bank = np.clip(np.rint(bank), 0, 2 * NOISE_OFFSET).astype(np.uint8)
-        self._zbuf = np.full((H, W), np.inf, dtype=np.float32)
-        self._part = np.full((H, W), -1, dtype=np.int16)
 
     # ------------------------------------------------------------------ frames
 
@@ -240,6 +244,25 @@ class CameraRenderer:
         for pi, plan in enumerate(plans):
             self._shade(scene, labels, plan, pi, plans)
         return cv2.addWeighted(scene, float(gain), self.noise(key), 1.0, -float(NOISE_OFFSET)), labels
+
+    def labels(self, bodies: list[Body]) -> np.ndarray:
+        """(H, W) uint8 the person id whose body is visible at each pixel (furniture and walls
+        occlude), 0 for background: the true silhouettes of :meth:`render` without drawing."""
+        labels = np.zeros((self.camera.height, self.camera.width), dtype=np.uint8)
+        plans = [p for p in (self._plan(b) for b in bodies) if p is not None]
+        for plan in plans:
+            x0, y0, x1, y1 = plan.roi
+            self._zbuf[y0:y1, x0:x1] = np.inf
+            self._part[y0:y1, x0:x1] = -1
+        for pi, plan in enumerate(plans):
+            self._raycast(plan, pi)
+        for pi, plan in enumerate(plans):
+            x0, y0, x1, y1 = plan.roi
+            zb = self._zbuf[y0:y1, x0:x1]
+            pb = self._part[y0:y1, x0:x1]
+            visible = (pb >= pi * 32) & (pb < pi * 32 + 32) & (zb < self.bg_depth[y0:y1, x0:x1])
+            labels[y0:y1, x0:x1][visible] = np.uint8(plan.body.person_id)
+        return labels
 
     # ------------------------------------------------------------------ internals
 

@@ -39,6 +39,8 @@ CAMERA_IDS = ("cam1", "cam2", "cam3", "cam4", "cam5")
 FPS = 15.0
 SITE_NAME = "synthetic-house"
 MASK_SCALE = 0.5
+VOLUME_HEIGHT_M = 3.0
+"""The monitored volume ends at the ceiling or at this height, whichever is lower."""
 
 
 @dataclass(frozen=True)
@@ -94,13 +96,15 @@ class HotSpot:
 
 @dataclass(frozen=True)
 class Door:
-    """A doorway in the west wall (x = 0).
+    """A doorway in one of the room's outer walls.
 
     polygon_m: the floor zone just inside the door (site file ``[[doors]]``).
-    y_range_m: the opening along the wall; height_m its height.
+    y_range_m: the opening's span along its wall (y on the x walls, x on the y walls),
+    metres; height_m its height.
     inside_xy_m: a point just inside; outside_xy_m: where people appear/vanish,
     in the corridor beyond the door (outside the monitored volume).
     corridor_min_m / corridor_max_m: the corridor box behind the opening.
+    wall: 'x0' (x = 0, the house's west wall), 'x1' (x = room width), 'y0' or 'y1'.
     """
 
     name: str
@@ -111,6 +115,14 @@ class Door:
     outside_xy_m: tuple[float, float]
     corridor_min_m: tuple[float, float, float]
     corridor_max_m: tuple[float, float, float]
+    wall: str = "x0"
+
+    def __post_init__(self) -> None:
+        if self.wall not in WALLS:
+            raise ValueError(f"door {self.name!r}: wall must be one of {WALLS}, got {self.wall!r}")
+
+
+WALLS = ("x0", "x1", "y0", "y1")
 
 
 @dataclass(frozen=True)
@@ -139,6 +151,9 @@ class Room:
     decals: tuple[WallDecal, ...] = ()
     light_m: tuple[float, float, float] = (4.0, 3.0, 2.45)
     waypoints: dict[str, tuple[float, float]] = field(default_factory=dict)
+    volume_xy_m: tuple[tuple[float, float], tuple[float, float]] | None = None
+    """The monitored floor rectangle ((x0, y0), (x1, y1)) when it is smaller than the room
+    (a real rig whose cameras hang far from the area they all see); None: the whole room."""
 
     def seat(self, name: str) -> Seat:
         for s in self.seats:
@@ -177,10 +192,18 @@ class Room:
         """(B, 3) float64 furniture maximum corners."""
         return np.array([b.max_m for b in self.boxes], dtype=np.float64).reshape(-1, 3)
 
+    @property
+    def volume_rect_m(self) -> tuple[tuple[float, float], tuple[float, float]]:
+        """The monitored floor rectangle ((x0, y0), (x1, y1)), metres."""
+        if self.volume_xy_m is not None:
+            return self.volume_xy_m
+        return (0.0, 0.0), (float(self.size_m[0]), float(self.size_m[1]))
+
     def inside_volume(self, xy_m: np.ndarray) -> np.ndarray:
-        """(N, 2) floor points -> (N,) bool inside the room's floor rectangle."""
+        """(N, 2) floor points -> (N,) bool inside the monitored floor rectangle."""
         xy = np.asarray(xy_m, dtype=np.float64).reshape(-1, 2)
-        return (xy[:, 0] >= 0) & (xy[:, 0] <= self.size_m[0]) & (xy[:, 1] >= 0) & (xy[:, 1] <= self.size_m[1])
+        (x0, y0), (x1, y1) = self.volume_rect_m
+        return (xy[:, 0] >= x0) & (xy[:, 0] <= x1) & (xy[:, 1] >= y0) & (xy[:, 1] <= y1)
 
 
 def default_room() -> Room:
@@ -320,7 +343,8 @@ def site_dict(
         "name": name,
         "residents": residents,
         "utc_offset_hours": 0.0,
-        "volume": {"min_m": [0.0, 0.0, 0.0], "max_m": list(room.size_m)},
+        "volume": {"min_m": [*room.volume_rect_m[0], 0.0],
+                   "max_m": [*room.volume_rect_m[1], min(float(room.size_m[2]), VOLUME_HEIGHT_M)]},
         # half-size masks: a quarter of the segmentation, distance-transform and
         # bandwidth cost, with the same scores on the scenario suite
         "carving": {"mask_scale": MASK_SCALE},

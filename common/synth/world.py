@@ -1,0 +1,376 @@
+"""Randomised worlds: other rooms, camera rigs and groups of people, each a pure function of a seed.
+
+``voxelwatch synth --world random --seed N --out DIR`` writes the same layout
+as the synthetic house (site file, calibrations, per-camera media, truth), so
+``voxelwatch replay --site DIR/site.toml --input DIR`` and ``voxelwatch eval
+--truth DIR --run RUN`` take it unchanged:
+
+    DIR/site.toml, DIR/calib/<cam>.*      the room, its rig and calibrations
+    DIR/<cam>/masks/000000.png ...        mask worlds: degraded true silhouettes
+    DIR/<cam>/video.avi, background.avi   video worlds: rendered frames (segmented on replay)
+    DIR/truth/tracks.csv, events.jsonl    ground truth
+    DIR/truth/meta.json                   fps, frames, people, and ``world``: what the world holds
+
+A world draws (:func:`random_world`): a rig kind (high corners, level wall
+cameras, or one of the real rigs of the recordings), a number of people
+(1 to 12, from four bands), a room big enough for them (:mod:`common.synth.rooms`),
+the cameras (:mod:`common.synth.rigs`), who does what (:mod:`common.synth.crowd`),
+and how its masks are made: most worlds go from the true silhouettes through
+the faults of :mod:`common.synth.degrade` straight to masks; about one in five
+(up to six people, never the 36 x 39 m PETS square) renders video that replay
+segments with the camera worker's own segmenter, as the house does.
+Video worlds also run on the camera workers (each camera's source is its video).
+
+Seeds: :data:`TUNING_SEEDS` are for changing the pipeline; :data:`EVALUATION_SEEDS`
+are only for reporting. Every table of figures on random worlds says which.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import shutil
+from dataclasses import dataclass
+from functools import cached_property
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from common.calibration import save_voxelwatch
+from common.camera import Camera
+from common.synth.body import pose_body
+from common.synth.crowd import Cast, random_people
+from common.synth.degrade import MaskFaults, degrade, random_faults
+from common.synth.house import open_video_writer
+from common.synth.render import CameraRenderer
+from common.synth.rigs import CalibrationRef, real_rig, random_rig
+from common.synth.rooms import FloorPlan, random_room, summarise_room
+from common.synth.scenario import Scenario, ScenarioSpec
+from common.synth.scene import Box, HotSpot, Room, Seat, site_dict
+from common.synth.source import BACKGROUND_S, SyntheticCamera
+from common.synth.truth import derive_truth, write_truth
+
+TUNING_SEEDS = range(0, 1000)
+"""Seeds to look at while changing the pipeline."""
+EVALUATION_SEEDS = range(1000, 100_000)
+"""Seeds only for reporting; never looked at while changing the pipeline."""
+WORLD_FPS = 15.0
+PEOPLE_BANDS = ((1, 1), (2, 3), (4, 7), (8, 12))
+RIG_LABELS = {"high-corners": "high corners", "level-walls": "level walls", "real-lab": "real: lab",
+              "real-pets": "real: PETS 2009"}
+_BAND_P = (0.2, 0.3, 0.3, 0.2)
+_RIG_P = {"high-corners": 0.4, "level-walls": 0.35, "real-lab": 0.125, "real-pets": 0.125}
+_OVERLAP_M = 0.3
+_ATTEMPTS = 8
+
+
+def seed_set(seed: int) -> str:
+    """'tuning' or 'evaluation': which declared set ``seed`` belongs to."""
+    if seed in TUNING_SEEDS:
+        return "tuning"
+    if seed in EVALUATION_SEEDS:
+        return "evaluation"
+    raise ValueError(f"world seed must lie in {TUNING_SEEDS.start}..{EVALUATION_SEEDS.stop - 1}, got {seed}")
+
+
+def default_data_dir() -> Path:
+    """The recordings' folder: ``$VOXELWATCH_DATA``, else ``../shared/data`` beside the project."""
+    env = os.environ.get("VOXELWATCH_DATA")
+    return Path(env) if env else Path(__file__).resolve().parents[2] / ".." / "shared" / "data"
+
+
+@dataclass(frozen=True)
+class World:
+    """One randomised world (see the module text). ``rig``: a key of :data:`RIG_LABELS`;
+    ``media``: 'masks' or 'video'; ``faults``: per camera, mask worlds only."""
+
+    seed: int
+    room: Room
+    cameras: dict[str, Camera]
+    refs: dict[str, CalibrationRef]
+    rig: str
+    fisheye: bool
+    spec: ScenarioSpec
+    cast: Cast
+    media: str
+    mask_scale: float
+    faults: dict[str, MaskFaults]
+    open_edges: bool
+
+    @property
+    def name(self) -> str:
+        return f"world-{self.seed}"
+
+    @cached_property
+    def scenario(self) -> Scenario:
+        return Scenario(self.spec, self.seed, room=self.room)
+
+    def summary(self) -> dict:
+        """What the world holds, as plain JSON values (stored in ``truth/meta.json`` as ``world``)."""
+        room = summarise_room(self.room)
+        truth_rows = self._present_counts()
+        lenses = []
+        for cam in self.cameras.values():
+            if cam.model == "fisheye":
+                lenses.append("fisheye")
+            else:
+                hfov = 2 * math.degrees(math.atan(cam.width / 2 / cam.K[0, 0]))
+                lenses.append("wide" if hfov > 85 else "normal")
+        return {
+            "seed": self.seed,
+            "seed_set": seed_set(self.seed),
+            "rig": self.rig,
+            "rig_label": RIG_LABELS[self.rig],
+            "fisheye": self.fisheye,
+            "cameras": len(self.cameras),
+            "resolutions": sorted({f"{c.width}x{c.height}" for c in self.cameras.values()}),
+            "lenses": lenses,
+            "room": {"shape": room.shape, "size_m": list(room.size_m), "floor_area_m2": room.floor_area_m2,
+                     "furniture": list(room.furniture), "doors": room.doors,
+                     "volume_xy_m": [list(v) for v in self.room.volume_rect_m]},
+            "people": len(self.cast.scripts),
+            "people_per_frame_max": int(truth_rows.max(initial=0)),
+            "people_per_frame_mean": round(float(truth_rows.mean()) if truth_rows.size else 0.0, 3),
+            "children": sum(1 for s in self.cast.scripts if s.height_m is not None and s.height_m < 1.45),
+            "behaviours": sorted(set(self.cast.behaviours)),
+            "media": self.media,
+            "mask_scale": self.mask_scale,
+            "faults": {cam: f.describe() for cam, f in self.faults.items() if f.describe()},
+            "duration_s": self.spec.duration_s,
+        }
+
+    def _present_counts(self) -> np.ndarray:
+        """(F,) int people inside the monitored volume per frame."""
+        sc = self.scenario
+        counts = np.zeros(sc.n_frames, dtype=int)
+        for st in sc.states:
+            counts += st["present"] & self.room.inside_volume(st["xy"])
+        return counts
+
+
+def random_world(seed: int, *, data_dir: str | Path | None = None) -> World:
+    """The world of ``seed`` (deterministic). The real rigs need the recordings' calibrations in
+    ``data_dir`` (default :func:`default_data_dir`): ValueError naming the missing file otherwise."""
+    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)):
+        raise ValueError(f"seed must be an int, got {seed!r}")
+    seed = int(seed)
+    seed_set(seed)
+    rng = np.random.default_rng([seed, 11])
+    kinds = list(_RIG_P)
+    rig = kinds[int(rng.choice(len(kinds), p=list(_RIG_P.values())))]
+    band = PEOPLE_BANDS[int(rng.choice(len(PEOPLE_BANDS), p=_BAND_P))]
+    count = int(rng.integers(band[0], band[1] + 1))
+    duration = float(np.round(rng.uniform(30.0, 50.0)))
+    residents = int(rng.integers(1, 3))
+    fisheye = False
+    open_edges = False
+    if rig in ("real-lab", "real-pets"):
+        real = real_rig("lab" if rig == "real-lab" else "pets", data_dir or default_data_dir())
+        if rig == "real-lab":
+            count = min(count, 4)
+        else:
+            count = max(count, 4)
+        room = _real_room(real)
+        cameras, refs = real.cameras, real.refs
+        (x0, y0), (x1, y1) = real.volume_xy_m
+        plan = FloorPlan(room, region=((x0 - 1.5, y0 - 1.5), (x1 + 1.5, y1 + 1.5)))
+        open_edges = True
+    else:
+        room = random_room(rng, min_area_m2=max(9.0, 3.0 * count + 6.0))
+        fisheye = bool(rng.random() < 0.5)
+        n_cams = int(rng.integers(3, 9))
+        cameras = random_rig(rng, room, kind=rig, fisheye=fisheye, count=n_cams)
+        refs = {cam: CalibrationRef(None) for cam in cameras}
+        plan = FloorPlan(room)
+    media = "video" if (count <= 6 and rig != "real-pets" and rng.random() < 0.2) else "masks"
+    widths = sorted(c.width for c in cameras.values())
+    mask_scale = 0.5 if widths[len(widths) // 2] >= 640 else 1.0
+    start_hour = int(rng.integers(7, 22))
+    fault_rng = np.random.default_rng([seed, 17])
+    n_frames = int(round(duration * WORLD_FPS))
+    faults = random_faults(fault_rng, cameras, n_frames, WORLD_FPS) if media == "masks" else {}
+    cast, spec = _best_cast(seed, room, plan, count, duration, residents, start_hour)
+    return World(seed=seed, room=room, cameras=cameras, refs=refs, rig=rig, fisheye=fisheye, spec=spec, cast=cast,
+                 media=media, mask_scale=mask_scale, faults=faults, open_edges=open_edges)
+
+
+@dataclass(frozen=True)
+class WorldOutput:
+    """What :func:`write_world` wrote (absolute paths)."""
+
+    out_dir: Path
+    site: Path
+    truth_dir: Path
+    n_frames: int
+    media: str
+
+
+def write_world(world: World, out_dir: str | Path, *, frames: int | None = None) -> WorldOutput:
+    """Write ``world`` into ``out_dir`` (layout in the module text); ``frames``: only the first N frames."""
+    sc = world.scenario
+    n = sc.n_frames if frames is None else int(frames)
+    if not 1 <= n <= sc.n_frames:
+        raise ValueError(f"frames must lie in 1..{sc.n_frames} for {world.name}, got {frames!r}")
+    out = Path(out_dir).resolve()
+    out.mkdir(parents=True, exist_ok=True)
+    site_path = _write_site(world, out)
+    truth_dir = out / "truth"
+    paths = write_truth(sc, truth_dir, derive_truth(sc), n_frames=n)
+    meta = json.loads(paths["meta"].read_text(encoding="utf-8"))
+    meta["world"] = world.summary()
+    paths["meta"].write_text(json.dumps(meta, indent=2) + "\n", encoding="utf-8")
+    if world.media == "video":
+        for cam_id, cam in world.cameras.items():
+            _write_video(world, cam_id, cam, out / cam_id, n)
+    else:
+        bodies = [_bodies_at(sc, i) for i in range(n)]
+        for cam_id, cam in world.cameras.items():
+            _write_masks(world, cam_id, cam, out / cam_id / "masks", bodies)
+    return WorldOutput(out_dir=out, site=site_path, truth_dir=truth_dir, n_frames=n, media=world.media)
+
+
+def render_masks(world: World, cam_id: str, frames, *, faults: bool = True) -> list[np.ndarray]:
+    """The masks (H, W) uint8 0/255 of camera ``cam_id`` for frame indices ``frames``, at the site's
+    mask size; ``faults=False`` gives the true silhouettes (furniture and people occlude)."""
+    cam = world.cameras[cam_id]
+    renderer = CameraRenderer(cam.scaled(world.mask_scale), world.room, colour=False)
+    f = world.faults.get(cam_id, MaskFaults()) if faults else MaskFaults()
+    sc = world.scenario
+    out = []
+    for i in frames:
+        labels = renderer.labels(_bodies_at(sc, max(0, int(i) - f.lag_frames)))
+        if faults:
+            out.append(degrade(labels, f, int(i), camera=renderer.camera, bodies=_bodies_at(sc, int(i)),
+                               light_m=world.room.light_m, seed=_cam_seed(world.seed, cam_id)))
+        else:
+            out.append(np.where(labels > 0, np.uint8(255), np.uint8(0)))
+    return out
+
+
+# ---------------------------------------------------------------------- helpers
+
+
+def _best_cast(seed: int, room: Room, plan: FloorPlan, count: int, duration: float, residents: int,
+               start_hour: int) -> tuple[Cast, ScenarioSpec]:
+    """People for the world: of a few draws, the one where people who are not together walk through
+    each other least (pelvises closer than 0.3 m)."""
+    best = None
+    for attempt in range(_ATTEMPTS):
+        rng = np.random.default_rng([seed, 13, attempt])
+        cast = random_people(rng, room, plan, count, duration, residents=min(residents, count))
+        spec = ScenarioSpec(
+            name=f"world-{seed}",
+            description=f"random world {seed}: {count} people, " + ", ".join(sorted(set(cast.behaviours))),
+            duration_s=duration, people=cast.scripts, start_local=f"{start_hour:02d}:{int(rng.integers(60)):02d}:00",
+            drift=0.02, residents=min(residents, count),
+        )
+        overlap = _overlap_frames(Scenario(spec, seed, room=room), cast)
+        if best is None or overlap < best[0]:
+            best = (overlap, cast, spec)
+        if overlap == 0:
+            break
+    return best[1], best[2]
+
+
+def _overlap_frames(sc: Scenario, cast: Cast) -> int:
+    states = sc.states
+    total = 0
+    for a in range(len(states)):
+        for b in range(a + 1, len(states)):
+            if cast.groups[a] and cast.groups[a] == cast.groups[b]:
+                continue
+            both = states[a]["present"] & states[b]["present"]
+            if both.any():
+                d = np.linalg.norm(states[a]["xy"][both] - states[b]["xy"][both], axis=1)
+                total += int(np.count_nonzero(d < _OVERLAP_M))
+    return total
+
+
+def _bodies_at(sc: Scenario, i: int):
+    states = sc.states
+    return [pose_body(p.shape, st["q"][i], p.person_id) for p, st in zip(sc.people, states) if st["present"][i]]
+
+
+def _cam_seed(seed: int, cam_id: str) -> int:
+    return seed * 1000 + sum(cam_id.encode("utf-8"))
+
+
+def _real_room(real) -> Room:
+    (x0, y0), (x1, y1) = real.volume_xy_m
+    boxes, seats, hotspots = [], [], []
+    if real.chair_xy_m is not None:
+        cx, cy = real.chair_xy_m
+        wood = (70, 104, 140)
+        boxes += [Box("chair seat", "chair", (cx - 0.22, cy - 0.22, 0.42), (cx + 0.22, cy + 0.22, 0.46), wood),
+                  Box("chair back", "chair", (cx + 0.18, cy - 0.22, 0.46), (cx + 0.22, cy + 0.22, 0.92), wood)]
+        for lx in (cx - 0.21, cx + 0.17):
+            for ly in (cy - 0.21, cy + 0.17):
+                boxes.append(Box("chair leg", "chair", (lx, ly, 0.0), (lx + 0.04, ly + 0.04, 0.42), wood))
+        seats.append(Seat("chair", "chair", (cx + 0.05, cy), 0.46, 180.0, (cx - 0.55, cy)))
+        hotspots.append(HotSpot("chair", "chair", ((cx - 0.7, cy - 0.5), (cx + 0.3, cy - 0.5), (cx + 0.3, cy + 0.5),
+                                                   (cx - 0.7, cy + 0.5)), (cx - 0.55, cy), 180.0))
+    w, d, h = real.room_size_m
+    light = ((x0 + x1) / 2, (y0 + y1) / 2, min(h - 0.05, 2.55))
+    return Room(size_m=real.room_size_m, boxes=tuple(boxes), seats=tuple(seats), hotspots=tuple(hotspots), doors=(),
+                light_m=light, volume_xy_m=real.volume_xy_m)
+
+
+def _write_site(world: World, out: Path) -> Path:
+    from common.site import load_site, site_from_dict, write_site
+
+    (out / "calib").mkdir(parents=True, exist_ok=True)
+    video = world.media == "video"
+    cams = world.cameras
+    content = site_dict(world.room, cams, name=world.name.replace("_", "-"), fps=WORLD_FPS,
+                        residents=world.spec.residents,
+                        sources={c: f"{c}/video.avi" for c in cams} if video else None,
+                        backgrounds={c: f"{c}/background.avi" for c in cams} if video else None)
+    content["carving"]["mask_scale"] = world.mask_scale
+    content["volume"]["open_edges"] = world.open_edges
+    content["utc_offset_hours"] = 0.0
+    for entry in content["cameras"]:
+        ref = world.refs[entry["id"]]
+        if ref.source is None:
+            save_voxelwatch(cams[entry["id"]], out / "calib" / f"{entry['id']}.toml")
+            continue
+        # a real rig's own calibration file, read as it is
+        name = f"calib/{entry['id']}{ref.source.suffix}"
+        shutil.copyfile(ref.source, out / name)
+        entry.update(calibration=name, format=ref.format, units=ref.units, up=ref.up, origin_m=list(ref.origin_m))
+    site = site_from_dict(content, base_dir=out)
+    path = write_site(site, out / "site.toml")
+    load_site(path)  # what replay will read: fail here, not there
+    return path
+
+
+def _write_masks(world: World, cam_id: str, cam: Camera, folder: Path, bodies: list) -> None:
+    folder.mkdir(parents=True, exist_ok=True)
+    for old in folder.glob("*.png"):
+        old.unlink()
+    renderer = CameraRenderer(cam.scaled(world.mask_scale), world.room, colour=False)
+    f = world.faults.get(cam_id, MaskFaults())
+    seed = _cam_seed(world.seed, cam_id)
+    for i in range(len(bodies)):
+        labels = renderer.labels(bodies[max(0, i - f.lag_frames)])
+        mask = degrade(labels, f, i, camera=renderer.camera, bodies=bodies[i], light_m=world.room.light_m, seed=seed)
+        cv2.imwrite(str(folder / f"{i:06d}.png"), mask)
+
+
+def _write_video(world: World, cam_id: str, cam: Camera, folder: Path, n: int) -> None:
+    folder.mkdir(parents=True, exist_ok=True)
+    source = SyntheticCamera(world.scenario, cam_id, world.seed, camera=cam, background_s=BACKGROUND_S)
+    size = (cam.width, cam.height)
+    writer = open_video_writer(folder / "background.avi", "MJPG", WORLD_FPS, size)
+    try:
+        for i in range(source.n_background_frames):
+            writer.write(source.background_frame(i))
+    finally:
+        writer.release()
+    writer = open_video_writer(folder / "video.avi", "MJPG", WORLD_FPS, size)
+    try:
+        for i in range(n):
+            writer.write(source.frame(i)[0])
+    finally:
+        writer.release()
