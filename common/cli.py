@@ -267,7 +267,12 @@ def _register_eval(sub) -> None:
     p.add_argument("--run", type=Path, help="run folder (tracks.csv, events.jsonl)")
     p.add_argument("--json", type=Path, default=None, help="also write the results as JSON here")
     p.add_argument("--plots", type=Path, default=None, help="draw the plan view and posture timeline into this folder")
-    p.add_argument("--suite", action="store_true", help="replay and score the synthetic scenario library")
+    p.add_argument("--suite", action="store_true", help="replay and score the synthetic scenario library (or random worlds)")
+    p.add_argument("--world", default="house", choices=["house", "random"],
+                   help="with --suite: house scenarios (default) or random worlds (give --seeds)")
+    p.add_argument("--seeds", default=None,
+                   help="with --suite --world random: seeds, e.g. 1000-1049 or 3,7,20-22 (tuning 0-999, evaluation 1000 and up)")
+    p.add_argument("--keep-media", action="store_true", help="with --world random: keep the worlds' masks and videos")
     p.add_argument("--scenarios", default=None, help="with --suite: comma-separated scenario names (default all)")
     p.add_argument("--quick", action="store_true", help="with --suite: a few short scenarios, first 45 s of each")
     p.add_argument("--cameras", default="5", help="with --suite: comma-separated camera counts to run, e.g. 5,4,3,2")
@@ -280,6 +285,14 @@ def _register_eval(sub) -> None:
 
 
 def _eval(args: argparse.Namespace) -> int:
+    if args.suite and args.world == "random":
+        from fusion_server.world_suite import parse_seeds, run_world_suite
+
+        if args.seeds is None:
+            raise ValueError("--world random needs --seeds, e.g. --seeds 0-19 to tune or --seeds 1000-1049 to report")
+        run_world_suite(seeds=parse_seeds(args.seeds), out_dir=args.out, jobs=args.jobs, frames=args.frames,
+                        json_path=args.json, keep_media=args.keep_media)
+        return 0
     if args.suite:
         from fusion_server.suite import run_suite
 

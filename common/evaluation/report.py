@@ -37,7 +37,9 @@ import numpy as np
 from common.evaluation import io
 from common.evaluation.events import ALARM_KINDS, WINDOW_FRAMES, TrackLinks, f1_score, score_events
 from common.evaluation.posture import posture_scores
-from common.evaluation.tracking import CLEAR_RADIUS_M, PER_FRAME_RADIUS_M, clear_mot, frame_span, ratio, per_frame_measures
+from common.evaluation.tracking import (
+    CLEAR_RADIUS_M, PER_FRAME_RADIUS_M, band_summary, by_people_present, clear_mot, frame_span, per_frame_measures, ratio,
+)
 
 
 def evaluate(
@@ -102,6 +104,7 @@ def evaluate(
         "per_frame": per_frame.summary(),
         "events": events,
         "posture": posture_scores(truth, run, mot.pairs).summary(),
+        "by_people": by_people_present(truth, run, mot.pairs, first, last),
         "notes": notes,
     }
 
@@ -112,22 +115,26 @@ def format_table(results: Mapping[str, Any]) -> str:
     fr = results["frames"]
     lines = [
         f"truth {results['truth_dir']}  run {results['run_dir']}",
-        f"frames {fr['first']}..{fr['last']} ({fr['count']})  fps {_num(results['fps'], 3)} ({results['fps_source']})"
-        f"  duration {_num(results['duration_s'], 1)} s",
+        f"frames {fr['first']}..{fr['last']} ({fr['count']})  fps {fmt_num(results['fps'], 3)} ({results['fps_source']})"
+        f"  duration {fmt_num(results['duration_s'], 1)} s",
         "",
         f"tracking (CLEAR-MOT, match radius {t['radius_m']} m)",
     ]
-    lines += _table(
+    lines += text_table(
         ["MOTA", "MOTP m", "IDF1", "IDP", "IDR", "IDSW", "FRAG", "MT", "PT", "ML", "FP", "FN", "GT", "GT ids", "run ids"],
-        [[_pct(t["mota"]), _num(t["motp_m"], 3), _pct(t["idf1"]), _pct(t["idp"]), _pct(t["idr"]), t["id_switches"],
+        [[fmt_pct(t["mota"]), fmt_num(t["motp_m"], 3), fmt_pct(t["idf1"]), fmt_pct(t["idp"]), fmt_pct(t["idr"]), t["id_switches"],
           t["fragmentations"], t["mostly_tracked"], t["partly_tracked"], t["mostly_lost"], t["fp"], t["fn"], t["gt"],
           t["gt_ids"], t["pred_ids"]]],
         label_column=False,
     )
+    bands = results.get("by_people") or {}
+    if bands:
+        lines += ["", "by people present in the frame (count exact: frames where the run counts as many people)"]
+        lines += people_table(bands)
     lines += ["", f"per-frame measures (MOTME, MOTV, MTPF, ATPF: fresh Hungarian in every frame, radius {s['radius_m']} m)"]
-    lines += _table(
+    lines += text_table(
         ["MOTME m", "MOTV m2", "MTPF", "ATPF", "matches", "missed", "artifacts"],
-        [[_num(s["motme_m"], 3), _num(s["motv_m2"], 4), _num(s["mtpf"], 4), _num(s["atpf"], 4), s["matches"],
+        [[fmt_num(s["motme_m"], 3), fmt_num(s["motv_m2"], 4), fmt_num(s["mtpf"], 4), fmt_num(s["atpf"], 4), s["matches"],
           s["missed"], s["artifacts"]]],
         label_column=False,
     )
@@ -137,26 +144,26 @@ def format_table(results: Mapping[str, Any]) -> str:
         lines += ["", f"events (window +-{ev['window_frames']} frames; position gate: {gate};"
                       f" same track required: {'yes' if ev['track_required'] else 'no'})"]
         rows = [
-            [kind, k["truth"], k["run"], k["tp"], k["fp"], k["fn"], _pct(k["precision"]), _pct(k["recall"]), _pct(k["f1"])]
+            [kind, k["truth"], k["run"], k["tp"], k["fp"], k["fn"], fmt_pct(k["precision"]), fmt_pct(k["recall"]), fmt_pct(k["f1"])]
             for kind, k in ev["per_kind"].items()
             if k["truth"] or k["run"]
         ]
         o = ev["overall"]
-        rows.append(["all", o["truth"], o["run"], o["tp"], o["fp"], o["fn"], _pct(o["precision"]), _pct(o["recall"]), _pct(o["f1"])])
-        lines += _table(["kind", "truth", "run", "TP", "FP", "FN", "precision", "recall", "F1"], rows)
+        rows.append(["all", o["truth"], o["run"], o["tp"], o["fp"], o["fn"], fmt_pct(o["precision"]), fmt_pct(o["recall"]), fmt_pct(o["f1"])])
+        lines += text_table(["kind", "truth", "run", "TP", "FP", "FN", "precision", "recall", "F1"], rows)
         lines.append(
-            f"fall delay s: mean {_num(ev['fall_delay_mean_s'], 2)}  median {_num(ev['fall_delay_median_s'], 2)}"
-            f"  max {_num(ev['fall_delay_max_s'], 2)}  ({len(ev['fall_delays_s'])} detected)"
+            f"fall delay s: mean {fmt_num(ev['fall_delay_mean_s'], 2)}  median {fmt_num(ev['fall_delay_median_s'], 2)}"
+            f"  max {fmt_num(ev['fall_delay_max_s'], 2)}  ({len(ev['fall_delays_s'])} detected)"
         )
         lines.append(
             f"false alarms ({'/'.join(ev['alarm_kinds'])}): {ev['false_alarms']}"
-            f"  per hour {_num(ev['false_alarms_per_hour'], 2)}"
+            f"  per hour {fmt_num(ev['false_alarms_per_hour'], 2)}"
         )
     lines += ["", f"posture over {p['pairs']} matched pairs ({p['scored']} with a known truth posture)"]
-    lines.append(f"accuracy strict {_pct(p['strict_accuracy'])}  lenient (bending = standing) {_pct(p['lenient_accuracy'])}")
+    lines.append(f"accuracy strict {fmt_pct(p['strict_accuracy'])}  lenient (bending = standing) {fmt_pct(p['lenient_accuracy'])}")
     labels = p["labels"]
     conf = p["confusion"]
-    lines += _table(["truth \\ run", *labels], [[lab, *row] for lab, row in zip(labels, conf) if any(row)] or [["-"] * (len(labels) + 1)])
+    lines += text_table(["truth \\ run", *labels], [[lab, *row] for lab, row in zip(labels, conf) if any(row)] or [["-"] * (len(labels) + 1)])
     for note in results.get("notes", []):
         lines.append(f"note: {note}")
     return "\n".join(lines)
@@ -196,6 +203,12 @@ def suite_totals(results: Iterable[Mapping[str, Any]]) -> dict[str, Any]:
         "labels": results[0]["posture"]["labels"],
         "confusion": confusion.tolist(),
     }
+    bands: dict[str, dict[str, Any]] = {}
+    for r in results:
+        for label, c in (r.get("by_people") or {}).items():
+            acc = bands.setdefault(label, dict.fromkeys(_BAND_COUNTS, 0))
+            for k in _BAND_COUNTS:
+                acc[k] += c[k]
     durations = [r["duration_s"] for r in results]
     duration_s = None if any(d is None for d in durations) else float(sum(durations))
     return {
@@ -209,8 +222,21 @@ def suite_totals(results: Iterable[Mapping[str, Any]]) -> dict[str, Any]:
         "per_frame": s,
         "events": _sum_events([r["events"] for r in results if r.get("events") is not None], duration_s),
         "posture": p,
+        "by_people": {label: band_summary(c) for label, c in bands.items()},
         "notes": [],
     }
+
+
+def people_table(bands: Mapping[str, Mapping[str, Any]]) -> list[str]:
+    """Text rows of :func:`~common.evaluation.tracking.by_people_present` bands and their total."""
+    total = band_summary({k: sum(b[k] for b in bands.values()) for k in _BAND_COUNTS})
+    rows = [[label, b["frames"], b["gt"], fmt_pct(b["mota"]), fmt_num(b["motp_m"], 3), fmt_pct(b["count_exact_ratio"]),
+             b["fp"], b["fn"], b["id_switches"]] for label, b in [*bands.items(), ("all", total)]]
+    return text_table(["people", "frames", "GT", "MOTA", "MOTP m", "count exact", "FP", "FN", "IDSW"], rows,
+                  rule_before_last=True)
+
+
+_BAND_COUNTS = ("frames", "gt", "pred", "matches", "id_switches", "distance_sum_m", "count_exact")
 
 
 def suite_table(rows: Mapping[str, Mapping[str, Any]] | Iterable[tuple[str, Mapping[str, Any]]]) -> str:
@@ -228,7 +254,7 @@ def suite_table(rows: Mapping[str, Mapping[str, Any]] | Iterable[tuple[str, Mapp
               "ATPF", "fall P", "fall R", "sit/stand F1", "enter/exit F1", "posture", "FA/h"]
     body = [_suite_row(name, r) for name, r in items]
     total = _suite_row("total", suite_totals(r for _, r in items))
-    return "\n".join(_table(header, body + [total], rule_before_last=True))
+    return "\n".join(text_table(header, body + [total], rule_before_last=True))
 
 
 def to_json(results: Mapping[str, Any]) -> str:
@@ -328,23 +354,23 @@ def _suite_row(name: str, r: Mapping[str, Any]) -> list[Any]:
     if ev is not None:
         k = ev["per_kind"]
         if "fall" in k:
-            fall, fall_r = _pct(k["fall"]["precision"]), _pct(k["fall"]["recall"])
-        sit = _pct(_pooled_f1(k, ("sit_down", "stand_up")))
-        door = _pct(_pooled_f1(k, ("enter", "exit")))
-        fa = _num(ev["false_alarms_per_hour"], 2)
-    return [name, r["frames"]["count"], t["gt"], _pct(t["mota"]), _num(t["motp_m"], 3), _pct(t["idf1"]),
-            t["id_switches"], t["fragmentations"], t["fp"], t["fn"], _num(s["motme_m"], 3), _num(s["mtpf"], 3),
-            _num(s["atpf"], 3), fall, fall_r, sit, door, _pct(p["strict_accuracy"]), fa]
+            fall, fall_r = fmt_pct(k["fall"]["precision"]), fmt_pct(k["fall"]["recall"])
+        sit = fmt_pct(pooled_f1(k, ("sit_down", "stand_up")))
+        door = fmt_pct(pooled_f1(k, ("enter", "exit")))
+        fa = fmt_num(ev["false_alarms_per_hour"], 2)
+    return [name, r["frames"]["count"], t["gt"], fmt_pct(t["mota"]), fmt_num(t["motp_m"], 3), fmt_pct(t["idf1"]),
+            t["id_switches"], t["fragmentations"], t["fp"], t["fn"], fmt_num(s["motme_m"], 3), fmt_num(s["mtpf"], 3),
+            fmt_num(s["atpf"], 3), fall, fall_r, sit, door, fmt_pct(p["strict_accuracy"]), fa]
 
 
-def _pooled_f1(per_kind: Mapping[str, Mapping[str, int]], kinds: Sequence[str]) -> float | None:
+def pooled_f1(per_kind: Mapping[str, Mapping[str, int]], kinds: Sequence[str]) -> float | None:
     tp = sum(per_kind.get(k, {}).get("tp", 0) for k in kinds)
     fp = sum(per_kind.get(k, {}).get("fp", 0) for k in kinds)
     fn = sum(per_kind.get(k, {}).get("fn", 0) for k in kinds)
     return f1_score(tp, fp, fn)
 
 
-def _table(
+def text_table(
     header: Sequence[str], rows: Sequence[Sequence[Any]], *, rule_before_last: bool = False, label_column: bool = True
 ) -> list[str]:
     """Aligned text rows: the first column left-aligned when it holds labels, numbers right-aligned."""
@@ -364,11 +390,11 @@ def _table(
     return out
 
 
-def _pct(value: float | None) -> str:
+def fmt_pct(value: float | None) -> str:
     return "-" if value is None else f"{100.0 * value:.1f}%"
 
 
-def _num(value: float | None, digits: int) -> str:
+def fmt_num(value: float | None, digits: int) -> str:
     return "-" if value is None else f"{value:.{digits}f}"
 
 

@@ -323,6 +323,57 @@ def per_frame_measures(
     )
 
 
+PEOPLE_BANDS = ((0, 0), (1, 1), (2, 3), (4, 7), (8, 12), (13, None))
+"""People present per frame, in bands for :func:`by_people_present` (None: no upper bound)."""
+
+
+def by_people_present(
+    truth: TrackTable, run: TrackTable, pairs: Matches, first: int | None, last: int | None,
+    bands=PEOPLE_BANDS,
+) -> dict[str, dict[str, Any]]:
+    """CLEAR-MOT counts of the frames ``first..last``, split by how many people the truth has in each
+    frame (``bands`` of (low, high) inclusive), with the frames whose run counts as many people as
+    the truth (``count_exact``). ``pairs``: the matches of :func:`clear_mot` on the same tables.
+
+    Returns band label ('0', '1', '2-3', ..., '13+') -> frames, gt, pred, matches, fp, fn,
+    id_switches, distance_sum_m, count_exact, and the ratios mota, motp_m, count_exact_ratio.
+    Bands without frames are left out.
+    """
+    if first is None or last is None:
+        return {}
+    n = last - first + 1
+    gt = np.bincount(truth.frame - first, minlength=n)[:n] if len(truth) else np.zeros(n, dtype=np.int64)
+    pred = np.bincount(run.frame - first, minlength=n)[:n] if len(run) else np.zeros(n, dtype=np.int64)
+    matched = np.bincount(pairs.frame - first, minlength=n)[:n] if len(pairs) else np.zeros(n, dtype=np.int64)
+    switches = (np.bincount(pairs.frame - first, weights=pairs.switch.astype(float), minlength=n)[:n]
+                if len(pairs) else np.zeros(n))
+    dist = (np.bincount(pairs.frame - first, weights=pairs.distance_m, minlength=n)[:n]
+            if len(pairs) else np.zeros(n))
+    out: dict[str, dict[str, Any]] = {}
+    for lo, hi in bands:
+        sel = (gt >= lo) & (gt <= (hi if hi is not None else np.iinfo(np.int64).max))
+        if not sel.any():
+            continue
+        label = f"{lo}" if hi == lo else (f"{lo}+" if hi is None else f"{lo}-{hi}")
+        out[label] = band_summary({
+            "frames": int(sel.sum()), "gt": int(gt[sel].sum()), "pred": int(pred[sel].sum()),
+            "matches": int(matched[sel].sum()), "id_switches": int(round(switches[sel].sum())),
+            "distance_sum_m": float(dist[sel].sum()), "count_exact": int(np.count_nonzero(gt[sel] == pred[sel])),
+        })
+    return out
+
+
+def band_summary(c: dict[str, Any]) -> dict[str, Any]:
+    """The counts of one band of :func:`by_people_present` with fp, fn and the ratios added."""
+    fp, fn = c["pred"] - c["matches"], c["gt"] - c["matches"]
+    return {
+        **c, "fp": fp, "fn": fn,
+        "mota": None if c["gt"] == 0 else 1.0 - (fn + fp + c["id_switches"]) / c["gt"],
+        "motp_m": ratio(c["distance_sum_m"], c["matches"]),
+        "count_exact_ratio": ratio(c["count_exact"], c["frames"]),
+    }
+
+
 def gated_assignment(cost: np.ndarray, gate: float) -> tuple[np.ndarray, np.ndarray]:
     """Pairs ``(rows, cols)`` with ``cost <= gate``: as many pairs as possible, then the least summed cost.
 

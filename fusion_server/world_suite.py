@@ -1,0 +1,244 @@
+"""The randomised-world suite: many worlds written, replayed and scored, with totals by people and rig.
+
+``voxelwatch eval --suite --world random --seeds 1000-1049 --jobs 2`` writes
+each world (:mod:`common.synth.world`), replays it exactly as ``voxelwatch
+replay --input`` does, scores it as ``voxelwatch eval`` does, and prints:
+
+* what the worlds hold: rooms, rigs, cameras, people, behaviours, faults;
+* one row per world, and a total row from summed counts;
+* totals by the number of people present in a frame (tracking figures: a
+  frame belongs to the band of its own truth count);
+* totals by rig kind (whole worlds): high corners, level walls, with and
+  without a ceiling fisheye (drawn rigs), the real rigs.
+
+``fused/s`` is frame sets through the fusion pipeline (carving, detection,
+tracking, posture, events) per second of that stage's wall time, in a process
+that shares the machine with the suite's other jobs. The worlds' media are
+deleted once scored unless ``keep_media``.
+"""
+
+from __future__ import annotations
+
+import shutil
+import sys
+import time
+from collections import Counter
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+from common.evaluation import evaluate, suite_totals, write_json
+from common.evaluation.report import people_table, text_table, fmt_num, fmt_pct, pooled_f1
+
+
+def parse_seeds(text: str) -> list[int]:
+    """'1000-1049' or '3,7,20-22' -> the seeds, in order, without repeats; ValueError naming the bad part."""
+    seeds: list[int] = []
+    for part in str(text).split(","):
+        part = part.strip()
+        try:
+            if "-" in part:
+                lo, hi = (int(v) for v in part.split("-", 1))
+                if hi < lo:
+                    raise ValueError
+                seeds += range(lo, hi + 1)
+            else:
+                seeds.append(int(part))
+        except ValueError:
+            raise ValueError(f"--seeds: {part!r} is not a seed or a range like 1000-1049") from None
+    if not seeds or min(seeds) < 0:
+        raise ValueError(f"--seeds: give non-negative seeds, got {text!r}")
+    return list(dict.fromkeys(seeds))
+
+
+def run_world_suite(
+    *,
+    seeds: Sequence[int],
+    out_dir: str | Path,
+    jobs: int = 1,
+    frames: int | None = None,
+    json_path: str | Path | None = None,
+    keep_media: bool = False,
+    stream=sys.stdout,
+) -> dict[str, Any]:
+    """Write, replay and score the worlds of ``seeds``; print the tables; return the report (also as JSON
+    at ``json_path``). ``frames``: only the first N frames of each world."""
+    from common.synth.world import seed_set
+
+    sets = sorted({seed_set(s) for s in seeds})
+    out = Path(out_dir)
+    tasks = [(int(s), str(out), frames, keep_media) for s in seeds]
+    results: dict[int, dict] = {}
+    if jobs <= 1:
+        for task in tasks:
+            results[task[0]] = _report(_run_world(*task))
+    else:
+        import multiprocessing
+        from concurrent.futures import ProcessPoolExecutor, as_completed
+
+        with ProcessPoolExecutor(max_workers=jobs, mp_context=multiprocessing.get_context("spawn")) as pool:
+            futures = {pool.submit(_run_world, *task): task[0] for task in tasks}
+            for future in as_completed(futures):
+                results[futures[future]] = _report(future.result())
+    ordered = [results[int(s)] for s in seeds]
+    print(f"\nrandom worlds, {' and '.join(sets)} seeds {_seed_text(seeds)}", file=stream)
+    print(composition(ordered), file=stream)
+    print("", file=stream)
+    print(worlds_table(ordered), file=stream)
+    total = suite_totals(r["scores"] for r in ordered)
+    print("\nby people present in the frame (tracking only; each frame in the band of its truth count):", file=stream)
+    print("\n".join(people_table(total["by_people"])), file=stream)
+    print("\nby rig (whole worlds):", file=stream)
+    print(groups_table(ordered), file=stream, flush=True)
+    report = {
+        "seeds": list(seeds), "seed_sets": sets,
+        "worlds": [{k: r[k] for k in ("seed", "world", "frames", "fuse_s", "replay_s", "scores")} for r in ordered],
+        "total": total,
+        "groups": {label: suite_totals(r["scores"] for r in rs) for label, rs in rig_groups(ordered).items()},
+    }
+    if json_path is not None:
+        write_json(report, json_path)
+    return report
+
+
+def composition(results: Sequence[dict]) -> str:
+    """What the worlds hold, in a few lines."""
+    worlds = [r["world"] for r in results]
+    n = len(worlds)
+    rigs = Counter(w["rig_label"] + (" + fisheye" if w["fisheye"] else "") for w in worlds)
+    shapes = Counter(w["room"]["shape"] for w in worlds)
+    areas = sorted(w["room"]["floor_area_m2"] for w in worlds if not w["rig"].startswith("real"))
+    cams = Counter(w["cameras"] for w in worlds)
+    res = Counter(r for w in worlds for r in w["resolutions"])
+    lenses = Counter(lens for w in worlds for lens in w["lenses"])
+    people = Counter(_band(w["people_per_frame_max"]) for w in worlds)
+    behaviours = Counter(b for w in worlds for b in w["behaviours"])
+    faults = Counter(f.split()[0] for w in worlds for fs in w["faults"].values() for f in set(fs))
+    media = Counter(w["media"] for w in worlds)
+    frames = sum(r["frames"] for r in results)
+    lines = [
+        f"{n} worlds, {frames} frame sets ({frames / 15.0 / 60:.1f} min at 15 fps); media: {_counts(media)}",
+        f"rigs: {_counts(rigs)}",
+        f"cameras per world: {_counts(cams, key=int)}; lenses: {_counts(lenses)}; sizes: {_counts(res)}",
+        f"rooms: {_counts(shapes)}" + (f", drawn floors {areas[0]:.0f}-{areas[-1]:.0f} m2 (median {areas[len(areas) // 2]:.0f})"
+                                       if areas else ""),
+        f"most people at once: {_counts(people)} worlds; children in "
+        f"{sum(1 for w in worlds if w['children'])} worlds; mean people per frame "
+        f"{sum(w['people_per_frame_mean'] * r['frames'] for w, r in zip(worlds, results)) / max(frames, 1):.2f}",
+        f"behaviours (worlds with it): {_counts(behaviours)}",
+        f"mask faults (worlds with a camera showing it): {_counts(faults)}",
+    ]
+    return "\n".join(lines)
+
+
+def worlds_table(results: Sequence[dict]) -> str:
+    """One row per world and a total row."""
+    header = ["world", "rig", "cams", "people", "media", "frames", *_SCORE_HEADER]
+    rows = []
+    for r in results:
+        w = r["world"]
+        rig = w["rig_label"] + (" +fe" if w["fisheye"] else "")
+        rows.append([str(r["seed"]), rig, w["cameras"], w["people_per_frame_max"], w["media"], r["frames"],
+                     *_score_cells(r["scores"], r["frames"], r["fuse_s"])])
+    total = suite_totals(r["scores"] for r in results)
+    rows.append(["total", "", "", "", "", sum(r["frames"] for r in results),
+                 *_score_cells(total, sum(r["frames"] for r in results), sum(r["fuse_s"] for r in results))])
+    return "\n".join(text_table(header, rows, rule_before_last=True))
+
+
+def rig_groups(results: Sequence[dict]) -> dict[str, list[dict]]:
+    """Worlds by rig: each kind, drawn rigs with and without a fisheye, and the real rigs together."""
+    groups: dict[str, list[dict]] = {}
+    for r in results:
+        w = r["world"]
+        groups.setdefault(w["rig_label"], []).append(r)
+    for r in results:
+        w = r["world"]
+        if not w["rig"].startswith("real"):
+            groups.setdefault("drawn, with fisheye" if w["fisheye"] else "drawn, no fisheye", []).append(r)
+        else:
+            groups.setdefault("real rigs", []).append(r)
+    return groups
+
+
+def groups_table(results: Sequence[dict]) -> str:
+    header = ["rig", "worlds", "frames", *_SCORE_HEADER]
+    rows = []
+    for label, rs in rig_groups(results).items():
+        frames = sum(r["frames"] for r in rs)
+        rows.append([label, len(rs), frames, *_score_cells(suite_totals(r["scores"] for r in rs), frames,
+                                                           sum(r["fuse_s"] for r in rs))])
+    return "\n".join(text_table(header, rows))
+
+
+# ---------------------------------------------------------------------- helpers
+
+_SCORE_HEADER = ["MOTA", "IDF1", "count", "posture", "fall P", "fall R", "false falls/h", "sit/stand F1",
+                 "enter/exit F1", "fused/s"]
+
+
+def _score_cells(s: dict, frames: int, fuse_s: float) -> list[str]:
+    t, p, ev = s["tracking"], s["posture"], s.get("events")
+    bands = (s.get("by_people") or {}).values()
+    exact = sum(b["count_exact"] for b in bands)
+    n = sum(b["frames"] for b in bands)
+    fall_p = fall_r = ss = ee = ff = "-"
+    if ev is not None:
+        k = ev["per_kind"]
+        if "fall" in k:
+            fall_p, fall_r = fmt_pct(k["fall"]["precision"]), fmt_pct(k["fall"]["recall"])
+        ss = fmt_pct(pooled_f1(k, ("sit_down", "stand_up")))
+        ee = fmt_pct(pooled_f1(k, ("enter", "exit")))
+        hours = (s.get("duration_s") or 0.0) / 3600.0
+        ff = fmt_num(k.get("fall", {}).get("fp", 0) / hours, 1) if hours else "-"
+    return [fmt_pct(t["mota"]), fmt_pct(t["idf1"]), fmt_pct(exact / n if n else None), fmt_pct(p["strict_accuracy"]),
+            fall_p, fall_r, ff, ss, ee, fmt_num(frames / fuse_s if fuse_s > 0 else None, 1)]
+
+
+def _run_world(seed: int, out: str, frames: int | None, keep_media: bool) -> dict:
+    """Write, replay and score one world (runs in a worker process)."""
+    from common.site import load_site
+    from common.synth.world import random_world, write_world
+    from fusion_server.replay import replay
+
+    out_dir = Path(out)
+    t0 = time.perf_counter()
+    world = random_world(seed)
+    written = write_world(world, out_dir / "worlds" / world.name, frames=frames)
+    t1 = time.perf_counter()
+    run_dir = out_dir / "runs" / world.name
+    summary = replay(load_site(written.site), run_dir, input_dir=written.out_dir, cache_dir=out_dir / "cache")
+    t2 = time.perf_counter()
+    scores = evaluate(written.truth_dir, run_dir)
+    if not keep_media:
+        for cam in world.cameras:
+            shutil.rmtree(written.out_dir / cam, ignore_errors=True)
+    return {"seed": seed, "world": world.summary(), "frames": summary.frames, "fuse_s": summary.stage_s["fuse"],
+            "write_s": t1 - t0, "replay_s": t2 - t1, "scores": scores}
+
+
+def _report(result: dict) -> dict:
+    w = result["world"]
+    print(f"  world {result['seed']}: {w['rig_label']}, {w['cameras']} cameras, {w['people']} people, "
+          f"{result['frames']} frames: written in {result['write_s']:.0f} s, replayed in {result['replay_s']:.0f} s",
+          file=sys.stderr, flush=True)
+    return result
+
+
+def _band(n: int) -> str:
+    for lo, hi in ((0, 0), (1, 1), (2, 3), (4, 7), (8, 12)):
+        if lo <= n <= hi:
+            return f"{lo}" if lo == hi else f"{lo}-{hi}"
+    return "13+"
+
+
+def _counts(counter: Counter, key=None) -> str:
+    items = sorted(counter.items(), key=(lambda kv: key(kv[0])) if key else (lambda kv: (-kv[1], kv[0])))
+    return ", ".join(f"{k} {v}" for k, v in items) or "none"
+
+
+def _seed_text(seeds: Sequence[int]) -> str:
+    s = sorted(seeds)
+    if s == list(range(s[0], s[-1] + 1)):
+        return f"{s[0]}-{s[-1]}" if len(s) > 1 else str(s[0])
+    return ",".join(str(v) for v in seeds)
