@@ -72,9 +72,11 @@ def random_rig(rng: np.random.Generator, room: Room, *, kind: str, fisheye: bool
     n_wall = count - (1 if fisheye else 0)
     mounts = _mounts(rng, room, n_wall, kind)
     cams: dict[str, Camera] = {}
+    # most rigs are bought as a set; some mix models
+    rig_size = RESOLUTIONS[int(rng.choice(len(RESOLUTIONS), p=(0.2, 0.45, 0.15, 0.2)))]
     for k, (x, y) in enumerate(mounts):
         cam_id = f"cam{k + 1}"
-        width, height = RESOLUTIONS[int(rng.choice(len(RESOLUTIONS), p=(0.2, 0.45, 0.15, 0.2)))]
+        width, height = rig_size if rng.random() < 0.75 else RESOLUTIONS[int(rng.integers(len(RESOLUTIONS)))]
         wide = rng.random() < 0.45
         hfov = rng.uniform(95, 115) if wide else rng.uniform(60, 75)
         if wide:

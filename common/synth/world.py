@@ -16,9 +16,9 @@ cameras, or one of the real rigs of the recordings), a number of people
 (1 to 12, from four bands), a room big enough for them (:mod:`common.synth.rooms`),
 the cameras (:mod:`common.synth.rigs`), who does what (:mod:`common.synth.crowd`),
 and how its masks are made: most worlds go from the true silhouettes through
-the faults of :mod:`common.synth.degrade` straight to masks; about one in five
-(up to six people, never the 36 x 39 m PETS square) renders video that replay
-segments with the camera worker's own segmenter, as the house does.
+the faults of :mod:`common.synth.degrade` straight to masks; three in ten of
+those with up to six people render video that replay segments with the camera
+worker's own segmenter, as the house does.
 Video worlds also run on the camera workers (each camera's source is its video).
 
 Seeds: :data:`TUNING_SEEDS` are for changing the pipeline; :data:`EVALUATION_SEEDS`
@@ -175,7 +175,10 @@ def random_world(seed: int, *, data_dir: str | Path | None = None) -> World:
         room = _real_room(real)
         cameras, refs = real.cameras, real.refs
         (x0, y0), (x1, y1) = real.volume_xy_m
-        plan = FloorPlan(room, region=((x0 - 1.5, y0 - 1.5), (x1 + 1.5, y1 + 1.5)))
+        # people keep near the monitored area and now and then step out of it: the lab's
+        # area is most of its free floor, the PETS square is surrounded by more of the same
+        m = 0.5 if rig == "real-lab" else 1.5
+        plan = FloorPlan(room, region=((x0 - m, y0 - m), (x1 + m, y1 + m)))
         open_edges = True
     else:
         room = random_room(rng, min_area_m2=max(9.0, 3.0 * count + 6.0))
@@ -184,7 +187,7 @@ def random_world(seed: int, *, data_dir: str | Path | None = None) -> World:
         cameras = random_rig(rng, room, kind=rig, fisheye=fisheye, count=n_cams)
         refs = {cam: CalibrationRef(None) for cam in cameras}
         plan = FloorPlan(room)
-    media = "video" if (count <= 6 and rig != "real-pets" and rng.random() < 0.2) else "masks"
+    media = "video" if (count <= 6 and rng.random() < 0.3) else "masks"
     widths = sorted(c.width for c in cameras.values())
     mask_scale = 0.5 if widths[len(widths) // 2] >= 640 else 1.0
     start_hour = int(rng.integers(7, 22))
