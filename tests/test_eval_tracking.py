@@ -12,7 +12,7 @@ from common.evaluation import io
 from common.evaluation.io import TrackTable
 from common.evaluation.posture import posture_from_labels, posture_scores
 from common.evaluation.report import evaluate, suite_totals
-from common.evaluation.tracking import clear_mot, gated_assignment, per_frame_measures
+from common.evaluation.tracking import by_people_present, clear_mot, gated_assignment, per_frame_measures
 
 NS = 66_666_667  # one frame at 15 fps
 
@@ -52,6 +52,33 @@ def hand_case() -> tuple[TrackTable, TrackTable]:
         ]
     )
     return truth, run
+
+
+def test_by_people_present_splits_the_hand_case_by_frame() -> None:
+    # the hand case has two people in frames 0..3; add frame 4 with A alone (track 2 on it) and
+    # frame 5 with nobody but a false track
+    truth, run = hand_case()
+    truth = table([*[(f, p, x, 0.0) for f in range(4) for p, x in (("A", 0.0), ("B", 3.0))], (4, "A", 0.0, 0.0)])
+    run = table([(0, "1", 0.1, 0.0), (1, "1", 0.1, 0.0), (3, "2", 0.2, 0.0), *[(f, "3", 3.0, 0.3) for f in range(4)],
+                 (1, "9", 10.0, 10.0), (4, "2", 0.1, 0.0), (5, "7", 1.0, 1.0)])
+    r = clear_mot(truth, run)
+    bands = by_people_present(truth, run, r.pairs, 0, 5)
+    assert list(bands) == ["0", "1", "2-3"]
+    two = bands["2-3"]
+    # frames 0-3: GT 8; matches 7 (A missed in frame 2); FP 1 (track 9); one switch (A: 1 -> 2 in frame 3)
+    assert (two["frames"], two["gt"], two["pred"], two["matches"], two["fp"], two["fn"], two["id_switches"]) == (
+        4, 8, 8, 7, 1, 1, 1)
+    # the count is right in frames 0 and 3 (frame 1 has 3 tracks, frame 2 one)
+    assert two["count_exact"] == 2 and two["count_exact_ratio"] == 0.5
+    assert two["mota"] == pytest.approx(1 - 3 / 8)
+    one = bands["1"]
+    assert (one["frames"], one["gt"], one["matches"], one["fp"], one["count_exact"]) == (1, 1, 1, 0, 1)
+    assert one["motp_m"] == pytest.approx(0.1)
+    empty = bands["0"]
+    assert (empty["frames"], empty["gt"], empty["fp"], empty["count_exact"], empty["mota"]) == (1, 0, 1, 0, None)
+    # the bands add up to the whole
+    assert sum(b["gt"] for b in bands.values()) == r.gt and sum(b["fp"] for b in bands.values()) == r.fp
+    assert sum(b["id_switches"] for b in bands.values()) == r.id_switches
 
 
 def test_hand_worked_clear_mot_and_identity() -> None:
