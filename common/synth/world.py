@@ -229,27 +229,32 @@ def write_world(world: World, out_dir: str | Path, *, frames: int | None = None)
             _write_video(world, cam_id, cam, out / cam_id, n)
     else:
         bodies = [_bodies_at(sc, i) for i in range(n)]
-        for cam_id, cam in world.cameras.items():
-            _write_masks(world, cam_id, cam, out / cam_id / "masks", bodies)
+        for cam_id in world.cameras:
+            _write_masks(world, cam_id, out / cam_id / "masks", bodies)
     return WorldOutput(out_dir=out, site=site_path, truth_dir=truth_dir, n_frames=n, media=world.media)
 
 
 def render_masks(world: World, cam_id: str, frames, *, faults: bool = True) -> list[np.ndarray]:
     """The masks (H, W) uint8 0/255 of camera ``cam_id`` for frame indices ``frames``, at the site's
     mask size; ``faults=False`` gives the true silhouettes (furniture and people occlude)."""
-    cam = world.cameras[cam_id]
-    renderer = CameraRenderer(cam.scaled(world.mask_scale), world.room, colour=False)
-    f = world.faults.get(cam_id, MaskFaults()) if faults else MaskFaults()
+    return list(iter_masks(world, cam_id, frames, faults=faults))
+
+
+def iter_masks(world: World, cam_id: str, frames, *, faults: bool = True, bodies: list | None = None):
+    """Yield the masks of :func:`render_masks` one by one; ``bodies``: the people of every frame
+    (``bodies[i]`` for frame ``i``), when already posed."""
     sc = world.scenario
-    out = []
+    renderer = CameraRenderer(world.cameras[cam_id].scaled(world.mask_scale), world.room, colour=False)
+    f = world.faults.get(cam_id, MaskFaults()) if faults else MaskFaults()
+    seed = _cam_seed(world.seed, cam_id)
+    posed = (lambda i: bodies[i]) if bodies is not None else (lambda i: _bodies_at(sc, i))
     for i in frames:
-        labels = renderer.labels(_bodies_at(sc, max(0, int(i) - f.lag_frames)))
+        i = int(i)
+        labels = renderer.labels(posed(max(0, i - f.lag_frames)))
         if faults:
-            out.append(degrade(labels, f, int(i), camera=renderer.camera, bodies=_bodies_at(sc, int(i)),
-                               light_m=world.room.light_m, seed=_cam_seed(world.seed, cam_id)))
+            yield degrade(labels, f, i, camera=renderer.camera, bodies=posed(i), light_m=world.room.light_m, seed=seed)
         else:
-            out.append(np.where(labels > 0, np.uint8(255), np.uint8(0)))
-    return out
+            yield np.where(labels > 0, np.uint8(255), np.uint8(0))
 
 
 # ---------------------------------------------------------------------- helpers
@@ -348,16 +353,11 @@ def _write_site(world: World, out: Path) -> Path:
     return path
 
 
-def _write_masks(world: World, cam_id: str, cam: Camera, folder: Path, bodies: list) -> None:
+def _write_masks(world: World, cam_id: str, folder: Path, bodies: list) -> None:
     folder.mkdir(parents=True, exist_ok=True)
     for old in folder.glob("*.png"):
         old.unlink()
-    renderer = CameraRenderer(cam.scaled(world.mask_scale), world.room, colour=False)
-    f = world.faults.get(cam_id, MaskFaults())
-    seed = _cam_seed(world.seed, cam_id)
-    for i in range(len(bodies)):
-        labels = renderer.labels(bodies[max(0, i - f.lag_frames)])
-        mask = degrade(labels, f, i, camera=renderer.camera, bodies=bodies[i], light_m=world.room.light_m, seed=seed)
+    for i, mask in enumerate(iter_masks(world, cam_id, range(len(bodies)), bodies=bodies)):
         cv2.imwrite(str(folder / f"{i:06d}.png"), mask)
 
 
