@@ -22,6 +22,10 @@ Schema (all lengths in metres, world frame Z up, floor at Z = 0)::
     min_ratio = 0.75             # and the fraction of seeing cameras that must
     mask_scale = 1.0             # workers downscale masks by this factor
 
+    [events]
+    long_lie_s = 30.0            # on the floor this long after a fall: long_lie (5..3600)
+    inactivity_s = 1800.0        # still this long, outside bed: inactivity (30..86400)
+
     [zenoh]
     prefix = ""                  # default voxelwatch/<name>
     mode = "peer"                # peer | client | router
@@ -131,6 +135,19 @@ class Carving(_Model):
         return sizes
 
 
+class EventSettings(_Model):
+    """How long a situation lasts before it raises an alarm, seconds; each home
+    sets its own (a care home may want a long lie reported sooner)."""
+
+    long_lie_s: float = Field(default=30.0, ge=5.0, le=3600.0, allow_inf_nan=False)
+    """Lying on the floor this long after a fall (or since lying down) is a
+    ``long_lie``. Not below 5 s: the fall itself needs a second on the floor
+    to be confirmed."""
+    inactivity_s: float = Field(default=1800.0, ge=30.0, le=86400.0, allow_inf_nan=False)
+    """Keeping still this long, outside bed, is ``inactivity``. Not below 30 s:
+    stillness is judged over the last 30 s of positions."""
+
+
 class ZenohSettings(_Model):
     """How this process joins the zenoh network."""
 
@@ -194,13 +211,14 @@ class DoorSpec(_Model):
 
 
 class Site(_Model):
-    """A home: volume, cameras, hot spots, doors and network settings."""
+    """A home: volume, cameras, hot spots, doors, event timing and network settings."""
 
     name: str = Field(pattern=NAME_PATTERN)
     residents: int = Field(default=1, ge=0)
     utc_offset_hours: float = Field(default=0.0, ge=-14.0, le=14.0)
     volume: Volume = Field(default_factory=Volume)
     carving: Carving = Field(default_factory=Carving)
+    events: EventSettings = Field(default_factory=EventSettings)
     zenoh: ZenohSettings = Field(default_factory=ZenohSettings)
     cameras: list[CameraSpec] = Field(min_length=1)
     hotspots: list[HotSpotSpec] = Field(default_factory=list)

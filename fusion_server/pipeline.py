@@ -112,7 +112,8 @@ class FusionPipeline:
         seed: int = 0,
         min_cameras: int | None = None,
     ) -> "FusionPipeline":
-        """The pipeline a site file describes (calibrations loaded unless given)."""
+        """The pipeline a site file describes (calibrations loaded unless given;
+        event timing from its ``[events]`` section)."""
         cameras = dict(cameras) if cameras is not None else site.load_cameras()
         carving = site.carving
         kwargs = {} if cache_dir is None else {"cache_dir": cache_dir}
@@ -132,6 +133,8 @@ class FusionPipeline:
             bounds_xy_m=_entry_edges(site),
             residents=site.residents,
             utc_offset_h=site.utc_offset_hours,
+            long_lie_s=site.events.long_lie_s,
+            inactivity_s=site.events.inactivity_s,
         )
         return cls(
             carver=carver, cameras=cameras, reasoner=reasoner, rng=np.random.default_rng(seed), min_cameras=min_cameras

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import pytest
 
-from common.site import SiteError, load_site, site_to_toml, write_site
+from common.site import EventSettings, SiteError, load_site, site_to_toml, write_site
 
 GOOD = """\
 name = "flat-3"
@@ -92,6 +92,40 @@ def test_written_site_reads_back_equal(tmp_path):
 def test_bad_field_names_file_field_and_problem(tmp_path, old, new, field, problem):
     assert old in GOOD
     path = _write(tmp_path, GOOD.replace(old, new, 1))
+    with pytest.raises(SiteError) as err:
+        load_site(path)
+    message = str(err.value)
+    assert str(path) in message
+    assert f"field {field}" in message
+    assert problem in message
+
+
+def test_events_section_is_optional_and_sets_the_alarm_durations(tmp_path):
+    site = load_site(_write(tmp_path, GOOD))
+    assert site.events == EventSettings()
+    assert (site.events.long_lie_s, site.events.inactivity_s) == (30.0, 1800.0)  # the reasoner's own defaults
+    site = load_site(_write(tmp_path, GOOD + "\n[events]\nlong_lie_s = 60.0\ninactivity_s = 900\n"))
+    assert (site.events.long_lie_s, site.events.inactivity_s) == (60.0, 900.0)
+    assert "[events]" in site_to_toml(site)
+    again = load_site(write_site(site, tmp_path / "copy" / "site.toml"))
+    assert again.events == site.events
+
+
+@pytest.mark.parametrize(
+    ("line", "field", "problem"),
+    [
+        ("long_lie_s = 0", "events.long_lie_s", "greater than or equal to 5"),
+        ("long_lie_s = 7200.0", "events.long_lie_s", "less than or equal to 3600"),
+        ("long_lie_s = nan", "events.long_lie_s", "finite number"),
+        ("inactivity_s = 10", "events.inactivity_s", "greater than or equal to 30"),
+        ("inactivity_s = 100000", "events.inactivity_s", "less than or equal to 86400"),
+        ("inactivity_s = inf", "events.inactivity_s", "finite number"),
+        ('inactivity_s = "half an hour"', "events.inactivity_s", "valid number"),
+        ("inactivity_min = 30", "events.inactivity_min", "unknown field"),
+    ],
+)
+def test_bad_event_setting_names_the_field(tmp_path, line, field, problem):
+    path = _write(tmp_path, GOOD + f"\n[events]\n{line}\n")
     with pytest.raises(SiteError) as err:
         load_site(path)
     message = str(err.value)
