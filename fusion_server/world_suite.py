@@ -112,6 +112,7 @@ def composition(results: Sequence[dict]) -> str:
     res = Counter(r for w in worlds for r in w["resolutions"])
     lenses = Counter(lens for w in worlds for lens in w["lenses"])
     people = Counter(_band(w["people_per_frame_max"]) for w in worlds)
+    band_order = lambda label: int(label.split("-")[0].rstrip("+"))  # noqa: E731
     behaviours = Counter(b for w in worlds for b in w["behaviours"])
     faults = Counter(f.split()[0] for w in worlds for fs in w["faults"].values() for f in set(fs))
     media = Counter(w["media"] for w in worlds)
@@ -122,7 +123,7 @@ def composition(results: Sequence[dict]) -> str:
         f"cameras per world: {_counts(cams, key=int)}; lenses: {_counts(lenses)}; sizes: {_counts(res)}",
         f"rooms: {_counts(shapes)}" + (f", drawn floors {areas[0]:.0f}-{areas[-1]:.0f} m2 (median {areas[len(areas) // 2]:.0f})"
                                        if areas else ""),
-        f"most people at once: {_counts(people)} worlds; children in "
+        f"most people at once: {_counts(people, key=band_order)} worlds; children in "
         f"{sum(1 for w in worlds if w['children'])} worlds; mean people per frame "
         f"{sum(w['people_per_frame_mean'] * r['frames'] for w, r in zip(worlds, results)) / max(frames, 1):.2f}",
         f"behaviours (worlds with it): {_counts(behaviours)}",
@@ -147,18 +148,21 @@ def worlds_table(results: Sequence[dict]) -> str:
 
 
 def rig_groups(results: Sequence[dict]) -> dict[str, list[dict]]:
-    """Worlds by rig: each kind, drawn rigs with and without a fisheye, and the real rigs together."""
-    groups: dict[str, list[dict]] = {}
+    """Worlds by rig: each kind, drawn rigs with and without a fisheye, and the real rigs together
+    (groups without worlds left out)."""
+    from common.synth.world import RIG_LABELS
+
+    order = [RIG_LABELS["high-corners"], RIG_LABELS["level-walls"], "drawn, with fisheye", "drawn, no fisheye",
+             RIG_LABELS["real-lab"], RIG_LABELS["real-pets"], "real rigs"]
+    groups: dict[str, list[dict]] = {label: [] for label in order}
     for r in results:
         w = r["world"]
-        groups.setdefault(w["rig_label"], []).append(r)
-    for r in results:
-        w = r["world"]
-        if not w["rig"].startswith("real"):
-            groups.setdefault("drawn, with fisheye" if w["fisheye"] else "drawn, no fisheye", []).append(r)
+        groups[w["rig_label"]].append(r)
+        if w["rig"].startswith("real"):
+            groups["real rigs"].append(r)
         else:
-            groups.setdefault("real rigs", []).append(r)
-    return groups
+            groups["drawn, with fisheye" if w["fisheye"] else "drawn, no fisheye"].append(r)
+    return {label: rs for label, rs in groups.items() if rs}
 
 
 def groups_table(results: Sequence[dict]) -> str:

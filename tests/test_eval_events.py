@@ -151,6 +151,21 @@ def write_scenario(root, *, falls_truth: list[int], falls_run: list[int], fps: f
     return truth_dir, run_dir
 
 
+@pytest.mark.parametrize("origin_s, shifted", [(0.0, False), (0.4, False), (-1_709_650_000.0, True)])
+def test_a_run_on_another_clock_is_brought_to_the_truth_clock_for_delays(tmp_path, origin_s, shifted) -> None:
+    # a replay of masks without capture times stamps frame f at f / fps; the truth at its recording's date
+    truth_dir, run_dir = write_scenario(tmp_path, falls_truth=[150], falls_run=[160])
+    off = int(origin_s * 1e9)
+    rows = [(f, f * NS + off, "5", 2.1, 2.0, 1.7, "standing") for f in range(100, 200)]
+    io.write_tracks(run_dir / "tracks.csv", rows)
+    io.write_events(run_dir / "events.jsonl", [Event("fall", 160, 160 * NS + off, track="5", x=1.0, y=1.0)])
+    r = evaluate(truth_dir, run_dir)
+    # ten frames late, on the truth's clock; a small offset (a live run's clocks) is left alone
+    expected = 10 * NS / 1e9 + (0.0 if shifted else origin_s)
+    assert r["events"]["fall_delays_s"] == [pytest.approx(expected, abs=1e-6)]
+    assert any("clock differs" in n for n in r["notes"]) == shifted
+
+
 def test_evaluate_end_to_end(tmp_path) -> None:
     truth_dir, run_dir = write_scenario(tmp_path, falls_truth=[150], falls_run=[160, 700])
     r = evaluate(truth_dir, run_dir)
