@@ -28,7 +28,7 @@ from pathlib import Path
 from typing import Any
 
 from common.evaluation import evaluate, suite_totals, write_json
-from common.evaluation.report import people_table, text_table, fmt_num, fmt_pct, pooled_f1
+from common.evaluation.report import event_cells, fmt_num, fmt_pct, people_table, text_table
 
 
 def parse_seeds(text: str) -> list[int]:
@@ -186,15 +186,9 @@ def _score_cells(s: dict, frames: int, fuse_s: float) -> list[str]:
     bands = (s.get("by_people") or {}).values()
     exact = sum(b["count_exact"] for b in bands)
     n = sum(b["frames"] for b in bands)
-    fall_p = fall_r = ss = ee = ff = "-"
-    if ev is not None:
-        k = ev["per_kind"]
-        if "fall" in k:
-            fall_p, fall_r = fmt_pct(k["fall"]["precision"]), fmt_pct(k["fall"]["recall"])
-        ss = fmt_pct(pooled_f1(k, ("sit_down", "stand_up")))
-        ee = fmt_pct(pooled_f1(k, ("enter", "exit")))
-        hours = (s.get("duration_s") or 0.0) / 3600.0
-        ff = fmt_num(k.get("fall", {}).get("fp", 0) / hours, 1) if hours else "-"
+    fall_p, fall_r, ss, ee = event_cells(ev)
+    hours = (s.get("duration_s") or 0.0) / 3600.0
+    ff = fmt_num(ev["per_kind"].get("fall", {}).get("fp", 0) / hours, 1) if ev is not None and hours else "-"
     return [fmt_pct(t["mota"]), fmt_pct(t["idf1"]), fmt_pct(exact / n if n else None), fmt_pct(p["strict_accuracy"]),
             fall_p, fall_r, ff, ss, ee, fmt_num(frames / fuse_s if fuse_s > 0 else None, 1)]
 

@@ -380,18 +380,22 @@ def _kind_summary(c: Mapping[str, int]) -> dict[str, Any]:
 
 def _suite_row(name: str, r: Mapping[str, Any]) -> list[Any]:
     t, s, p, ev = r["tracking"], r["per_frame"], r["posture"], r.get("events")
-    fall = sit = door = "-"
-    fall_r = fa = "-"
-    if ev is not None:
-        k = ev["per_kind"]
-        if "fall" in k:
-            fall, fall_r = fmt_pct(k["fall"]["precision"]), fmt_pct(k["fall"]["recall"])
-        sit = fmt_pct(pooled_f1(k, ("sit_down", "stand_up")))
-        door = fmt_pct(pooled_f1(k, ("enter", "exit")))
-        fa = fmt_num(ev["false_alarms_per_hour"], 2)
+    fall, fall_r, sit, door = event_cells(ev)
+    fa = "-" if ev is None else fmt_num(ev["false_alarms_per_hour"], 2)
     return [name, r["frames"]["count"], t["gt"], fmt_pct(t["mota"]), fmt_num(t["motp_m"], 3), fmt_pct(t["idf1"]),
             t["id_switches"], t["fragmentations"], t["fp"], t["fn"], fmt_num(s["motme_m"], 3), fmt_num(s["mtpf"], 3),
             fmt_num(s["atpf"], 3), fall, fall_r, sit, door, fmt_pct(p["strict_accuracy"]), fa]
+
+
+def event_cells(ev: Mapping[str, Any] | None) -> list[str]:
+    """Fall precision, fall recall, sit/stand F1 (sit_down + stand_up counts) and enter/exit F1
+    (enter + exit counts) of an events summary, formatted; '-' where there is nothing to score."""
+    if ev is None:
+        return ["-"] * 4
+    k = ev["per_kind"]
+    fall = k.get("fall")
+    return [fmt_pct(fall["precision"]) if fall else "-", fmt_pct(fall["recall"]) if fall else "-",
+            fmt_pct(pooled_f1(k, ("sit_down", "stand_up"))), fmt_pct(pooled_f1(k, ("enter", "exit")))]
 
 
 def pooled_f1(per_kind: Mapping[str, Mapping[str, int]], kinds: Sequence[str]) -> float | None:
