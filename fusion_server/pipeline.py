@@ -19,6 +19,7 @@ from common.camera import Camera
 from common.site import Site
 from fusion_server.carving import Carver
 from fusion_server.detection import detect_blobs
+from fusion_server.explain import BlobExplainer
 from fusion_server.events import EventReasoner, EventRecord, event_id
 from fusion_server.grid import CarveResult
 from fusion_server.hotspots import Hotspot
@@ -100,6 +101,7 @@ class FusionPipeline:
         self.hold_radius_m = float(hold_radius_m)
         self.min_cameras = int(min_cameras if min_cameras is not None else carver.min_cameras)
         self.camera_ids: tuple[str, ...] = carver.camera_ids
+        self.explainer = BlobExplainer(self.cameras)
         self._postures: dict[int, PostureEstimator] = {}
 
     @classmethod
@@ -148,7 +150,9 @@ class FusionPipeline:
         stamp_ns: the frame set's capture time. frame: its frame number.
         """
         carve = self.carver.carve(masks, stamp_ns)
-        blobs = detect_blobs(carve)
+        # only the blobs that explain foreground of their own are people: the rest are phantoms
+        # where other people's cones cross, or duplicates of someone already accepted
+        blobs = self.explainer.explain(detect_blobs(carve), masks, carve.grid).people
         estimates = self.tracker.step(carve, blobs, stamp_ns)
         readings = self._update_postures(estimates, stamp_ns)
         events = self.reasoner.step(stamp_ns, frame, estimates, readings)

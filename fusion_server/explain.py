@@ -1,0 +1,178 @@
+"""Which blobs are people: the set of candidates that explains the masks, phantoms refused.
+
+Where the cones of different people seen by different cameras cross, the
+visual hull holds volume where nobody stands: a phantom. Every camera that
+sees a phantom sees foreground there, so the carving vote cannot refuse it;
+but the foreground it sees is already some real person's. Seen from the
+cameras, a phantom explains nothing that the people do not.
+
+:func:`explain_blobs` is the greedy silhouette cover of visual-hull people
+counting: each candidate blob is projected into every camera's mask (its
+voxels splatted at their projected size); candidates are taken one by one,
+the one that covers the most foreground not yet covered by those accepted
+first, and a candidate is accepted only when, in at least ``min_cameras``
+cameras, at least ``min_new`` of the foreground it covers is foreground that
+no accepted candidate covers. The rest are phantoms (or duplicates of a
+person already accepted).
+
+Masks at any resolution: each camera is resized to its mask. Pure: no clock,
+no I/O.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from common.camera import Camera
+from fusion_server.detection import Blob
+from fusion_server.grid import VoxelGrid
+
+MIN_NEW = 0.3
+"""Share of a candidate's covered foreground that must be its own, per camera."""
+SPLAT_STEP = 2
+"""Blobs are projected through cells of SPLAT_STEP voxels along each axis (10 cm at 5 cm voxels)."""
+MAX_POINTS = 400
+"""At most this many cells of a blob are projected (every n-th, the splats grown to match)."""
+
+
+@dataclass(frozen=True)
+class Explanation:
+    """The verdict on a frame's blobs: ``people`` and ``phantoms`` (in the order decided), and per
+    accepted blob the cameras where it covers foreground of its own."""
+
+    people: list[Blob]
+    phantoms: list[Blob]
+    own_cameras: dict[int, tuple[str, ...]]
+
+
+class BlobExplainer:
+    """:func:`explain_blobs` for one site's cameras, keeping each camera resized to the masks it gets
+    (a resized camera is built once per mask size, not once per frame)."""
+
+    def __init__(self, cameras: Mapping[str, Camera], *, min_cameras: int = 2, min_new: float = MIN_NEW) -> None:
+        if not 0.0 < min_new <= 1.0:
+            raise ValueError(f"min_new must lie in (0, 1], got {min_new!r}")
+        if isinstance(min_cameras, bool) or not isinstance(min_cameras, int) or min_cameras < 1:
+            raise ValueError(f"min_cameras must be an int >= 1, got {min_cameras!r}")
+        self.cameras = dict(cameras)
+        self.min_cameras = min_cameras
+        self.min_new = float(min_new)
+        self._sized: dict[tuple[str, int, int], Camera] = {}
+
+    def explain(self, blobs: Sequence[Blob], masks: Mapping[str, np.ndarray], grid: VoxelGrid) -> "Explanation":
+        """Split ``blobs`` into people and phantoms by how they explain ``masks`` (module text)."""
+        sized = {}
+        for c, m in masks.items():
+            if c not in self.cameras:
+                continue
+            h, w = np.shape(m)
+            key = (c, w, h)
+            if key not in self._sized:
+                cam = self.cameras[c]
+                self._sized[key] = cam if (cam.width, cam.height) == (w, h) else cam.resized(w, h)
+            sized[c] = self._sized[key]
+        return _explain(blobs, masks, sized, grid, self.min_cameras, self.min_new)
+
+
+def explain_blobs(
+    blobs: Sequence[Blob],
+    masks: Mapping[str, np.ndarray],
+    cameras: Mapping[str, Camera],
+    grid: VoxelGrid,
+    *,
+    min_cameras: int = 2,
+    min_new: float = MIN_NEW,
+) -> Explanation:
+    """Split ``blobs`` into people and phantoms by how they explain ``masks`` (see the module text).
+
+    masks: camera id -> (H, W) uint8 mask (> 127 foreground). cameras: camera id -> full-resolution
+    camera (resized here to each mask). grid: the voxel grid the blobs index. With fewer cameras
+    than ``min_cameras`` nothing can be told apart and every blob is kept.
+    """
+    return BlobExplainer(cameras, min_cameras=min_cameras, min_new=min_new).explain(blobs, masks, grid)
+
+
+def _explain(blobs, masks, cams: Mapping[str, Camera], grid: VoxelGrid, min_cameras: int, min_new: float):
+    used = list(cams)
+    if len(blobs) < 2 or len(used) < min_cameras:
+        return Explanation(list(blobs), [], {id(b): tuple(used) for b in blobs})
+    fg = {c: np.asarray(masks[c]) > 127 for c in used}
+    # per blob and camera: the splat's box and its covered-foreground pixels (bool within the box)
+    splats = [{c: _splat(b, cams[c], grid, fg[c]) for c in used} for b in blobs]
+    covered = {c: np.zeros(fg[c].shape, dtype=bool) for c in used}
+    remaining = list(range(len(blobs)))
+    people: list[Blob] = []
+    own: dict[int, tuple[str, ...]] = {}
+    while remaining:
+        best, best_new, best_cams = None, -1, ()
+        for k in remaining:
+            new_total, cams_ok = 0, []
+            for c, s in splats[k].items():
+                if s is None:
+                    continue
+                (y0, y1, x0, x1), hit, n_hit = s
+                new = int(np.count_nonzero(hit & ~covered[c][y0:y1, x0:x1]))
+                new_total += new
+                if new >= min_new * n_hit:
+                    cams_ok.append(c)
+            if len(cams_ok) >= min_cameras and new_total > best_new:
+                best, best_new, best_cams = k, new_total, tuple(cams_ok)
+        if best is None:
+            break
+        remaining.remove(best)
+        people.append(blobs[best])
+        own[id(blobs[best])] = best_cams
+        for c, s in splats[best].items():
+            if s is not None:
+                (y0, y1, x0, x1), hit, _ = s
+                covered[c][y0:y1, x0:x1] |= hit
+    return Explanation(people, [blobs[k] for k in remaining], own)
+
+
+# ---------------------------------------------------------------------- helpers
+
+
+def _splat(blob: Blob, cam: Camera, grid: VoxelGrid, fg: np.ndarray):
+    """The blob's projection into ``cam``: ((y0, y1, x0, x1), covered foreground (bool, box-sized),
+    its pixel count), or None when it covers no foreground in the image."""
+    keys = _unique_cells(blob.ijk)
+    pts = grid.centres(_cells(keys))
+    uv, ok = cam.project(pts)
+    if not ok.any():
+        return None
+    uv = uv[ok]
+    depth = (pts[ok] @ cam.R.T + cam.t)[:, 2]
+    # the splat's radius: half the diagonal of a sampled cell, at the blob's median depth
+    spacing = grid.voxel_m * SPLAT_STEP * max(1.0, (len(keys) / MAX_POINTS) ** (1 / 3))
+    f = float(cam.K[0, 0])
+    radius = int(np.clip(round(f * spacing * 0.87 / max(float(np.median(depth)), 0.1)), 1, 40))
+    h, w = fg.shape
+    px = np.clip(np.round(uv).astype(np.int64), 0, [w - 1, h - 1])
+    x0, y0 = max(int(px[:, 0].min()) - radius, 0), max(int(px[:, 1].min()) - radius, 0)
+    x1, y1 = min(int(px[:, 0].max()) + radius + 1, w), min(int(px[:, 1].max()) + radius + 1, h)
+    img = np.zeros((y1 - y0, x1 - x0), dtype=np.uint8)
+    img[px[:, 1] - y0, px[:, 0] - x0] = 1
+    kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * radius + 1, 2 * radius + 1))
+    hit = (cv2.dilate(img, kernel) > 0) & fg[y0:y1, x0:x1]
+    n_hit = int(np.count_nonzero(hit))
+    return None if n_hit == 0 else ((y0, y1, x0, x1), hit, n_hit)
+
+
+def _unique_cells(ijk: np.ndarray) -> np.ndarray:
+    """(M,) int64 keys of the SPLAT_STEP-coarse cells holding the blob's voxels, sorted."""
+    c = np.asarray(ijk, dtype=np.int64) // SPLAT_STEP
+    return np.unique((c[:, 0] << 42) | (c[:, 1] << 21) | c[:, 2])
+
+
+def _cells(keys: np.ndarray) -> np.ndarray:
+    """(M, 3) int64 fine indices of the centres of at most MAX_POINTS of the coarse cells ``keys``
+    (every n-th in key order when there are more)."""
+    if len(keys) > MAX_POINTS:
+        keys = keys[:: int(np.ceil(len(keys) / MAX_POINTS))]
+    mask = (1 << 21) - 1
+    c = np.stack([keys >> 42, (keys >> 21) & mask, keys & mask], axis=1)
+    return c * SPLAT_STEP + SPLAT_STEP // 2

@@ -1,0 +1,103 @@
+"""Phantoms refused: carving of box-shaped people seen by a few level cameras, worked by hand.
+
+Two people at (1, 1) and (2, 2), seen by one camera looking along +y and one
+looking along +x: each camera sees two silhouettes, and the hull holds four
+bodies, the two people and two phantoms at (1, 2) and (2, 1) where one
+person's cone from the first camera crosses the other's from the second.
+Each phantom lies farther from one camera than the person whose silhouette
+it hides in, so it covers only part of it: the people explain every
+foreground pixel, the phantoms none of their own.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from common.camera import Camera, look_at
+from fusion_server.carving.carver import Carver
+from fusion_server.detection import detect_blobs
+from fusion_server.explain import explain_blobs
+
+VOLUME = ((0.0, 0.0, 0.0), (4.0, 4.0, 2.0))
+
+
+def level_camera(cam_id: str, centre, target) -> Camera:
+    R, t = look_at(centre, target)
+    return Camera.pinhole(cam_id, 320, 240, fx=220.0, R=R, t=t)
+
+
+def box_masks(cameras, people, *, size=(0.4, 0.4, 1.7)):
+    """Masks of upright boxes standing at ``people`` (x, y), drawn as the filled hull of each
+    box's projected corners."""
+    import cv2
+
+    out = {}
+    sx, sy, sz = size
+    for cid, cam in cameras.items():
+        m = np.zeros((cam.height, cam.width), np.uint8)
+        for x, y in people:
+            corners = np.array([[x + dx, y + dy, z] for dx in (-sx / 2, sx / 2) for dy in (-sy / 2, sy / 2)
+                                for z in (0.0, sz)])
+            uv, ok = cam.project(corners)
+            hull = cv2.convexHull(np.round(uv[ok]).astype(np.int32))
+            cv2.fillConvexPoly(m, hull, 255)
+        out[cid] = m
+    return out
+
+
+def carve_and_explain(cameras, people, tmp_path):
+    carver = Carver(cameras=cameras, volume_min_m=VOLUME[0], volume_max_m=VOLUME[1], cache_dir=tmp_path)
+    masks = box_masks(cameras, people)
+    carve = carver.carve(masks, 0)
+    blobs = detect_blobs(carve)
+    return blobs, explain_blobs(blobs, masks, cameras, carve.grid)
+
+
+def near(blobs, xy, tol=0.2) -> bool:
+    return any(abs(b.x - xy[0]) < tol and abs(b.y - xy[1]) < tol for b in blobs)
+
+
+def test_two_people_seen_by_two_cameras_make_two_phantoms_which_are_refused(tmp_path):
+    cams = {
+        "south": level_camera("south", (1.5, -2.5, 1.2), (1.5, 2.0, 0.9)),
+        "west": level_camera("west", (-2.5, 1.5, 1.2), (2.0, 1.5, 0.9)),
+    }
+    people = [(1.0, 1.0), (2.0, 2.0)]
+    blobs, verdict = carve_and_explain(cams, people, tmp_path)
+    # the hull: two people and two phantoms where the cones cross
+    assert len(blobs) == 4
+    assert near(blobs, (1.0, 2.0)) and near(blobs, (2.0, 1.0))
+    assert len(verdict.people) == 2 and all(near(verdict.people, p) for p in people)
+    assert len(verdict.phantoms) == 2
+    assert near(verdict.phantoms, (1.0, 2.0)) and near(verdict.phantoms, (2.0, 1.0))
+
+
+def test_three_people_in_a_row_are_three_people(tmp_path):
+    # three people on a diagonal seen by three cameras: two of them see the row end-on or across,
+    # and every person still has foreground of their own in at least two cameras
+    cams = {
+        "south": level_camera("south", (2.0, -2.5, 1.2), (2.0, 2.0, 0.9)),
+        "west": level_camera("west", (-2.5, 2.0, 1.2), (2.0, 2.0, 0.9)),
+        "corner": level_camera("corner", (-1.5, -1.5, 2.2), (2.0, 2.0, 0.8)),
+    }
+    people = [(1.0, 1.0), (2.0, 2.0), (3.0, 3.0)]
+    blobs, verdict = carve_and_explain(cams, people, tmp_path)
+    assert len(verdict.people) == 3 and all(near(verdict.people, p) for p in people)
+    # whatever else the hull held is refused
+    assert len(verdict.phantoms) == len(blobs) - 3
+
+
+def test_one_camera_cannot_tell_and_keeps_everything(tmp_path):
+    cams = {"south": level_camera("south", (1.5, -2.5, 1.2), (1.5, 2.0, 0.9))}
+    masks = box_masks(cams, [(1.0, 1.0)])
+    carver = Carver(cameras=cams, volume_min_m=VOLUME[0], volume_max_m=VOLUME[1], min_cameras=1, cache_dir=tmp_path)
+    carve = carver.carve(masks, 0)
+    blobs = detect_blobs(carve)
+    verdict = explain_blobs(blobs, masks, cams, carve.grid)
+    assert verdict.people == blobs and verdict.phantoms == []
+
+
+def test_bad_share_is_refused():
+    with pytest.raises(ValueError, match="min_new"):
+        explain_blobs([], {}, {}, None, min_new=0.0)
