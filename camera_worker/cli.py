@@ -76,7 +76,8 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--mask-scale", type=float, metavar="S",
                    help="mask size as a fraction of the frame, 0.25..1 (default: the site's carving.mask_scale)")
     g.add_argument("--min-area-px", type=int, default=400, metavar="PX",
-                   help="drop foreground blobs smaller than this, full-resolution pixels (default 400)")
+                   help="drop foreground blobs smaller than this, in pixels of a 640x480 frame (scaled to the "
+                        "camera's size; default 400)")
     g.add_argument("--no-shadows", action="store_true", help="switch the shadow test off (shadows become foreground)")
     g.add_argument("--codec", choices=maskcodec.CODECS, default=maskcodec.DEFAULT_CODEC,
                    help=f"mask codec (default {maskcodec.DEFAULT_CODEC})")

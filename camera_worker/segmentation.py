@@ -15,7 +15,9 @@ needs from a camera:
   would absorb anyone who sits in view when the live source starts.
 * **Shadow removal.** MOG2 marks shadow pixels 127; they are background here.
 * **Clean-up.** Morphological opening, then closing, removal of connected
-  components smaller than ``min_area_px``, filling of enclosed holes.
+  components smaller than ``min_area_px``, filling of enclosed holes (the
+  closing and the smallest area given for a 640x480 frame and scaled to the
+  frames' size).
 * **Hold regions.** MOG2's learning rate is global, so a person who stays
   still is absorbed into the background after about
   ``-ln(background_ratio) / alpha`` frames (about ``0.105 * window_frames``
@@ -65,6 +67,8 @@ import numpy as np
 
 Box = tuple[int, int, int, int]
 
+REFERENCE_AREA_PX = 640 * 480
+"""Frame area for which ``open_px``, ``close_px`` and ``min_area_px`` are given; other sizes scale them."""
 _RELEARN_FIRST_RATE = 1.0     # the frame that shows a light change re-initialises the model: 1/n with n = 1
 _PROTECT_KERNEL = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (5, 5))   # foreground edges kept out of re-learning
 _BG_REFRESH_FRAMES = 8       # hold boxes use a background image at most this many frames old
@@ -145,6 +149,11 @@ class ForegroundSegmenter:
     all of the same size. Masks are ``(round(H*s), round(W*s)) uint8`` with
     0 (background) and 255 (foreground), ``s = mask_scale``. Hold boxes are
     ``(x0, y0, x1, y1)`` in full-resolution pixels, ``x1``/``y1`` exclusive.
+    ``open_px`` (the opening's width, against pixel noise) is in full-resolution
+    pixels; ``close_px`` (the closing's width) and ``min_area_px`` (smallest
+    component) are pixels of a 640x480 frame (:data:`REFERENCE_AREA_PX`),
+    scaled to the frames' own size, so they mean the same part of the view at
+    any resolution. All are scaled by ``mask_scale``.
     """
 
     def __init__(
@@ -200,9 +209,8 @@ class ForegroundSegmenter:
             background_ratio=float(background_ratio), detect_shadows=bool(detect_shadows),
             shadow_threshold=float(shadow_threshold),
         )
-        self._open = _kernel(open_px, mask_scale)
-        self._close = _kernel(close_px, mask_scale)
-        self._min_area = int(math.ceil(min_area_px * mask_scale * mask_scale))
+        self._cleanup_px = (int(open_px), int(close_px), int(min_area_px))
+        self._cleanup: tuple | None = None   # kernels and smallest area for the frames' size, set on the first
         self.reset()
 
     # -- public ---------------------------------------------------------------
@@ -220,6 +228,7 @@ class ForegroundSegmenter:
         self._settled = False       # a background clip was learned: live frames use alpha
         self._relearn_n = 0         # > 0: inside the re-learn window, next rate 1/_relearn_n
         self._full_size: tuple[int, int] | None = None   # (W, H) of input frames
+        self._cleanup = None
         self._bg: np.ndarray | None = None   # cached background image for hold boxes ...
         self._bg_frame = 0
         self._pred: np.ndarray | None = None  # ... and the same times the current gain
@@ -241,6 +250,20 @@ class ForegroundSegmenter:
         if self._full_size is None:
             return None
         return _scaled_size(self._full_size, self.mask_scale)
+
+    def _cleanup_sizes(self) -> tuple:
+        """(open kernel, close kernel, smallest component in mask pixels) for the frames' size. The
+        opening removes pixel noise and scales with the mask scale only; the closing and the smallest
+        component are sizes of the view, given for a 640x480 frame and scaled by the mask's linear
+        size against it, so that a person far off or a child is kept or dropped alike at 320x240
+        and at 1280x720."""
+        if self._cleanup is None:
+            w, h = self._full_size
+            scale = self.mask_scale * math.sqrt(w * h / float(REFERENCE_AREA_PX))
+            open_px, close_px, min_area_px = self._cleanup_px
+            self._cleanup = (_kernel(open_px, self.mask_scale), _kernel(close_px, scale),
+                             int(math.ceil(min_area_px * scale * scale)))
+        return self._cleanup
 
     def next_learning_rate(self) -> float:
         """The rate :meth:`apply` will use for the next frame (when learning and not re-learning)."""
@@ -309,8 +332,9 @@ class ForegroundSegmenter:
 
         fg_raw = cv2.threshold(raw, 200, 255, cv2.THRESH_BINARY)[1]   # 255 foreground, 127 shadow, 0 background
         n_fg_raw = cv2.countNonZero(fg_raw)
-        mask, components = cleanup_mask(fg_raw, open_kernel=self._open, close_kernel=self._close,
-                                        min_area_px=self._min_area, fill=self.fill_holes)
+        open_k, close_k, min_area = self._cleanup_sizes()
+        mask, components = cleanup_mask(fg_raw, open_kernel=open_k, close_kernel=close_k,
+                                        min_area_px=min_area, fill=self.fill_holes)
         stats = SegmentStats(
             frame_index=self._frames,
             learning_rate=rate,

@@ -577,8 +577,7 @@ def measure_worker(
             own_session = session = zenoh.open(conf)
         publisher = session.declare_publisher("voxelwatch/bench/cam/bench/mask",
                                               congestion_control=zenoh.CongestionControl.DROP, express=True)
-        segmenter = ForegroundSegmenter(window_frames=500, mask_scale=mask_scale,
-                                        min_area_px=max(1, 400 * width * height // (640 * 480)))
+        segmenter = ForegroundSegmenter(window_frames=500, mask_scale=mask_scale)
         with tempfile.TemporaryDirectory(prefix="vw-bench-") as tmp:
             path = Path(tmp) / "clip.avi"
             room, boxes = _write_clip(path, n_frames, width, height, n_people, rng)

@@ -7,10 +7,13 @@ region of a layer touches two or more blobs from the layer above, the blobs
 have met at that layer's height, and two rules decide whether they become
 one:
 
-* they merge only if they meet *above* ``tau1_m``. People standing close
-  together touch at hand, hip or leg height (and through shadows near the
-  floor) while their heads and shoulders stay apart, so a connection below
-  ``tau1_m`` keeps them apart;
+* below ``tau1_m`` they stay apart. People standing close together touch
+  at hand, hip or leg height (and through shadows near the floor) while
+  their heads and shoulders stay apart;
+* above ``tau1_m`` they merge unless they are heads: people standing
+  shoulder to shoulder, or two people whose hull fills the space between
+  them up to the neck, still carve two tops that each rise ``head_m`` over
+  the meeting, ``head_sep_m`` apart on the floor;
 * a blob whose top is less than ``tau2_m`` above the meeting point is always
   joined to a neighbour. That is what keeps one seated or lying person whole:
   the knees of a seated person, or the head, hip and feet of a person lying
@@ -20,7 +23,9 @@ one:
   moved) into that person instead of making it a target of its own.
 
 When blobs meet and stay apart, the cells of the meeting region go to the
-blob whose cells in the layer above are nearest. Blobs under
+blob whose cells in the layer above are nearest. A layer's cells look up
+across a carving gap of at most ``gap_m`` (holes in the masks at one height
+cut a body in two). Blobs under
 ``min_volume_m3`` are noise and are dropped at the end.
 
 Heights are world Z in metres, floor at Z = 0 (DESIGN.md conventions).
@@ -83,6 +88,9 @@ def detect_blobs(
     tau1_m: float = 1.0,
     tau2_m: float = 0.3,
     min_volume_m3: float = 0.02,
+    head_m: float = 0.1,
+    head_sep_m: float = 0.3,
+    gap_m: float = 0.1,
 ) -> list[Blob]:
     """Top-down blob analysis of one frame set's foreground voxels.
 
@@ -98,10 +106,23 @@ def detect_blobs(
     min_volume_m3: blobs with less volume are noise. 0.02 m^3 (160 voxels at
         5 cm) is a fifth of a carved adult lying down and still above a
         speckle of shadow or a pet.
+    head_m, head_sep_m: above ``tau1_m`` blobs meet at the shoulders of
+        people standing close together, so there a blob stays apart only
+        as a head: its top rises at least ``head_m`` over the meeting and
+        lies at least ``head_sep_m`` on the floor from the top of any higher
+        blob in the meeting. 0.1 m is two voxels, under the head and neck
+        over the shoulders of a child (0.2-0.3 m) and over the hull that
+        fills the gap between two heads; 0.3 m keeps a hand raised beside
+        the head, or a bump of the hull on it, with its person.
+    gap_m: a blob's cells reach down across empty layers of at most this
+        height. Holes in the masks at one height cut a carved body
+        horizontally (legs below, torso above); 0.1 m joins the parts,
+        while a person's head never floats that close over someone else.
 
     Returns the blobs sorted by decreasing volume.
     """
-    for name, value in (("tau1_m", tau1_m), ("tau2_m", tau2_m), ("min_volume_m3", min_volume_m3)):
+    for name, value in (("tau1_m", tau1_m), ("tau2_m", tau2_m), ("min_volume_m3", min_volume_m3), ("head_m", head_m),
+                        ("head_sep_m", head_sep_m), ("gap_m", gap_m)):
         if not np.isfinite(value) or value < 0:
             raise ValueError(f"{name} must be a finite non-negative number, got {value}")
     ijk = np.asarray(result.ijk)
@@ -121,7 +142,7 @@ def detect_blobs(
     occ[ijk[:, 2] - k0, packed[:, 1], packed[:, 0]] = 1
     z_top_of_layer = grid.origin_m[2] + (np.arange(k0, k1 + 1) + 1) * voxel_m
 
-    labels, roots = _TopDown(occ, z_top_of_layer, tau1_m, tau2_m).run()
+    labels, roots = _TopDown(occ, z_top_of_layer, tau1_m, tau2_m, head_m, head_sep_m, gap_m, voxel_m).run()
     blob_id = roots[labels[ijk[:, 2] - k0, packed[:, 1], packed[:, 0]]]
 
     order = np.argsort(blob_id, kind="stable")
@@ -177,25 +198,37 @@ def _pack_columns(ijk: np.ndarray, min_voxels: float) -> tuple[np.ndarray, np.nd
 class _TopDown:
     """Layer-by-layer labelling state; one use per frame."""
 
-    def __init__(self, occ: np.ndarray, z_top_of_layer: np.ndarray, tau1_m: float, tau2_m: float):
+    def __init__(
+        self, occ: np.ndarray, z_top_of_layer: np.ndarray, tau1_m: float, tau2_m: float, head_m: float, head_sep_m: float,
+        gap_m: float, voxel_m: float,
+    ):
         self.occ = occ
         self.z_top = z_top_of_layer
         self.tau1 = tau1_m
         self.tau2 = tau2_m
+        self.head_m = head_m
+        self.gap_layers = int(round(gap_m / voxel_m))
+        self.head_sep2 = (head_sep_m / voxel_m) ** 2
         self.parent: list[int] = [0]
         self.top_m: list[float] = [0.0]
+        self.peak: list[tuple[float, float]] = [(0.0, 0.0)]
 
     def run(self) -> tuple[np.ndarray, np.ndarray]:
         """Returns (labels (nk, nj, ni) int32, roots (n_ids,) int64 id -> final id)."""
         occ = self.occ
         labels = np.zeros(occ.shape, dtype=np.int32)
-        prev = np.zeros(occ.shape[1:], dtype=np.int32)
         rootmap = np.zeros(1, dtype=np.int32)
         dirty = False
         for k in range(occ.shape[0] - 1, -1, -1):
             layer = occ[k]
+            # a layer with a carving gap under a body (holes in the masks at one height) still
+            # touches the body: cells empty in the layer just above look further up, gap_layers at most
+            prev = labels[k + 1] if k + 1 < occ.shape[0] else labels[k]
+            for g in range(2, self.gap_layers + 2):
+                if k + g >= occ.shape[0]:
+                    break
+                prev = np.where(prev > 0, prev, labels[k + g])
             if not layer.any():
-                prev = labels[k]
                 continue
             n, cc = cv2.connectedComponents(layer, connectivity=8, ltype=cv2.CV_32S)
             if dirty:
@@ -209,20 +242,23 @@ class _TopDown:
             meets[cc[touch], above[touch]] = True
             n_above = meets.sum(axis=1)
             assign = np.where(n_above == 1, meets.argmax(axis=1), 0).astype(np.int32)
-            for c in np.flatnonzero(n_above[1:] == 0) + 1:
-                assign[c] = self._new(float(self.z_top[k]))
+            born = np.flatnonzero(n_above[1:] == 0) + 1
+            if len(born):
+                centres = ndimage.center_of_mass(layer, cc, born)
+                for c, (row, col) in zip(born, centres):
+                    assign[c] = self._new(float(self.z_top[k]), (float(row), float(col)))
             conflicts = [(c, np.flatnonzero(meets[c])) for c in np.flatnonzero(n_above > 1)]
             cur = assign[cc]
             for c, rs in conflicts:
                 dirty |= self._resolve(c, [int(r) for r in rs], cc, above, cur, float(self.z_top[k]))
             labels[k] = cur
-            prev = cur
         roots = np.array([self._find(i) for i in range(len(self.parent))], dtype=np.int64)
         return labels, roots
 
-    def _new(self, top_m: float) -> int:
+    def _new(self, top_m: float, peak: tuple[float, float]) -> int:
         self.parent.append(len(self.parent))
         self.top_m.append(top_m)
+        self.peak.append(peak)
         return len(self.parent) - 1
 
     def _find(self, i: int) -> int:
@@ -238,7 +274,12 @@ class _TopDown:
         keep, other = self._find(keep), self._find(other)
         if keep != other:
             self.parent[other] = keep
-            self.top_m[keep] = max(self.top_m[keep], self.top_m[other])
+            if self.top_m[other] > self.top_m[keep]:
+                self.top_m[keep], self.peak[keep] = self.top_m[other], self.peak[other]
+
+    def _peak_d2(self, a: int, b: int) -> float:
+        (ra, ca), (rb, cb) = self.peak[a], self.peak[b]
+        return (ra - rb) ** 2 + (ca - cb) ** 2
 
     def _reroot(self, ids: np.ndarray) -> np.ndarray:
         values, inverse = np.unique(ids, return_inverse=True)
@@ -257,13 +298,18 @@ class _TopDown:
         comp = mask[r0:r1, c0:c1]
         seeds = self._reroot(np.where(comp, above[r0:r1, c0:c1], 0))
         unions = False
-        if len(roots) > 1 and z_conn > self.tau1 + 1e-9:
-            for r in roots[1:]:
-                self._union(roots[0], r)
-            unions = True
-        elif len(roots) > 1:
-            low = [r for r in roots if self.top_m[r] - z_conn < self.tau2 - 1e-9]
-            tall = [r for r in roots if r not in low]
+        if len(roots) > 1:
+            # Below tau1 a blob rising tau2 over the meeting stands on its own; above it only a head
+            # (a height maximum head_m over the meeting, head_sep_m from any higher one) does.
+            rise = self.tau2 if z_conn <= self.tau1 + 1e-9 else self.head_m
+            tall: list[int] = []
+            for r in sorted(roots, key=lambda r: -self.top_m[r]):
+                if self.top_m[r] - z_conn < rise - 1e-9:
+                    continue
+                if z_conn > self.tau1 + 1e-9 and any(self._peak_d2(r, t) < self.head_sep2 for t in tall):
+                    continue
+                tall.append(r)
+            low = [r for r in roots if r not in tall]
             if not tall:
                 for r in low[1:]:
                     self._union(low[0], r)

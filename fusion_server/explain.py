@@ -37,6 +37,10 @@ SPLAT_STEP = 2
 """Blobs are projected through cells of SPLAT_STEP voxels along each axis (10 cm at 5 cm voxels)."""
 MAX_POINTS = 400
 """At most this many cells of a blob are projected (every n-th, the splats grown to match)."""
+CORE_RADIUS_M = 0.35
+"""An upright blob claims foreground only through its voxels this close, on the floor, to its top."""
+CORE_MIN_TOP_M = 1.0
+"""A blob whose top is higher than this is upright (a person standing, walking or seated)."""
 
 
 @dataclass(frozen=True)
@@ -102,7 +106,8 @@ def _explain(blobs, masks, cams: Mapping[str, Camera], grid: VoxelGrid, min_came
         return Explanation(list(blobs), [], {id(b): tuple(used) for b in blobs})
     fg = {c: np.asarray(masks[c]) > 127 for c in used}
     # per blob and camera: the splat's box and its covered-foreground pixels (bool within the box)
-    splats = [{c: _splat(b, cams[c], grid, fg[c]) for c in used} for b in blobs]
+    cores = [_core(b, grid) for b in blobs]
+    splats = [{c: _splat(core, cams[c], grid, fg[c]) for c in used} for core in cores]
     covered = {c: np.zeros(fg[c].shape, dtype=bool) for c in used}
     remaining = list(range(len(blobs)))
     people: list[Blob] = []
@@ -136,10 +141,23 @@ def _explain(blobs, masks, cams: Mapping[str, Camera], grid: VoxelGrid, min_came
 # ---------------------------------------------------------------------- helpers
 
 
-def _splat(blob: Blob, cam: Camera, grid: VoxelGrid, fg: np.ndarray):
+def _core(blob: Blob, grid: VoxelGrid) -> np.ndarray:
+    """(N, 3) int voxel indices of the blob's body: for an upright blob (top above CORE_MIN_TOP_M) the
+    voxels within CORE_RADIUS_M on the floor of its highest column, so that hull volume hanging on
+    to a person (where cones cross beside them) claims no foreground for them; a low blob whole."""
+    ijk = blob.ijk
+    if blob.z_top_m <= CORE_MIN_TOP_M:
+        return ijk
+    k = ijk[:, 2]
+    top = ijk[k >= k.max() - 1, :2].mean(axis=0)
+    d2 = ((ijk[:, :2] - top) ** 2).sum(axis=1)
+    return ijk[d2 <= (CORE_RADIUS_M / grid.voxel_m) ** 2]
+
+
+def _splat(ijk: np.ndarray, cam: Camera, grid: VoxelGrid, fg: np.ndarray):
     """The blob's projection into ``cam``: ((y0, y1, x0, x1), covered foreground (bool, box-sized),
     its pixel count), or None when it covers no foreground in the image."""
-    keys = _unique_cells(blob.ijk)
+    keys = _unique_cells(ijk)
     pts = grid.centres(_cells(keys))
     uv, ok = cam.project(pts)
     if not ok.any():

@@ -86,11 +86,47 @@ def test_two_people_touching_only_below_tau1_stay_two():
     assert GRID.centres(left.ijk)[:, 0].max() < 1.31
 
 
-def test_two_people_joined_above_tau1_merge():
+def test_two_people_joined_above_tau1_stay_two_by_their_heads():
+    # an arm over the shoulder joins them at 1.2-1.35 m, above tau1; each head rises 0.4 m above that
     a, b = standing(1.0, 2.0), standing(1.6, 2.0)
-    shoulders = box((1.15, 1.95, 1.2), (1.45, 2.05, 1.35))  # arm over the shoulder, top 1.35 m
-    assert len(detect_blobs(scene(a, b, shoulders), tau1_m=1.0)) == 1
+    shoulders = box((1.15, 1.95, 1.2), (1.45, 2.05, 1.35))
+    blobs = detect_blobs(scene(a, b, shoulders), tau1_m=1.0)
+    assert sorted(round(bl.x, 1) for bl in blobs) == [1.0, 1.6]
+    assert len(detect_blobs(scene(a, b, shoulders), tau1_m=1.0, head_m=0.5)) == 1  # heads too low to count
     assert len(detect_blobs(scene(a, b, shoulders), tau1_m=1.4)) == 2
+
+
+def test_two_people_shoulder_to_shoulder_are_split_at_the_middle():
+    # 0.45 m apart: the bodies (r 0.2 m) overlap up to the shoulders (1.45 m) and only the heads
+    # (r 0.1 m, 1.45-1.75 m) stand apart, 0.3 m over the meeting
+    a, b = standing(1.0, 2.0), standing(1.45, 2.0)
+    res = scene(a, b)
+    left, right = sorted(detect_blobs(res), key=lambda bl: bl.x)
+    assert left.x == pytest.approx(1.0, abs=0.05) and right.x == pytest.approx(1.45, abs=0.05)
+    assert left.volume_voxels + right.volume_voxels == len(res.ijk)
+    assert GRID.centres(left.ijk)[:, 0].max() < 1.26 and GRID.centres(right.ijk)[:, 0].min() > 1.19
+
+
+def test_a_bump_near_the_head_is_not_a_second_person():
+    # a raised hand 0.2 m beside the head, higher than it: closer than head_sep_m to the head
+    person = standing(1.0, 2.0)
+    hand = box((1.15, 1.95, 1.5), (1.25, 2.05, 1.85))
+    (blob,) = detect_blobs(scene(person, hand), min_volume_m3=0.0)
+    assert blob.z_top_m == pytest.approx(1.85)
+    assert len(detect_blobs(scene(person, hand), min_volume_m3=0.0, head_sep_m=0.1)) == 2
+
+
+def test_a_carving_gap_across_the_body_does_not_cut_it_in_two():
+    # holes in the masks at 0.5-0.6 m leave the legs 0.1 m under the torso
+    body = standing(2.0, 2.0)
+    cut = GRID.centres(body)[:, 2]
+    res = scene(body[(cut < 0.5) | (cut > 0.6)])
+    (blob,) = detect_blobs(res)
+    assert blob.volume_voxels == len(res.ijk) and blob.z_top_m == pytest.approx(1.75)
+    assert len(detect_blobs(res, gap_m=0.0)) == 2  # without bridging: legs and torso apart
+    # a gap wider than gap_m is not bridged
+    wide = scene(body[(cut < 0.4) | (cut > 0.6)])
+    assert len(detect_blobs(wide)) == 2
 
 
 def test_seated_persons_knees_join_the_body_by_tau2():
@@ -169,7 +205,8 @@ def test_grid_with_offset_origin():
     assert b.z_top_m == pytest.approx(1.6)
 
 
-@pytest.mark.parametrize("bad", [{"tau1_m": -1.0}, {"tau2_m": float("nan")}, {"min_volume_m3": -0.1}])
+@pytest.mark.parametrize("bad", [{"tau1_m": -1.0}, {"tau2_m": float("nan")}, {"min_volume_m3": -0.1}, {"head_m": -0.1},
+                                 {"head_sep_m": float("inf")}, {"gap_m": -0.05}])
 def test_bad_parameters_name_themselves(bad):
     with pytest.raises(ValueError, match=next(iter(bad))):
         detect_blobs(scene(standing(1.0, 1.0)), **bad)
