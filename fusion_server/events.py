@@ -17,7 +17,13 @@ brackets):
     ``lying`` (or being very low: top <= ``flat_top_frac`` [0.45] of the
     standing height). Emitted on the confirming frame; ``details`` carry
     ``fall_stamp_ns``, the moment the top of the body passed halfway between
-    its height before the drop and its height on the floor. Sitting down,
+    its height before the drop and its height on the floor. The drop must
+    be one a body can make (:func:`drop_is_physical`): the top never comes
+    down faster than it would after falling freely through its whole height
+    at ``fall_max_accel_mps2`` [1.5 g], give or take ``fall_height_tol_m``
+    [0.15 m]; a top that jumps down between two frames is a blob changing
+    under the track (a body cut by holes in the masks, a track taking over
+    a fragment), not a fall. Sitting down,
     kneeling, bending and squatting never end low enough; lying down slowly
     is not fast enough (it may become a ``long_lie``).
 ``long_lie``
@@ -227,6 +233,25 @@ def detect_fast_drop(
     return int(ii[order[0]]), int(jj[order[0]])
 
 
+def drop_is_physical(
+    t_s: np.ndarray, z_m: np.ndarray, i: int, j: int, *, max_accel_mps2: float, tol_m: float
+) -> bool:
+    """Whether the drop of ``z`` from sample ``i`` to ``j`` is one a falling body can make.
+
+    A top that falls from rest through its whole height ``z[i]`` at ``max_accel_mps2`` reaches
+    ``v = sqrt(2 * max_accel_mps2 * z[i])``; between no two samples in ``[i, j]`` may it have come
+    down faster than that, give or take ``tol_m`` of measured height. The tip of a rigid body
+    toppling over its feet accelerates down at up to 1.5 g; a top that comes down faster was not
+    one body falling. t_s, z_m: (N,) seconds and metres, as for :func:`detect_fast_drop`.
+    """
+    t = np.asarray(t_s, dtype=np.float64)[i : j + 1]
+    z = np.asarray(z_m, dtype=np.float64)[i : j + 1]
+    v_max = math.sqrt(2.0 * max_accel_mps2 * max(float(z[0]), 0.0))
+    drop = z[:, None] - z[None, :]
+    dt = t[None, :] - t[:, None]
+    return bool(np.all((dt <= 0) | (drop <= v_max * dt + tol_m)))
+
+
 def crossing_time(t_s: np.ndarray, z_m: np.ndarray, i: int, j: int, level_m: float) -> float:
     """First time after sample ``i`` (up to ``j``) at which ``z`` falls to ``level_m``,
     linearly interpolated between samples; seconds."""
@@ -270,6 +295,8 @@ class EventReasoner:
         fall_window_s: float = 2.0,
         fall_min_drop_m: float = 0.5,
         fall_min_speed_mps: float = 0.8,
+        fall_max_accel_mps2: float = 1.5 * 9.81,
+        fall_height_tol_m: float = 0.15,
         fall_confirm_s: float = 1.0,
         low_top_frac: float = 0.55,
         low_centre_frac: float = 0.25,
@@ -310,6 +337,8 @@ class EventReasoner:
             fall_window_s=fall_window_s,
             fall_min_drop_m=fall_min_drop_m,
             fall_min_speed_mps=fall_min_speed_mps,
+            fall_max_accel_mps2=fall_max_accel_mps2,
+            fall_height_tol_m=fall_height_tol_m,
             long_lie_s=long_lie_s,
             dwell_window_s=dwell_window_s,
             visit_min_s=visit_min_s,
@@ -355,6 +384,8 @@ class EventReasoner:
         self.fall_window_s = float(fall_window_s)
         self.fall_min_drop_m = float(fall_min_drop_m)
         self.fall_min_speed_mps = float(fall_min_speed_mps)
+        self.fall_max_accel_mps2 = float(fall_max_accel_mps2)
+        self.fall_height_tol_m = float(fall_height_tol_m)
         self.fall_confirm_ns = _ns(fall_confirm_s)
         self.low_top_frac = float(low_top_frac)
         self.low_centre_frac = float(low_centre_frac)
@@ -576,6 +607,8 @@ class EventReasoner:
         i, j = pair
         if z[i] < self.flat_top_frac * height_m:
             return None  # started on the floor already: not a fall from standing or sitting
+        if not drop_is_physical(t, z, i, j, max_accel_mps2=self.fall_max_accel_mps2, tol_m=self.fall_height_tol_m):
+            return None
         t_fall = crossing_time(t, z, i, j, 0.5 * (z[i] + z[j]))
         return dict(
             fall_stamp_ns=t0 + int(round(t_fall * 1e9)),

@@ -26,8 +26,8 @@ case, rendering and segmenting included, on the shared two-core machine)::
     long_lie                    540  fall 57 +14; long_lie 507 -3                     0.996     15
     seated_still (40 s)         705  sit_down 67 +12; dwell_start 186 +28;            0.997     17
                                      inactivity due 667, raised at 679 (+12)
-    kitchen_visit (xfail)       330  enter, both dwell starts, visit, dwell_end       0.981     12
-                                     matched; a false dwell_end and dwell_start
+    kitchen_visit               330  enter 33 +13; dwell_start 190 -18, 214 -17;      0.995     13
+                                     visit 214 -17; dwell_end 287 +14
 
 The default cases take about 50 s. Slow: the library's complete
 ``dinner_visit`` and ``hotspot_dwell`` replayed as the scenario suite runs them
@@ -214,18 +214,6 @@ def _kitchen_visit() -> ScenarioSpec:
     )
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="the visitor (1.54 m, seed 0) stands at the counter 6.5-7.5 m from cam2 and cam3, where "
-    "their silhouette is 90-120 px of the 320 x 240 mask: under the segmenter's 100 px smallest "
-    "component once it no longer touches the resident's. cam2 drops them all along, cam3 when the "
-    "resident walks off (frame 294); three cameras of five is under min_ratio 0.75, the visitor's "
-    "voxels go for 8 frames, their track drifts 0.5 m after the resident's blob and the reasoner "
-    "ends and restarts their dwell (frames 301 and 305): dwell_start 3 for 2 true, dwell_end 2 for 1 "
-    "(enter, visit and "
-    "the true dwells are matched). At full size with mask_scale 0.5 cam2 keeps 103-110 px and the "
-    "case passes, by a few pixels",
-)
 def test_dwelling_and_a_visit_at_the_kitchen_counter(house):
     scene = run_scene(_kitchen_visit(), house)
     check_events_match_truth(scene, ("enter", "dwell_start", "dwell_end", "visit"))
