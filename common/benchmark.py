@@ -9,20 +9,50 @@ figures pin this process to one core and OpenCV to one thread.
 from __future__ import annotations
 
 import datetime as _dt
+import itertools
 import json
 import os
 import platform
 import sys
 import time
 from collections.abc import Callable, Sequence
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from common.transport import free_port
 
-SECTIONS = ("codec", "worker", "render", "carving", "tracking", "latency")
+if TYPE_CHECKING:
+    from fusion_server.carving.bench import Cylinder
+
+SECTIONS = ("codec", "worker", "render", "carving", "tracking", "pipeline", "latency")
+
+_FPS = 15.0
+"""Frame rate of the synthetic frame sets, frames per second."""
+
+
+@dataclass(frozen=True)
+class PipelineRow:
+    """One configuration of the ``pipeline`` section: ``cameras`` of ``width`` x ``height``
+    around a room of floor ``room_m`` (x, y metres, 2.5 m high) with ``people`` walking;
+    ``target_fps``, frame sets per second the issue asks for (None: no target)."""
+
+    cameras: int
+    width: int
+    height: int
+    room_m: tuple[float, float]
+    people: int
+    target_fps: float | None = None
+
+
+PIPELINE_ROWS: tuple[PipelineRow, ...] = (
+    PipelineRow(5, 640, 480, (8.0, 6.0), 1),
+    PipelineRow(5, 640, 480, (8.0, 6.0), 4, target_fps=60.0),
+    PipelineRow(5, 640, 480, (8.0, 6.0), 8),
+    PipelineRow(7, 960, 540, (12.0, 36.0), 20, target_fps=20.0),
+)
 
 
 def machine() -> dict[str, Any]:
@@ -152,11 +182,10 @@ def bench_carving(quick: bool) -> list[dict[str, Any]]:
 
 def bench_tracking(quick: bool) -> list[dict[str, Any]]:
     """Cost per frame of detection, association + filtering, posture and reasoning for 1, 4, 8 people."""
-    import itertools
     import tempfile
 
     from fusion_server.carving import Carver
-    from fusion_server.carving.bench import Cylinder, MaskRenderer, random_people, room_rig
+    from fusion_server.carving.bench import MaskRenderer, room_rig
     from fusion_server.detection import detect_blobs
     from fusion_server.events import EventReasoner
     from fusion_server.posture import PostureEstimator
@@ -169,16 +198,8 @@ def bench_tracking(quick: bool) -> list[dict[str, Any]]:
         carver = Carver(cameras=cams, volume_min_m=(0, 0, 0), volume_max_m=(8, 6, 2.5), cache_dir=cache)
         renderer = MaskRenderer(cams)
         for people in (1, 4, 8):
-            rng = np.random.default_rng(people)
-            start = random_people(people, rng)
-            heading = rng.uniform(0, 2 * np.pi, size=people)
-            carves = []
-            for f in range(frames):  # walking at 1 m/s, 15 fps
-                bodies = [
-                    Cylinder(p.x_m + f / 15 * np.cos(h) * 0.5, p.y_m + f / 15 * np.sin(h) * 0.5, p.radius_m, p.height_m)
-                    for p, h in zip(start, heading)
-                ]
-                carves.append(carver.carve(renderer.render(bodies), int(f * 1e9 / 15)))
+            walk = _walk(people, np.random.default_rng(people), frames)
+            carves = [carver.carve(renderer.render(bodies), _stamp_ns(f)) for f, bodies in enumerate(walk)]
             tracker = Tracker(rng=np.random.default_rng(0), id_source=itertools.count(1))
             reasoner = EventReasoner(bounds_xy_m=(0, 0, 8, 6))
             postures: dict[int, PostureEstimator] = {}
@@ -204,6 +225,96 @@ def bench_tracking(quick: bool) -> list[dict[str, Any]]:
             ms["total"] = sum(ms.values())
             rows.append({"people": people, "frames": frames, "tracks_at_end": len(estimates), "ms": ms})
     return rows
+
+
+def bench_pipeline(quick: bool, rows: Sequence[PipelineRow] = PIPELINE_ROWS) -> list[dict[str, Any]]:
+    """The whole fused path of one frame set on one core: decode its masks, then
+    ``FusionPipeline.step`` (carve, detect, explain, track, posture, events), with the
+    site file's default carving settings (:class:`common.site.Carving`)."""
+    import tempfile
+
+    from common.site import Carving
+    from fusion_server.carving import Carver
+    from fusion_server.carving.bench import MaskRenderer, room_rig
+
+    carving = Carving()
+    poses, frames = (10, 30) if quick else (16, 90)
+    out = []
+    with tempfile.TemporaryDirectory() as cache:
+        for (n_cams, width, height, room_m), group in itertools.groupby(
+            rows, key=lambda r: (r.cameras, r.width, r.height, r.room_m)
+        ):
+            volume_max_m = (*room_m, 2.5)
+            cams = room_rig(n_cameras=n_cams, volume_max_m=volume_max_m, width=width, height=height)
+            t0 = time.perf_counter()
+            carver = Carver(
+                cameras=cams, volume_min_m=(0.0, 0.0, 0.0), volume_max_m=volume_max_m,
+                voxel_sizes_m=carving.voxel_sizes_m, min_cameras=carving.min_cameras, min_ratio=carving.min_ratio,
+                mask_scale=carving.mask_scale, cache_dir=cache,
+            )
+            build_s = time.perf_counter() - t0
+            renderer = MaskRenderer({c: cam.scaled(carving.mask_scale) for c, cam in cams.items()})
+            for row in group:
+                fig = measure_pipeline(
+                    carver, cams, renderer, people=row.people, rng=np.random.default_rng(row.people),
+                    volume_max_m=volume_max_m, poses=poses, frames=frames,
+                )
+                met = None if row.target_fps is None else bool(fig["fps"] >= row.target_fps)
+                out.append({
+                    "cameras": n_cams, "width": width, "height": height, "room_m": list(room_m), "people": row.people,
+                    "voxel_sizes_m": list(carving.voxel_sizes_m), "min_cameras": carving.min_cameras,
+                    "min_ratio": carving.min_ratio, "mask_scale": carving.mask_scale, "lut_build_s": build_s,
+                    "lut_bytes": carver.lut_nbytes, **fig, "target_fps": row.target_fps, "met": met,
+                })
+            del carver, renderer
+    return out
+
+
+def measure_pipeline(carver, cameras, renderer, *, people: int, rng: np.random.Generator,
+                     volume_max_m: Sequence[float], poses: int, frames: int, warmup: int = 5) -> dict[str, Any]:
+    """Time decode + ``FusionPipeline.step`` over ``frames`` frame sets after ``warmup`` untimed ones.
+
+    ``people`` walk from random places at 0.5 m/s; ``renderer`` draws their true
+    silhouettes at ``poses`` successive places, encoded once, and the frame sets walk
+    them to and fro (rendering costs seconds a frame set, carving milliseconds).
+    Returns ``frames``, mean ``ms`` per frame set of ``decode``, ``step`` and ``total``
+    (and ``total_median``), ``fps`` (frame sets per second, from the mean),
+    ``tracks_at_end`` (confirmed tracks after the last frame set) and ``tracks_mean``.
+    """
+    from common import maskcodec
+    from fusion_server.events import EventReasoner
+    from fusion_server.pipeline import FusionPipeline
+
+    if poses < 2 or frames < 1 or warmup < 0:
+        raise ValueError(f"need poses >= 2, frames >= 1, warmup >= 0; got {poses}, {frames}, {warmup}")
+    codec = maskcodec.DEFAULT_CODEC
+    encoded = [
+        {c: (maskcodec.encode_mask(m, codec), m.shape[1], m.shape[0]) for c, m in renderer.render(bodies).items()}
+        for bodies in _walk(people, rng, poses, volume_max_m=volume_max_m)
+    ]
+    pipeline = FusionPipeline(
+        carver=carver, cameras=cameras, reasoner=EventReasoner(bounds_xy_m=(0.0, 0.0, *volume_max_m[:2])),
+        rng=np.random.default_rng(0),
+    )
+    decode_s, step_s, tracks = [], [], []
+    period = 2 * (poses - 1)
+    for f in range(warmup + frames):
+        k = f % period
+        payloads = encoded[k if k < poses else period - k]
+        t0 = time.perf_counter()
+        masks = {c: maskcodec.decode_mask(data, codec, w, h) for c, (data, w, h) in payloads.items()}
+        t1 = time.perf_counter()
+        fused = pipeline.step(masks, _stamp_ns(f), f)
+        t2 = time.perf_counter()
+        if f >= warmup:
+            decode_s.append(t1 - t0)
+            step_s.append(t2 - t1)
+            tracks.append(len(fused.tracks))
+    total = np.add(decode_s, step_s)
+    ms = {"decode": 1e3 * float(np.mean(decode_s)), "step": 1e3 * float(np.mean(step_s)),
+          "total": 1e3 * float(np.mean(total)), "total_median": 1e3 * float(np.median(total))}
+    return {"frames": frames, "ms": ms, "fps": 1e3 / ms["total"], "tracks_at_end": tracks[-1],
+            "tracks_mean": float(np.mean(tracks))}
 
 
 def measure_latency(*, seconds: float = 20.0, fps: float = 15.0, n_cameras: int = 5) -> dict[str, Any]:
@@ -366,6 +477,26 @@ def _tracking_table(rows) -> str:
     return "\n".join(lines)
 
 
+def _pipeline_table(rows) -> str:
+    r0 = rows[0]
+    voxels = "/".join(f"{100 * v:g}" for v in r0["voxel_sizes_m"])
+    lines = [
+        "\nfused pipeline, one core: decode masks + FusionPipeline.step (carve, detect, explain, track, posture, events)",
+        f"voxels {voxels} cm, min {r0['min_cameras']} cameras, ratio {r0['min_ratio']}, mask scale {r0['mask_scale']}",
+        "cameras  size      room m   people  frames  decode ms  step ms  frame sets/s  target  met  tracks",
+    ]
+    for r in rows:
+        room = "x".join(f"{v:g}" for v in r["room_m"])
+        target = f">= {r['target_fps']:g}" if r["target_fps"] is not None else "-"
+        met = {None: "-", True: "yes", False: "no"}[r["met"]]
+        lines.append(
+            f"{r['cameras']:>7}  {r['width']}x{r['height']:<4}  {room:>6}  {r['people']:>6}  {r['frames']:>6}  "
+            f"{r['ms']['decode']:>9.2f}  {r['ms']['step']:>7.2f}  {r['fps']:>12.1f}  {target:>6}  {met:>3}  "
+            f"{r['tracks_at_end']:>6}"
+        )
+    return "\n".join(lines)
+
+
 def _latency_table(r) -> str:
     t, e = r["track_ms"], r["event_ms"]
     line = (
@@ -379,13 +510,35 @@ def _latency_table(r) -> str:
 
 _SECTION_FUNCS = {
     "codec": bench_codec, "worker": bench_worker, "render": bench_render, "carving": bench_carving, "tracking": bench_tracking,
+    "pipeline": bench_pipeline,
 }
 _SECTION_TABLES = {
     "codec": _codec_table, "worker": _worker_table, "render": _render_table, "carving": _carving_table, "tracking": _tracking_table,
+    "pipeline": _pipeline_table,
 }
 
 
 # ---------------------------------------------------------------- helpers
+
+
+def _walk(people: int, rng: np.random.Generator, frames: int, *, volume_max_m: Sequence[float] = (8.0, 6.0, 2.5),
+          speed_m_s: float = 0.5) -> list[list[Cylinder]]:
+    """Per frame (15 fps) the bodies of ``people`` standing people who start at random places of the room
+    from the origin to ``volume_max_m`` and walk straight in random directions at ``speed_m_s``."""
+    from fusion_server.carving.bench import Cylinder, random_people
+
+    start = random_people(people, rng, volume_max_m=volume_max_m)
+    heading = rng.uniform(0, 2 * np.pi, size=people)
+    step_m = speed_m_s / _FPS
+    return [
+        [Cylinder(p.x_m + f * step_m * np.cos(h), p.y_m + f * step_m * np.sin(h), p.radius_m, p.height_m)
+         for p, h in zip(start, heading)]
+        for f in range(frames)
+    ]
+
+
+def _stamp_ns(frame: int) -> int:
+    return int(frame * 1e9 / _FPS)
 
 
 def _percentiles(values: list[float]) -> dict[str, float]:
@@ -419,4 +572,4 @@ def _wait_for(session, key: str, *, timeout_s: float) -> None:
     raise RuntimeError(f"no fusion server appeared on {key} within {timeout_s:.0f} s")
 
 
-__all__ = ["SECTIONS", "machine", "measure_latency", "run_bench"]
+__all__ = ["PIPELINE_ROWS", "SECTIONS", "PipelineRow", "machine", "measure_latency", "measure_pipeline", "run_bench"]

@@ -345,7 +345,7 @@ def _demo(args: argparse.Namespace) -> int:
 
 def _register_bench(sub) -> None:
     p = sub.add_parser("bench", help="measure every stage's speed and size on this machine")
-    p.add_argument("--sections", default=None, help="comma-separated subset of: codec, worker, render, carving, tracking, latency")
+    p.add_argument("--sections", default=None, help="comma-separated subset of: codec, worker, render, carving, tracking, pipeline, latency")
     p.add_argument("--quick", action="store_true", help="fewer frames and configurations (a minute or two)")
     p.add_argument("--json", type=Path, default=None, help="also write the figures as JSON here")
     p.set_defaults(handler=_bench)

@@ -1,0 +1,27 @@
+"""``voxelwatch bench``: the pipeline section on a tiny room (what it reports, not how fast)."""
+
+from __future__ import annotations
+
+from common.benchmark import PIPELINE_ROWS, PipelineRow, _pipeline_table, bench_pipeline
+
+
+def test_pipeline_section_tracks_the_people_it_places():
+    row = PipelineRow(cameras=4, width=160, height=120, room_m=(4.0, 3.0), people=2)
+    rows = bench_pipeline(True, rows=[row])
+
+    assert len(rows) == 1
+    r = rows[0]
+    assert (r["cameras"], r["width"], r["height"], r["room_m"], r["people"]) == (4, 160, 120, [4.0, 3.0], 2)
+    # the site file's default carving settings
+    assert (r["voxel_sizes_m"], r["min_cameras"], r["min_ratio"], r["mask_scale"]) == ([0.4, 0.2, 0.1, 0.05], 2, 0.75, 1.0)
+    assert r["frames"] == 30 and set(r["ms"]) == {"decode", "step", "total", "total_median"}
+    assert r["fps"] > 0 and r["target_fps"] is None and r["met"] is None
+    assert r["tracks_at_end"] == 2
+    assert r["tracks_mean"] == 2.0
+    assert "4  160x120" in _pipeline_table(rows)
+
+
+def test_pipeline_rows_hold_the_issue_targets():
+    targets = {(r.cameras, r.width, r.height, r.room_m, r.people): r.target_fps for r in PIPELINE_ROWS if r.target_fps}
+    assert targets == {(5, 640, 480, (8.0, 6.0), 4): 60.0, (7, 960, 540, (12.0, 36.0), 20): 20.0}
+    assert sorted(r.people for r in PIPELINE_ROWS if (r.cameras, r.room_m) == (5, (8.0, 6.0))) == [1, 4, 8]
