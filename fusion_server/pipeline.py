@@ -238,7 +238,7 @@ class FusionPipeline:
             estimator = self._postures.get(est.id)
             if estimator is None:
                 estimator = self._postures[est.id] = PostureEstimator(voxel_m=self.carver.grid.voxel_m)
-            reading = estimator.update(stamp_ns, est.height_profile)
+            reading = estimator.update(stamp_ns, est.height_profile, speed_mps=float(np.hypot(est.vx, est.vy)))
             if reading is not None:
                 readings[est.id] = reading
         return readings

@@ -72,6 +72,9 @@ sofa; ``standing_raised``, a standing person whose legs furniture hides."""
 STATE_POSTURE: tuple[int, ...] = (0, 1, 2, 3, 2, 1, 3, 0)
 """Index into :data:`POSTURES` of each state in :data:`STATES`."""
 
+_UPRIGHT = np.array([STATE_POSTURE[k] == 0 for k in range(len(STATES))])
+"""(len(STATES),) bool: the states of someone standing (how a walking person's body is)."""
+
 FEATURE_NAMES: tuple[str, ...] = (
     "centre_rel",
     "top_rel",
@@ -368,7 +371,17 @@ class PostureEstimator:
         updated (the frame on its own must also read standing); learn_time_constant_s: its exponential time constant;
         learn_prior_frames: weight of the prior height, in frames, while
         the first samples arrive.
-    height_limits_m: the standing height estimate stays in this range.
+    height_limits_m: the standing height estimate stays in this range
+        (children from 1.0 m, tall adults).
+    walking_speed_mps, walking_log_odds: a person whose floor speed is at
+        least this walks, and walking is done upright: the upright states
+        (standing, and standing with the legs hidden) gain this much
+        log-likelihood over the others, and the standing height is learnt
+        from the top while walking whatever the shape reads. Without it a
+        child or a short adult, whose top is far under the prior height,
+        reads sitting or bending until they happen to read standing, which
+        they never do. 0.5 m/s is well under a walk (0.8-1.4 m/s, children
+        too) and well over the jitter of a still person's estimate.
     model: the :class:`PostureModel` (default :func:`default_model`).
     """
 
@@ -384,7 +397,9 @@ class PostureEstimator:
         learn_min_prob: float = 0.9,
         learn_time_constant_s: float = 10.0,
         learn_prior_frames: int = 15,
-        height_limits_m: tuple[float, float] = (1.2, 2.2),
+        height_limits_m: tuple[float, float] = (0.9, 2.2),
+        walking_speed_mps: float = 0.5,
+        walking_log_odds: float = 4.0,
         model: PostureModel | None = None,
     ) -> None:
         if not voxel_m > 0:
@@ -409,6 +424,12 @@ class PostureEstimator:
             raise ValueError(f"learn_time_constant_s must be positive, got {learn_time_constant_s}")
         if learn_prior_frames < 0:
             raise ValueError(f"learn_prior_frames must be >= 0, got {learn_prior_frames}")
+        if not walking_speed_mps > 0:
+            raise ValueError(f"walking_speed_mps must be positive, got {walking_speed_mps}")
+        if not walking_log_odds >= 0:
+            raise ValueError(f"walking_log_odds must be >= 0, got {walking_log_odds}")
+        self.walking_speed_mps = float(walking_speed_mps)
+        self.walking_log_odds = float(walking_log_odds)
         self.voxel_m = float(voxel_m)
         self.height_limits_m = (lo, hi)
         self.taps = taps
@@ -435,8 +456,11 @@ class PostureEstimator:
         """The most recent reading, None before the first non-empty profile."""
         return self._last
 
-    def update(self, stamp_ns: int, height_profile: np.ndarray) -> PostureReading | None:
+    def update(self, stamp_ns: int, height_profile: np.ndarray, speed_mps: float = 0.0) -> PostureReading | None:
         """Feed one frame's (nz,) height profile; returns the current reading.
+
+        speed_mps: the person's floor speed (the tracker's smoothed estimate);
+        at ``walking_speed_mps`` and above they walk, upright.
 
         An empty profile changes nothing and returns the previous reading
         (None if there is none yet). Frames must come in time order; a frame
@@ -455,12 +479,15 @@ class PostureEstimator:
         ll = self.evidence_weight * posture_log_likelihoods(
             feature_vector(smoothed, self.standing_height_m), self.model
         )
+        walking = float(speed_mps) >= self.walking_speed_mps
+        if walking:
+            ll = ll + np.where(_UPRIGHT, self.walking_log_odds, 0.0)
         self._log_alpha = _forward_step(self._log_alpha, ll, self.switch_rate_hz, dt_s)
         state_prob = np.exp(self._log_alpha)
         prob = np.bincount(STATE_POSTURE, weights=state_prob, minlength=len(POSTURES))
         best = int(np.argmax(prob))
         self._debounce(best, stamp_ns)
-        self._learn_height(prob, raw, dt_s)
+        self._learn_height(prob, raw, dt_s, walking)
         self._last = PostureReading(
             posture=POSTURES[self._reported],
             since_ns=self._since_ns,
@@ -487,13 +514,14 @@ class PostureEstimator:
             self._reported, self._since_ns = best, self._candidate_ns
             self._candidate = None
 
-    def _learn_height(self, prob: np.ndarray, raw: PostureFeatures, dt_s: float) -> None:
+    def _learn_height(self, prob: np.ndarray, raw: PostureFeatures, dt_s: float, walking: bool) -> None:
         standing = POSTURES.index("standing")
-        if self._reported != standing or prob[standing] < self.learn_min_prob:
-            return
-        # The filter lags a change by a few frames: this frame on its own must read standing too.
-        if classify(raw, self.standing_height_m, self.model) != "standing":
-            return
+        if not walking:
+            if self._reported != standing or prob[standing] < self.learn_min_prob:
+                return
+            # The filter lags a change by a few frames: this frame on its own must read standing too.
+            if classify(raw, self.standing_height_m, self.model) != "standing":
+                return
         self.standing_samples += 1
         rate = dt_s / self.learn_time_constant_s if dt_s > 0 else 0.0
         alpha = max(1.0 / (self.learn_prior_frames + self.standing_samples), min(rate, 1.0))

@@ -286,6 +286,26 @@ def test_standing_height_is_learnt_only_while_standing():
     assert rs[-1].standing_height_m == learnt
 
 
+def test_a_child_walking_reads_standing_and_their_height_is_learnt():
+    """A 1.1 m child under the 1.7 m prior: still, their shape never reads standing, so their height
+    would never be learnt; walking, they are upright, and once learnt their height holds when they
+    stop, and seated they are not standing."""
+    child = body_profile("standing", height_m=1.1)
+    still = run_estimator([child] * (4 * FPS))
+    assert still[-1].posture != "standing" and still[-1].standing_height_m == 1.70
+    est = PostureEstimator(voxel_m=VOXEL_M)
+    walking = [est.update(i * NS // FPS, child, speed_mps=0.9) for i in range(10 * FPS)]
+    assert walking[-1].posture == "standing"
+    # the prior's weight falls as 15 / (15 + frames walked): 0.09 after 10 s
+    assert est.standing_height_m == pytest.approx(1.1, abs=0.08)
+    stopped = run_estimator([child] * (4 * FPS), est=est, t0_ns=11 * NS)
+    assert {r.posture for r in stopped} == {"standing"}
+    seated = run_estimator([body_profile("sitting", height_m=1.1)] * (4 * FPS), est=est, t0_ns=16 * NS)
+    # a seated child is lowered, never standing; the shape model (fitted on adults) reads them bending
+    assert seated[-1].posture in ("sitting", "bending")
+    assert est.standing_height_m == pytest.approx(1.1, abs=0.08)  # not learnt from the seated top
+
+
 def test_lying_on_a_bed_reads_lying():
     readings = run_estimator([body_profile("standing", tilt_deg=90, lift_m=0.45)] * 30)
     assert readings[-1].posture == "lying"
