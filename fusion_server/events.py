@@ -23,7 +23,10 @@ brackets):
     at ``fall_max_accel_mps2`` [1.5 g], give or take ``fall_height_tol_m``
     [0.15 m]; a top that jumps down between two frames is a blob changing
     under the track (a body cut by holes in the masks, a track taking over
-    a fragment), not a fall. Sitting down,
+    a fragment), not a fall. And only someone who was upright falls: the
+    track must have read standing or sitting for ``fall_history_s`` [1 s]
+    in all (a person walks or sits before they fall; hull volume by a wall
+    that reads lying from its first frame has no such history). Sitting down,
     kneeling, bending and squatting never end low enough; lying down slowly
     is not fast enough (it may become a ``long_lie``).
 ``long_lie``
@@ -298,6 +301,7 @@ class EventReasoner:
         fall_max_accel_mps2: float = 1.5 * 9.81,
         fall_height_tol_m: float = 0.15,
         fall_confirm_s: float = 1.0,
+        fall_history_s: float = 1.0,
         low_top_frac: float = 0.55,
         low_centre_frac: float = 0.25,
         flat_top_frac: float = 0.45,
@@ -387,6 +391,7 @@ class EventReasoner:
         self.fall_max_accel_mps2 = float(fall_max_accel_mps2)
         self.fall_height_tol_m = float(fall_height_tol_m)
         self.fall_confirm_ns = _ns(fall_confirm_s)
+        self.fall_history_ns = _ns(fall_history_s)
         self.low_top_frac = float(low_top_frac)
         self.low_centre_frac = float(low_centre_frac)
         self.flat_top_frac = float(flat_top_frac)
@@ -487,6 +492,9 @@ class EventReasoner:
         posture, top_m, centre_m, height_m = self._observe(tr, reading)
         if posture != st.posture:
             st.posture, st.posture_changed_ns = posture, stamp_ns
+        if posture in ("standing", "sitting") and st.last_step_ns is not None:
+            st.upright_ns += stamp_ns - st.last_step_ns
+        st.last_step_ns = stamp_ns
         self._posture_events(tid, st, posture, reading, x, y, emit)
         self._fall_events(tid, st, stamp_ns, posture, top_m, centre_m, height_m, x, y, emit)
         for ch in st.dwell.update(stamp_ns, x, y):
@@ -575,6 +583,7 @@ class EventReasoner:
             and fs.drop is not None
             and on_floor
             and stamp_ns - fs.low_since_ns >= self.fall_confirm_ns
+            and st.upright_ns >= self.fall_history_ns
         ):
             fs.fall_emitted = True
             emit("fall", tid, x, y, **fs.drop, confirm_s=round((stamp_ns - fs.low_since_ns) * 1e-9, 3))
@@ -809,6 +818,8 @@ class _TrackState:
     sitting_plausible: bool = True
     still_since_ns: int | None = None
     inactivity_emitted: bool = False
+    upright_ns: int = 0  # time this track read standing or sitting
+    last_step_ns: int | None = None
 
 
 class _VisitState:

@@ -31,7 +31,7 @@ from common.camera import Camera
 from fusion_server.detection import Blob
 from fusion_server.grid import VoxelGrid
 
-MIN_NEW = 0.3
+MIN_NEW = 0.2
 """Share of a candidate's covered foreground that must be its own, per camera."""
 SPLAT_STEP = 2
 """Blobs are projected through cells of SPLAT_STEP voxels along each axis (10 cm at 5 cm voxels)."""

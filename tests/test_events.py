@@ -249,6 +249,31 @@ def test_a_top_jumping_to_the_floor_raises_no_fall():
     assert len(kinds(run([p], EventReasoner(fall_max_accel_mps2=1e6)), "fall")) == 1
 
 
+def test_only_someone_who_was_upright_falls():
+    """Hull volume that reads bending or lying from its first frame and drops to the floor has no
+    person's history: no fall; the same frames after standing are a fall."""
+
+    def frames(first: str, top: float):
+        out = [(first, top)] * 30
+        out += [("lying", top - (top - 0.3) * (k + 1) / 6) for k in range(6)]
+        return out + [("lying", 0.3)] * 25
+
+    def column(top_m: float) -> np.ndarray:  # a profile whose top is top_m (the reasoner reads the top)
+        prof = np.zeros(NZ, np.int32)
+        prof[: int(round(top_m / VOXEL_M))] = 10
+        return prof
+
+    def falls(seq, **kw):
+        r, out = EventReasoner(**kw), []
+        for k, (post, top) in enumerate(seq):
+            out += r.step(k * FRAME_NS, k, [Est(1, 1.0, 1.0, column(top))], {1: post})
+        return kinds(out, "fall")
+
+    assert falls(frames("bending", 1.2)) == []
+    assert len(falls(frames("bending", 1.2), fall_history_s=0.0)) == 1  # the drop itself is a fall's
+    assert len(falls(frames("standing", 1.7))) == 1
+
+
 def test_fall_from_a_chair_is_a_fall():
     p = Person(4).hold(3.0, SIT, xy=(2.0, 2.0)).move(0.7, _fall_profiles("sitting")).hold(5.0, LIE)
     events = run([p], EventReasoner())
