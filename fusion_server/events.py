@@ -24,9 +24,10 @@ brackets):
     [0.15 m]; a top that jumps down between two frames is a blob changing
     under the track (a body cut by holes in the masks, a track taking over
     a fragment), not a fall. And only someone who was upright falls: the
-    track must have read standing or sitting for ``fall_history_s`` [1 s]
-    in all (a person walks or sits before they fall; hull volume by a wall
-    that reads lying from its first frame has no such history). Sitting down,
+    track must have read standing or sitting for ``fall_history_s`` [0.5 s]
+    in all since its first frame (a person walks or sits before they fall;
+    hull volume by a wall that reads lying from its first frame has no such
+    history). Sitting down,
     kneeling, bending and squatting never end low enough; lying down slowly
     is not fast enough (it may become a ``long_lie``).
 ``long_lie``
@@ -301,7 +302,7 @@ class EventReasoner:
         fall_max_accel_mps2: float = 1.5 * 9.81,
         fall_height_tol_m: float = 0.15,
         fall_confirm_s: float = 1.0,
-        fall_history_s: float = 1.0,
+        fall_history_s: float = 0.5,
         low_top_frac: float = 0.55,
         low_centre_frac: float = 0.25,
         flat_top_frac: float = 0.45,
@@ -474,6 +475,9 @@ class EventReasoner:
                 dwell=DwellDetector(hotspots=self.hotspots, **self._dwell_kwargs),
                 still=PositionWindow(window_s=self.inactivity_window_s),
             )
+        upright = (reading.posture if isinstance(reading, PostureReading) else reading) in ("standing", "sitting")
+        if upright and st.last_ns >= st.first_ns:
+            st.upright_ns += stamp_ns - st.last_ns
         st.last_xy, st.last_ns = (x, y), stamp_ns
         confirmed = bool(getattr(tr, "confirmed", True))
         if not confirmed:
@@ -492,9 +496,6 @@ class EventReasoner:
         posture, top_m, centre_m, height_m = self._observe(tr, reading)
         if posture != st.posture:
             st.posture, st.posture_changed_ns = posture, stamp_ns
-        if posture in ("standing", "sitting") and st.last_step_ns is not None:
-            st.upright_ns += stamp_ns - st.last_step_ns
-        st.last_step_ns = stamp_ns
         self._posture_events(tid, st, posture, reading, x, y, emit)
         self._fall_events(tid, st, stamp_ns, posture, top_m, centre_m, height_m, x, y, emit)
         for ch in st.dwell.update(stamp_ns, x, y):
@@ -818,8 +819,7 @@ class _TrackState:
     sitting_plausible: bool = True
     still_since_ns: int | None = None
     inactivity_emitted: bool = False
-    upright_ns: int = 0  # time this track read standing or sitting
-    last_step_ns: int | None = None
+    upright_ns: int = 0  # time this track read standing or sitting, from its first frame
 
 
 class _VisitState:
