@@ -343,7 +343,6 @@ class EventReasoner:
             fall_min_drop_m=fall_min_drop_m,
             fall_min_speed_mps=fall_min_speed_mps,
             fall_max_accel_mps2=fall_max_accel_mps2,
-            fall_height_tol_m=fall_height_tol_m,
             long_lie_s=long_lie_s,
             dwell_window_s=dwell_window_s,
             visit_min_s=visit_min_s,
@@ -356,7 +355,8 @@ class EventReasoner:
                 raise ValueError(f"{name} must be a positive number, got {val!r}")
         non_negative = dict(edge_margin_m=edge_margin_m, fall_confirm_s=fall_confirm_s, low_gap_s=low_gap_s,
                             visit_gap_s=visit_gap_s, startup_s=startup_s, establish_s=establish_s,
-                            min_volume_m3=min_volume_m3)
+                            min_volume_m3=min_volume_m3, fall_height_tol_m=fall_height_tol_m,
+                            fall_history_s=fall_history_s)
         for name, val in non_negative.items():
             if not (isinstance(val, (int, float)) and math.isfinite(val) and val >= 0):
                 raise ValueError(f"{name} must be a number >= 0, got {val!r}")

@@ -523,6 +523,9 @@ def test_bad_frames_and_tracks_are_counted_and_dropped():
     [
         (dict(residents=-1), "residents"),
         (dict(fall_min_drop_m=0), "fall_min_drop_m"),
+        (dict(fall_max_accel_mps2=0), "fall_max_accel_mps2"),
+        (dict(fall_height_tol_m=-0.1), "fall_height_tol_m"),
+        (dict(fall_history_s=float("inf")), "fall_history_s"),
         (dict(long_lie_s=float("nan")), "long_lie_s"),
         (dict(low_top_frac=1.5), "low_top_frac"),
         (dict(bounds_xy_m=(0, 0, -1, 5)), "bounds_xy_m"),

@@ -306,6 +306,13 @@ def test_a_child_walking_reads_standing_and_their_height_is_learnt():
     assert est.standing_height_m == pytest.approx(1.1, abs=0.08)  # not learnt from the seated top
 
 
+@pytest.mark.parametrize("kwargs, name", [(dict(walking_speed_mps=0.0), "walking_speed_mps"),
+                                          (dict(walking_log_odds=-1.0), "walking_log_odds")])
+def test_walking_settings_are_checked(kwargs, name):
+    with pytest.raises(ValueError, match=name):
+        PostureEstimator(voxel_m=VOXEL_M, **kwargs)
+
+
 def test_lying_on_a_bed_reads_lying():
     readings = run_estimator([body_profile("standing", tilt_deg=90, lift_m=0.45)] * 30)
     assert readings[-1].posture == "lying"
