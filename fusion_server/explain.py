@@ -21,6 +21,7 @@ no I/O.
 
 from __future__ import annotations
 
+import heapq
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
@@ -108,34 +109,58 @@ def _explain(blobs, masks, cams: Mapping[str, Camera], grid: VoxelGrid, min_came
     # per blob and camera: the splat's box and its covered-foreground pixels (bool within the box)
     cores = [_core(b, grid) for b in blobs]
     splats = [{c: _splat(core, cams[c], grid, fg[c]) for c in used} for core in cores]
-    covered = {c: np.zeros(fg[c].shape, dtype=bool) for c in used}
-    remaining = list(range(len(blobs)))
-    people: list[Blob] = []
-    own: dict[int, tuple[str, ...]] = {}
-    while remaining:
-        best, best_new, best_cams = None, -1, ()
-        for k in remaining:
-            new_total, cams_ok = 0, []
-            for c, s in splats[k].items():
-                if s is None:
-                    continue
-                (y0, y1, x0, x1), hit, n_hit = s
-                new = int(np.count_nonzero(hit & ~covered[c][y0:y1, x0:x1]))
-                new_total += new
-                if new >= min_new * n_hit:
-                    cams_ok.append(c)
-            if len(cams_ok) >= min_cameras and new_total > best_new:
-                best, best_new, best_cams = k, new_total, tuple(cams_ok)
-        if best is None:
-            break
-        remaining.remove(best)
-        people.append(blobs[best])
-        own[id(blobs[best])] = best_cams
-        for c, s in splats[best].items():
+    accepted = greedy_cover(splats, {c: fg[c].shape for c in used}, min_cameras=min_cameras, min_new=min_new)
+    taken = {k for k, _ in accepted}
+    return Explanation([blobs[k] for k, _ in accepted], [b for k, b in enumerate(blobs) if k not in taken],
+                       {id(blobs[k]): cams for k, cams in accepted})
+
+
+def greedy_cover(
+    splats: Sequence[Mapping[str, tuple | None]],
+    shapes: Mapping[str, tuple[int, int]],
+    *,
+    min_cameras: int,
+    min_new: float,
+) -> list[tuple[int, tuple[str, ...]]]:
+    """The greedy silhouette cover: which candidates are people, in the order taken.
+
+    splats: per candidate, camera id -> ``((y0, y1, x0, x1), hit, n_hit)`` (the foreground its
+    projection covers: a bool box of the mask and its pixel count) or None. shapes: camera id -> (H, W)
+    of its mask. The candidate covering the most foreground not yet covered is taken first, if in at
+    least ``min_cameras`` cameras at least ``min_new`` of what it covers is not yet covered; ties go to
+    the lower index. Returns ``(candidate index, cameras where it covers its own)`` per person.
+
+    What a candidate covers anew only shrinks as others are taken, so its last count bounds it from
+    above (lazy greedy): only the candidate on top of the queue is counted again, and one that fails
+    the per-camera test can never pass it later. The same choices as counting every candidate anew
+    at every step, without the quadratic cost in a crowd.
+    """
+    covered = {c: np.zeros(shape, dtype=bool) for c, shape in shapes.items()}
+    heap = [(-sum(s[2] for s in sp.values() if s is not None), k) for k, sp in enumerate(splats)]
+    heapq.heapify(heap)
+    accepted: list[tuple[int, tuple[str, ...]]] = []
+    while heap:
+        _, k = heapq.heappop(heap)
+        new_total, cams_ok = 0, []
+        for c, s in splats[k].items():
+            if s is None:
+                continue
+            (y0, y1, x0, x1), hit, n_hit = s
+            new = int(np.count_nonzero(hit & ~covered[c][y0:y1, x0:x1]))
+            new_total += new
+            if new >= min_new * n_hit:
+                cams_ok.append(c)
+        if len(cams_ok) < min_cameras:
+            continue  # a phantom, or a duplicate of someone taken: it only loses from here on
+        if heap and (-new_total, k) > heap[0]:
+            heapq.heappush(heap, (-new_total, k))  # another may now cover more: count it first
+            continue
+        accepted.append((k, tuple(cams_ok)))
+        for c, s in splats[k].items():
             if s is not None:
                 (y0, y1, x0, x1), hit, _ = s
                 covered[c][y0:y1, x0:x1] |= hit
-    return Explanation(people, [blobs[k] for k in remaining], own)
+    return accepted
 
 
 # ---------------------------------------------------------------------- helpers

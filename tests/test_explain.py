@@ -101,3 +101,56 @@ def test_one_camera_cannot_tell_and_keeps_everything(tmp_path):
 def test_bad_share_is_refused():
     with pytest.raises(ValueError, match="min_new"):
         explain_blobs([], {}, {}, None, min_new=0.0)
+
+
+def _exact_cover(splats, shapes, min_cameras, min_new):
+    """The greedy cover counted plainly: every candidate counted anew at every step (the oracle)."""
+    covered = {c: np.zeros(shape, dtype=bool) for c, shape in shapes.items()}
+    remaining, accepted = list(range(len(splats))), []
+    while remaining:
+        best, best_new, best_cams = None, -1, ()
+        for k in remaining:
+            new_total, cams_ok = 0, []
+            for c, s in splats[k].items():
+                if s is None:
+                    continue
+                (y0, y1, x0, x1), hit, n_hit = s
+                new = int(np.count_nonzero(hit & ~covered[c][y0:y1, x0:x1]))
+                new_total += new
+                if new >= min_new * n_hit:
+                    cams_ok.append(c)
+            if len(cams_ok) >= min_cameras and new_total > best_new:
+                best, best_new, best_cams = k, new_total, tuple(cams_ok)
+        if best is None:
+            break
+        remaining.remove(best)
+        accepted.append((best, best_cams))
+        for c, s in splats[best].items():
+            if s is not None:
+                (y0, y1, x0, x1), hit, _ = s
+                covered[c][y0:y1, x0:x1] |= hit
+    return accepted
+
+
+@pytest.mark.parametrize("seed", range(40))
+def test_lazy_greedy_cover_takes_what_the_plain_greedy_takes(seed):
+    from fusion_server.explain import greedy_cover
+
+    rng = np.random.default_rng(seed)
+    shapes = {f"c{i}": (60, 80) for i in range(int(rng.integers(2, 6)))}
+    splats = []
+    for _ in range(int(rng.integers(2, 25))):  # crowds of overlapping candidates, some seen by few cameras
+        sp = {}
+        for c, (h, w) in shapes.items():
+            if rng.random() < 0.2:
+                sp[c] = None
+                continue
+            y0, x0 = int(rng.integers(0, h - 10)), int(rng.integers(0, w - 10))
+            y1, x1 = y0 + int(rng.integers(4, 20)), x0 + int(rng.integers(4, 20))
+            y1, x1 = min(y1, h), min(x1, w)
+            hit = rng.random((y1 - y0, x1 - x0)) < rng.uniform(0.3, 1.0)
+            sp[c] = ((y0, y1, x0, x1), hit, int(hit.sum())) if hit.any() else None
+        splats.append(sp)
+    for min_new in (0.2, 0.3, 0.6):
+        lazy = greedy_cover(splats, shapes, min_cameras=2, min_new=min_new)
+        assert lazy == _exact_cover(splats, shapes, 2, min_new)
