@@ -230,9 +230,9 @@ class _TopDown:
                 prev = np.where(prev > 0, prev, labels[k + g])
             if not layer.any():
                 continue
-            n, cc = cv2.connectedComponents(layer, connectivity=8, ltype=cv2.CV_32S)
+            n, cc, stats, centroids = cv2.connectedComponentsWithStats(layer, connectivity=8, ltype=cv2.CV_32S)
             if dirty:
-                rootmap = np.array([self._find(i) for i in range(len(self.parent))], dtype=np.int32)
+                rootmap = self._roots().astype(np.int32)
                 dirty = False
             elif len(rootmap) < len(self.parent):  # blobs born since are their own roots
                 rootmap = np.concatenate([rootmap, np.arange(len(rootmap), len(self.parent), dtype=np.int32)])
@@ -242,24 +242,33 @@ class _TopDown:
             meets[cc[touch], above[touch]] = True
             n_above = meets.sum(axis=1)
             assign = np.where(n_above == 1, meets.argmax(axis=1), 0).astype(np.int32)
-            born = np.flatnonzero(n_above[1:] == 0) + 1
-            if len(born):
-                centres = ndimage.center_of_mass(layer, cc, born)
-                for c, (row, col) in zip(born, centres):
-                    assign[c] = self._new(float(self.z_top[k]), (float(row), float(col)))
+            for c in np.flatnonzero(n_above[1:] == 0) + 1:
+                col, row = centroids[c]
+                assign[c] = self._new(float(self.z_top[k]), (float(row), float(col)))
             conflicts = [(c, np.flatnonzero(meets[c])) for c in np.flatnonzero(n_above > 1)]
             cur = assign[cc]
             for c, rs in conflicts:
-                dirty |= self._resolve(c, [int(r) for r in rs], cc, above, cur, float(self.z_top[k]))
+                dirty |= self._resolve(c, [int(r) for r in rs], cc, stats[c], above, cur, float(self.z_top[k]))
             labels[k] = cur
-        roots = np.array([self._find(i) for i in range(len(self.parent))], dtype=np.int64)
-        return labels, roots
+        return labels, self._roots()
 
     def _new(self, top_m: float, peak: tuple[float, float]) -> int:
         self.parent.append(len(self.parent))
         self.top_m.append(top_m)
         self.peak.append(peak)
         return len(self.parent) - 1
+
+    def _roots(self) -> np.ndarray:
+        """(n_ids,) int64: every id's root, by pointer jumping over the whole parent list at once
+        (written back: the same roots, shorter paths)."""
+        p = np.asarray(self.parent, dtype=np.int64)
+        while True:
+            q = p[p]
+            if np.array_equal(q, p):
+                break
+            p = q
+        self.parent = p.tolist()
+        return p
 
     def _find(self, i: int) -> int:
         parent = self.parent
@@ -286,16 +295,19 @@ class _TopDown:
         roots = np.array([self._find(int(v)) if v else 0 for v in values], dtype=np.int32)
         return roots[inverse].reshape(ids.shape)
 
-    def _resolve(self, c: int, roots: list[int], cc: np.ndarray, above: np.ndarray, cur: np.ndarray, z_conn: float) -> bool:
-        """Decide which blobs meeting in component ``c`` merge; label its cells in ``cur``.
+    def _resolve(
+        self, c: int, roots: list[int], cc: np.ndarray, stat: np.ndarray, above: np.ndarray, cur: np.ndarray,
+        z_conn: float,
+    ) -> bool:
+        """Decide which blobs meeting in component ``c`` (``stat``: its row of OpenCV's component
+        stats) merge; label its cells in ``cur``.
 
         Returns whether any union happened.
         """
         roots = sorted({self._find(r) for r in roots})
-        mask = cc == c
-        rows, cols = np.nonzero(mask)
-        r0, r1, c0, c1 = rows.min(), rows.max() + 1, cols.min(), cols.max() + 1
-        comp = mask[r0:r1, c0:c1]
+        c0, r0 = int(stat[cv2.CC_STAT_LEFT]), int(stat[cv2.CC_STAT_TOP])
+        c1, r1 = c0 + int(stat[cv2.CC_STAT_WIDTH]), r0 + int(stat[cv2.CC_STAT_HEIGHT])
+        comp = cc[r0:r1, c0:c1] == c
         seeds = self._reroot(np.where(comp, above[r0:r1, c0:c1], 0))
         unions = False
         if len(roots) > 1:
