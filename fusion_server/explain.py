@@ -141,15 +141,7 @@ def greedy_cover(
     accepted: list[tuple[int, tuple[str, ...]]] = []
     while heap:
         _, k = heapq.heappop(heap)
-        new_total, cams_ok = 0, []
-        for c, s in splats[k].items():
-            if s is None:
-                continue
-            (y0, y1, x0, x1), hit, n_hit = s
-            new = int(np.count_nonzero(hit & ~covered[c][y0:y1, x0:x1]))
-            new_total += new
-            if new >= min_new * n_hit:
-                cams_ok.append(c)
+        new_total, cams_ok = new_cover(splats[k], covered, min_new)
         if len(cams_ok) < min_cameras:
             continue  # a phantom, or a duplicate of someone taken: it only loses from here on
         if heap and (-new_total, k) > heap[0]:
@@ -161,6 +153,21 @@ def greedy_cover(
                 (y0, y1, x0, x1), hit, _ = s
                 covered[c][y0:y1, x0:x1] |= hit
     return accepted
+
+
+def new_cover(splat: Mapping[str, tuple | None], covered: Mapping[str, np.ndarray], min_new: float) -> tuple[int, list[str]]:
+    """What one candidate covers that ``covered`` (camera id -> (H, W) bool) does not: the pixel count
+    over all cameras, and the cameras where it is at least ``min_new`` of what the candidate covers."""
+    new_total, cams_ok = 0, []
+    for c, s in splat.items():
+        if s is None:
+            continue
+        (y0, y1, x0, x1), hit, n_hit = s
+        new = int(np.count_nonzero(hit & ~covered[c][y0:y1, x0:x1]))
+        new_total += new
+        if new >= min_new * n_hit:
+            cams_ok.append(c)
+    return new_total, cams_ok
 
 
 # ---------------------------------------------------------------------- helpers

@@ -104,21 +104,16 @@ def test_bad_share_is_refused():
 
 
 def _exact_cover(splats, shapes, min_cameras, min_new):
-    """The greedy cover counted plainly: every candidate counted anew at every step (the oracle)."""
+    """The greedy cover counted plainly: every candidate counted anew at every step (the oracle of the
+    order of choices; what one candidate covers anew is counted by the same ``new_cover``)."""
+    from fusion_server.explain import new_cover
+
     covered = {c: np.zeros(shape, dtype=bool) for c, shape in shapes.items()}
     remaining, accepted = list(range(len(splats))), []
     while remaining:
         best, best_new, best_cams = None, -1, ()
         for k in remaining:
-            new_total, cams_ok = 0, []
-            for c, s in splats[k].items():
-                if s is None:
-                    continue
-                (y0, y1, x0, x1), hit, n_hit = s
-                new = int(np.count_nonzero(hit & ~covered[c][y0:y1, x0:x1]))
-                new_total += new
-                if new >= min_new * n_hit:
-                    cams_ok.append(c)
+            new_total, cams_ok = new_cover(splats[k], covered, min_new)
             if len(cams_ok) >= min_cameras and new_total > best_new:
                 best, best_new, best_cams = k, new_total, tuple(cams_ok)
         if best is None:
