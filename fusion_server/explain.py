@@ -7,8 +7,11 @@ but the foreground it sees is already some real person's. Seen from the
 cameras, a phantom explains nothing that the people do not.
 
 :func:`explain_blobs` is the greedy silhouette cover of visual-hull people
-counting: each candidate blob is projected into every camera's mask (its
-voxels splatted at their projected size); candidates are taken one by one,
+counting: each candidate blob is projected into every camera's mask (the
+voxels of its body splatted at their projected size: for an upright blob
+those near its top's column, so that hull volume hanging on to a person
+claims nothing for them); candidates are taken one by one (lazily,
+:func:`greedy_cover`),
 the one that covers the most foreground not yet covered by those accepted
 first, and a candidate is accepted only when, in at least ``min_cameras``
 cameras, at least ``min_new`` of the foreground it covers is foreground that
@@ -187,7 +190,7 @@ def _core(blob: Blob, grid: VoxelGrid) -> np.ndarray:
 
 
 def _splat(ijk: np.ndarray, cam: Camera, grid: VoxelGrid, fg: np.ndarray):
-    """The blob's projection into ``cam``: ((y0, y1, x0, x1), covered foreground (bool, box-sized),
+    """The projection of voxels ``ijk`` (N, 3) into ``cam``: ((y0, y1, x0, x1), covered foreground (bool, box-sized),
     its pixel count), or None when it covers no foreground in the image."""
     keys = _unique_cells(ijk)
     pts = grid.centres(_cells(keys))
