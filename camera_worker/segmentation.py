@@ -210,7 +210,6 @@ class ForegroundSegmenter:
             shadow_threshold=float(shadow_threshold),
         )
         self._cleanup_px = (int(open_px), int(close_px), int(min_area_px))
-        self._cleanup: tuple | None = None   # kernels and smallest area for the frames' size, set on the first
         self.reset()
 
     # -- public ---------------------------------------------------------------
@@ -228,7 +227,7 @@ class ForegroundSegmenter:
         self._settled = False       # a background clip was learned: live frames use alpha
         self._relearn_n = 0         # > 0: inside the re-learn window, next rate 1/_relearn_n
         self._full_size: tuple[int, int] | None = None   # (W, H) of input frames
-        self._cleanup = None
+        self._cleanup: tuple | None = None   # kernels and smallest area for the frames' size, set on the first
         self._bg: np.ndarray | None = None   # cached background image for hold boxes ...
         self._bg_frame = 0
         self._pred: np.ndarray | None = None  # ... and the same times the current gain

@@ -37,7 +37,7 @@ _FPS = 15.0
 class PipelineRow:
     """One configuration of the ``pipeline`` section: ``cameras`` of ``width`` x ``height``
     around a room of floor ``room_m`` (x, y metres, 2.5 m high) with ``people`` walking;
-    ``target_fps``, frame sets per second the issue asks for (None: no target)."""
+    ``target_fps``, the frame sets per second the pipeline must reach (None: no target)."""
 
     cameras: int
     width: int

@@ -221,6 +221,8 @@ class _TopDown:
         dirty = False
         for k in range(occ.shape[0] - 1, -1, -1):
             layer = occ[k]
+            if not layer.any():
+                continue
             # a layer with a carving gap under a body (holes in the masks at one height) still
             # touches the body: cells empty in the layer just above look further up, gap_layers at most
             prev = labels[k + 1] if k + 1 < occ.shape[0] else labels[k]
@@ -228,8 +230,6 @@ class _TopDown:
                 if k + g >= occ.shape[0]:
                     break
                 prev = np.where(prev > 0, prev, labels[k + g])
-            if not layer.any():
-                continue
             n, cc, stats, centroids = cv2.connectedComponentsWithStats(layer, connectivity=8, ltype=cv2.CV_32S)
             if dirty:
                 rootmap = self._roots().astype(np.int32)

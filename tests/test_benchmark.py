@@ -21,7 +21,7 @@ def test_pipeline_section_tracks_the_people_it_places():
     assert "4  160x120" in _pipeline_table(rows)
 
 
-def test_pipeline_rows_hold_the_issue_targets():
+def test_pipeline_rows_hold_the_speed_targets():
     targets = {(r.cameras, r.width, r.height, r.room_m, r.people): r.target_fps for r in PIPELINE_ROWS if r.target_fps}
     assert targets == {(5, 640, 480, (8.0, 6.0), 4): 60.0, (7, 960, 540, (12.0, 36.0), 20): 20.0}
     assert sorted(r.people for r in PIPELINE_ROWS if (r.cameras, r.room_m) == (5, (8.0, 6.0))) == [1, 4, 8]
