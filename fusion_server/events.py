@@ -17,7 +17,8 @@ brackets):
     ``lying`` (or being very low: top <= ``flat_top_frac`` [0.45] of the
     standing height). Emitted on the confirming frame; ``details`` carry
     ``fall_stamp_ns``, the moment the top of the body passed halfway between
-    its height before the drop and its height on the floor. The drop must
+    its height before the drop and its height on the floor, and
+    ``drop_start_ns``, when it began to come down. The drop must
     be one a body can make (:func:`drop_is_physical`): the top never comes
     down faster than it would after falling freely through its whole height
     at ``fall_max_accel_mps2`` [1.5 g], give or take ``fall_height_tol_m``
@@ -38,11 +39,25 @@ brackets):
 ``sit_down`` / ``stand_up``
     The reported posture moves from standing to sitting / from sitting (or,
     per ``stand_up_from``, lying) to standing; ``bending`` in between (which
-    includes kneeling) is ignored. A sitting reading that rests on a body
-    floating at seat height (lower legs not carved: the ``sitting_raised``
-    posture state) counts only inside a hot spot whose kind is in
-    ``seat_kinds`` [sofa, table, chair, armchair, bench, bed], when the site
-    has any: someone kneeling behind a sofa looks the same.
+    includes kneeling) is ignored. The body's top must have moved with it
+    (:func:`height_change_m`): down by at least ``sit_min_change_frac`` [0.07]
+    of the standing height to sit, up as much to stand (an adult's seated top
+    is 0.2-0.3 of it lower, a child's on an adult's chair about 0.12); a
+    posture that flips while the body keeps its height is the reading
+    changing its mind, not the person, and the posture held before stands.
+    Between sitting and standing the top moves at most
+    ``sit_max_change_frac`` [0.65] of the standing height (sitting on the
+    floor is about half of it): a track whose top jumped more took over
+    another blob (a fragment growing into a whole body), and its new
+    posture is taken without an event. So is a change from a posture held
+    less than ``posture_hold_s`` [2 s] (a track's first readings of a body
+    still being carved, a blob that changes under it): someone sits down
+    after standing, and stands up after sitting, for longer than that. A
+    sitting reading that rests on a body floating at seat height (lower legs
+    not carved: the ``sitting_raised`` posture state) counts only inside a
+    hot spot whose kind is in ``seat_kinds`` [sofa, table, chair, armchair,
+    bench, bed], when the site has any: someone kneeling behind a sofa looks
+    the same.
 ``enter`` / ``exit``
     A track first seen inside a door zone (or, when ``bounds_xy_m`` is
     given, within ``edge_margin_m`` [0.4 m] of the monitored area's border)
@@ -256,6 +271,32 @@ def drop_is_physical(
     return bool(np.all((dt <= 0) | (drop <= v_max * dt + tol_m)))
 
 
+# Where a posture change looks for the top held before it: from 4 s to 0.3 s
+# before the filter switched (the switch lags the movement by about a second).
+_CHANGE_BEFORE_S = (4.0, 0.3)
+
+
+def height_change_m(
+    samples: Sequence[tuple[int, float]], change_ns: int, now_ns: int, *, before_s: tuple[float, float],
+    before_quantile: float = 0.5,
+) -> float | None:
+    """How much a body's top rose (negative: came down) across a posture change:
+    the median top since ``change_ns`` minus the ``before_quantile`` of the top
+    in ``[change_ns - before_s[0], change_ns - before_s[1]]`` (seconds before
+    the change: the filter reports a new posture only after the body has
+    started to move, so the window reaches back past the movement, and a
+    quantile above the median (for a sit) or below it (for a stand) reads the
+    posture held before rather than the movement). samples: ``(stamp_ns,
+    top_m)`` pairs, oldest first. None when either window holds no sample (a
+    track too young to say)."""
+    lo_ns, hi_ns = change_ns - _ns(before_s[0]), change_ns - _ns(before_s[1])
+    before = [z for t, z in samples if lo_ns <= t <= hi_ns and math.isfinite(z)]
+    after = [z for t, z in samples if change_ns <= t <= now_ns and math.isfinite(z)]
+    if not before or not after:
+        return None
+    return _median(after) - float(np.quantile(before, before_quantile))
+
+
 def crossing_time(t_s: np.ndarray, z_m: np.ndarray, i: int, j: int, level_m: float) -> float:
     """First time after sample ``i`` (up to ``j``) at which ``z`` falls to ``level_m``,
     linearly interpolated between samples; seconds."""
@@ -309,6 +350,9 @@ class EventReasoner:
         low_gap_s: float = 0.5,
         long_lie_s: float = 30.0,
         stand_up_from: Iterable[str] = ("sitting", "lying"),
+        sit_min_change_frac: float = 0.07,
+        sit_max_change_frac: float = 0.65,
+        posture_hold_s: float = 2.0,
         dwell_window_s: float = 10.0,
         dwell_still_std_m: float = 0.15,
         dwell_move_std_m: float = 0.30,
@@ -356,7 +400,8 @@ class EventReasoner:
         non_negative = dict(edge_margin_m=edge_margin_m, fall_confirm_s=fall_confirm_s, low_gap_s=low_gap_s,
                             visit_gap_s=visit_gap_s, startup_s=startup_s, establish_s=establish_s,
                             min_volume_m3=min_volume_m3, fall_height_tol_m=fall_height_tol_m,
-                            fall_history_s=fall_history_s)
+                            fall_history_s=fall_history_s, sit_min_change_frac=sit_min_change_frac,
+                            posture_hold_s=posture_hold_s)
         for name, val in non_negative.items():
             if not (isinstance(val, (int, float)) and math.isfinite(val) and val >= 0):
                 raise ValueError(f"{name} must be a number >= 0, got {val!r}")
@@ -372,6 +417,11 @@ class EventReasoner:
             if len(m) != 3 or not isinstance(m[0], str) or not 0 <= m[1] < m[2] <= 24:
                 raise ValueError(f"meals entries must be (label, start_hour, end_hour) with 0 <= start < end <= 24, got {m!r}")
         self.stand_up_from = frozenset(stand_up_from)
+        self.sit_min_change_frac = float(sit_min_change_frac)
+        if not (isinstance(sit_max_change_frac, (int, float)) and sit_min_change_frac < sit_max_change_frac < math.inf):
+            raise ValueError(f"sit_max_change_frac must be a number above sit_min_change_frac, got {sit_max_change_frac!r}")
+        self.sit_max_change_frac = float(sit_max_change_frac)
+        self.posture_hold_ns = _ns(posture_hold_s)
         if not self.stand_up_from <= {"sitting", "lying", "bending"}:
             raise ValueError(f"stand_up_from may hold 'sitting', 'lying', 'bending', got {sorted(self.stand_up_from)}")
         # Validate the dwell settings once, up front.
@@ -407,7 +457,8 @@ class EventReasoner:
         self.inactivity_ns = _ns(inactivity_s)
         self.inactivity_window_s = float(inactivity_window_s)
         self.inactivity_var_m2 = float(inactivity_std_m) ** 2
-        self._buffer_ns = _ns(2 * fall_window_s + fall_confirm_s + 0.5)
+        # The top history serves the fall test and the posture-change test.
+        self._buffer_ns = _ns(max(2 * fall_window_s + fall_confirm_s + 0.5, _CHANGE_BEFORE_S[0] + 2.5))
         self._tracks: dict[int, _TrackState] = {}
         self._last_stamp_ns: int | None = None
         self._first_stamp_ns: int | None = None
@@ -496,7 +547,7 @@ class EventReasoner:
         posture, top_m, centre_m, height_m = self._observe(tr, reading)
         if posture != st.posture:
             st.posture, st.posture_changed_ns = posture, stamp_ns
-        self._posture_events(tid, st, posture, reading, x, y, emit)
+        self._posture_events(tid, st, stamp_ns, posture, reading, x, y, emit)
         self._fall_events(tid, st, stamp_ns, posture, top_m, centre_m, height_m, x, y, emit)
         for ch in st.dwell.update(stamp_ns, x, y):
             emit(ch.kind, tid, ch.x, ch.y, **_dwell_details(ch))
@@ -510,7 +561,7 @@ class EventReasoner:
         top = float(getattr(tr, "z_top_m", float("nan")))
         return posture, top, None, self.standing_height_m
 
-    def _posture_events(self, tid, st, posture, reading, x, y, emit) -> None:
+    def _posture_events(self, tid, st, stamp_ns, posture, reading, x, y, emit) -> None:
         if posture not in ("standing", "sitting", "lying"):
             return
         if posture == "sitting":
@@ -522,15 +573,29 @@ class EventReasoner:
             if not st.sitting_plausible:
                 return
         prev = st.stable_posture
-        st.stable_posture = posture
-        if prev is None or prev == posture:
+        if prev == posture:
             return
+        sit_down = prev == "standing" and posture == "sitting"
+        stand_up = posture == "standing" and prev in self.stand_up_from
         extra = {}
-        if isinstance(reading, PostureReading):
-            extra = dict(posture_since_ns=reading.since_ns, confidence=round(reading.confidence, 3))
-        if prev == "standing" and posture == "sitting":
+        if isinstance(reading, PostureReading) and (sit_down or stand_up):
+            rise = height_change_m([(s[0], s[1]) for s in st.fall.samples], reading.since_ns, reading.stamp_ns,
+                                   before_s=_CHANGE_BEFORE_S,
+                                   before_quantile=0.75 if sit_down else 0.25)
+            need = self.sit_min_change_frac * reading.standing_height_m
+            if rise is None or (rise > -need if sit_down else rise < need):
+                return  # the body kept its height: not a change of posture
+            if "sitting" in (prev, posture) and abs(rise) > self.sit_max_change_frac * reading.standing_height_m:
+                prev = None  # more than a seat explains: the track's blob changed, not the person
+            extra = dict(posture_since_ns=reading.since_ns, confidence=round(reading.confidence, 3),
+                         height_change_m=round(rise, 3))
+        held_ns = stamp_ns - st.stable_since_ns
+        st.stable_posture, st.stable_since_ns = posture, stamp_ns
+        if prev is None or held_ns < self.posture_hold_ns:
+            return
+        if sit_down:
             emit("sit_down", tid, x, y, from_posture=prev, to_posture=posture, **extra)
-        elif posture == "standing" and prev in self.stand_up_from:
+        elif stand_up:
             emit("stand_up", tid, x, y, from_posture=prev, to_posture=posture, **extra)
 
     def _seat_plausible(self, reading: Any, x: float, y: float) -> bool:
@@ -622,6 +687,7 @@ class EventReasoner:
         t_fall = crossing_time(t, z, i, j, 0.5 * (z[i] + z[j]))
         return dict(
             fall_stamp_ns=t0 + int(round(t_fall * 1e9)),
+            drop_start_ns=int(samples[i][0]),
             from_posture=samples[i][3] or "unknown",
             top_before_m=round(float(z[i]), 3),
             top_after_m=round(float(z[j]), 3),
@@ -813,6 +879,7 @@ class _TrackState:
     last_ns: int = 0
     posture: str | None = None
     stable_posture: str | None = None
+    stable_since_ns: int = 0
     fall: _FallState = field(default_factory=_FallState)
     posture_changed_ns: int = 0
     sitting_since_ns: int | None = None

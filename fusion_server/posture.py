@@ -18,14 +18,14 @@ Pipeline per track (:class:`PostureEstimator`):
    the height of the widest layers, and how wide the body is at the floor.
 2. The features are smoothed by a short FIR filter (the seed paper's FIR on
    the posture measurement), :func:`fir_smooth`.
-3. :func:`feature_vector` divides heights by the person's long-term standing
-   height (learnt only while they confidently stand), and
-   :func:`posture_log_likelihoods` scores each internal state
-   (:data:`STATES`: the postures plus shapes such as kneeling or a seated
-   person whose lower legs the carving lost) with a robust diagonal Gaussian
-   model (:class:`PostureModel`).
-4. An HMM forward filter over the states (the online form of the seed's
-   Viterbi recursion over standing/fallen states), summed per reported
+3. :func:`feature_vector` divides heights by a standing height (and scales
+   the low and middle bands to it), and :func:`posture_log_likelihoods`
+   scores each internal state (:data:`STATES`: the postures plus shapes
+   such as kneeling or a seated person whose lower legs the carving lost)
+   with a robust diagonal Gaussian model (:class:`PostureModel`).
+4. An HMM forward filter over pairs (standing height, state) (the online
+   form of the seed's Viterbi recursion over standing/fallen states, with
+   the person's unknown height carried along), summed per reported
    posture, and a minimum duration for any change keep the reported
    posture from flickering.
 
@@ -42,7 +42,7 @@ from __future__ import annotations
 
 import math
 from collections import deque
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Iterable, Protocol, Sequence
 
 import numpy as np
@@ -75,6 +75,9 @@ STATE_POSTURE: tuple[int, ...] = (0, 1, 2, 3, 2, 1, 3, 0)
 _UPRIGHT = np.array([STATE_POSTURE[k] == 0 for k in range(len(STATES))])
 """(len(STATES),) bool: the states of someone standing (how a walking person's body is)."""
 
+_TELLS_HEIGHT = np.array([STATE_POSTURE[k] in (0, 1) for k in range(len(STATES))])
+"""(len(STATES),) bool: the standing and seated states, whose shapes tell a standing height."""
+
 FEATURE_NAMES: tuple[str, ...] = (
     "centre_rel",
     "top_rel",
@@ -86,6 +89,13 @@ FEATURE_NAMES: tuple[str, ...] = (
     "bottom_rel",
 )
 """Entries of :func:`feature_vector`, in order."""
+
+REFERENCE_HEIGHT_M = 1.70
+"""Standing height the low and middle bands are given for: below
+:data:`LOW_BAND_M` and below :data:`MID_BAND_M` for a person this tall,
+scaled in proportion for anyone else."""
+LOW_BAND_M = 0.5
+MID_BAND_M = 1.0
 
 
 class ProfiledTrack(Protocol):
@@ -121,6 +131,12 @@ class PostureFeatures:
         (kneeling) and for lying, 0.2-0.6 for feet and upright shins, 0 for a
         body that does not reach the floor.
     volume_m3: total voxel volume.
+    cumulative: (nz + 1,) float64, fraction of the voxels below each layer
+        edge ``k * voxel_m``; the model reads its low and middle bands from
+        it at heights scaled to the person (:func:`feature_matrix`), so that
+        a child's legs count as legs. ``frac_low`` and ``frac_mid`` are the
+        same bands for a person of :data:`REFERENCE_HEIGHT_M`.
+    voxel_m: layer thickness of ``cumulative``.
     """
 
     top_m: float
@@ -132,6 +148,8 @@ class PostureFeatures:
     widest_m: float
     floor_frac: float
     volume_m3: float
+    cumulative: np.ndarray = field(default_factory=lambda: np.zeros(1), compare=False, repr=False)
+    voxel_m: float = 0.05
 
     @property
     def vertical_m(self) -> float:
@@ -258,42 +276,58 @@ def profile_features(
         widest_m=widest_m,
         floor_frac=floor_frac,
         volume_m3=total * voxel_m**3,
+        cumulative=np.concatenate(([0.0], np.cumsum(counts) / total)),
+        voxel_m=float(voxel_m),
     )
+
+
+def feature_matrix(features: PostureFeatures, standing_heights_m: Sequence[float] | np.ndarray) -> np.ndarray:
+    """(len(standing_heights_m), 8) float64, one :func:`feature_vector` per
+    candidate standing height."""
+    h = np.asarray(standing_heights_m, dtype=np.float64).reshape(-1)
+    if len(h) == 0 or not np.all(h > 0):
+        raise ValueError(f"standing_height_m must be positive, got {standing_heights_m}")
+    vertical = max(features.vertical_m, 1e-3)
+    horizontal = max(features.horizontal_m, 1e-3)
+    cum = np.asarray(features.cumulative, dtype=np.float64)
+    if len(cum) >= 2:
+        edges = np.arange(len(cum)) * features.voxel_m
+        scale = h / REFERENCE_HEIGHT_M
+        low = np.interp(LOW_BAND_M * scale, edges, cum)
+        mid = np.interp(MID_BAND_M * scale, edges, cum) - low
+    else:  # features built by hand, without a profile: the bands as measured
+        low = np.full(len(h), features.frac_low)
+        mid = np.full(len(h), features.frac_mid)
+    out = np.empty((len(h), len(FEATURE_NAMES)), dtype=np.float64)
+    out[:, 0] = features.centre_m / h
+    out[:, 1] = features.top_m / h
+    out[:, 2] = low
+    out[:, 3] = mid
+    out[:, 4] = math.log(vertical / horizontal)
+    out[:, 5] = features.widest_m / h
+    out[:, 6] = features.floor_frac
+    out[:, 7] = features.bottom_m / h
+    return out
 
 
 def feature_vector(features: PostureFeatures, standing_height_m: float) -> np.ndarray:
-    """(8,) float64 in :data:`FEATURE_NAMES` order; heights are divided by the
-    person's standing height."""
+    """(8,) float64 in :data:`FEATURE_NAMES` order: heights divided by the
+    person's standing height, the low and middle bands scaled to it."""
     if not standing_height_m > 0:
         raise ValueError(f"standing_height_m must be positive, got {standing_height_m}")
-    h = float(standing_height_m)
-    vertical = max(features.vertical_m, 1e-3)
-    horizontal = max(features.horizontal_m, 1e-3)
-    return np.array(
-        [
-            features.centre_m / h,
-            features.top_m / h,
-            features.frac_low,
-            features.frac_mid,
-            math.log(vertical / horizontal),
-            features.widest_m / h,
-            features.floor_frac,
-            features.bottom_m / h,
-        ],
-        dtype=np.float64,
-    )
+    return feature_matrix(features, [standing_height_m])[0]
 
 
 def posture_log_likelihoods(vector: np.ndarray, model: PostureModel | None = None) -> np.ndarray:
-    """(8,) float64 log-likelihood of each state (:data:`STATES` order) for one
-    (8,) feature vector, up to a shared constant."""
+    """Log-likelihood of each state (:data:`STATES` order), up to a shared
+    constant: (8,) for one (8,) feature vector, (n, 8) for (n, 8) vectors."""
     model = model or default_model()
     v = np.asarray(vector, dtype=np.float64)
-    if v.shape != (len(FEATURE_NAMES),):
-        raise ValueError(f"feature vector must have shape ({len(FEATURE_NAMES)},), got {v.shape}")
-    cost = 0.5 * ((v[None, :] - model.mean) / model.sigma) ** 2
+    if v.shape[-1:] != (len(FEATURE_NAMES),) or v.ndim > 2:
+        raise ValueError(f"feature vector must have shape ({len(FEATURE_NAMES)},) or (n, {len(FEATURE_NAMES)}), got {v.shape}")
+    cost = 0.5 * ((v[..., None, :] - model.mean) / model.sigma) ** 2
     cost = np.minimum(cost, model.clip)
-    return -(cost * model.weight[None, :]).sum(axis=1)
+    return -(cost * model.weight).sum(axis=-1)
 
 
 def classify(features: PostureFeatures, standing_height_m: float, model: PostureModel | None = None) -> str:
@@ -355,10 +389,42 @@ class PostureReading:
 class PostureEstimator:
     """Posture of one tracked person over time.
 
+    The person's standing height is not known in advance (an adult seen
+    seated first, a child among adults), and every height feature is read
+    relative to it. So the estimator keeps a belief over a grid of standing
+    heights, every ``height_step_m`` over ``height_limits_m``, beside the
+    HMM over :data:`STATES`. The heights start from a population prior (most
+    people an adult near ``standing_height_m``, anyone in the limits
+    possible). Each frame the states are scored at every height and summed
+    under the height belief, and the heights are scored by how well a
+    standing or seated state explains the frame at that height (summed over
+    those states with equal weight: the posture belief would argue in a
+    circle). Only those shapes tell a height (the top of a standing body is
+    its height, a seated one's is seat plus trunk); a lying or bending body
+    does not, and read relative to a larger height it only looks flatter,
+    so a frame counts for the heights in proportion to the filter's belief
+    that the person stands or sits. A frame counts for the heights at most
+    ``height_evidence_weight`` as much as for the posture, and by at most
+    ``height_evidence_cap`` nats between any two heights, because a body's
+    height is the same frame after frame while shapes the model does not
+    know (getting up through the knees, two people touching) would
+    otherwise throw it around in a single frame. So a still child reads
+    standing at their own height within a second, a seated adult's lap and
+    mass centre tell their height too, and walking (upright) pins it from
+    the top. The reported standing height is the belief's mean.
+
     Keyword arguments (all validated, ValueError names the bad one):
 
     voxel_m: layer thickness of the height profiles, metres.
-    standing_height_m: prior standing height before any is learnt, metres.
+    standing_height_m, height_sigma_m: the adult part of the height prior,
+        a normal of this mean and spread, metres.
+    anyone_weight: the part of the prior spread evenly over
+        ``height_limits_m`` (children, very tall or short adults).
+    height_limits_m, height_step_m: the grid of candidate standing heights.
+    height_evidence_weight, height_evidence_cap: see above.
+    relearn_time_s: time constant with which the height belief drifts back
+        towards the prior (a track that changes person, a bad first
+        impression); the evidence of each frame holds it where it is.
     fir_taps: FIR weights over the newest samples, newest last (default 5
         uniform taps: a third of a second at 15 fps).
     switch_rate_hz: prior rate of posture changes for the HMM transition
@@ -367,21 +433,12 @@ class PostureEstimator:
         correlated, so their naive sum is over-confident).
     min_duration_s: a new posture must lead the filter this long before it is
         reported.
-    learn_min_prob: standing probability above which the standing height is
-        updated (the frame on its own must also read standing); learn_time_constant_s: its exponential time constant;
-        learn_prior_frames: weight of the prior height, in frames, while
-        the first samples arrive.
-    height_limits_m: the standing height estimate stays in this range
-        (children from 1.0 m, tall adults).
     walking_speed_mps, walking_log_odds: a person whose floor speed is at
         least this walks, and walking is done upright: the upright states
         (standing, and standing with the legs hidden) gain this much
-        log-likelihood over the others, and the standing height is learnt
-        from the top while walking whatever the shape reads. Without it a
-        child or a short adult, whose top is far under the prior height,
-        reads sitting or bending until they happen to read standing, which
-        they never do. 0.5 m/s is well under a walk (0.8-1.4 m/s, children
-        too) and well over the jitter of a still person's estimate.
+        log-likelihood over the others. 0.5 m/s is well under a walk
+        (0.8-1.4 m/s, children too) and well over the jitter of a still
+        person's estimate.
     model: the :class:`PostureModel` (default :func:`default_model`).
     """
 
@@ -390,14 +447,17 @@ class PostureEstimator:
         *,
         voxel_m: float,
         standing_height_m: float = 1.70,
+        height_sigma_m: float = 0.10,
+        anyone_weight: float = 0.15,
+        height_limits_m: tuple[float, float] = (0.9, 2.2),
+        height_step_m: float = 0.05,
+        height_evidence_weight: float = 0.3,
+        height_evidence_cap: float = 3.0,
+        relearn_time_s: float = 60.0,
         fir_taps: Sequence[float] | None = None,
         switch_rate_hz: float = 0.5,
         evidence_weight: float = 0.5,
         min_duration_s: float = 0.4,
-        learn_min_prob: float = 0.9,
-        learn_time_constant_s: float = 10.0,
-        learn_prior_frames: int = 15,
-        height_limits_m: tuple[float, float] = (0.9, 2.2),
         walking_speed_mps: float = 0.5,
         walking_log_odds: float = 4.0,
         model: PostureModel | None = None,
@@ -409,6 +469,18 @@ class PostureEstimator:
             raise ValueError(f"height_limits_m must be 0 < low < high, got {height_limits_m}")
         if not lo <= standing_height_m <= hi:
             raise ValueError(f"standing_height_m {standing_height_m} must lie in height_limits_m {height_limits_m}")
+        if not height_sigma_m > 0:
+            raise ValueError(f"height_sigma_m must be positive, got {height_sigma_m}")
+        if not 0 <= anyone_weight <= 1:
+            raise ValueError(f"anyone_weight must lie in [0, 1], got {anyone_weight}")
+        if not 0 < height_step_m <= hi - lo:
+            raise ValueError(f"height_step_m must be positive and at most the limits' span, got {height_step_m}")
+        if not 0 < height_evidence_weight <= 1:
+            raise ValueError(f"height_evidence_weight must lie in (0, 1], got {height_evidence_weight}")
+        if not height_evidence_cap > 0:
+            raise ValueError(f"height_evidence_cap must be positive, got {height_evidence_cap}")
+        if not relearn_time_s > 0:
+            raise ValueError(f"relearn_time_s must be positive, got {relearn_time_s}")
         taps = np.ones(5) if fir_taps is None else np.asarray(fir_taps, dtype=np.float64)
         if taps.ndim != 1 or len(taps) == 0 or np.any(taps < 0) or not taps.sum() > 0:
             raise ValueError("fir_taps must be a non-empty list of non-negative weights with a positive sum")
@@ -418,31 +490,27 @@ class PostureEstimator:
             raise ValueError(f"evidence_weight must be positive, got {evidence_weight}")
         if not min_duration_s >= 0:
             raise ValueError(f"min_duration_s must be >= 0, got {min_duration_s}")
-        if not 0 < learn_min_prob < 1:
-            raise ValueError(f"learn_min_prob must lie in (0, 1), got {learn_min_prob}")
-        if not learn_time_constant_s > 0:
-            raise ValueError(f"learn_time_constant_s must be positive, got {learn_time_constant_s}")
-        if learn_prior_frames < 0:
-            raise ValueError(f"learn_prior_frames must be >= 0, got {learn_prior_frames}")
         if not walking_speed_mps > 0:
             raise ValueError(f"walking_speed_mps must be positive, got {walking_speed_mps}")
         if not walking_log_odds >= 0:
             raise ValueError(f"walking_log_odds must be >= 0, got {walking_log_odds}")
-        self.walking_speed_mps = float(walking_speed_mps)
-        self.walking_log_odds = float(walking_log_odds)
         self.voxel_m = float(voxel_m)
         self.height_limits_m = (lo, hi)
+        self.heights_m = np.arange(lo, hi + 0.5 * height_step_m, height_step_m)
+        adult = np.exp(-0.5 * ((self.heights_m - standing_height_m) / height_sigma_m) ** 2)
+        self.height_prior = (1.0 - anyone_weight) * adult / adult.sum() + anyone_weight / len(self.heights_m)
+        self.height_evidence_weight = float(height_evidence_weight)
+        self.height_evidence_cap = float(height_evidence_cap)
+        self.relearn_time_s = float(relearn_time_s)
         self.taps = taps
         self.switch_rate_hz = float(switch_rate_hz)
         self.evidence_weight = float(evidence_weight)
         self.min_duration_ns = int(round(min_duration_s * 1e9))
-        self.learn_min_prob = float(learn_min_prob)
-        self.learn_time_constant_s = float(learn_time_constant_s)
-        self.learn_prior_frames = int(learn_prior_frames)
+        self.walking_speed_mps = float(walking_speed_mps)
+        self.walking_log_odds = float(walking_log_odds)
         self.model = model or default_model()
-        self.standing_height_m = float(standing_height_m)
-        self.standing_samples = 0
-        self._history: deque[np.ndarray] = deque(maxlen=len(taps))
+        self.height_posterior = self.height_prior.copy()
+        self._history: deque[tuple[np.ndarray, np.ndarray]] = deque(maxlen=len(taps))
         self._log_alpha: np.ndarray | None = None
         self._last_stamp_ns: int | None = None
         self._reported: int | None = None
@@ -450,6 +518,11 @@ class PostureEstimator:
         self._candidate: int | None = None
         self._candidate_ns = 0
         self._last: PostureReading | None = None
+
+    @property
+    def standing_height_m(self) -> float:
+        """The person's standing height: the posterior mean over the candidate heights."""
+        return float(self.height_posterior @ self.heights_m)
 
     @property
     def last(self) -> PostureReading | None:
@@ -474,20 +547,27 @@ class PostureEstimator:
             return self._last
         dt_s = 0.0 if self._last_stamp_ns is None else (stamp_ns - self._last_stamp_ns) * 1e-9
         self._last_stamp_ns = stamp_ns
-        self._history.append(_as_array(raw))
-        smoothed = _from_array(fir_smooth(np.stack(self._history), self.taps))
-        ll = self.evidence_weight * posture_log_likelihoods(
-            feature_vector(smoothed, self.standing_height_m), self.model
+        if self._history and len(self._history[-1][1]) != len(raw.cumulative):
+            self._history.clear()
+        self._history.append((_as_array(raw), raw.cumulative))
+        smoothed = _from_array(
+            fir_smooth(np.stack([h[0] for h in self._history]), self.taps),
+            fir_smooth(np.stack([h[1] for h in self._history]), self.taps),
+            self.voxel_m,
         )
-        walking = float(speed_mps) >= self.walking_speed_mps
-        if walking:
+        ll = self.evidence_weight * posture_log_likelihoods(feature_matrix(smoothed, self.heights_m), self.model)
+        if float(speed_mps) >= self.walking_speed_mps:
             ll = ll + np.where(_UPRIGHT, self.walking_log_odds, 0.0)
-        self._log_alpha = _forward_step(self._log_alpha, ll, self.switch_rate_hz, dt_s)
+        top = ll.max()
+        like = np.exp(ll - top)  # (H, S)
+        self._log_alpha = _forward_step(
+            self._log_alpha, np.log(np.maximum(self.height_posterior @ like, 1e-300)) + top, self.switch_rate_hz, dt_s
+        )
         state_prob = np.exp(self._log_alpha)
+        telling = float(state_prob[_TELLS_HEIGHT].sum())
+        self._learn_height(np.log(np.maximum(like[:, _TELLS_HEIGHT].sum(axis=1), 1e-300)), telling, dt_s)
         prob = np.bincount(STATE_POSTURE, weights=state_prob, minlength=len(POSTURES))
-        best = int(np.argmax(prob))
-        self._debounce(best, stamp_ns)
-        self._learn_height(prob, raw, dt_s, walking)
+        self._debounce(int(np.argmax(prob)), stamp_ns)
         self._last = PostureReading(
             posture=POSTURES[self._reported],
             since_ns=self._since_ns,
@@ -499,6 +579,15 @@ class PostureEstimator:
             state=STATES[int(np.argmax(state_prob))],
         )
         return self._last
+
+    def _learn_height(self, evidence: np.ndarray, weight: float, dt_s: float) -> None:
+        """Update the height belief with one frame's (H,) log evidence, counted
+        ``weight`` (0-1) of a full frame (see the class docstring)."""
+        evidence = np.maximum(evidence - evidence.max(), -self.height_evidence_cap)
+        post = self.height_posterior * np.exp(weight * self.height_evidence_weight * evidence)
+        post /= post.sum()
+        drift = 1.0 - math.exp(-max(dt_s, 0.0) / self.relearn_time_s)
+        self.height_posterior = (1.0 - drift) * post + drift * self.height_prior
 
     def _debounce(self, best: int, stamp_ns: int) -> None:
         if self._reported is None:
@@ -513,21 +602,6 @@ class PostureEstimator:
         if stamp_ns - self._candidate_ns >= self.min_duration_ns:
             self._reported, self._since_ns = best, self._candidate_ns
             self._candidate = None
-
-    def _learn_height(self, prob: np.ndarray, raw: PostureFeatures, dt_s: float, walking: bool) -> None:
-        standing = POSTURES.index("standing")
-        if not walking:
-            if self._reported != standing or prob[standing] < self.learn_min_prob:
-                return
-            # The filter lags a change by a few frames: this frame on its own must read standing too.
-            if classify(raw, self.standing_height_m, self.model) != "standing":
-                return
-        self.standing_samples += 1
-        rate = dt_s / self.learn_time_constant_s if dt_s > 0 else 0.0
-        alpha = max(1.0 / (self.learn_prior_frames + self.standing_samples), min(rate, 1.0))
-        lo, hi = self.height_limits_m
-        target = min(max(raw.top_m, lo), hi)
-        self.standing_height_m += alpha * (target - self.standing_height_m)
 
 
 class PostureBank:
@@ -582,8 +656,8 @@ def _as_array(f: PostureFeatures) -> np.ndarray:
     return np.array([getattr(f, n) for n in _FIELDS], dtype=np.float64)
 
 
-def _from_array(a: np.ndarray) -> PostureFeatures:
-    return PostureFeatures(**{n: float(v) for n, v in zip(_FIELDS, a)})
+def _from_array(a: np.ndarray, cumulative: np.ndarray, voxel_m: float) -> PostureFeatures:
+    return PostureFeatures(**{n: float(v) for n, v in zip(_FIELDS, a)}, cumulative=cumulative, voxel_m=voxel_m)
 
 
 def _bottom_layer(occupied: np.ndarray, centre_m: float, voxel_m: float, max_gap_m: float) -> int:
@@ -602,13 +676,12 @@ def _forward_step(log_alpha: np.ndarray | None, log_lik: np.ndarray, rate_hz: fl
     """One normalised HMM forward step in the log domain; (S,) -> (S,)."""
     n = len(log_lik)
     if log_alpha is None:
-        post = log_lik - np.log(np.exp(log_lik - log_lik.max()).sum()) - log_lik.max()
-        return post
-    switch = 1.0 - math.exp(-rate_hz * max(dt_s, 0.0))
-    switch = min(max(switch, 1e-6), 1.0 - 1.0 / n)
-    trans = np.full((n, n), switch / (n - 1))
-    np.fill_diagonal(trans, 1.0 - switch)
-    prior = np.exp(log_alpha) @ trans
-    post = np.log(np.maximum(prior, 1e-300)) + log_lik
+        post = log_lik
+    else:
+        switch = 1.0 - math.exp(-rate_hz * max(dt_s, 0.0))
+        switch = min(max(switch, 1e-6), 1.0 - 1.0 / n)
+        trans = np.full((n, n), switch / (n - 1))
+        np.fill_diagonal(trans, 1.0 - switch)
+        post = np.log(np.maximum(np.exp(log_alpha) @ trans, 1e-300)) + log_lik
     m = post.max()
     return post - (m + math.log(np.exp(post - m).sum()))

@@ -18,6 +18,7 @@ from fusion_server.events import (
     detect_fast_drop,
     drop_is_physical,
     event_id,
+    height_change_m,
     local_hour,
     time_of_day_label,
 )
@@ -290,9 +291,41 @@ def test_sit_down_and_stand_up_without_fall():
     assert kinds(events) == ["sit_down", "stand_up"]
     sit, stand = events
     assert 4.0 <= t_s(sit.stamp_ns) <= 4.0 + 1.5  # movement ends at 4 s
-    assert 11.0 <= t_s(stand.stamp_ns) <= 11.0 + 1.5  # movement ends at 11 s
+    # movement ends at 11 s; the body is mostly up, and reads standing, up to half a second before
+    assert 11.0 - 0.5 <= t_s(stand.stamp_ns) <= 11.0 + 1.5
     assert sit.details["from_posture"] == "standing" and sit.details["to_posture"] == "sitting"
     assert stand.details["from_posture"] == "sitting"
+
+
+def test_a_posture_flip_at_constant_height_is_no_sit_or_stand():
+    # Seated, the carve turns for 4 s into the shape of someone standing whose
+    # top is the seated top (legs carved whole under the seat): the reading
+    # flips to standing and back, the body's top never moves.
+    top_sit = (np.nonzero(SIT)[0].max() + 1) * VOXEL_M
+    upright_at_seat_top = body_profile("standing", height_m=top_sit)
+    p = Person(2).hold(3.0, STAND, xy=(1.0, 1.0))
+    p.move(1.0, lambda f: body_profile(blend("standing", "sitting", f))).hold(4.0, SIT)
+    p.hold(4.0, upright_at_seat_top).hold(3.0, SIT)
+    events = run([p], EventReasoner())
+    assert kinds(events) == ["sit_down"]
+    assert events[0].details["height_change_m"] == pytest.approx(-0.45, abs=0.051)
+    # without the height test the flips are a stand_up and a second sit_down
+    loose = run([p], EventReasoner(sit_min_change_frac=0.0, sit_max_change_frac=5.0))
+    assert kinds(loose) == ["sit_down", "stand_up", "sit_down"]
+
+
+def test_height_change_reads_the_posture_held_before_the_switch():
+    s = 1_000_000_000
+    # top 1.7 m until 3 s, coming down to 1.2 m by 4 s, the filter switching at 4.5 s
+    samples = [(k * s // 10, 1.7 if k <= 30 else max(1.2, 1.7 - 0.05 * (k - 30))) for k in range(0, 61)]
+    # 0.3-4.2 s before the switch: 28 samples at 1.7 m and 12 coming down; since it, all at 1.2 m
+    assert height_change_m(samples, 45 * s // 10, 6 * s, before_s=(4.2, 0.3)) == pytest.approx(-0.5)
+    assert height_change_m(samples, 45 * s // 10, 6 * s, before_s=(4.2, 0.3), before_quantile=0.75) == pytest.approx(-0.5)
+    # 0.3-1.5 s before: 1.7, 1.65 ... 1.25, 1.2 x3 (13 samples): median 1.4, upper quartile 1.55
+    assert height_change_m(samples, 45 * s // 10, 6 * s, before_s=(1.5, 0.3)) == pytest.approx(-0.2)
+    assert height_change_m(samples, 45 * s // 10, 6 * s, before_s=(1.5, 0.3), before_quantile=0.75) == pytest.approx(-0.35)
+    assert height_change_m(samples, 1 * s // 10, 6 * s, before_s=(4.0, 0.3)) is None  # nothing before
+    assert height_change_m(samples, 7 * s, 8 * s, before_s=(4.0, 0.3)) is None  # nothing since
 
 
 def _hidden_below(profile: np.ndarray, height_m: float) -> np.ndarray:
@@ -526,6 +559,10 @@ def test_bad_frames_and_tracks_are_counted_and_dropped():
         (dict(fall_max_accel_mps2=0), "fall_max_accel_mps2"),
         (dict(fall_height_tol_m=-0.1), "fall_height_tol_m"),
         (dict(fall_history_s=float("inf")), "fall_history_s"),
+        (dict(sit_min_change_frac=-0.1), "sit_min_change_frac"),
+        (dict(sit_max_change_frac=0.05), "sit_max_change_frac"),
+        (dict(sit_max_change_frac="big"), "sit_max_change_frac"),
+        (dict(posture_hold_s=float("nan")), "posture_hold_s"),
         (dict(long_lie_s=float("nan")), "long_lie_s"),
         (dict(low_top_frac=1.5), "low_top_frac"),
         (dict(bounds_xy_m=(0, 0, -1, 5)), "bounds_xy_m"),
@@ -545,9 +582,19 @@ def test_reasoner_validation(kwargs, name):
 def test_posture_names_may_replace_readings():
     r = EventReasoner()
     out = []
-    for k, post in enumerate(["standing"] * 15 + ["sitting"] * 5):
+    for k, post in enumerate(["standing"] * 45 + ["sitting"] * 5):
         out += r.step(k * FRAME_NS, k, [Est(1, 1.0, 1.0, STAND)], {1: post})
     assert kinds(out) == ["sit_down"]
+
+
+def test_a_posture_held_briefly_gives_no_event():
+    # Standing for 1 s (under posture_hold_s = 2 s) after the track's first
+    # reading, then sitting: the first readings of a body still being carved.
+    r = EventReasoner()
+    out = []
+    for k, post in enumerate(["standing"] * 15 + ["sitting"] * 45 + ["standing"] * 5):
+        out += r.step(k * FRAME_NS, k, [Est(1, 1.0, 1.0, STAND)], {1: post})
+    assert kinds(out) == ["stand_up"]  # sat 3 s: standing up from it counts
     assert NZ * VOXEL_M == pytest.approx(2.5)
 
 
