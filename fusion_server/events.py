@@ -44,7 +44,8 @@ brackets):
     of the standing height to sit, up as much to stand (an adult's seated top
     is 0.2-0.3 of it lower, a child's on an adult's chair about 0.12); a
     posture that flips while the body keeps its height is the reading
-    changing its mind, not the person, and the posture held before stands.
+    changing its mind, not the person, and the posture held before stands
+    (postures given as bare names carry no height and skip this test).
     Between sitting and standing the top moves at most
     ``sit_max_change_frac`` [0.65] of the standing height (sitting on the
     floor is about half of it): a track whose top jumped more took over

@@ -18,16 +18,16 @@ Pipeline per track (:class:`PostureEstimator`):
    the height of the widest layers, and how wide the body is at the floor.
 2. The features are smoothed by a short FIR filter (the seed paper's FIR on
    the posture measurement), :func:`fir_smooth`.
-3. :func:`feature_vector` divides heights by a standing height (and scales
-   the low and middle bands to it), and :func:`posture_log_likelihoods`
-   scores each internal state (:data:`STATES`: the postures plus shapes
+3. :func:`feature_matrix` divides heights by each candidate standing
+   height (and scales the low and middle bands to it), and
+   :func:`posture_log_likelihoods` scores each internal state (:data:`STATES`: the postures plus shapes
    such as kneeling or a seated person whose lower legs the carving lost)
    with a robust diagonal Gaussian model (:class:`PostureModel`).
-4. An HMM forward filter over pairs (standing height, state) (the online
-   form of the seed's Viterbi recursion over standing/fallen states, with
-   the person's unknown height carried along), summed per reported
-   posture, and a minimum duration for any change keep the reported
-   posture from flickering.
+4. An HMM forward filter over the states (the online form of the seed's
+   Viterbi recursion over standing/fallen states), each frame's
+   likelihoods summed under a belief over the person's standing height
+   that is learnt beside it, summed per reported posture, and a minimum
+   duration for any change keep the reported posture from flickering.
 
 Postures: ``standing``, ``sitting``, ``bending`` and ``lying``. Kneeling
 reads ``bending`` (the project's ground truth labels it so; the seed paper:
@@ -409,7 +409,7 @@ class PostureEstimator:
     height is the same frame after frame while shapes the model does not
     know (getting up through the knees, two people touching) would
     otherwise throw it around in a single frame. So a still child reads
-    standing at their own height within a second, a seated adult's lap and
+    standing at their own height within two seconds, a seated adult's lap and
     mass centre tell their height too, and walking (upright) pins it from
     the top. The reported standing height is the belief's mean.
 
