@@ -28,7 +28,10 @@ brackets):
     track must have read standing or sitting for ``fall_history_s`` [0.5 s]
     in all since its first frame (a person walks or sits before they fall;
     hull volume by a wall that reads lying from its first frame has no such
-    history). Sitting down,
+    history). The top is followed from the track's first frame, so that
+    someone who falls while their track is still being established (at
+    start-up, or found late in a crowd) falls from the height seen before,
+    and is reported once the track is established. Sitting down,
     kneeling, bending and squatting never end low enough; lying down slowly
     is not fast enough (it may become a ``long_lie``).
 ``long_lie``
@@ -543,9 +546,16 @@ class EventReasoner:
             self._departed(tid, st, emit)
         if confirmed:
             st.present_xy, st.present_ns = (x, y), stamp_ns
+        posture, top_m, centre_m, height_m = self._observe(tr, reading)
+        if math.isfinite(top_m):
+            # from the track's first frame: someone who falls while the track is still being
+            # established (at start-up, or found late in a crowd) fell from the height seen before
+            fs = st.fall
+            fs.samples.append((stamp_ns, top_m, centre_m, posture))
+            while fs.samples and fs.samples[0][0] < stamp_ns - self._buffer_ns:
+                fs.samples.popleft()
         if not st.present and (st.exited or not st.confirmed_once):
             return  # not (yet) a person, or gone through a door: nothing to reason about
-        posture, top_m, centre_m, height_m = self._observe(tr, reading)
         if posture != st.posture:
             st.posture, st.posture_changed_ns = posture, stamp_ns
         self._posture_events(tid, st, stamp_ns, posture, reading, x, y, emit)
@@ -612,9 +622,6 @@ class EventReasoner:
         if not math.isfinite(top_m):
             return
         fs = st.fall
-        fs.samples.append((stamp_ns, top_m, centre_m, posture))
-        while fs.samples and fs.samples[0][0] < stamp_ns - self._buffer_ns:
-            fs.samples.popleft()
         # A median over the last three frames keeps one bad carve from toggling "low".
         recent = [fs.samples[-k] for k in range(1, min(3, len(fs.samples)) + 1)]
         top_med = _median([s[1] for s in recent])

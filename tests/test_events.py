@@ -81,14 +81,16 @@ class Person:
         self.frames += [(xy[0], xy[1], profile, confirmed)] * int(round(seconds * FPS))
         return self
 
-    def move(self, seconds: float, profiles, xy_to=None):
-        """``profiles(f)`` gives the profile a fraction f in (0, 1] through the movement."""
+    def move(self, seconds: float, profiles, xy_to=None, path=lambda f: f):
+        """``profiles(f)`` gives the profile a fraction f in (0, 1] through the movement; the floor
+        position is ``path(f)`` of the way to ``xy_to``."""
         n = int(round(seconds * FPS))
         x0, y0 = self._xy()
         x1, y1 = xy_to or (x0, y0)
         for i in range(n):
             f = (i + 1) / n
-            self.frames.append((x0 + f * (x1 - x0), y0 + f * (y1 - y0), profiles(f), True))
+            g = path(f)
+            self.frames.append((x0 + g * (x1 - x0), y0 + g * (y1 - y0), profiles(f), True))
         return self
 
     def walk(self, xy_to, speed_mps: float = 1.0, profile=STAND):
@@ -178,6 +180,12 @@ def test_event_record_round_trip_and_wire_model():
 # --------------------------------------------------------------------------- falls
 
 
+def _toppling(f: float) -> float:
+    """How far along the floor a toppling body's centre has gone, a fraction f through the fall
+    (the sine of the tilt of :func:`_fall_profiles`)."""
+    return math.sin(0.5 * math.pi * f * f)
+
+
 def _fall_profiles(start="standing", lift=0.0):
     def prof(f):
         # accelerating tilt about the feet, the body straightening out on the way down
@@ -189,7 +197,9 @@ def _fall_profiles(start="standing", lift=0.0):
 
 def test_fall_from_standing_is_one_fall_with_the_right_time_then_a_long_lie():
     fall_start_s, fall_s = 3.0, 0.8
-    p = Person(1).hold(fall_start_s, STAND, xy=(3.0, 3.0)).move(fall_s, _fall_profiles()).hold(65.0, LIE)
+    # toppling, the body's floor centre moves from the feet to about half its height away
+    p = Person(1).hold(fall_start_s, STAND, xy=(3.0, 3.0))
+    p.move(fall_s, _fall_profiles(), (3.8, 3.0), _toppling).hold(65.0, LIE)
     events = run([p], EventReasoner(long_lie_s=60.0, stand_up_from=("sitting",)))
     falls = kinds(events, "fall")
     assert len(falls) == 1
@@ -202,7 +212,7 @@ def test_fall_from_standing_is_one_fall_with_the_right_time_then_a_long_lie():
     assert 0 < t_s(fall.stamp_ns) - landed <= 1.5
     assert fall.details["from_posture"] == "standing"
     assert fall.details["drop_m"] > 1.0 and fall.details["drop_speed_mps"] >= 0.8
-    assert (fall.x, fall.y) == (3.0, 3.0) and fall.track == 1
+    assert (fall.x, fall.y) == (3.8, 3.0) and fall.track == 1
     lies = kinds(events, "long_lie")
     assert len(lies) == 1 and lies[0].details["after_fall"] is True
     assert t_s(lies[0].stamp_ns) - fall_at == pytest.approx(60.0, abs=2 / FPS)
@@ -210,7 +220,7 @@ def test_fall_from_standing_is_one_fall_with_the_right_time_then_a_long_lie():
 
 
 def test_getting_up_after_a_fall_is_a_stand_up_and_default_long_lie_is_30_s():
-    p = Person(8).hold(2.0, STAND, xy=(3.0, 3.0)).move(0.8, _fall_profiles()).hold(35.0, LIE)
+    p = Person(8).hold(2.0, STAND, xy=(3.0, 3.0)).move(0.8, _fall_profiles(), (3.0, 3.7), _toppling).hold(35.0, LIE)
     p.move(2.0, lambda f: body_profile("kneeling", tilt_deg=90 * (1 - f)))  # up onto the knees
     p.move(2.0, lambda f: body_profile(blend("kneeling", "standing", f))).hold(3.0, STAND)
     events = run([p], EventReasoner())
@@ -244,7 +254,7 @@ def test_a_drop_faster_than_a_falling_body_is_not_physical():
 def test_a_top_jumping_to_the_floor_raises_no_fall():
     """A standing person whose track takes over a fragment of their legs for a few frames (holes in
     the masks cut the body): the top falls 1.2 m between two frames, then the legs stay low."""
-    p = Person(3).hold(3.0, STAND, xy=(2.0, 2.0)).hold(5.0, LIE)
+    p = Person(3).hold(3.0, STAND, xy=(2.0, 2.0)).hold(5.0, LIE, xy=(2.7, 2.0))
     assert kinds(run([p], EventReasoner()), "fall") == []
     # without the bound on speed the same frames read as a fall
     assert len(kinds(run([p], EventReasoner(fall_max_accel_mps2=1e6)), "fall")) == 1
@@ -266,8 +276,9 @@ def test_only_someone_who_was_upright_falls():
 
     def falls(seq, **kw):
         r, out = EventReasoner(**kw), []
-        for k, (post, top) in enumerate(seq):
-            out += r.step(k * FRAME_NS, k, [Est(1, 1.0, 1.0, column(top))], {1: post})
+        for k, (post, top) in enumerate(seq):  # the body moves 0.7 m along the floor as it comes down
+            x = 1.0 + 0.7 * min(1.0, max(0, k - 29) / 6)
+            out += r.step(k * FRAME_NS, k, [Est(1, x, 1.0, column(top))], {1: post})
         return kinds(out, "fall")
 
     assert falls(frames("bending", 1.2)) == []
@@ -275,8 +286,19 @@ def test_only_someone_who_was_upright_falls():
     assert len(falls(frames("standing", 1.7))) == 1
 
 
+def test_a_fall_before_the_track_is_established_is_a_fall():
+    """Someone who falls within their track's first second (at start-up, or found late): the drop
+    happened before the track was established, and counts once it is."""
+    p = Person(1).hold(0.6, STAND, xy=(2.0, 2.0)).move(0.8, _fall_profiles(), (2.7, 2.0), _toppling)
+    p.hold(4.0, LIE)
+    falls = kinds(run([p], EventReasoner(establish_s=1.5)), "fall")
+    assert len(falls) == 1
+    assert 0.6 < t_s(falls[0].details["fall_stamp_ns"]) < 1.4
+
+
 def test_fall_from_a_chair_is_a_fall():
-    p = Person(4).hold(3.0, SIT, xy=(2.0, 2.0)).move(0.7, _fall_profiles("sitting")).hold(5.0, LIE)
+    p = Person(4).hold(3.0, SIT, xy=(2.0, 2.0)).move(0.7, _fall_profiles("sitting"), (2.5, 2.3), _toppling)
+    p.hold(5.0, LIE)
     events = run([p], EventReasoner())
     falls = kinds(events, "fall")
     assert len(falls) == 1 and falls[0].details["from_posture"] == "sitting"
@@ -515,8 +537,8 @@ def test_inactivity_while_seated_still_but_not_in_bed():
 def test_same_inputs_same_events_and_unique_ids():
     def scene():
         p = Person(1).absent(1.5).hold(0.5, xy=(0.2, 2.5)).walk((5.0, 0.5)).hold(15.0, SIT)
-        p.move(1.0, lambda f: body_profile(blend("sitting", "standing", f))).hold(2.0).move(0.8, _fall_profiles())
-        p.hold(3.0, LIE)
+        p.move(1.0, lambda f: body_profile(blend("sitting", "standing", f))).hold(2.0)
+        p.move(0.8, _fall_profiles(), (5.0, 1.3), _toppling).hold(3.0, LIE)
         return [p] + _table_guests(2, 25.0)
 
     cfg = dict(hotspots=[SOFA, TABLE], doors=[DOOR], residents=1, visit_min_s=20.0, dwell_window_s=5.0)
