@@ -157,6 +157,19 @@ def _side_by_side() -> ScenarioSpec:
     )
 
 
+def _three_abreast() -> ScenarioSpec:
+    return ScenarioSpec(
+        "three_abreast",
+        "Three people walk abreast, shoulder to shoulder (0.5 m between centres), stop, and walk back.", 30.0,
+        tuple(
+            PersonScript(k + 1, (Walk(((6.8, y),), 1.0), Stand(4.0), Walk(((1.0, y),), 1.0)),
+                         start=(1.0, y, 0.0), speed_jitter=False)
+            for k, y in enumerate((4.7, 4.2, 3.7))
+        ),
+        residents=3,
+    )
+
+
 def _dinner_visit() -> ScenarioSpec:
     return ScenarioSpec(
         "dinner_visit", "The resident cooks; a visitor arrives before seven and they have dinner at the table.",
@@ -262,6 +275,7 @@ SCENARIOS: dict[str, Callable[[], ScenarioSpec]] = {
     "hotspot_dwell": _hotspot_dwell,
     "two_pass": _two_pass,
     "side_by_side": _side_by_side,
+    "three_abreast": _three_abreast,
     "dinner_visit": _dinner_visit,
     "four_people": _four_people,
     "lights": _lights,
