@@ -170,6 +170,19 @@ def _three_abreast() -> ScenarioSpec:
     )
 
 
+def _child_beside_adult() -> ScenarioSpec:
+    return ScenarioSpec(
+        "child_beside_adult",
+        "A child (1.1 m) walks beside an adult (1.8 m), 0.5 m between centres, stops, and walks back.", 30.0,
+        tuple(
+            PersonScript(k + 1, (Walk(((6.8, y),), 1.0), Stand(4.0), Walk(((1.0, y),), 1.0)),
+                         start=(1.0, y, 0.0), speed_jitter=False, height_m=h)
+            for k, (y, h) in enumerate(((4.5, 1.8), (4.0, 1.1)))
+        ),
+        residents=2,
+    )
+
+
 def _dinner_visit() -> ScenarioSpec:
     return ScenarioSpec(
         "dinner_visit", "The resident cooks; a visitor arrives before seven and they have dinner at the table.",
@@ -276,6 +289,7 @@ SCENARIOS: dict[str, Callable[[], ScenarioSpec]] = {
     "two_pass": _two_pass,
     "side_by_side": _side_by_side,
     "three_abreast": _three_abreast,
+    "child_beside_adult": _child_beside_adult,
     "dinner_visit": _dinner_visit,
     "four_people": _four_people,
     "lights": _lights,
