@@ -144,15 +144,20 @@ def _two_pass() -> ScenarioSpec:
     )
 
 
+def _abreast(lanes: tuple[tuple[float, float | None], ...]) -> tuple[PersonScript, ...]:
+    """People walking abreast across the living room and back, one per lane ``(y, height_m or None
+    for a random height)``: from x = 1.0 to 6.8 m at 1 m/s, 4 s standing, back to x = 1.0 m."""
+    return tuple(
+        PersonScript(k + 1, (Walk(((6.8, y),), 1.0), Stand(4.0), Walk(((1.0, y),), 1.0)),
+                     start=(1.0, y, 0.0), speed_jitter=False, height_m=h)
+        for k, (y, h) in enumerate(lanes)
+    )
+
+
 def _side_by_side() -> ScenarioSpec:
     return ScenarioSpec(
         "side_by_side", "Two people walk side by side, 0.6 m apart, stop, and walk back.", 35.0,
-        (
-            PersonScript(1, (Walk(((6.8, 4.5),), 1.0), Stand(4.0), Walk(((1.0, 4.5),), 1.0)),
-                         start=(1.0, 4.5, 0.0), speed_jitter=False),
-            PersonScript(2, (Walk(((6.8, 3.9),), 1.0), Stand(4.0), Walk(((1.0, 3.9),), 1.0)),
-                         start=(1.0, 3.9, 0.0), speed_jitter=False),
-        ),
+        _abreast(((4.5, None), (3.9, None))),
         residents=2,
     )
 
@@ -161,11 +166,7 @@ def _three_abreast() -> ScenarioSpec:
     return ScenarioSpec(
         "three_abreast",
         "Three people walk abreast, shoulder to shoulder (0.5 m between centres), stop, and walk back.", 30.0,
-        tuple(
-            PersonScript(k + 1, (Walk(((6.8, y),), 1.0), Stand(4.0), Walk(((1.0, y),), 1.0)),
-                         start=(1.0, y, 0.0), speed_jitter=False)
-            for k, y in enumerate((4.7, 4.2, 3.7))
-        ),
+        _abreast(((4.7, None), (4.2, None), (3.7, None))),
         residents=3,
     )
 
@@ -174,11 +175,7 @@ def _child_beside_adult() -> ScenarioSpec:
     return ScenarioSpec(
         "child_beside_adult",
         "A child (1.1 m) walks beside an adult (1.8 m), 0.5 m between centres, stops, and walks back.", 30.0,
-        tuple(
-            PersonScript(k + 1, (Walk(((6.8, y),), 1.0), Stand(4.0), Walk(((1.0, y),), 1.0)),
-                         start=(1.0, y, 0.0), speed_jitter=False, height_m=h)
-            for k, (y, h) in enumerate(((4.5, 1.8), (4.0, 1.1)))
-        ),
+        _abreast(((4.5, 1.8), (4.0, 1.1))),
         residents=2,
     )
 
