@@ -107,7 +107,7 @@ def _site_check(args: argparse.Namespace) -> int:
     for cam_id, cam in cameras.items():
         x, y, z = cam.center
         print(f"  camera {cam_id}: {cam.model} {cam.width}x{cam.height}, centre ({x:.2f}, {y:.2f}, {z:.2f}) m")
-    print(f"  {len(site.hotspots)} hot spots, {len(site.doors)} doors; long lie after {site.events.long_lie_s:g} s, "
+    print(f"  {len(site.hotspots)} hot spots, {len(site.doors)} doors, {len(site.occluders)} occluders; long lie after {site.events.long_lie_s:g} s, "
           f"inactivity after {site.events.inactivity_s:g} s")
     return 0
 

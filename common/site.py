@@ -56,6 +56,11 @@ Schema (all lengths in metres, world frame Z up, floor at Z = 0)::
     [[doors]]
     name = "front door"
     polygon_m = [[0.0, 4.6], [0.5, 4.6], [0.5, 5.6], [0.0, 5.6]]
+
+    [[occluders]]                # furniture and walls that hide people from cameras:
+    name = "sofa back"           # a camera does not vote on what it sees only through them
+    polygon_m = [[1.0, 0.0], [3.0, 0.0], [3.0, 0.25], [1.0, 0.25]]  # convex
+    z_m = [0.0, 0.9]             # from this height to this one
 """
 
 from __future__ import annotations
@@ -88,6 +93,29 @@ def _polygon_ok(polygon: list[tuple[float, float]]) -> list[tuple[float, float]]
         raise ValueError(f"a polygon needs at least 3 points, got {len(polygon)}")
     if not all(math.isfinite(c) for p in polygon for c in p):
         raise ValueError("polygon coordinates must be finite")
+    return polygon
+
+
+def is_convex(polygon) -> bool:
+    """Whether a floor polygon (sequence of (x, y)) is convex with a non-zero area; collinear
+    points are allowed, either winding."""
+    pts = [(float(x), float(y)) for x, y in polygon]
+    n = len(pts)
+    if n < 3:
+        return False
+    scale = max(max(abs(pts[(i + 1) % n][k] - pts[i][k]) for k in (0, 1)) for i in range(n)) ** 2
+    tol = 1e-12 * max(scale, 1e-300)
+    area2 = sum(pts[i][0] * pts[(i + 1) % n][1] - pts[(i + 1) % n][0] * pts[i][1] for i in range(n))
+    turns = []
+    for i in range(n):
+        (ax, ay), (bx, by), (cx, cy) = pts[i], pts[(i + 1) % n], pts[(i + 2) % n]
+        turns.append((bx - ax) * (cy - by) - (by - ay) * (cx - bx))
+    return abs(area2) > tol and (all(t >= -tol for t in turns) or all(t <= tol for t in turns))
+
+
+def _convex_ok(polygon: list[tuple[float, float]]) -> list[tuple[float, float]]:
+    if not is_convex(polygon):
+        raise ValueError("the polygon must be convex with a non-zero area (split other shapes into convex parts)")
     return polygon
 
 
@@ -210,6 +238,24 @@ class DoorSpec(_Model):
     _poly = field_validator("polygon_m")(classmethod(lambda cls, p: _polygon_ok(p)))
 
 
+class OccluderSpec(_Model):
+    """Furniture or a wall that hides people from the cameras behind it: a convex floor
+    polygon between two heights."""
+
+    name: str = Field(min_length=1)
+    polygon_m: list[tuple[float, float]]
+    z_m: tuple[float, float]
+
+    _poly = field_validator("polygon_m")(classmethod(lambda cls, p: _convex_ok(_polygon_ok(p))))
+
+    @field_validator("z_m")
+    @classmethod
+    def _heights_ok(cls, z: tuple[float, float]) -> tuple[float, float]:
+        if not all(math.isfinite(v) for v in z) or not 0.0 <= z[0] < z[1]:
+            raise ValueError(f"expected [bottom, top] with 0 <= bottom < top, got {list(z)}")
+        return z
+
+
 class Site(_Model):
     """A home: volume, cameras, hot spots, doors, event timing and network settings."""
 
@@ -223,6 +269,7 @@ class Site(_Model):
     cameras: list[CameraSpec] = Field(min_length=1)
     hotspots: list[HotSpotSpec] = Field(default_factory=list)
     doors: list[DoorSpec] = Field(default_factory=list)
+    occluders: list[OccluderSpec] = Field(default_factory=list)
     base_dir: Path = Field(default=Path("."), exclude=True)
 
     @field_validator("cameras")

@@ -18,6 +18,7 @@ import numpy as np
 from common.camera import Camera
 from common.site import Site
 from fusion_server.carving import Carver
+from fusion_server.carving.occlusion import Occluder
 from fusion_server.detection import detect_blobs
 from fusion_server.explain import BlobExplainer
 from fusion_server.events import EventReasoner, EventRecord, event_id
@@ -127,6 +128,8 @@ class FusionPipeline:
             min_cameras=carving.min_cameras,
             min_ratio=carving.min_ratio,
             mask_scale=carving.mask_scale,
+            occluders=[Occluder(name=o.name, polygon_m=tuple(o.polygon_m), z_min_m=o.z_m[0], z_max_m=o.z_m[1])
+                       for o in site.occluders],
             **kwargs,
         )
         reasoner = EventReasoner(

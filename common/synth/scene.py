@@ -325,6 +325,10 @@ def default_cameras(*, scale: float = 1.0) -> dict[str, Camera]:
     return cams
 
 
+OCCLUDER_MIN_SIDE_M = 0.1
+"""Furniture parts narrower than this on the floor (table and chair legs) are not written as occluders."""
+
+
 def site_dict(
     room: Room,
     cameras: dict[str, Camera],
@@ -363,7 +367,21 @@ def site_dict(
         "hotspots": [{"name": h.name, "kind": h.kind, "polygon_m": [list(p) for p in h.polygon_m]}
                      for h in room.hotspots],
         "doors": [{"name": d.name, "polygon_m": [list(p) for p in d.polygon_m]} for d in room.doors],
+        "occluders": occluders(room),
     }
+
+
+def occluders(room: Room, *, min_side_m: float = OCCLUDER_MIN_SIDE_M) -> list[dict]:
+    """The site file's ``[[occluders]]`` of ``room``: its furniture and wall blocks, except the
+    parts narrower than ``min_side_m`` on the floor (legs), which hide nobody."""
+    out = []
+    for b in room.boxes:
+        (x0, y0, z0), (x1, y1, z1) = b.min_m, b.max_m
+        if min(x1 - x0, y1 - y0) < min_side_m or z1 <= max(z0, 0.0):
+            continue
+        x0, y0, x1, y1, z0, z1 = (round(float(v), 3) for v in (x0, y0, x1, y1, max(z0, 0.0), z1))
+        out.append({"name": b.name, "polygon_m": [[x0, y0], [x1, y0], [x1, y1], [x0, y1]], "z_m": [z0, z1]})
+    return out
 
 
 def default_site(

@@ -86,15 +86,21 @@ class MaskRenderer:
         self.cameras = dict(cameras)
         self._rays = {cid: cam.pixel_rays().reshape(-1, 3) for cid, cam in self.cameras.items()}
 
-    def render(self, bodies: Sequence[Cylinder | Box], camera_ids: Sequence[str] | None = None) -> dict[str, np.ndarray]:
-        """camera id -> (H, W) uint8 mask, 255 where the pixel's ray meets a body in front of the camera."""
+    def render(self, bodies: Sequence[Cylinder | Box], camera_ids: Sequence[str] | None = None, *,
+               hidden_by: Sequence[Box] = ()) -> dict[str, np.ndarray]:
+        """camera id -> (H, W) uint8 mask, 255 where the pixel's ray meets a body in front of the camera
+        and before any of ``hidden_by`` (furniture: background that hides the bodies behind it)."""
         out = {}
         for cid in self.cameras if camera_ids is None else camera_ids:
             cam = self.cameras[cid]
             rays = self._rays[cid]
-            hit = np.zeros(rays.shape[0], dtype=bool)
-            for body in bodies:
-                hit |= _ray_hits(cam.center, rays, body)
+            body = np.full(rays.shape[0], np.inf)
+            for b in bodies:
+                np.minimum(body, _ray_enter(cam.center, rays, b), out=body)
+            wall = np.full(rays.shape[0], np.inf)
+            for b in hidden_by:
+                np.minimum(wall, _ray_enter(cam.center, rays, b), out=wall)
+            hit = np.isfinite(body) & (body < wall)
             out[cid] = (hit.reshape(cam.height, cam.width).astype(np.uint8)) * np.uint8(255)
         return out
 
@@ -190,8 +196,9 @@ def measure_carving(carver: Carver, mask_sets: Sequence[Mapping[str, np.ndarray]
 # ---------------------------------------------------------------------- helpers
 
 
-def _ray_hits(origin: np.ndarray, rays: np.ndarray, body: Cylinder | Box) -> np.ndarray:
-    """(N,) bool: the rays origin + s d (s > 0) meet the body. NaN rays never hit."""
+def _ray_enter(origin: np.ndarray, rays: np.ndarray, body: Cylinder | Box) -> np.ndarray:
+    """(N,) float: the ray parameter s > 0 where origin + s d enters the body, inf where it
+    misses. NaN rays never hit."""
     o = np.asarray(origin, dtype=np.float64)
     d = rays.astype(np.float64)
     with np.errstate(all="ignore"):
@@ -217,7 +224,7 @@ def _ray_hits(origin: np.ndarray, rays: np.ndarray, body: Cylinder | Box) -> np.
                 a_lo, a_hi = _slab(o[axis], d[:, axis], lo[axis], hi[axis])
                 enter = np.maximum(enter, a_lo)
                 leave = np.minimum(leave, a_hi)
-        return (enter <= leave) & np.isfinite(d[:, 0])
+        return np.where((enter <= leave) & np.isfinite(d[:, 0]), enter, np.inf)
 
 
 def _slab(o: float, d: np.ndarray, lo: float, hi: float) -> tuple[np.ndarray, np.ndarray]:

@@ -23,7 +23,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from fusion_server.carving.lut import RADIUS_UNITS_PER_PX
+from fusion_server.carving.lut import HIDDEN, RADIUS_UNITS_PER_PX
 
 __all__ = ["DistanceImages", "distance_images", "vote", "needed_votes", "FOREGROUND_THRESHOLD"]
 
@@ -113,10 +113,11 @@ def distance_images(masks: Mapping[str, np.ndarray], camera_ids: Sequence[str],
 
 
 def vote(pixel: np.ndarray, radius_q: np.ndarray, dists: DistanceImages, min_cameras: int,
-         min_ratio: float) -> np.ndarray:
+         min_ratio: float, *, hidden: bool = False) -> np.ndarray:
     """Which voxels hold foreground by the multi-camera vote.
 
-    pixel: (M, C) int32 LUT rows of the voxels for all C known cameras (-1: not visible).
+    pixel: (M, C) int32 LUT rows of the voxels for all C known cameras (-1: not visible;
+        with ``hidden``, ``HIDDEN``: partly hidden by furniture, counts as seeing and finding).
     radius_q: (M, C) uint16 (or float32) enclosing radii in 1/32 pixel, same layout.
     Returns (M,) bool.
     """
@@ -130,6 +131,10 @@ def vote(pixel: np.ndarray, radius_q: np.ndarray, dists: DistanceImages, min_cam
     # A pixel of -1 reads the NaN before the camera's image: never a hit.
     hit = np.take(dists.values, pixel + dists.offsets) * RADIUS_UNITS_PER_PX <= radius_q
     seen = pixel >= 0
+    if hidden:
+        behind = pixel == HIDDEN
+        hit |= behind
+        seen |= behind
     # Column sums: much faster than a reduction along a short inner axis.
     found = hit[:, 0].astype(np.uint8)
     seeing = seen[:, 0].astype(np.uint8)
@@ -177,6 +182,6 @@ def _rescale(pixel: np.ndarray, radius_q: np.ndarray, dists: DistanceImages):
         v, u = np.divmod(col, lw)
         us = np.minimum(((u + 0.5) * sx).astype(np.int64), w - 1)
         vs = np.minimum(((v + 0.5) * sy).astype(np.int64), h - 1)
-        pixel[:, p] = np.where(seen, vs * w + us, -1)
+        pixel[:, p] = np.where(seen, vs * w + us, col)
         radius_q[:, p] *= max(sx, sy)
     return pixel, radius_q

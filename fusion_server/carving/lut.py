@@ -8,7 +8,10 @@ run once per calibration and volume. For every voxel of every level a
 * ``pixel``: (N,) int32 flat index ``v * width + u`` of the pixel nearest to
   the projected centre (the (u, v) pixel coordinates and the visibility flag
   in 4 bytes); ``-1`` when the centre is not visible (behind the lens, beyond
-  the distortion's valid range or outside the image);
+  the distortion's valid range or outside the image), or hidden by an
+  occluder (:mod:`fusion_server.carving.occlusion`; on coarse levels a
+  partly hidden voxel holds ``HIDDEN``, -2: the camera counts as finding
+  foreground in it, so that the finer levels decide);
 * ``radius_q``: (N,) uint16 radius of the circle about the projected centre
   that encloses the projections of the voxel's 8 corners, in 1/32 pixel,
   rounded up. The corners go through the full camera model, so lens
@@ -33,21 +36,25 @@ from __future__ import annotations
 import hashlib
 import os
 import tempfile
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from common.camera import Camera
-from fusion_server.carving.octree import OctreeLayout
+from fusion_server.carving.occlusion import Occluder, blocked, occluders_digest
+from fusion_server.carving.octree import OctreeLayout, level_ijk
 from fusion_server.grid import VoxelGrid
 
 __all__ = [
-    "CameraLut", "CacheReport", "LUT_FORMAT", "RADIUS_UNITS_PER_PX", "RADIUS_UNBOUNDED", "lut_key", "compute_lut",
+    "CameraLut", "CacheReport", "HIDDEN", "LUT_FORMAT", "RADIUS_UNITS_PER_PX", "RADIUS_UNBOUNDED", "lut_key", "compute_lut",
     "load_or_compute_lut",
 ]
 
 LUT_FORMAT = 3
+HIDDEN = -2
+"""A coarse voxel's pixel when the camera sees part of it only through an occluder: counts as found."""
 RADIUS_UNITS_PER_PX = 32
 RADIUS_UNBOUNDED = 65535
 _LATTICE_CHUNK = 1 << 21  # lattice points projected at once: bounds the temporaries to ~100 MB
@@ -108,9 +115,10 @@ class CacheReport:
     detail: str = ""
 
 
-def lut_key(camera: Camera, grid: VoxelGrid, layout: OctreeLayout) -> str:
+def lut_key(camera: Camera, grid: VoxelGrid, layout: OctreeLayout, occluders: Sequence[Occluder] = ()) -> str:
     """Hex sha256 of everything the tables depend on: camera model, image size, K, dist,
-    R, t (and Tsai intrinsics), the grid origin, finest voxel and shape, and the octree factors."""
+    R, t (and Tsai intrinsics), the grid origin, finest voxel and shape, the octree factors
+    and the occluders (none: the same key as tables without them)."""
     h = hashlib.sha256()
     h.update(f"voxelwatch-lut-v{LUT_FORMAT}|r/{RADIUS_UNITS_PER_PX}|{camera.model}|{camera.width}x{camera.height}|".encode())
     for arr in (camera.K, camera.dist, camera.R, camera.t, grid.origin_m, [grid.voxel_m]):
@@ -121,32 +129,41 @@ def lut_key(camera: Camera, grid: VoxelGrid, layout: OctreeLayout) -> str:
         ts = camera.tsai
         h.update(np.array([ts.focal_mm, ts.kappa1, ts.dpx, ts.dpy, ts.sx, ts.cx, ts.cy], dtype="<f8").tobytes())
     h.update(f"|{tuple(grid.shape)}|{layout.factors}".encode())
+    digest = occluders_digest(occluders)
+    if digest:
+        h.update(f"|occluders {digest}".encode())
     return h.hexdigest()
 
 
-def compute_lut(camera: Camera, grid: VoxelGrid, layout: OctreeLayout) -> CameraLut:
-    """Project every voxel of every level through ``camera`` (pure, no cache)."""
+def compute_lut(camera: Camera, grid: VoxelGrid, layout: OctreeLayout,
+                occluders: Sequence[Occluder] = ()) -> CameraLut:
+    """Project every voxel of every level through ``camera`` (pure, no cache). A voxel whose
+    centre the camera sees only through one of ``occluders`` is not visible (pixel -1)."""
     if tuple(grid.shape) != layout.grid_shape:
         raise ValueError(f"layout is for grid shape {layout.grid_shape}, grid has {tuple(grid.shape)}")
     pixels, radii = [], []
     for level, factor in enumerate(layout.factors):
         pix, rad = _project_level(camera, grid.origin_m, grid.voxel_m * factor, layout.dims[level])
+        if occluders:
+            _hide(pix, camera, grid.origin_m, grid.voxel_m * factor, layout.dims[level], occluders,
+                  finest=level == len(layout.factors) - 1)
         pixels.append(pix)
         radii.append(rad)
     return CameraLut(width=camera.width, height=camera.height, pixel=tuple(pixels), radius_q=tuple(radii),
-                     key=lut_key(camera, grid, layout))
+                     key=lut_key(camera, grid, layout, occluders))
 
 
 def load_or_compute_lut(camera: Camera, grid: VoxelGrid, layout: OctreeLayout,
-                        cache_dir: str | os.PathLike | None) -> tuple[CameraLut, CacheReport]:
+                        cache_dir: str | os.PathLike | None,
+                        occluders: Sequence[Occluder] = ()) -> tuple[CameraLut, CacheReport]:
     """The tables of ``camera`` from ``cache_dir`` when cached, else computed (and cached).
 
     The file is ``<cache_dir>/lut-v<format>-<key[:32]>.npz``; it is written atomically
     (temporary file then rename). Never raises for cache problems: see :class:`CacheReport`.
     """
-    key = lut_key(camera, grid, layout)
+    key = lut_key(camera, grid, layout, occluders)
     if cache_dir is None:
-        return compute_lut(camera, grid, layout), CacheReport("disabled", None)
+        return compute_lut(camera, grid, layout, occluders), CacheReport("disabled", None)
     path = Path(cache_dir).expanduser() / f"lut-v{LUT_FORMAT}-{key[:32]}.npz"
     status, detail = "miss", ""
     if path.exists():
@@ -154,7 +171,7 @@ def load_or_compute_lut(camera: Camera, grid: VoxelGrid, layout: OctreeLayout,
             return _read(path, key, camera, layout), CacheReport("hit", path)
         except Exception as exc:  # noqa: BLE001 - any unreadable file means: recompute
             status, detail = "corrupt", f"{path}: {type(exc).__name__}: {exc}"
-    lut = compute_lut(camera, grid, layout)
+    lut = compute_lut(camera, grid, layout, occluders)
     try:
         _write(path, lut)
     except OSError as exc:
@@ -164,6 +181,27 @@ def load_or_compute_lut(camera: Camera, grid: VoxelGrid, layout: OctreeLayout,
 
 
 # ---------------------------------------------------------------------- helpers
+
+
+def _hide(pixel: np.ndarray, camera: Camera, origin_m: np.ndarray, size_m: float, dims: tuple[int, int, int],
+          occluders: Sequence[Occluder], *, finest: bool) -> None:
+    """Mark (in place) the voxels of one level that ``camera`` sees through an occluder. On the
+    finest level, by the line of sight to the centre (the vote looks at the centre): not visible
+    (-1). On coarser levels, when the line to the centre or to any of the 8 corners is blocked:
+    ``HIDDEN``, a camera that cannot rule the voxel out (part of it may be behind the counter)
+    and so counts as finding foreground there; the children decide."""
+    seen = np.flatnonzero(pixel >= 0)
+    offsets = [(0.5, 0.5, 0.5)] if finest else [(0.5, 0.5, 0.5)] + [(a, b, c) for a in (0, 1) for b in (0, 1) for c in (0, 1)]
+    for lo in range(0, len(seen), _LATTICE_CHUNK):
+        idx = seen[lo:lo + _LATTICE_CHUNK]
+        corner = np.asarray(origin_m, dtype=np.float64) + level_ijk(idx, dims) * size_m
+        hidden = np.zeros(len(idx), dtype=bool)
+        for off in offsets:
+            todo = np.flatnonzero(~hidden)
+            if not len(todo):
+                break
+            hidden[todo] = blocked(camera.center, corner[todo] + np.asarray(off) * size_m, occluders)
+        pixel[idx[hidden]] = -1 if finest else HIDDEN
 
 
 def _project_level(camera: Camera, origin_m: np.ndarray, size_m: float, dims: tuple[int, int, int]):
