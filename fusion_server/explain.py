@@ -16,7 +16,10 @@ the one that covers the most foreground not yet covered by those accepted
 first, and a candidate is accepted only when, in at least ``min_cameras``
 cameras, at least ``min_new`` of the foreground it covers is foreground that
 no accepted candidate covers. The rest are phantoms (or duplicates of a
-person already accepted).
+person already accepted). Last, an accepted low, small blob next to an
+accepted upright person's top is a fragment of that person (legs carved
+apart from the body where furniture hides them from some cameras), not a
+person of its own.
 
 Masks at any resolution: each camera is resized to its mask. Pure: no clock,
 no I/O.
@@ -45,6 +48,10 @@ CORE_RADIUS_M = 0.35
 """An upright blob claims foreground only through its voxels this close, on the floor, to its top."""
 CORE_MIN_TOP_M = 1.0
 """A blob whose top is higher than this is upright (a person standing, walking or seated)."""
+FRAGMENT_MAX_M3 = 0.05
+"""A low blob smaller than this (half a carved adult lying down), ..."""
+FRAGMENT_RADIUS_M = 0.45
+"""... closer than this on the floor to the top of an accepted upright person, is a piece of that person."""
 
 
 @dataclass(frozen=True)
@@ -113,6 +120,7 @@ def _explain(blobs, masks, cams: Mapping[str, Camera], grid: VoxelGrid, min_came
     cores = [_core(b, grid) for b in blobs]
     splats = [{c: _splat(core, cams[c], grid, fg[c]) for c in used} for core in cores]
     accepted = greedy_cover(splats, {c: fg[c].shape for c in used}, min_cameras=min_cameras, min_new=min_new)
+    accepted = _without_fragments(accepted, blobs, grid)
     taken = {k for k, _ in accepted}
     return Explanation([blobs[k] for k, _ in accepted], [b for k, b in enumerate(blobs) if k not in taken],
                        {id(blobs[k]): cams for k, cams in accepted})
@@ -176,6 +184,38 @@ def new_cover(splat: Mapping[str, tuple | None], covered: Mapping[str, np.ndarra
 # ---------------------------------------------------------------------- helpers
 
 
+def _without_fragments(accepted: list[tuple[int, tuple[str, ...]]], blobs: Sequence[Blob],
+                       grid: VoxelGrid) -> list[tuple[int, tuple[str, ...]]]:
+    """``accepted`` less the fragments: low blobs of less than FRAGMENT_MAX_M3 within FRAGMENT_RADIUS_M
+    on the floor of an accepted upright blob's top. Where one person's legs or arm are carved apart
+    from their body (hidden from some cameras, holes in a mask), the piece covers foreground of its
+    own in two cameras like a person would; a person low enough and small enough to be that piece
+    (a crouching child) would stand inside the other's body."""
+    tops = np.array([_top_xy(blobs[k], grid) for k, _ in accepted if blobs[k].z_top_m > CORE_MIN_TOP_M]).reshape(-1, 2)
+    if not len(tops):
+        return accepted
+    keep = []
+    for k, cams in accepted:
+        b = blobs[k]
+        if b.z_top_m <= CORE_MIN_TOP_M and b.volume_m3 < FRAGMENT_MAX_M3:
+            if np.min(np.hypot(tops[:, 0] - b.x, tops[:, 1] - b.y)) < FRAGMENT_RADIUS_M:
+                continue
+        keep.append((k, cams))
+    return keep
+
+
+def _top_ij(blob: Blob) -> np.ndarray:
+    """(2,) float grid indices (i, j) of the middle of the blob's two highest layers."""
+    k = blob.ijk[:, 2]
+    return blob.ijk[k >= k.max() - 1, :2].mean(axis=0)
+
+
+def _top_xy(blob: Blob, grid: VoxelGrid) -> tuple[float, float]:
+    """World (x, y) of the middle of the blob's two highest layers."""
+    i, j = _top_ij(blob)
+    return float(grid.origin_m[0] + (i + 0.5) * grid.voxel_m), float(grid.origin_m[1] + (j + 0.5) * grid.voxel_m)
+
+
 def _core(blob: Blob, grid: VoxelGrid) -> np.ndarray:
     """(N, 3) int voxel indices of the blob's body: for an upright blob (top above CORE_MIN_TOP_M) the
     voxels within CORE_RADIUS_M on the floor of its highest column, so that hull volume hanging on
@@ -183,9 +223,7 @@ def _core(blob: Blob, grid: VoxelGrid) -> np.ndarray:
     ijk = blob.ijk
     if blob.z_top_m <= CORE_MIN_TOP_M:
         return ijk
-    k = ijk[:, 2]
-    top = ijk[k >= k.max() - 1, :2].mean(axis=0)
-    d2 = ((ijk[:, :2] - top) ** 2).sum(axis=1)
+    d2 = ((ijk[:, :2] - _top_ij(blob)) ** 2).sum(axis=1)
     return ijk[d2 <= (CORE_RADIUS_M / grid.voxel_m) ** 2]
 
 

@@ -64,7 +64,8 @@ class TrackEstimate:
     blob: the blob matched this frame, or None. Several tracks can share one
         blob when people touch above tau1.
     still: the smoothed speed stayed below the tracker's ``still_speed_mps``
-        for the last ``still_window_s``.
+        for the last ``still_window_s``, or the blobs matched over that window
+        stayed put (within ``still_speed_mps * still_window_s``).
     alpha_m: half-size of the filter's square floor box, metres.
     stamp_ns: the frame time.
     """
@@ -394,6 +395,7 @@ class _Target:
         self.height_profile: np.ndarray | None = None
         self.blob: Blob | None = None
         self.speeds: deque[tuple[int, float]] = deque()
+        self.blob_xy: deque[tuple[int, float, float]] = deque()  # (stamp, x, y) of the blobs matched
         self.still = False
         self._before = (x, y, 0.0, 0.0)  # position and velocity before this frame's filter step
 
@@ -454,13 +456,27 @@ class _Target:
             self.z_top_m = top
 
     def update_stillness(self, stamp_ns: int, window_s: float, still_speed_mps: float) -> None:
-        """Still when the smoothed speed stayed below the threshold over the whole window."""
-        self.speeds.append((stamp_ns, math.hypot(self.vx, self.vy)))
+        """Still when the smoothed speed stayed below the threshold over the whole window, or when
+        a blob matched the target on every frame of the window and their centres stayed within
+        ``still_speed_mps * window_s`` of each other along both axes (the filter's estimate can
+        jitter where the hull around a still person is wide: behind furniture, beside a phantom)."""
         window_ns = int(round(window_s * 1e9))
+        self.speeds.append((stamp_ns, math.hypot(self.vx, self.vy)))
         while len(self.speeds) > 1 and self.speeds[1][0] <= stamp_ns - window_ns:
             self.speeds.popleft()
+        if self.blob is None:
+            self.blob_xy.clear()
+        else:
+            self.blob_xy.append((stamp_ns, self.blob.x, self.blob.y))
+            while len(self.blob_xy) > 1 and self.blob_xy[1][0] <= stamp_ns - window_ns:
+                self.blob_xy.popleft()
         covered = stamp_ns - self.speeds[0][0] >= window_ns
-        self.still = covered and max(s for _, s in self.speeds) < still_speed_mps
+        slow = max(s for _, s in self.speeds) < still_speed_mps
+        placed = False
+        if self.blob_xy and stamp_ns - self.blob_xy[0][0] >= window_ns:
+            xy = np.array([(x, y) for _, x, y in self.blob_xy])
+            placed = bool(np.all(np.ptp(xy, axis=0) < still_speed_mps * window_s))
+        self.still = covered and (slow or placed)
 
     def estimate(self, stamp_ns: int, confirm: float, nz: int) -> TrackEstimate:
         profile = self.height_profile if self.height_profile is not None else np.zeros(nz, dtype=np.int32)

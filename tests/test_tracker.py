@@ -270,3 +270,23 @@ def test_bad_settings_name_themselves(bad):
     kwargs = {"rng": np.random.default_rng(0), **bad}
     with pytest.raises(ValueError, match=next(iter(bad))):
         Tracker(**kwargs)
+
+
+@pytest.mark.parametrize("drift_m, still", [(0.0, True), (0.05, True), (0.3, False)])
+def test_a_target_whose_blob_stays_put_is_still_even_when_its_filter_jitters(drift_m, still):
+    """The filter's velocity swings between +-0.3 m/s (above the 0.15 m/s of stillness) while the
+    blob matched every frame moves ``drift_m`` in all over 1.5 s: still when the blobs stayed
+    within 0.15 m (0.15 m/s over the 1 s window), not when the blob itself moved."""
+    from types import SimpleNamespace
+
+    from fusion_server.tracker import _Target
+
+    target = _Target(id=1, pf=None, x=2.0, y=3.0, alpha_m=0.3)
+    for k in range(23):  # 1.5 s at 15 frames/s
+        target.vx = 0.3 if k % 2 else -0.3
+        target.blob = SimpleNamespace(x=2.0 + drift_m * k / 22, y=3.0)
+        target.update_stillness(int(k * 1e9 / 15), 1.0, 0.15)
+    assert target.still is still
+    target.blob = None  # a frame without a blob: the blobs no longer cover the window
+    target.update_stillness(int(23 * 1e9 / 15), 1.0, 0.15)
+    assert target.still is False
