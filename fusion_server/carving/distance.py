@@ -10,9 +10,10 @@ projected centre compared with the circle's radius. OpenCV's
 
 The vote combines the cameras with the visibility ratio h(v) of the
 heterogeneous-fusion seed (002): among the cameras present in the frame set
-that see the voxel (centre visible), ``found`` of them have foreground within
-its circle; the voxel passes when ``found >= min_cameras`` and
-``found / seeing >= min_ratio``.
+that see the voxel (centre visible, and not only through furniture the site
+describes: :mod:`fusion_server.carving.occlusion`), ``found`` of them have
+foreground within its circle; the voxel passes when ``found >= min_cameras``
+and ``found / seeing >= min_ratio``.
 """
 
 from __future__ import annotations
