@@ -213,7 +213,8 @@ def _top_ij(blob: Blob) -> np.ndarray:
 def _top_xy(blob: Blob, grid: VoxelGrid) -> tuple[float, float]:
     """World (x, y) of the middle of the blob's two highest layers."""
     i, j = _top_ij(blob)
-    return float(grid.origin_m[0] + (i + 0.5) * grid.voxel_m), float(grid.origin_m[1] + (j + 0.5) * grid.voxel_m)
+    x, y = grid.floor_xy(np.array([[j, i]]))[0]
+    return float(x), float(y)
 
 
 def _core(blob: Blob, grid: VoxelGrid) -> np.ndarray:

@@ -461,15 +461,11 @@ class _Target:
         ``still_speed_mps * window_s`` of each other along both axes (the filter's estimate can
         jitter where the hull around a still person is wide: behind furniture, beside a phantom)."""
         window_ns = int(round(window_s * 1e9))
-        self.speeds.append((stamp_ns, math.hypot(self.vx, self.vy)))
-        while len(self.speeds) > 1 and self.speeds[1][0] <= stamp_ns - window_ns:
-            self.speeds.popleft()
+        _keep_window(self.speeds, (stamp_ns, math.hypot(self.vx, self.vy)), window_ns)
         if self.blob is None:
             self.blob_xy.clear()
         else:
-            self.blob_xy.append((stamp_ns, self.blob.x, self.blob.y))
-            while len(self.blob_xy) > 1 and self.blob_xy[1][0] <= stamp_ns - window_ns:
-                self.blob_xy.popleft()
+            _keep_window(self.blob_xy, (stamp_ns, self.blob.x, self.blob.y), window_ns)
         covered = stamp_ns - self.speeds[0][0] >= window_ns
         slow = max(s for _, s in self.speeds) < still_speed_mps
         placed = False
@@ -535,3 +531,10 @@ def _box_top(result: CarveResult, x_m: float, y_m: float, alpha_m: float) -> flo
     if j0 >= j1 or i0 >= i1:
         return 0.0
     return float(top[j0:j1, i0:i1].max())
+
+
+def _keep_window(samples: deque, sample: tuple, window_ns: int) -> None:
+    """Append ``sample`` (stamp first) and drop the oldest while the next one still spans ``window_ns``."""
+    samples.append(sample)
+    while len(samples) > 1 and samples[1][0] <= sample[0] - window_ns:
+        samples.popleft()
