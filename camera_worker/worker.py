@@ -51,6 +51,7 @@ from camera_worker.sources import (
 )
 from common import keys, maskcodec, messages
 from common.messages import HoldRegions, MaskFrame, WireError
+from common.ratelog import RateLimitedLog
 
 __all__ = [
     "STAGES",
@@ -313,7 +314,7 @@ class _Loop:
         self._failed_recorded = False
         self._size_warned: tuple[int, int] | None = None
         self.pace_origin: tuple[float, int] | None = None   # (monotonic s, stamp_ns) of the paced start
-        self._bad_holds = _RateLimited(f"camera {settings.cam}: hold message dropped")
+        self._bad_holds = RateLimitedLog(log, 5.0)
         self._next_stats = time.monotonic() + settings.stats_period_s
 
     def run(self) -> int:
@@ -457,7 +458,7 @@ class _Loop:
                 self.c.holds_accepted += 1
             except (WireError, HoldRegionsRejected) as exc:
                 self.c.holds_rejected += 1
-                self._bad_holds.log(str(exc))
+                self._bad_holds.warn(f"camera {self.s.cam}", "hold", f"hold message dropped: {exc}", time.monotonic())
 
     def _source_event(self, text: str) -> None:
         log.warning("camera %s: %s", self.s.cam, text)
@@ -503,26 +504,6 @@ def _learn_background(segmenter: ForegroundSegmenter, settings: WorkerSettings, 
         raise SourceError(f"background {bg.name}: holds no frames")
     log.info("camera %s: learned the background from %d frames of %s", settings.cam, n, bg.name)
     return n
-
-
-class _RateLimited:
-    """One log line per ``period_s`` at most, with the count of lines it held back."""
-
-    def __init__(self, prefix: str, period_s: float = 5.0) -> None:
-        self.prefix = prefix
-        self.period_s = period_s
-        self._next = 0.0
-        self._held = 0
-
-    def log(self, text: str) -> None:
-        now = time.monotonic()
-        if now < self._next:
-            self._held += 1
-            return
-        more = f" (and {self._held} more since the last report)" if self._held else ""
-        log.warning("%s: %s%s", self.prefix, text, more)
-        self._held = 0
-        self._next = now + self.period_s
 
 
 def _summary(c: WorkerCounters) -> str:

@@ -7,6 +7,10 @@ import logging
 import sys
 from collections.abc import Sequence
 from pathlib import Path
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from fusion_server.node import FusionSettings
 
 DESCRIPTION = """\
 The voxelwatch fusion server: subscribes to every camera's foreground masks,
@@ -42,13 +46,49 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+_FLAGS = {"min_cameras": "--min-cameras", "exit_after_idle_s": "--exit-after-idle",
+          "max_clock_skew_ms": "--max-clock-skew-ms", "mode": "--mode"}
+
+
+def settings_from_args(args: argparse.Namespace) -> "FusionSettings":
+    """The server's settings from parsed arguments. A bad site file raises its
+    :class:`~common.site.SiteError` (a ValueError), any other bad value a ValueError
+    naming the command-line flag."""
+    from common import keys
+    from common.site import load_site
+    from fusion_server.node import FusionSettings
+    from fusion_server.server import DEFAULT_STORE_NAME
+
+    site = load_site(args.site)
+    prefix = args.prefix or site.prefix
+    try:
+        keys.validate_prefix(prefix)
+    except ValueError as exc:
+        raise ValueError(f"--prefix: {exc}") from None
+    store = args.store if args.store is not None else Path(args.site).resolve().parent / DEFAULT_STORE_NAME
+    extra = {} if args.max_clock_skew_ms is None else {"max_clock_skew_ms": args.max_clock_skew_ms}
+    try:
+        return FusionSettings(
+            site=site, prefix=prefix, store_path=Path(store), out_dir=args.out, mode=args.mode,
+            listen=tuple(args.listen) if args.listen is not None else None,
+            connect=tuple(args.connect) if args.connect is not None else None,
+            cache_dir=args.cache_dir, min_cameras=args.min_cameras, exit_after_idle_s=args.exit_after_idle, **extra,
+        )
+    except ValueError as exc:
+        text = str(exc)
+        for name, flag in _FLAGS.items():
+            if text.startswith(name + " "):
+                text = flag + text[len(name):]
+        raise ValueError(text) from None
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
-    from fusion_server.server import FusionSettings, run_forever
+    from fusion_server.server import run_forever
 
     try:
-        settings = FusionSettings.from_args(args)
+        settings = settings_from_args(args)
     except ValueError as exc:
         print(f"voxelwatch-fusion: {exc}", file=sys.stderr)
         return 2

@@ -1,8 +1,7 @@
 """One fused frame: masks of a frame set -> voxels -> people -> postures -> events.
 
 The whole algorithmic chain of the fusion server, shared line for line by the
-live server (``fusion_server.server``) and offline replay
-(``fusion_server.replay``). Pure: no zenoh, no clock, no files (the carving
+live server and offline replay through :class:`fusion_server.node.FusionNode`. Pure: no zenoh, no clock, no files (the carving
 lookup-table cache aside, which the carver owns).
 """
 
@@ -21,7 +20,7 @@ from fusion_server.carving import Carver
 from fusion_server.carving.occlusion import Occluder
 from fusion_server.detection import detect_blobs
 from fusion_server.explain import BlobExplainer
-from fusion_server.events import EventReasoner, EventRecord, event_id
+from fusion_server.events import EventReasoner, EventRecord
 from fusion_server.grid import CarveResult
 from fusion_server.hotspots import Hotspot
 from fusion_server.posture import PostureEstimator, PostureReading
@@ -218,19 +217,6 @@ class FusionPipeline:
                 if box[2] > box[0] and box[3] > box[1]:
                     holds[cam_id].append(tuple(int(v) for v in box))
         return holds
-
-    def camera_event(self, kind: str, cam: str, stamp_ns: int, frame: int, **details) -> EventRecord:
-        """A camera-health event (``camera_lost``, ``camera_back``, ``clock_skew``)."""
-        return EventRecord(
-            id=event_id(stamp_ns, f"{kind}-{cam}", -1),
-            kind=kind,
-            track=-1,
-            stamp_ns=int(stamp_ns),
-            frame=int(frame),
-            x=0.0,
-            y=0.0,
-            details={"camera": cam, **details},
-        )
 
     def _update_postures(self, estimates: list[TrackEstimate], stamp_ns: int) -> dict[int, PostureReading]:
         live = {e.id for e in estimates}

@@ -2,7 +2,8 @@
 
 Every camera's frames are read in lock step (frame ``i`` of every camera
 forms frame set ``i``), segmented with the camera worker's own segmenter,
-fused with :class:`~fusion_server.pipeline.FusionPipeline`, and the hold
+fused by the live server's own :class:`~fusion_server.node.FusionNode`
+(which writes the tracks and events files as the live server does), and the hold
 regions of still people go back to the segmenters for the next frame, as
 the live server sends them over zenoh.
 
@@ -31,21 +32,23 @@ import numpy as np
 from camera_worker.segmentation import ForegroundSegmenter, window_frames_for
 from camera_worker.sources import FrameSource, SourceError, open_source
 from common.site import Site
+from fusion_server.node import FusionNode, FusionSettings
 from fusion_server.outputs import RunOutputs
 from fusion_server.pipeline import FusedFrame, FusionPipeline
+from fusion_server.sync import FrameSet
 
 VIDEO_SUFFIXES = (".avi", ".mp4", ".mkv", ".mov", ".m4v", ".webm")
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".pgm", ".ppm", ".tif", ".tiff")
 @dataclass
 class ReplaySummary:
-    """What a replay did; ``stage_s`` sums wall time per stage."""
+    """What a replay did; ``stage_s`` sums wall time per stage (``fuse`` includes writing the files)."""
 
     frames: int = 0
     events: int = 0
     track_rows: int = 0
     cameras: tuple[str, ...] = ()
     elapsed_s: float = 0.0
-    stage_s: dict[str, float] = field(default_factory=lambda: {"read": 0.0, "segment": 0.0, "fuse": 0.0, "write": 0.0})
+    stage_s: dict[str, float] = field(default_factory=lambda: {"read": 0.0, "segment": 0.0, "fuse": 0.0})
 
     @property
     def fps(self) -> float:
@@ -140,6 +143,7 @@ def replay(
     start = time.perf_counter()
     try:
         with RunOutputs(out_dir, fresh=True) as outputs:
+            node = FusionNode(FusionSettings(site=site, prefix=site.prefix), pipeline, outputs=outputs)
             while max_frames is None or summary.frames < max_frames:
                 t0 = time.perf_counter()
                 images: dict[str, np.ndarray] | None = {} if overlay_every else None
@@ -147,19 +151,18 @@ def replay(
                 if masks is None:
                     break
                 t1 = time.perf_counter()
-                fused = pipeline.step(masks, stamp_ns, frame_index)
+                frame_set = FrameSet(stamp_ns=stamp_ns, payloads=masks, stamps_ns={cam: stamp_ns for cam in masks},
+                                     seqs={cam: frame_index for cam in masks})
+                fused = node.fuse(frame_set, stamp_ns, t1)
+                node.take()  # nothing is published offline
                 holds = fused.holds
                 t2 = time.perf_counter()
-                summary.track_rows += outputs.write_frame(fused.frame, fused.stamp_ns, fused.tracks)
-                for event in fused.events:
-                    outputs.write_event(event)
-                t3 = time.perf_counter()
                 summary.frames += 1
+                summary.track_rows += len(fused.tracks)
                 summary.events += len(fused.events)
                 summary.stage_s["read"] += t1 - t0 - t_segment
                 summary.stage_s["segment"] += t_segment
                 summary.stage_s["fuse"] += t2 - t1
-                summary.stage_s["write"] += t3 - t2
                 if images and summary.frames % overlay_every == 1:
                     _write_overlays(Path(out_dir) / "overlays", fused.frame, images, masks)
                 if progress is not None:

@@ -1,0 +1,682 @@
+"""The fusion server's core: masks and liveliness in, messages to publish out, time passed in.
+
+:class:`FusionNode` makes every decision the live server makes between zenoh
+and :class:`~fusion_server.pipeline.FusionPipeline`; the process adapter
+(:mod:`fusion_server.server`) only receives samples, hands them to the node
+with their arrival time, and publishes what :meth:`FusionNode.tick` returns.
+Nothing here opens a session or reads a clock, so a test drives the node frame
+by frame with its own clock, and the offline replay fuses through the same
+:meth:`FusionNode.fuse`.
+
+What the node does:
+
+* **masks** (:meth:`~FusionNode.on_mask`, one ``<p>/cam/<cam>/mask`` sample):
+  decodes it (``WireError``, ``MaskCodecError``, a message whose ``cam``
+  differs from its key's camera, or a mask whose aspect ratio is not the
+  camera's, are counted per camera as ``undecodable`` with a log line at most
+  once per ``log_every_s`` per camera and reason), drops masks of cameras the
+  site does not know (counted), and pushes the rest into a
+  :class:`~fusion_server.sync.FrameSynchroniser` (lattice period from the
+  slowest camera's fps). Each released frame set with at least
+  ``min_cameras`` cameras waits in a queue of at most ``max_ready_sets``;
+  beyond that the oldest set is dropped and counted (``frame_sets_dropped``),
+  so a slow pipeline never makes memory grow. The frame number of a set is the
+  most common sequence number in it.
+* **fusing** (:meth:`~FusionNode.tick`, one ready set per call): the tracks of
+  the frame as one :class:`~common.messages.TrackFrame` (non-finite tracks left
+  out), each event first added to the event store (committed; an event whose
+  id is already stored is neither published nor written again), then queued
+  for ``<p>/events/<kind>/<track>`` as JSON text and written to
+  ``events.jsonl`` when files are kept. A frame set the pipeline fails on is
+  counted and logged; the next one is fused as usual.
+* **holds**: per camera, :class:`~common.messages.HoldRegions` whenever the
+  boxes change (by more than ``hold_slack_px`` on some side, or in number) and
+  at least every ``hold_ttl_ms / 2`` while there are any; an empty list when
+  they end. They are sent only after fused frames: when fusion stops, holds
+  lapse.
+* **liveliness** (:meth:`~FusionNode.on_liveliness`): a camera whose token goes
+  away is ``lost`` (a ``camera_lost`` event) and ``camera_back`` when it
+  returns; the synchroniser goes on releasing sets without it.
+* **clock skew**: per camera, the median of ``stamp_ns - receive time`` over
+  the last ``skew_window`` masks; beyond ``max_clock_skew_ms`` the camera is
+  ``skewed`` in the status and one ``clock_skew`` event is emitted; the mark
+  clears once the median is back under 80 % of the threshold. Apart from
+  that, a mask whose ``stamp_ns - receive time`` runs more than
+  ``max_clock_skew_ms`` ahead of the other live cameras' newest masks is left
+  out of the frame sets (counted ``late``, logged): one camera with a fast
+  clock would otherwise push the synchroniser ahead and make every other
+  camera's masks look stale.
+* **status** every ``status_period_s`` (:meth:`~FusionNode.status`).
+* **history** (:func:`history_replies`): the replies to one query on
+  ``<p>/history/events/**``.
+
+Per-camera counters in the status: ``received`` (masks that decoded),
+``undecodable``, ``dropped`` (sequence gaps -- frames the camera, the network
+or the server's inbox lost -- plus duplicates, superseded frames and
+synchroniser overflow), ``late`` (out of order, stale, off the frame lattice,
+or stamped ahead of the other cameras), ``rate_hz`` (masks per second over the
+last two seconds), ``latency_ms`` (mean receive time minus capture stamp; on
+one host this is the transport and worker latency, across hosts it includes
+the clock offset), ``clock_offset_ms`` (median capture stamp minus receive
+time: the camera clock's lead, less the latency), ``last_seen_ns`` (server
+time of the last mask), ``state``: ``lost`` (its liveliness token went away,
+or no sign of life at all), ``skewed``, ``degraded`` (no mask for
+``stale_s``, or undecodable masks within ``stale_s``), else ``ok``.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import statistics
+from collections import Counter, deque
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from common import keys, maskcodec, messages
+from common.camera import Camera
+from common.maskcodec import MaskCodecError
+from common.messages import CameraStatus, Event, HoldRegions, MaskFrame, Status, TrackFrame, TrackState, WireError
+from common.ratelog import RateLimitedLog
+from common.site import Site
+from fusion_server.event_store import EventStore, parse_history_selector
+from fusion_server.events import EventRecord, event_id
+from fusion_server.outputs import RunOutputs, plain_value
+from fusion_server.pipeline import FusedFrame, FusionPipeline
+from fusion_server.sync import FrameSet, FrameSynchroniser
+
+__all__ = ["FusionCounters", "FusionNode", "FusionSettings", "Outbox", "camera_event", "history_replies"]
+
+log = logging.getLogger("voxelwatch.fusion")
+
+_SYNC_DROPS = ("duplicate", "superseded", "dropped_overflow")
+_SYNC_LATE = ("out_of_order", "stale", "unmatched")
+
+
+@dataclass(frozen=True)
+class FusionSettings:
+    """Everything the fusion server needs; ``fusion_server.cli`` builds it from the command line.
+
+    site: the loaded site. prefix: the zenoh key prefix. store_path: the
+    SQLite event store (the live server needs one; the offline replay stores
+    nothing). out_dir: where tracks.csv/events.jsonl go (None: no files).
+    mode/listen/connect: zenoh overrides of the site (None: the site's).
+    cache_dir: carving lookup-table cache (None: the carver's default).
+    min_cameras: fewest cameras a frame set needs (None: the
+    site's carving vote). exit_after_idle_s: stop after this long without
+    masks (None: never). inbox_per_camera and history_queue size the
+    process's queues; the rest tune the node (see the module doc).
+    """
+
+    site: Site
+    prefix: str
+    store_path: Path | None = None
+    out_dir: Path | None = None
+    mode: str | None = None
+    listen: tuple[str, ...] | None = None
+    connect: tuple[str, ...] | None = None
+    cache_dir: Path | None = None
+    min_cameras: int | None = None
+    exit_after_idle_s: float | None = None
+    seed: int = 0
+    status_period_s: float = 1.0
+    hold_ttl_ms: int = 2000
+    hold_slack_px: int = 2
+    max_clock_skew_ms: float = 250.0
+    skew_window: int = 30
+    inbox_per_camera: int = 32
+    max_ready_sets: int = 4
+    sync_buffer: int = 8
+    stale_s: float = 2.0
+    log_every_s: float = 10.0
+    history_queue: int = 16
+
+    def __post_init__(self) -> None:
+        keys.validate_prefix(self.prefix)
+        n_cams = len(self.site.cameras)
+        if self.min_cameras is not None and (isinstance(self.min_cameras, bool) or not 1 <= self.min_cameras <= n_cams):
+            raise ValueError(f"min_cameras must be an int in 1..{n_cams} (the site's cameras), got {self.min_cameras!r}")
+        if self.exit_after_idle_s is not None and not (math.isfinite(self.exit_after_idle_s) and self.exit_after_idle_s > 0):
+            raise ValueError(f"exit_after_idle_s must be a positive number of seconds, got {self.exit_after_idle_s!r}")
+        for name in ("status_period_s", "max_clock_skew_ms", "stale_s", "log_every_s"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or not (math.isfinite(value) and value > 0):
+                raise ValueError(f"{name} must be a positive number, got {value!r}")
+        if isinstance(self.hold_slack_px, bool) or not isinstance(self.hold_slack_px, int) or self.hold_slack_px < 0:
+            raise ValueError(f"hold_slack_px must be an int >= 0, got {self.hold_slack_px!r}")
+        for name in ("hold_ttl_ms", "skew_window", "inbox_per_camera", "max_ready_sets", "sync_buffer", "history_queue"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+                raise ValueError(f"{name} must be an int >= 1, got {value!r}")
+        if self.mode is not None and self.mode not in ("peer", "client", "router"):
+            raise ValueError(f"mode must be peer, client or router, got {self.mode!r}")
+
+    def build_pipeline(self, cameras: dict[str, Camera] | None = None) -> FusionPipeline:
+        """The pipeline these settings describe (calibrations loaded unless given)."""
+        return FusionPipeline.from_site(self.site, cameras=cameras, cache_dir=self.cache_dir, seed=self.seed,
+                                        min_cameras=self.min_cameras)
+
+
+@dataclass
+class FusionCounters:
+    """What the node has done since it started (also logged at exit)."""
+
+    frames_fused: int = 0
+    events: int = 0
+    events_not_stored: int = 0
+    events_unpublishable: int = 0
+    frame_sets_dropped: int = 0
+    frame_sets_too_few: int = 0
+    inbox_dropped: int = 0
+    unknown_camera: int = 0
+    pipeline_errors: int = 0
+    queries: int = 0
+    queries_refused: int = 0
+
+
+@dataclass
+class Outbox:
+    """What to publish, in order: encoded messages ready for their keys.
+
+    tracks: encoded :class:`~common.messages.TrackFrame`, one per fused frame.
+    events: ``(key expression, JSON text)`` per event.
+    holds: ``(camera id, encoded HoldRegions)``.
+    status: the encoded :class:`~common.messages.Status`, or None when not due.
+    """
+
+    tracks: list[bytes] = field(default_factory=list)
+    events: list[tuple[str, str]] = field(default_factory=list)
+    holds: list[tuple[str, bytes]] = field(default_factory=list)
+    status: bytes | None = None
+
+    def __bool__(self) -> bool:
+        return bool(self.tracks or self.events or self.holds or self.status is not None)
+
+
+@dataclass
+class _CameraHealth:
+    """One camera as the node sees it (see the module doc for the meaning of each counter)."""
+
+    cam: str
+    window: int
+    received: int = 0
+    undecodable: int = 0
+    seq_gaps: int = 0
+    ahead: int = 0
+    last_seq: int | None = None
+    last_seen_ns: int = 0
+    last_mono: float | None = None
+    last_bad_mono: float | None = None
+    token: bool | None = None  # None: no liveliness news yet
+    lost: bool = False
+    skewed: bool = False
+    arrivals: deque = field(default_factory=lambda: deque(maxlen=256))
+    latency_ms: deque = field(init=False)
+    offset_ms: deque = field(init=False)
+
+    def __post_init__(self) -> None:
+        self.latency_ms = deque(maxlen=self.window)
+        self.offset_ms = deque(maxlen=self.window)
+
+    def on_mask(self, seq: int, stamp_ns: int, recv_ns: int, mono: float) -> None:
+        self.received += 1
+        if self.last_seq is not None and seq > self.last_seq + 1:
+            self.seq_gaps += seq - self.last_seq - 1
+        self.last_seq = seq  # a restarted worker starts again from 0: no gap is counted
+        self.last_seen_ns = recv_ns
+        self.last_mono = mono
+        self.arrivals.append(mono)
+        self.latency_ms.append((recv_ns - stamp_ns) / 1e6)
+        self.offset_ms.append((stamp_ns - recv_ns) / 1e6)
+
+    def rate_hz(self, mono: float, span_s: float = 2.0) -> float:
+        recent = [t for t in self.arrivals if mono - t <= span_s]
+        if len(recent) < 2 or recent[-1] <= recent[0]:
+            return 0.0
+        return (len(recent) - 1) / (recent[-1] - recent[0])
+
+    def median_offset_ms(self) -> float | None:
+        return statistics.median(self.offset_ms) if self.offset_ms else None
+
+    def recent(self, mono: float, stale_s: float) -> bool:
+        return self.last_mono is not None and mono - self.last_mono <= stale_s
+
+    def state(self, mono: float, stale_s: float) -> str:
+        recent = self.recent(mono, stale_s)
+        if self.lost or (self.token is not True and not recent):
+            return "lost"
+        if self.skewed:
+            return "skewed"
+        if not recent or (self.last_bad_mono is not None and mono - self.last_bad_mono <= stale_s):
+            return "degraded"
+        return "ok"
+
+
+class FusionNode:
+    """The fusion server between its inputs and its outputs; see the module doc.
+
+    settings: the server's settings (the node reads the site, prefix and its
+    tuning). pipeline: the fusion pipeline of the site. store: the event store
+    (None: events are not stored, every new one is published). outputs: the
+    tracks/events files (None: none written). counters: shared with the
+    process adapter, which counts inbox drops and history queries in it.
+    """
+
+    def __init__(self, settings: FusionSettings, pipeline: FusionPipeline, *, store: EventStore | None = None,
+                 outputs: RunOutputs | None = None, counters: FusionCounters | None = None) -> None:
+        self.s = settings
+        self.pipeline = pipeline
+        self.store = store
+        self.outputs = outputs
+        self.c = counters if counters is not None else FusionCounters()
+        self.prefix = settings.prefix
+        site = settings.site
+        self.camera_ids: tuple[str, ...] = tuple(site.camera_ids)
+        self.cameras: dict[str, Camera] = dict(pipeline.cameras)
+        self.min_cameras = int(settings.min_cameras if settings.min_cameras is not None else pipeline.min_cameras)
+        fps = min(spec.fps for spec in site.cameras)
+        self.sync = FrameSynchroniser(camera_ids=self.camera_ids, fps=fps, max_buffer=settings.sync_buffer)
+        self.health = {cam: _CameraHealth(cam, settings.skew_window) for cam in self.camera_ids}
+        self.ready: deque[FrameSet] = deque()
+        self.rlog = RateLimitedLog(log, settings.log_every_s)
+        self.holds_sent: dict[str, tuple[list, float]] = {cam: ([], -math.inf) for cam in self.camera_ids}
+        self.last_frame = 0
+        self.last_stamp: tuple[int, int] | None = None  # (stamp_ns of the last fused set, server time_ns then)
+        self.last_mask_mono: float | None = None
+        self._next_status = -math.inf
+        self._out = Outbox()
+
+    # ------------------------------------------------------------------ inputs
+
+    def on_mask(self, key: str, data: bytes | int, recv_ns: int, mono: float) -> None:
+        """One mask sample: its key, its payload (or its size when it was too large to copy),
+        the server's wall-clock time and monotonic time of its arrival."""
+        self.last_mask_mono = mono
+        try:
+            cam = keys.camera_of(key, self.prefix)
+        except ValueError:
+            cam = None
+        health = self.health.get(cam) if cam is not None else None
+        if health is None:
+            self.c.unknown_camera += 1
+            self.rlog.warn(f"mask on {key}", "unknown", "camera is not in the site: dropped "
+                           f"(cameras: {', '.join(self.camera_ids)})", mono)
+            return
+        try:
+            if isinstance(data, int):
+                raise WireError(f"MaskFrame: payload of {data} bytes exceeds the {MaskFrame.MAX_BYTES}-byte limit")
+            msg = messages.decode(data, MaskFrame)
+            if msg.cam != cam:
+                raise _Mismatch(f"MaskFrame says camera {msg.cam!r} but came on {cam!r}'s key")
+            self._check_shape(msg)
+            mask = maskcodec.decode_mask(msg.data, msg.codec, msg.width, msg.height)
+        except (WireError, MaskCodecError) as exc:
+            health.undecodable += 1
+            health.last_bad_mono = mono
+            self.rlog.warn(f"camera {cam}", type(exc).__name__, f"undecodable mask dropped: {exc}", mono)
+            return
+        health.on_mask(msg.seq, msg.stamp_ns, recv_ns, mono)
+        self._check_skew(health, recv_ns)
+        lead_ms = self._lead_ms(health, mono)
+        if lead_ms is not None and lead_ms > self.s.max_clock_skew_ms:
+            health.ahead += 1
+            self.rlog.warn(f"camera {cam}", "ahead", f"mask {msg.seq} is stamped {lead_ms:.0f} ms ahead of the "
+                           f"other cameras: left out of the frame sets (its clock runs fast)", mono)
+            return
+        count = self.sync.counters[cam]
+        before = dict(count)
+        for fs in self.sync.push(cam, msg.seq, msg.stamp_ns, mask):
+            self._queue_set(fs)
+        for name in _SYNC_DROPS + _SYNC_LATE:
+            if count[name] > before[name]:
+                self.rlog.warn(f"camera {cam}", name, f"a mask was dropped by the frame-set synchroniser "
+                               f"({name.replace('_', ' ')}; on arrival of mask {msg.seq})", mono)
+
+    def on_liveliness(self, key: str, present: bool, now_ns: int) -> None:
+        """A camera's liveliness token appeared (``present``) or went away, at server time ``now_ns``."""
+        try:
+            cam = keys.camera_of(key, self.prefix)
+        except ValueError:
+            return
+        health = self.health.get(cam)
+        if health is None:
+            log.info("liveliness: camera %s is not in the site; ignored", cam)
+            return
+        had_token = health.token
+        health.token = present
+        if not present and had_token and not health.lost:
+            health.lost = True
+            log.warning("camera %s lost (its liveliness token went away); tracking with the others", cam)
+            self._emit(camera_event("camera_lost", cam, *self._event_time(now_ns)))
+        elif present and health.lost:
+            health.lost = False
+            log.info("camera %s is back", cam)
+            self._emit(camera_event("camera_back", cam, *self._event_time(now_ns)))
+        elif present and had_token is None:
+            log.info("camera %s is alive", cam)
+
+    # ------------------------------------------------------------------ time
+
+    @property
+    def pending(self) -> int:
+        """Frame sets waiting to be fused."""
+        return len(self.ready)
+
+    def tick(self, now_ns: int, mono: float) -> Outbox:
+        """Fuse the oldest ready frame set (if any), add the status when it is due, and
+        return everything to publish since the last call."""
+        if self.ready:
+            self._fuse_next(now_ns, mono)
+        if mono >= self._next_status:
+            self._queue_status(now_ns, mono)
+            self._next_status = mono + self.s.status_period_s
+        return self.take()
+
+    def idle(self, mono: float) -> bool:
+        """True once no mask has arrived for ``exit_after_idle_s`` (never before the first mask)."""
+        return (self.s.exit_after_idle_s is not None and self.last_mask_mono is not None
+                and mono - self.last_mask_mono >= self.s.exit_after_idle_s)
+
+    def finish(self, now_ns: int, mono: float) -> Outbox:
+        """Fuse every frame set still pending (the tail of a recording), ready or not."""
+        for fs in self.sync.flush():
+            self._queue_set(fs)
+        while self.ready:
+            self._fuse_next(now_ns, mono)
+        return self.take()
+
+    def report(self, now_ns: int, mono: float) -> Outbox:
+        """The status now, due or not (and anything else not yet taken)."""
+        self._queue_status(now_ns, mono)
+        return self.take()
+
+    # ------------------------------------------------------------------ fusing
+
+    def fuse(self, fs: FrameSet, now_ns: int, mono: float) -> FusedFrame:
+        """Fuse one frame set: tracks, events (stored, written, queued) and holds. Errors of
+        the pipeline propagate (:meth:`tick` counts them; the offline replay stops on them)."""
+        frame = _frame_of(fs)
+        fused = self.pipeline.step(fs.payloads, fs.stamp_ns, frame)
+        self.c.frames_fused += 1
+        self.last_frame = int(fused.frame)
+        self.last_stamp = (int(fused.stamp_ns), int(now_ns))
+        tracks = [t for t in fused.tracks if all(math.isfinite(float(v)) for v in (t.x, t.y, t.z_top))]
+        self._queue_tracks(fused, tracks, mono)
+        if self.outputs is not None:
+            self.outputs.write_frame(fused.frame, fused.stamp_ns, tracks)
+        for rec in fused.events:
+            self._emit(rec)
+        self._queue_holds(fused, mono)
+        return fused
+
+    def _fuse_next(self, now_ns: int, mono: float) -> None:
+        """Fuse the oldest ready set; a set the pipeline fails on is counted and logged."""
+        fs = self.ready.popleft()
+        try:
+            self.fuse(fs, now_ns, mono)
+        except Exception as exc:  # noqa: BLE001 - one bad frame set must not stop the server
+            self.c.pipeline_errors += 1
+            frame = _frame_of(fs)
+            if self.c.pipeline_errors == 1:
+                log.exception("fusion: frame %d could not be fused", frame)
+            else:
+                self.rlog.warn("fusion", "step", f"frame {frame} could not be fused: {exc!r}", mono)
+
+    def _queue_set(self, fs: FrameSet) -> None:
+        if len(fs.payloads) < self.min_cameras:
+            self.c.frame_sets_too_few += 1
+            return
+        self.ready.append(fs)
+        while len(self.ready) > self.s.max_ready_sets:
+            self.ready.popleft()
+            self.c.frame_sets_dropped += 1
+
+    def _queue_tracks(self, fused: FusedFrame, tracks: list, mono: float) -> None:
+        try:
+            msg = TrackFrame(frame=int(fused.frame), stamp_ns=int(fused.stamp_ns),
+                             tracks=[_track_state(t) for t in tracks][: messages.MAX_TRACKS],
+                             cameras=list(dict.fromkeys(fused.cameras)))
+            self._out.tracks.append(messages.encode(msg))
+        except (ValueError, WireError) as exc:
+            self.rlog.warn("fusion", "tracks", f"tracks of frame {fused.frame} not published: {exc}", mono)
+
+    def _queue_holds(self, fused: FusedFrame, mono: float) -> None:
+        for cam in self.camera_ids:
+            boxes = _clean_boxes(fused.holds.get(cam, []))
+            last, sent_mono = self.holds_sent[cam]
+            due = bool(boxes) and mono - sent_mono >= self.s.hold_ttl_ms / 2000.0
+            if not due and _same_boxes(boxes, last, self.s.hold_slack_px):
+                continue
+            try:
+                msg = HoldRegions(cam=cam, stamp_ns=int(fused.stamp_ns), boxes=boxes, ttl_ms=self.s.hold_ttl_ms)
+                self._out.holds.append((cam, messages.encode(msg)))
+            except (ValueError, WireError) as exc:
+                self.rlog.warn(f"camera {cam}", "hold", f"hold regions not published: {exc}", mono)
+                continue
+            self.holds_sent[cam] = (boxes, mono)
+
+    def _emit(self, rec: EventRecord) -> None:
+        """Store (committed), then queue for publishing, then write one event."""
+        if self.store is not None:
+            try:
+                if not self.store.add(rec):
+                    log.debug("event %s is already stored: not published again", rec.id)
+                    return
+            except ValueError as exc:
+                self.c.events_not_stored += 1
+                log.error("event %s could not be stored (publishing it anyway): %s", rec.id, exc)
+        self.c.events += 1
+        log.info("event %s: track %d at (%.2f, %.2f) %s", rec.kind, rec.track, rec.x, rec.y, rec.details or "")
+        try:
+            key = keys.event_key(self.prefix, rec.kind, int(rec.track))
+            self._out.events.append((key, wire_event(rec).to_json()))
+        except (ValueError, WireError) as exc:
+            self.c.events_unpublishable += 1
+            log.error("event %s could not be published: %s", rec.id, exc)
+        if self.outputs is not None:
+            self.outputs.write_event(rec)
+
+    def take(self) -> Outbox:
+        """Everything queued for publishing since the last call (the offline replay discards it)."""
+        out, self._out = self._out, Outbox()
+        return out
+
+    # ------------------------------------------------------------------ camera health
+
+    def _event_time(self, now_ns: int) -> tuple[int, int]:
+        """(stamp_ns, frame) for an event not tied to a frame set: the capture clock of the
+        last fused set carried forward by the server's elapsed time; the server's clock before any."""
+        if self.last_stamp is None:
+            return int(now_ns), self.last_frame
+        stamp, then = self.last_stamp
+        return stamp + max(0, int(now_ns) - then), self.last_frame
+
+    def _lead_ms(self, health: _CameraHealth, mono: float) -> float | None:
+        """How far the newest mask's stamp runs ahead of the other cameras' clocks, in ms: its
+        ``stamp - receive time`` less the median of the same for the other live cameras' newest
+        masks (newest against newest, so that recordings played faster than real time, where
+        every camera's stamps run ahead alike, compare equal). None when no other camera has
+        sent masks lately."""
+        others = [h.offset_ms[-1] for h in self.health.values()
+                  if h is not health and not h.lost and h.offset_ms and h.recent(mono, self.s.stale_s)]
+        if not others or not health.offset_ms:
+            return None
+        return health.offset_ms[-1] - statistics.median(others)
+
+    def _check_shape(self, msg: MaskFrame) -> None:
+        cam = self.cameras.get(msg.cam)
+        if cam is None:
+            return
+        expected_w = msg.height * cam.width / cam.height
+        if abs(msg.width - expected_w) > 1.0 + 0.01 * expected_w:
+            raise _Shape(f"MaskFrame: a {msg.width}x{msg.height} mask does not have the {cam.width}x{cam.height} "
+                         f"aspect of camera {msg.cam!r}")
+
+    def _check_skew(self, health: _CameraHealth, now_ns: int) -> None:
+        if len(health.offset_ms) < min(10, health.offset_ms.maxlen):
+            return
+        offset = health.median_offset_ms()
+        limit = self.s.max_clock_skew_ms
+        if not health.skewed and abs(offset) > limit:
+            health.skewed = True
+            log.warning("camera %s: clock off by %.0f ms (median of its last %d masks; limit %.0f ms)",
+                        health.cam, offset, len(health.offset_ms), limit)
+            self._emit(camera_event("clock_skew", health.cam, *self._event_time(now_ns),
+                                    offset_ms=round(offset, 1), max_ms=float(limit)))
+        elif health.skewed and abs(offset) < 0.8 * limit:
+            health.skewed = False
+            log.info("camera %s: clock back in step (offset %.0f ms)", health.cam, offset)
+
+    # ------------------------------------------------------------------ status
+
+    def status(self, now_ns: int, mono: float) -> Status:
+        """Every camera's health and the fusion counters, as of ``now_ns``/``mono``."""
+        cams = []
+        for cam in self.camera_ids:
+            h = self.health[cam]
+            sc = self.sync.counters[cam]
+            offset = h.median_offset_ms()
+            cams.append(CameraStatus(
+                cam=cam,
+                state=h.state(mono, self.s.stale_s),
+                received=h.received,
+                dropped=h.seq_gaps + sum(sc[k] for k in _SYNC_DROPS),
+                late=sum(sc[k] for k in _SYNC_LATE) + h.ahead,
+                undecodable=h.undecodable,
+                rate_hz=float(h.rate_hz(mono)),
+                latency_ms=float(statistics.fmean(h.latency_ms)) if h.latency_ms else 0.0,
+                last_seen_ns=h.last_seen_ns,
+                clock_offset_ms=float(offset) if offset is not None else 0.0,
+            ))
+        return Status(stamp_ns=int(now_ns), cameras=cams, frame_sets=self.c.frames_fused,
+                      frame_sets_dropped=self.c.frame_sets_dropped)
+
+    def _queue_status(self, now_ns: int, mono: float) -> None:
+        try:
+            self._out.status = messages.encode(self.status(now_ns, mono))
+        except (ValueError, WireError) as exc:
+            self.rlog.warn("fusion", "status", f"status not published: {exc}", mono)
+
+    def summary(self, now_ns: int, mono: float) -> str:
+        """One line of what the node has done, for the log at exit."""
+        c = self.c
+        parts = [f"{c.frames_fused} frames fused", f"{c.events} events",
+                 f"{c.frame_sets_dropped} frame sets dropped (slow)", f"{c.frame_sets_too_few} with too few cameras",
+                 f"{c.inbox_dropped} masks dropped on arrival", f"{c.unknown_camera} from unknown cameras",
+                 f"{c.pipeline_errors} fusion errors", f"{c.queries} history queries"]
+        for cs in self.status(now_ns, mono).cameras:
+            parts.append(f"{cs.cam}: received {cs.received}, undecodable {cs.undecodable}, dropped {cs.dropped}, "
+                         f"late {cs.late}, {cs.state}")
+        return "; ".join(parts)
+
+
+# --------------------------------------------------------------------------- history
+
+
+def history_replies(store: EventStore, history_key: str, asked_key: str, parameters: str, *,
+                    utc_offset_h: float = 0.0) -> list[tuple[str, bytes | str, str]]:
+    """The replies to one history query: ``(key, payload, encoding)`` per stored event.
+
+    history_key: ``<p>/history/events``. asked_key: the key expression the query
+    asked for. parameters: its selector parameters (``since``, ``until``,
+    ``kind``, ``track``, ``limit``, ``format``). Each reply goes on
+    ``<history_key>/<event id>`` when the asked key covers it (zenoh's default
+    consolidation keeps one reply per key, so one key per event lets stock
+    clients see them all), else on the history key. Payloads are JSON text, or
+    msgpack with ``format=msgpack``. ValueError (the reply-error text) on a bad
+    selector. A stored event that cannot be sent is logged and left out.
+    """
+    import zenoh  # key expressions only: no session
+
+    flt = parse_history_selector(parameters, utc_offset_h=utc_offset_h)
+    records = store.query_filter(flt)
+    asked = zenoh.KeyExpr(asked_key)
+    replies: list[tuple[str, bytes | str, str]] = []
+    for rec in records:
+        try:
+            msg = wire_event(rec)
+        except WireError as exc:
+            log.warning("history: stored event %s cannot be sent: %s", rec.id, exc)
+            continue
+        key = history_key
+        try:
+            own = f"{history_key}/{keys.validate_chunk(rec.id, 'event id')}"
+            if asked.intersects(zenoh.KeyExpr(own)):
+                key = own
+        except (ValueError, zenoh.ZError):
+            pass
+        if flt.format == "msgpack":
+            replies.append((key, messages.encode(msg), messages.MSGPACK_ENCODING))
+        else:
+            replies.append((key, msg.to_json(), messages.JSON_ENCODING))
+    return replies
+
+
+# --------------------------------------------------------------------------- wire conversion
+
+
+def camera_event(kind: str, cam: str, stamp_ns: int, frame: int, **details: Any) -> EventRecord:
+    """A camera-health event (``camera_lost``, ``camera_back``, ``clock_skew``) at a server time."""
+    return EventRecord(id=event_id(stamp_ns, f"{kind}-{cam}", -1), kind=kind, track=-1, stamp_ns=int(stamp_ns),
+                       frame=int(frame), x=0.0, y=0.0, details={"camera": cam, **details})
+
+
+def wire_event(rec: EventRecord) -> Event:
+    """The wire message of an event; lists or maps in ``details`` travel as JSON text."""
+    obj = plain_value(rec.to_dict())
+    details = {}
+    for k, v in obj["details"].items():
+        details[k] = json.dumps(v, separators=(",", ":")) if isinstance(v, (list, dict)) else v
+    obj["details"] = details
+    obj["x"] = obj["x"] if obj["x"] is not None else 0.0
+    obj["y"] = obj["y"] if obj["y"] is not None else 0.0
+    try:
+        return Event.model_validate(obj)
+    except ValueError as exc:
+        raise WireError(f"Event {rec.id}: {exc}") from None
+
+
+class _Mismatch(WireError):
+    """A mask message whose camera differs from its key's camera."""
+
+
+class _Shape(WireError):
+    """A mask whose shape cannot be the camera's."""
+
+
+def _frame_of(fs: FrameSet) -> int:
+    """A frame set's frame number: the most common sequence number among its masks."""
+    return Counter(fs.seqs.values()).most_common(1)[0][0]
+
+
+def _track_state(t: Any) -> TrackState:
+    posture = t.posture if t.posture in messages.POSTURES else "unknown"
+    return TrackState(
+        id=int(t.id), x=float(t.x), y=float(t.y), z_top=max(0.0, float(t.z_top)),
+        volume_m3=max(0.0, _finite(t.volume_m3)), posture=posture,
+        reliability=min(1.0, max(0.0, _finite(t.reliability))), vx=_finite(t.vx), vy=_finite(t.vy),
+        still=bool(t.still),
+    )
+
+
+def _finite(value: Any) -> float:
+    v = float(value)
+    return v if math.isfinite(v) else 0.0
+
+
+def _clean_boxes(boxes: Any) -> list[tuple[int, int, int, int]]:
+    """Boxes as plain int tuples, empty ones left out, at most the wire's maximum."""
+    out = []
+    hi = maskcodec.MAX_MASK_SIDE
+    for box in boxes:
+        x0, y0, x1, y1 = (min(hi, max(0, int(v))) for v in box)
+        if x0 < x1 and y0 < y1:
+            out.append((x0, y0, x1, y1))
+    return out[: messages.MAX_HOLD_BOXES]
+
+
+def _same_boxes(a: list, b: list, slack_px: int) -> bool:
+    """Same number of boxes, each within ``slack_px`` of its counterpart on every side."""
+    return len(a) == len(b) and all(max(abs(u - v) for u, v in zip(p, q)) <= slack_px for p, q in zip(a, b))
