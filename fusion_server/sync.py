@@ -21,7 +21,9 @@ Release rules (time comes only from the stamps pushed, never from a clock):
 
 Dropped and counted per camera (``counters[cam][...]``):
 
-* ``duplicate``: same sequence number or same stamp as a recent frame of that camera;
+* ``duplicate``: same stamp as a recent frame of that camera, or same sequence
+  number within one frame period of it (a restarted worker numbers its frames
+  from 0 again, with new stamps: those are new frames);
 * ``out_of_order``: its set is not newer than the last released set;
 * ``stale``: its set is new but already more than ``max_wait_ns`` behind the
   newest stamp seen (it would leave at once, without the others);
@@ -152,7 +154,8 @@ class FrameSynchroniser:
         count = self.counters[cam]
         count["received"] += 1
         seq, stamp_ns = int(seq), int(stamp_ns)
-        if any(s == seq or t == stamp_ns for s, t in self._recent[cam]):
+        # a worker restarted counts from 0 again with new stamps: a repeated number alone is no copy
+        if any(t == stamp_ns or (s == seq and abs(stamp_ns - t) < self.period_ns) for s, t in self._recent[cam]):
             count["duplicate"] += 1
             return []
         if self._anchor_ns is None:

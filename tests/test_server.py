@@ -19,68 +19,23 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 
-import cv2
-import msgpack
 import numpy as np
 import pytest
 
 zenoh = pytest.importorskip("zenoh")
 
-from common import keys, maskcodec, messages  # noqa: E402
-from common.calibration import save_voxelwatch  # noqa: E402
-from common.camera import Camera, look_at  # noqa: E402
+from common import keys, messages  # noqa: E402
+from common.camera import Camera  # noqa: E402
 from common.evaluation.io import read_events, read_tracks  # noqa: E402
-from common.messages import Event, HoldRegions, MaskFrame, Status, TrackFrame, decode, decode_event, encode  # noqa: E402
+from common.messages import Event, HoldRegions, Status, TrackFrame, decode, decode_event, encode  # noqa: E402
+from tinysite import BOX_XY, CAMERA_CENTRES, FPS, H, PERIOD_NS, W, box_mask, mask_frame, write_site  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
-FPS = 30.0
-PERIOD_NS = int(1e9 / FPS)
-BOX_XY = (1.5, 1.4)
-CAMERA_CENTRES = {"c1": (-0.5, -0.5, 2.5), "c2": (3.5, -0.5, 2.5), "c3": (1.5, 3.6, 2.5)}
-W, H = 160, 120
-
-
-# --------------------------------------------------------------------------- the tiny site
 
 
 @pytest.fixture(scope="module")
 def site(tmp_path_factory) -> tuple[Path, dict[str, Camera]]:
-    """(site file, cameras): three cameras looking at the middle of a 3 x 3 x 2 m room."""
-    d = tmp_path_factory.mktemp("site")
-    cams = {}
-    for cid, centre in CAMERA_CENTRES.items():
-        R, t = look_at(centre, (1.5, 1.5, 0.8))
-        cams[cid] = Camera.pinhole(cid, W, H, hfov_deg=80.0, R=R, t=t)
-        save_voxelwatch(cams[cid], d / f"{cid}.toml")
-    text = (
-        'name = "tiny"\n\n[volume]\nmin_m = [0.0, 0.0, 0.0]\nmax_m = [3.0, 3.0, 2.0]\n\n'
-        "[carving]\nvoxel_sizes_m = [0.4, 0.2, 0.1]\nmin_cameras = 2\n"
-    )
-    for cid in cams:
-        text += f'\n[[cameras]]\nid = "{cid}"\ncalibration = "{cid}.toml"\nfps = {FPS}\n'
-    (d / "site.toml").write_text(text)
-    return d / "site.toml", cams
-
-
-def box_mask(cam: Camera, x: float, y: float, *, width_m: float = 0.5, depth_m: float = 0.4,
-             height_m: float = 1.7) -> np.ndarray:
-    """(H, W) uint8 0/255: the silhouette of an upright box standing at floor point (x, y)."""
-    corners = np.array([[x + sx * width_m / 2, y + sy * depth_m / 2, z]
-                        for sx in (-1, 1) for sy in (-1, 1) for z in (0.0, height_m)])
-    uv, ok = cam.project(corners)
-    assert ok.all()
-    mask = np.zeros((cam.height, cam.width), np.uint8)
-    cv2.fillConvexPoly(mask, cv2.convexHull(np.round(uv).astype(np.int32)), 255)
-    return mask
-
-
-def mask_frame(cam: Camera, seq: int, stamp_ns: int, mask: np.ndarray | None = None, **changes) -> MaskFrame:
-    mask = box_mask(cam, *BOX_XY) if mask is None else mask
-    fields = dict(cam=cam.id, seq=seq, stamp_ns=stamp_ns, width=mask.shape[1], height=mask.shape[0],
-                  src_width=cam.width, src_height=cam.height, codec="rle-zlib",
-                  data=maskcodec.encode_mask(mask), fg_fraction=float(np.count_nonzero(mask)) / mask.size)
-    fields.update(changes)
-    return MaskFrame(**fields)
+    return write_site(tmp_path_factory.mktemp("site"))
 
 
 # --------------------------------------------------------------------------- processes and sessions
@@ -304,56 +259,6 @@ def test_tracks_a_box_holds_it_and_writes_files_then_exits_when_idle(site, tmp_p
     assert read_events(out / "events.jsonl") == [] or all(e.kind in messages.EVENT_KINDS for e in read_events(out / "events.jsonl"))
     text = server.output()
     assert "fusion stopped:" in text and "frames fused" in text and "Traceback" not in text
-
-
-def test_garbage_masks_are_counted_and_tracking_goes_on(site, tmp_path, net, start_server):
-    site_file, cams = site
-    server = start_server("--store", str(tmp_path / "events.sqlite"))
-    c1, c2 = cams["c1"], cams["c2"]
-    good = encode(mask_frame(c2, 1000, time.time_ns()))
-    wrong_version = msgpack.packb({**msgpack.unpackb(good), "v": 2})
-    small = np.zeros((60, 80), np.uint8)
-    small[10:40, 30:50] = 255
-    garbage = [
-        os.urandom(500),                                                           # not msgpack at all
-        good[: len(good) // 2],                                                    # truncated
-        wrong_version,                                                             # schema version 2
-        b"\x00" * (messages.MAX_MESSAGE_BYTES + 1),                                # oversize
-        encode(mask_frame(c2, 1001, time.time_ns(), np.zeros((100, 100), np.uint8))),  # not the camera's shape
-        encode(mask_frame(c1, 1002, time.time_ns())),                              # c1's mask on c2's key
-        encode(mask_frame(c2, 1003, time.time_ns(), data=maskcodec.encode_mask(small))),  # 80x60 data said 160x120
-    ]
-
-    def between(seq: int) -> None:
-        if 10 <= seq < 10 + len(garbage):
-            net.put_mask("c2", garbage[seq - 10])
-        if seq == 20:
-            net.put_mask("c9", good)  # a camera the site does not know
-
-    net.publish_box(cams, range(40), between=between)
-
-    def settled() -> Status | None:
-        st = net.latest_status()
-        if st is None:
-            return None
-        got = {c.cam: c for c in st.cameras}
-        return st if got["c1"].received == 40 and got["c2"].undecodable == len(garbage) else None
-
-    status = wait_for(settled, 10.0, "a status with every mask counted")
-    by_cam = {c.cam: c for c in status.cameras}
-    assert [by_cam[c].received for c in ("c1", "c2", "c3")] == [40, 40, 40]
-    assert [by_cam[c].undecodable for c in ("c1", "c2", "c3")] == [0, len(garbage), 0]
-    assert all(by_cam[c].state in ("ok", "degraded") for c in by_cam)
-    assert all(abs(by_cam[c].clock_offset_ms) < 250 for c in by_cam)
-    assert status.frame_sets >= 35
-    assert server.proc.poll() is None
-    with net.lock:
-        after = [f for f in net.tracks if f.frame > 10 + len(garbage)]
-    assert len(after) >= 20 and all(f.cameras == ["c1", "c2", "c3"] for f in after)
-    assert sum(_near_box(f) for f in after) >= len(after) - 1
-    assert server.stop() == 0
-    text = server.output()
-    assert "undecodable mask dropped" in text and "not in the site" in text and "Traceback" not in text
 
 
 def test_a_flood_of_masks_is_dropped_and_counted_and_tracking_goes_on(site, tmp_path, net, start_server):

@@ -83,6 +83,14 @@ def test_duplicates_are_dropped_and_counted():
     assert s.counters["a"]["duplicate"] == 4
 
 
+def test_a_restarted_camera_numbering_from_zero_again_is_not_a_duplicate():
+    s = make(camera_ids=("a",))
+    for i in range(5):
+        s.push("a", i, i * 100 * MS, None)
+    out = [fs for i in range(5) for fs in s.push("a", i, (10 + i) * 100 * MS, None)]
+    assert s.counters["a"]["duplicate"] == 0 and len(out) == 5
+
+
 def test_frames_of_released_sets_are_out_of_order():
     s = make(camera_ids=("a", "b"))
     s.push("a", 1, 0, None)

@@ -1,0 +1,429 @@
+"""The fusion server's core driven frame by frame with a test's own clock: no zenoh session, no process.
+
+The node gets wire-encoded masks of a box-shaped person from the three cameras
+of the tiny site, as the server's subscriber hands them over, and the tests
+read what it would publish.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+
+import msgpack
+import numpy as np
+import pytest
+
+from common import keys, maskcodec, messages
+from common.camera import Camera
+from common.messages import Event, HoldRegions, Status, TrackFrame, decode, decode_event, encode
+from common.site import load_site
+from fusion_server.event_store import EventStore
+from fusion_server.events import EventRecord
+from fusion_server.node import FusionNode, FusionSettings, Outbox, camera_event, history_replies
+from fusion_server.outputs import RunOutputs
+from fusion_server.pipeline import FusionPipeline
+from tinysite import BOX_XY, H, PERIOD_NS, W, box_mask, mask_frame, write_site
+
+PREFIX = "voxelwatch/tiny"
+T0_NS = 1_700_000_000_000_000_000
+
+
+@pytest.fixture(scope="module")
+def site(tmp_path_factory) -> tuple[Path, dict[str, Camera]]:
+    return write_site(tmp_path_factory.mktemp("site"))
+
+
+@pytest.fixture(scope="module")
+def pipeline_cache(site) -> Path:
+    """Build the tiny site's lookup tables once for the module."""
+    cache = site[0].parent / "cache"
+    FusionPipeline.from_site(load_site(site[0]), cache_dir=cache)
+    return cache
+
+
+class Clock:
+    """The server's wall clock and monotonic clock, moved by the test."""
+
+    def __init__(self) -> None:
+        self.ns = T0_NS
+        self.mono = 100.0
+
+    def advance(self, seconds: float) -> None:
+        self.ns += int(round(seconds * 1e9))
+        self.mono += seconds
+
+
+class Rig:
+    """A node over the tiny site, a clock, and what the node has given to publish."""
+
+    def __init__(self, site, cache: Path, tmp: Path, *, store: bool = True, files: bool = False, **settings) -> None:
+        site_file, self.cams = site
+        self.settings = FusionSettings(site=load_site(site_file), prefix=PREFIX, store_path=tmp / "events.sqlite",
+                                       cache_dir=cache, **settings)
+        self.store = EventStore(self.settings.store_path) if store else None
+        self.outputs = RunOutputs(tmp / "out") if files else None
+        self.node = FusionNode(self.settings, self.settings.build_pipeline(), store=self.store, outputs=self.outputs)
+        self.clock = Clock()
+        self.tracks: list[TrackFrame] = []
+        self.events: list[tuple[str, Event]] = []
+        self.holds: dict[str, list[HoldRegions]] = {cid: [] for cid in self.cams}
+        self.status: list[Status] = []
+        self.masks = {cid: box_mask(cam, *BOX_XY) for cid, cam in self.cams.items()}
+
+    def take(self, out: Outbox) -> None:
+        self.tracks += [decode(p, TrackFrame) for p in out.tracks]
+        self.events += [(key, Event.from_json(text)) for key, text in out.events]
+        for cam, payload in out.holds:
+            self.holds[cam].append(decode(payload, HoldRegions))
+        if out.status is not None:
+            self.status.append(decode(out.status, Status))
+
+    def put(self, cam: str, payload: bytes | int, *, key_cam: str | None = None, latency_s: float = 0.005) -> None:
+        """One mask sample arriving ``latency_s`` after now (the clock is not moved)."""
+        key = keys.mask_key(PREFIX, key_cam or cam)
+        self.node.on_mask(key, payload, self.clock.ns + int(latency_s * 1e9), self.clock.mono + latency_s)
+
+    def frames(self, seqs, *, cams=None, offsets_ns=None, mask=None, ticks: int = 1) -> None:
+        """Each camera's mask of every frame in ``seqs``, stamped with the clock, one period apart."""
+        cams = cams if cams is not None else list(self.cams)
+        offsets_ns = offsets_ns or {}
+        for seq in seqs:
+            for cid in cams:
+                m = self.masks[cid] if mask is None else mask
+                self.put(cid, encode(mask_frame(self.cams[cid], seq, self.clock.ns + offsets_ns.get(cid, 0), m)))
+            for _ in range(ticks):
+                self.take(self.node.tick(self.clock.ns, self.clock.mono))
+            self.clock.advance(PERIOD_NS / 1e9)
+
+    def cam_status(self) -> dict:
+        st = self.node.status(self.clock.ns, self.clock.mono)
+        return {c.cam: c for c in st.cameras}
+
+    def kinds(self) -> list[str]:
+        return [e.kind for _, e in self.events]
+
+    def close(self) -> None:
+        if self.outputs is not None:
+            self.outputs.close()
+        if self.store is not None:
+            self.store.close()
+
+
+@pytest.fixture
+def rig(site, pipeline_cache, tmp_path):
+    made: list[Rig] = []
+
+    def make(**kw) -> Rig:
+        r = Rig(site, pipeline_cache, tmp_path, **kw)
+        made.append(r)
+        return r
+
+    yield make
+    for r in made:
+        r.close()
+
+
+def _near_box(frame: TrackFrame, tol_m: float = 0.2) -> bool:
+    return len(frame.tracks) == 1 and np.hypot(frame.tracks[0].x - BOX_XY[0], frame.tracks[0].y - BOX_XY[1]) < tol_m
+
+
+# --------------------------------------------------------------------------- fusing
+
+
+def test_a_standing_box_is_tracked_frame_by_frame_and_written_to_the_files(rig, tmp_path):
+    r = rig(files=True)
+    r.frames(range(40))
+    assert len(r.tracks) >= 38  # each set is released when its last camera arrives
+    assert [f.frame for f in r.tracks] == list(range(r.tracks[0].frame, r.tracks[0].frame + len(r.tracks)))
+    assert all(f.cameras == ["c1", "c2", "c3"] for f in r.tracks)
+    tracked = [f for f in r.tracks if f.tracks]
+    assert len(tracked) >= 25 and all(_near_box(f) for f in tracked)
+    assert tracked[-1].tracks[0].posture == "standing" and tracked[-1].tracks[0].z_top > 1.4
+    r.outputs.close()
+    rows = (tmp_path / "out" / "tracks.csv").read_text().splitlines()
+    assert rows[0] == "frame,stamp_ns,id,x,y,z_top,posture"
+    assert len(rows) - 1 == sum(len(f.tracks) for f in r.tracks)
+    assert r.node.c.frames_fused == len(r.tracks)
+
+
+def test_the_frame_number_is_the_most_common_sequence_number_of_the_set(rig):
+    r = rig()
+    for seq in range(3):
+        for cid, offset in (("c1", 0), ("c2", 0), ("c3", 500)):  # c3's counter runs 500 ahead (a restarted count)
+            r.put(cid, encode(mask_frame(r.cams[cid], seq + offset, r.clock.ns, r.masks[cid])))
+        r.take(r.node.tick(r.clock.ns, r.clock.mono))
+        r.clock.advance(PERIOD_NS / 1e9)
+    assert [f.frame for f in r.tracks] == [0, 1, 2]
+
+
+def test_status_is_due_once_per_period_and_counts_what_was_fused(rig):
+    r = rig(status_period_s=0.5)
+    r.frames(range(30))  # one second
+    assert len(r.status) == 2  # at the first tick, and at the first tick at least 0.5 s later
+    assert [s.stamp_ns - T0_NS for s in r.status] == [0, 16 * PERIOD_NS]
+    assert [s.frame_sets for s in r.status] == [1, 17]  # each tick fuses its set before the status
+    assert [c.state for c in r.status[-1].cameras] == ["ok", "ok", "ok"]
+    cams = r.cam_status()
+    assert [cams[c].received for c in ("c1", "c2", "c3")] == [30, 30, 30]
+    assert all(abs(cams[c].latency_ms - 5.0) < 0.01 and abs(cams[c].clock_offset_ms + 5.0) < 0.01 for c in cams)
+    assert all(abs(cams[c].rate_hz - 30.0) < 0.5 for c in cams)
+
+
+def test_sets_wait_in_a_bounded_queue_and_the_oldest_are_dropped_when_fusion_falls_behind(rig):
+    r = rig(max_ready_sets=4)
+    r.frames(range(20), ticks=0)  # nothing fused meanwhile: 20 complete sets released
+    assert r.node.pending == 4 and r.node.c.frame_sets_dropped == 16
+    r.take(r.node.finish(r.clock.ns, r.clock.mono))
+    assert [f.frame for f in r.tracks] == [16, 17, 18, 19]  # the newest survive
+
+
+def test_a_set_the_pipeline_fails_on_is_counted_and_the_next_is_fused(rig):
+    r = rig()
+
+    class Failing(FusionPipeline):
+        """The tiny site's pipeline, failing on frame 5 as a bug would."""
+
+        def step(self, masks, stamp_ns, frame):
+            if frame == 5:
+                raise RuntimeError("frame 5 is cursed")
+            return super().step(masks, stamp_ns, frame)
+
+    real = r.node.pipeline
+    failing = Failing(carver=real.carver, cameras=real.cameras, reasoner=real.reasoner, rng=np.random.default_rng(0))
+    r.node.pipeline = failing
+    r.frames(range(10))
+    assert r.node.c.pipeline_errors == 1
+    assert [f.frame for f in r.tracks] == [0, 1, 2, 3, 4, 6, 7, 8, 9]
+
+
+def test_sets_with_too_few_cameras_are_counted_not_fused(rig):
+    r = rig()  # the site's vote needs two cameras
+    r.frames(range(10), cams=["c1"])
+    r.take(r.node.finish(r.clock.ns, r.clock.mono))
+    assert r.tracks == [] and r.node.c.frame_sets_too_few == 10
+
+
+# --------------------------------------------------------------------------- bad input
+
+
+def test_broken_masks_are_counted_per_camera_and_dropped_and_tracking_goes_on(rig):
+    r = rig()
+    c1, c2 = r.cams["c1"], r.cams["c2"]
+    good = encode(mask_frame(c2, 1000, r.clock.ns))
+    small = np.zeros((60, 80), np.uint8)
+    small[10:40, 30:50] = 255
+    broken = [
+        os.urandom(500),                                                         # not msgpack at all
+        good[: len(good) // 2],                                                  # truncated
+        msgpack.packb({**msgpack.unpackb(good), "v": 2}),                        # schema version 2
+        messages.MAX_MESSAGE_BYTES + 1,                                          # too large (only its size arrives)
+        encode(mask_frame(c2, 1001, r.clock.ns, np.zeros((100, 100), np.uint8))),  # not the camera's shape
+        encode(mask_frame(c1, 1002, r.clock.ns)),                                # c1's mask on c2's key
+        encode(mask_frame(c2, 1003, r.clock.ns, data=maskcodec.encode_mask(small))),  # 80x60 data said 160x120
+    ]
+    for payload in broken:
+        r.put("c2", payload)
+    r.put("c9", good, key_cam="c9")  # a camera the site does not know
+    r.put("c2", good, key_cam="c2")
+    r.frames(range(30))
+    cams = r.cam_status()
+    assert cams["c2"].undecodable == len(broken) and cams["c1"].undecodable == cams["c3"].undecodable == 0
+    assert cams["c2"].received == 31 and r.node.c.unknown_camera == 1
+    assert cams["c2"].state == "degraded"  # undecodable masks within the last stale_s
+    assert sum(1 for f in r.tracks if _near_box(f)) >= 20
+    r.clock.advance(2.5)
+    r.frames(range(30, 33))
+    assert r.cam_status()["c2"].state == "ok"
+
+
+def test_sequence_gaps_count_as_dropped_and_a_restarted_worker_counting_from_zero_does_not(rig):
+    r = rig()
+    r.frames(range(10))
+    r.clock.advance(5 * PERIOD_NS / 1e9)
+    r.frames(range(15, 20))  # five frames lost by every camera
+    assert {c.dropped for c in r.cam_status().values()} == {5}
+    before = len(r.tracks)
+    # c3's worker restarts: its count starts from 0 again while its stamps go on
+    for seq in range(20, 40):
+        for cid in ("c1", "c2"):
+            r.put(cid, encode(mask_frame(r.cams[cid], seq, r.clock.ns, r.masks[cid])))
+        r.put("c3", encode(mask_frame(r.cams["c3"], seq - 20, r.clock.ns, r.masks["c3"])))
+        r.take(r.node.tick(r.clock.ns, r.clock.mono))
+        r.clock.advance(PERIOD_NS / 1e9)
+    assert r.cam_status()["c3"].dropped == 5
+    after = r.tracks[before:]
+    assert len(after) >= 19 and sum(1 for f in after if f.cameras == ["c1", "c2", "c3"]) >= 19
+
+
+def test_a_camera_that_stops_is_degraded_then_lost_and_sets_go_on_without_it(rig):
+    r = rig()
+    r.node.on_liveliness(keys.alive_camera_key(PREFIX, "c3"), True, r.clock.ns)
+    r.frames(range(10))
+    r.frames(range(10, 100), cams=["c1", "c2"])  # c3 stops sending masks but keeps its token: 3 s
+    cams = r.cam_status()
+    assert cams["c3"].state == "degraded" and cams["c1"].state == "ok"
+    late = [f for f in r.tracks if f.frame >= 12]
+    assert len(late) >= 85 and all(f.cameras == ["c1", "c2"] for f in late)
+    assert sum(1 for f in late if _near_box(f, 0.3)) >= 80
+    r.node.on_liveliness(keys.alive_camera_key(PREFIX, "c3"), False, r.clock.ns)
+    assert r.cam_status()["c3"].state == "lost"
+    r.node.on_liveliness(keys.alive_camera_key(PREFIX, "c3"), True, r.clock.ns)
+    r.frames(range(100, 105))
+    assert r.cam_status()["c3"].state == "ok" and r.tracks[-1].cameras == ["c1", "c2", "c3"]
+    r.take(r.node.report(r.clock.ns, r.clock.mono))
+    assert r.kinds() == ["camera_lost", "camera_back"]
+
+
+def test_a_camera_without_token_or_masks_is_lost_and_a_late_camera_is_counted(rig):
+    r = rig()
+    r.frames(range(10), cams=["c1", "c2"])
+    cams = r.cam_status()
+    assert cams["c3"].state == "lost" and cams["c3"].received == 0
+    # a mask of c3 for a set long released
+    r.put("c3", encode(mask_frame(r.cams["c3"], 2, r.clock.ns - 8 * PERIOD_NS, r.masks["c3"])))
+    assert r.cam_status()["c3"].late == 1
+
+
+def test_camera_events_are_stored_once_and_carry_the_capture_clock_forward(rig):
+    r = rig()
+    alive = keys.alive_camera_key(PREFIX, "c2")
+    r.node.on_liveliness(alive, True, r.clock.ns)
+    r.frames(range(30))
+    last_stamp = r.tracks[-1].stamp_ns
+    r.clock.advance(2.0)
+    r.node.on_liveliness(alive, False, r.clock.ns)
+    r.node.on_liveliness(alive, False, r.clock.ns)  # told twice: one event
+    r.take(r.node.report(r.clock.ns, r.clock.mono))
+    [(key, lost)] = r.events
+    assert key == keys.event_key(PREFIX, "camera_lost", -1)
+    assert lost.kind == "camera_lost" and lost.details == {"camera": "c2"} and lost.track == -1
+    assert lost.frame == r.tracks[-1].frame
+    assert abs(lost.stamp_ns - (last_stamp + int(2.0e9) + PERIOD_NS)) < PERIOD_NS
+    assert [e.id for e in r.store.query()] == [lost.id]
+
+
+def test_an_event_already_in_the_store_is_neither_published_nor_counted_again(rig):
+    r = rig()
+    rec = camera_event("camera_lost", "c1", T0_NS, 7)
+    assert r.store.add(rec)  # stored by the server before it was restarted
+    r.node._emit(rec)
+    r.node._emit(camera_event("camera_back", "c1", T0_NS + 1, 8))
+    r.take(r.node.report(r.clock.ns, r.clock.mono))
+    assert r.kinds() == ["camera_back"] and r.node.c.events == 1
+
+
+# --------------------------------------------------------------------------- clocks
+
+
+def test_a_camera_whose_clock_runs_a_second_ahead_is_marked_skewed_once_and_left_out(rig):
+    r = rig()
+    r.frames(range(60), offsets_ns={"c3": 1_000_000_000})
+    cams = r.cam_status()
+    assert cams["c3"].state == "skewed" and cams["c1"].state == cams["c2"].state == "ok"
+    assert abs(cams["c3"].clock_offset_ms - 995.0) < 1.0
+    assert cams["c3"].late >= 55  # its masks run ahead of the others: left out of the sets
+    assert sum(1 for f in r.tracks if f.cameras == ["c1", "c2"] and _near_box(f, 0.3)) >= 50
+    skew = [e for _, e in r.events if e.kind == "clock_skew"]
+    assert len(skew) == 1 and skew[0].details["camera"] == "c3"
+    assert abs(skew[0].details["offset_ms"] - 995.0) < 1.0 and skew[0].details["max_ms"] == 250.0
+    r.frames(range(60, 100))  # the clock is set right: the mark clears once the median is back
+    assert r.cam_status()["c3"].state == "ok"
+    assert sum(1 for _, e in r.events if e.kind == "clock_skew") == 1
+    assert r.tracks[-1].cameras == ["c1", "c2", "c3"]
+
+
+def test_recordings_played_faster_than_real_time_are_not_ahead(rig):
+    """Every camera's stamps run ahead of the server's clock alike: none is left out."""
+    r = rig()
+    for seq in range(20):
+        for cid in r.cams:
+            r.put(cid, encode(mask_frame(r.cams[cid], seq, T0_NS + seq * PERIOD_NS, r.masks[cid])))
+        r.take(r.node.tick(r.clock.ns, r.clock.mono))
+        r.clock.advance(PERIOD_NS / 4e9)  # four times real time
+    assert all(c.late == 0 for c in r.cam_status().values())
+    assert len(r.tracks) >= 19
+
+
+# --------------------------------------------------------------------------- holds
+
+
+def test_a_still_person_is_held_in_every_camera_refreshed_every_half_ttl_and_released(rig):
+    r = rig(hold_ttl_ms=1000)
+    r.frames(range(90))  # three seconds standing still
+    for cid, cam in r.cams.items():
+        held = [m for m in r.holds[cid] if m.boxes]
+        assert held, f"no hold regions for {cid}"
+        uv, _ = cam.project(np.array([[BOX_XY[0], BOX_XY[1], 0.85]]))
+        u, v = uv[0]
+        assert all(m.cam == cid and m.ttl_ms == 1000 and len(m.boxes) == 1 for m in held)
+        assert all(x0 <= u < x1 and y0 <= v < y1 for m in held for (x0, y0, x1, y1) in m.boxes)
+        # boxes that move by at most the slack are sent again only at the first frame ttl/2 later
+        gaps = np.diff([m.stamp_ns for m in held])
+        assert len(held) == 4 and np.all(np.abs(gaps - 16e9 / 30) <= 1), gaps
+    empty = np.zeros((H, W), np.uint8)
+    r.frames(range(90, 150), mask=empty)  # gone
+    assert all(r.holds[cid][-1].boxes == [] for cid in r.cams)
+    assert all(sum(1 for m in r.holds[cid] if not m.boxes) == 1 for cid in r.cams)  # one release, not a stream
+
+
+def test_no_holds_without_fusion(rig):
+    r = rig()
+    r.frames(range(90), ticks=0)
+    assert all(not msgs for msgs in r.holds.values())
+
+
+# --------------------------------------------------------------------------- idle and history
+
+
+def test_idle_only_after_the_first_mask_and_finish_fuses_the_incomplete_tail(rig):
+    r = rig(exit_after_idle_s=2.0)
+    r.clock.advance(10.0)
+    assert not r.node.idle(r.clock.mono)
+    r.frames(range(5))
+    r.frames(range(5, 7), cams=["c1", "c2"])  # the last two sets never complete
+    assert [f.frame for f in r.tracks] == [0, 1, 2, 3, 4]
+    assert not r.node.idle(r.clock.mono + 1.0) and r.node.idle(r.clock.mono + 2.0)
+    r.take(r.node.finish(r.clock.ns, r.clock.mono))
+    assert [(f.frame, f.cameras) for f in r.tracks[5:]] == [(5, ["c1", "c2"]), (6, ["c1", "c2"])]
+
+
+def _stored(store: EventStore) -> list[EventRecord]:
+    recs = [
+        EventRecord(id=f"{T0_NS + i * 10**9}-{kind}-{track}", kind=kind, track=track, stamp_ns=T0_NS + i * 10**9,
+                    frame=i * 30, x=1.0 + i, y=2.0, details={"path": [1, 2]} if kind == "fall" else {})
+        for i, (kind, track) in enumerate([("enter", 1), ("fall", 1), ("sit_down", 2), ("fall", 2)])
+    ]
+    store.add_many(recs)
+    return recs
+
+
+def test_history_replies_each_event_on_its_own_key_filtered_and_in_either_format(tmp_path):
+    history = keys.history_key(PREFIX)
+    with EventStore(tmp_path / "events.sqlite") as store:
+        recs = _stored(store)
+        replies = history_replies(store, history, f"{history}/**", "kind=fall")
+        assert [k for k, _, _ in replies] == [f"{history}/{recs[1].id}", f"{history}/{recs[3].id}"]
+        assert all(enc == messages.JSON_ENCODING for _, _, enc in replies)
+        first = Event.from_json(replies[0][1])
+        assert first.kind == "fall" and first.track == 1 and json.loads(first.details["path"]) == [1, 2]
+        # on the history key itself every reply shares that key
+        assert {k for k, _, _ in history_replies(store, history, history, "")} == {history}
+        packed = history_replies(store, history, f"{history}/**", "format=msgpack;kind=sit_down,fall;limit=2")
+        assert [decode_event(p).id for _, p, _ in packed] == [recs[1].id, recs[2].id]
+        assert all(enc == messages.MSGPACK_ENCODING for _, _, enc in packed)
+        since = history_replies(store, history, f"{history}/**", f"since={T0_NS + 2 * 10**9}")
+        assert [Event.from_json(p).id for _, p, _ in since] == [recs[2].id, recs[3].id]
+
+
+@pytest.mark.parametrize("parameters, words", [
+    ("kind=flal", "kind"),
+    ("since=yesterday", "since"),
+    ("format=xml", "format"),
+])
+def test_a_bad_history_selector_is_refused_with_the_reason(tmp_path, parameters, words):
+    with EventStore(tmp_path / "events.sqlite") as store:
+        _stored(store)
+        with pytest.raises(ValueError, match=words):
+            history_replies(store, keys.history_key(PREFIX), keys.history_key(PREFIX), parameters)
