@@ -544,6 +544,8 @@ def measure_worker(
     """
     import zenoh
 
+    from common.transport import private_config
+
     if n_frames < 10:
         raise ValueError(f"n_frames must be >= 10, got {n_frames!r}")
     rng = np.random.default_rng(seed)
@@ -552,10 +554,7 @@ def measure_worker(
     own_session = None
     try:
         if session is None:
-            conf = zenoh.Config()
-            conf.insert_json5("scouting/multicast/enabled", "false")
-            conf.insert_json5("transport/shared_memory/enabled", "false")
-            own_session = session = zenoh.open(conf)
+            own_session = session = zenoh.open(private_config())
         publisher = session.declare_publisher("voxelwatch/bench/cam/bench/mask",
                                               congestion_control=zenoh.CongestionControl.DROP, express=True)
         segmenter = ForegroundSegmenter(window_frames=500, mask_scale=mask_scale)

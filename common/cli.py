@@ -120,22 +120,21 @@ def _register_router(sub) -> None:
 
 
 def _router(args: argparse.Namespace) -> int:
-    import json
     import signal
     import threading
 
     import zenoh
 
-    conf = zenoh.Config()
-    conf.insert_json5("mode", '"router"')
-    conf.insert_json5("listen/endpoints", json.dumps(args.listen or ["tcp/0.0.0.0:7447"]))
-    conf.insert_json5("scouting/multicast/enabled", json.dumps(bool(args.multicast_scouting)))
-    conf.insert_json5("transport/shared_memory/enabled", "false")
+    from common.site import ZenohSettings
+    from common.transport import zenoh_config
+
+    listen = args.listen or ["tcp/0.0.0.0:7447"]
+    conf = zenoh_config(ZenohSettings(multicast_scouting=bool(args.multicast_scouting)), mode="router", listen=listen)
     stop = threading.Event()
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
     signal.signal(signal.SIGINT, lambda *_: stop.set())
     with zenoh.open(conf):
-        print(f"voxelwatch router listening on {', '.join(args.listen or ['tcp/0.0.0.0:7447'])}", flush=True)
+        print(f"voxelwatch router listening on {', '.join(listen)}", flush=True)
         stop.wait()
     return 0
 

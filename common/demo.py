@@ -12,7 +12,6 @@ the scenario's ground truth and an annotated plan view.
 from __future__ import annotations
 
 import datetime as _dt
-import json
 import os
 import signal
 import subprocess
@@ -24,7 +23,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TextIO
 
-from common.transport import free_port
+from common.runfiles import EVENTS_FILE, TRACKS_FILE
+from common.transport import free_port, zenoh_config
 
 START_DELAY_S = 10.0
 """Workers' first frame is stamped this long after launch, so all start in step."""
@@ -63,7 +63,7 @@ def run_demo(
     spec = synth.scenario_spec(name)  # unknown names stop here with the list
     out = Path(out_dir).resolve()
     run_dir = out / "run"
-    for stale in ("tracks.csv", "events.jsonl", "events.sqlite"):
+    for stale in (TRACKS_FILE, EVENTS_FILE, "events.sqlite"):
         (run_dir / stale).unlink(missing_ok=True)
     run_dir.mkdir(parents=True, exist_ok=True)
     site = synth.default_site(out / "site")
@@ -72,14 +72,7 @@ def run_demo(
     n_frames = sc.n_frames if frames is None else min(frames, sc.n_frames)
     synth.write_truth(sc, out / "truth", n_frames=n_frames)
     endpoint = f"tcp/127.0.0.1:{port or free_port()}"
-    conf = zenoh.Config()
-    for key, value in {
-        "mode": "router",
-        "listen/endpoints": [endpoint],
-        "scouting/multicast/enabled": False,
-        "transport/shared_memory/enabled": False,
-    }.items():
-        conf.insert_json5(key, json.dumps(value))
+    conf = zenoh_config(mode="router", listen=[endpoint])
 
     print(f"voxelwatch demo: scenario {name!r} ({spec.description}), {n_frames / sc.fps:.0f} s, "
           f"{len(site.camera_ids)} cameras, zenoh router {endpoint}", file=stream, flush=True)
@@ -238,7 +231,7 @@ def _summary(out: Path, run_dir: Path, live: _Live, procs, stream: TextIO) -> in
     failed = {name: p.returncode for name, p in procs.items() if p.returncode not in (0, None, -signal.SIGTERM)}
     if failed:
         print(f"processes that failed: {failed} (logs in {out / 'logs'})", file=stream)
-    if not (run_dir / "tracks.csv").is_file():
+    if not (run_dir / TRACKS_FILE).is_file():
         print("no tracks were written", file=stream)
         return 1
     try:
@@ -260,7 +253,7 @@ def _summary(out: Path, run_dir: Path, live: _Live, procs, stream: TextIO) -> in
         print(f"plan view: {run_dir / 'plan.png'}", file=stream)
     except ImportError as exc:
         print(f"(no plan view: {exc})", file=stream)
-    print(f"tracks: {run_dir / 'tracks.csv'}\nevents: {run_dir / 'events.jsonl'}", file=stream)
+    print(f"tracks: {run_dir / TRACKS_FILE}\nevents: {run_dir / EVENTS_FILE}", file=stream)
     return 1 if failed else 0
 
 

@@ -47,6 +47,7 @@ from pydantic import (
 )
 
 from common import keys, maskcodec
+from common.postures import POSTURES  # the wire's posture names (TrackState.posture)
 
 SCHEMA_VERSION = 1
 """The only schema version this build reads and writes."""
@@ -66,7 +67,6 @@ MSGPACK_ENCODING = "application/msgpack"
 JSON_ENCODING = "application/json"
 """Zenoh encoding string for JSON payloads (events)."""
 
-POSTURES = ("standing", "sitting", "lying", "bending", "unknown")
 PERSON_EVENT_KINDS = ("fall", "long_lie", "sit_down", "stand_up", "enter", "exit", "dwell_start", "dwell_end",
                       "visit", "inactivity")
 """Events about people: what the reasoner decides and the evaluation scores."""
@@ -198,7 +198,7 @@ class TrackState(BaseModel):
     y: float
     z_top: Annotated[float, Field(ge=0.0)]
     volume_m3: Annotated[float, Field(ge=0.0)]
-    posture: Literal["standing", "sitting", "lying", "bending", "unknown"]
+    posture: Literal[POSTURES]  # type: ignore[valid-type]
     reliability: Fraction
     vx: float
     vy: float

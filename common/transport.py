@@ -37,13 +37,14 @@ def zenoh_config(
     }
     if values["mode"] == "client":
         values["connect/timeout_ms"] = -1  # a client waits for its router instead of failing
-    conf = zenoh.Config()
-    for key, value in values.items():
-        try:
-            conf.insert_json5(key, json.dumps(value))
-        except Exception as exc:  # zenoh raises ZError for a value it refuses
-            raise TransportError(f"zenoh setting {key} = {value!r}: {exc}") from None
-    return conf
+    return _config(values)
+
+
+def private_config() -> zenoh.Config:
+    """A peer session's config with multicast scouting and shared memory off and zenoh's
+    defaults otherwise (no endpoint to connect to): for a process that talks to itself, such as
+    a benchmark publishing into its own session."""
+    return _config({"scouting/multicast/enabled": False, "transport/shared_memory/enabled": False})
 
 
 def free_port() -> int:
@@ -53,3 +54,14 @@ def free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         return s.getsockname()[1]
+
+
+def _config(values: dict[str, object]) -> zenoh.Config:
+    """A ``zenoh.Config`` with each ``key: value`` inserted (as JSON); TransportError names a refused one."""
+    conf = zenoh.Config()
+    for key, value in values.items():
+        try:
+            conf.insert_json5(key, json.dumps(value))
+        except Exception as exc:  # zenoh raises ZError for a value it refuses
+            raise TransportError(f"zenoh setting {key} = {value!r}: {exc}") from None
+    return conf

@@ -1,11 +1,9 @@
 """The fusion server's output files: ``tracks.csv`` and ``events.jsonl``.
 
-Both formats are the ones ``common.evaluation.io`` reads (and the README
-documents), so a live run can be scored like a replay:
+Both are the run files of :mod:`common.runfiles`, which the evaluation
+reads too, so a live run can be scored like a replay:
 
-* ``tracks.csv``, header ``frame,stamp_ns,id,x,y,z_top,posture``: one row
-  per confirmed track per fused frame; ``x``, ``y``, ``z_top`` in metres,
-  world frame, four decimals.
+* ``tracks.csv``: one row per confirmed track per fused frame;
 * ``events.jsonl``: one ``EventRecord.to_dict()`` object per line.
 
 Each frame's rows and each event go out in one ``write`` followed by a
@@ -18,15 +16,15 @@ an existing ``tracks.csv`` must carry the expected header.
 from __future__ import annotations
 
 import io
-import json
 import math
 from collections.abc import Iterable, Mapping
 from pathlib import Path
 from typing import Any, Protocol
 
-# the documented file formats have one home, next to their reader
-from common.evaluation.io import EVENTS_FILE, TRACK_COLUMNS, TRACKS_FILE
+from common.plain import plain_value
+from common.runfiles import EVENTS_FILE, TRACK_COLUMNS, TRACK_HEADER, TRACKS_FILE, event_line, write_track_rows
 
+# the file names, the columns and the JSON cleaner stay importable from here
 __all__ = [
     "EVENTS_FILE",
     "TRACKS_FILE",
@@ -36,8 +34,6 @@ __all__ = [
     "TracksWriter",
     "plain_value",
 ]
-
-_HEADER = ",".join(TRACK_COLUMNS)
 
 
 class TrackRow(Protocol):
@@ -59,12 +55,12 @@ class TracksWriter:
 
     path: the CSV file; created with its header (and folder) when absent or
     empty. ValueError names the file when it cannot be opened or its header
-    is not ``frame,stamp_ns,id,x,y,z_top,posture``.
+    is not :data:`common.runfiles.TRACK_HEADER`.
     """
 
     def __init__(self, path: str | Path) -> None:
         self.path = Path(path)
-        self._fh = _open_append(self.path, header=_HEADER)
+        self._fh = _open_append(self.path, header=TRACK_HEADER)
         self.rows_written = 0
 
     def write_frame(self, frame: int, stamp_ns: int, tracks: Iterable[TrackRow]) -> int:
@@ -73,14 +69,13 @@ class TracksWriter:
         Tracks with a non-finite position or height are left out (the
         format has no place for them).
         """
-        buf = io.StringIO()
-        n = 0
+        rows = []
         for t in tracks:
             x, y, z = float(t.x), float(t.y), float(t.z_top)
-            if not (math.isfinite(x) and math.isfinite(y) and math.isfinite(z)):
-                continue
-            buf.write(f"{int(frame)},{int(stamp_ns)},{int(t.id)},{x:.4f},{y:.4f},{z:.4f},{t.posture}\n")
-            n += 1
+            if math.isfinite(x) and math.isfinite(y) and math.isfinite(z):
+                rows.append((frame, stamp_ns, int(t.id), x, y, z, t.posture))
+        buf = io.StringIO()
+        n = write_track_rows(buf, rows)
         if n:
             self._fh.write(buf.getvalue())
             self._fh.flush()
@@ -92,7 +87,7 @@ class TracksWriter:
 
 
 class EventsWriter:
-    """Appends events to a JSON-lines file, one flush per event (see :func:`plain_value`)."""
+    """Appends events to a JSON-lines file, one flush per event (see :func:`common.runfiles.event_line`)."""
 
     def __init__(self, path: str | Path) -> None:
         self.path = Path(path)
@@ -102,7 +97,7 @@ class EventsWriter:
     def write(self, event: EventLike | Mapping[str, Any]) -> None:
         """Append one event (an ``EventRecord`` or its ``to_dict()``) as one line."""
         obj = event.to_dict() if hasattr(event, "to_dict") else dict(event)
-        self._fh.write(json.dumps(plain_value(obj), ensure_ascii=False, allow_nan=False, separators=(",", ":")) + "\n")
+        self._fh.write(event_line(obj))
         self._fh.flush()
         self.events_written += 1
 
@@ -148,27 +143,6 @@ class RunOutputs:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
-
-
-def plain_value(value: Any) -> Any:
-    """``value`` with numpy scalars/arrays made plain Python and non-finite floats made None.
-
-    Dicts keep their keys (made ``str``), tuples become lists: what JSON,
-    msgpack and the wire models all take.
-    """
-    if isinstance(value, Mapping):
-        return {str(k): plain_value(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [plain_value(v) for v in value]
-    if isinstance(value, (str, bool)) or value is None:
-        return value
-    if hasattr(value, "tolist") and not isinstance(value, (int, float)):  # numpy scalar or array
-        return plain_value(value.tolist())
-    if isinstance(value, int):
-        return int(value)
-    if isinstance(value, float):
-        return float(value) if math.isfinite(value) else None
-    return str(value)
 
 
 # --------------------------------------------------------------------------- helpers

@@ -47,8 +47,10 @@ from typing import Iterable, Protocol, Sequence
 
 import numpy as np
 
-POSTURES: tuple[str, ...] = ("standing", "sitting", "bending", "lying")
-"""Reported posture labels, in the order of :attr:`PostureReading.probabilities`."""
+from common.postures import BODY_POSTURES
+
+POSTURES: tuple[str, ...] = BODY_POSTURES
+"""Reported posture labels (every posture but ``unknown``), in the order of :attr:`PostureReading.probabilities`."""
 
 STATES: tuple[str, ...] = (
     "standing",
@@ -69,13 +71,15 @@ the seat (chair or sofa fronts and table tops hide them from some cameras),
 so that the body floats at seat height; ``lying_raised``, lying on a bed or
 sofa; ``standing_raised``, a standing person whose legs furniture hides."""
 
-STATE_POSTURE: tuple[int, ...] = (0, 1, 2, 3, 2, 1, 3, 0)
+STATE_POSTURE: tuple[int, ...] = tuple(
+    POSTURES.index(p) for p in ("standing", "sitting", "bending", "lying", "bending", "sitting", "lying", "standing")
+)
 """Index into :data:`POSTURES` of each state in :data:`STATES`."""
 
-_UPRIGHT = np.array([STATE_POSTURE[k] == 0 for k in range(len(STATES))])
+_UPRIGHT = np.array([POSTURES[p] == "standing" for p in STATE_POSTURE])
 """(len(STATES),) bool: the states of someone standing (how a walking person's body is)."""
 
-_TELLS_HEIGHT = np.array([STATE_POSTURE[k] in (0, 1) for k in range(len(STATES))])
+_TELLS_HEIGHT = np.array([POSTURES[p] in ("standing", "sitting") for p in STATE_POSTURE])
 """(len(STATES),) bool: the standing and seated states, whose shapes tell a standing height."""
 
 FEATURE_NAMES: tuple[str, ...] = (

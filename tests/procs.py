@@ -20,7 +20,6 @@ per reply as ``z_get.py`` does; both take the payload with
 
 from __future__ import annotations
 
-import json
 import os
 import re
 import signal
@@ -49,21 +48,9 @@ def free_port() -> int:
 
 def loopback_config(*, mode: str, listen: Iterable[str] = (), connect: Iterable[str] = ()):
     """A zenoh config for loopback tests: multicast scouting and shared memory off."""
-    import zenoh
+    from common.transport import zenoh_config
 
-    conf = zenoh.Config()
-    values = {
-        "mode": mode,
-        "listen/endpoints": list(listen),
-        "connect/endpoints": list(connect),
-        "scouting/multicast/enabled": False,
-        "transport/shared_memory/enabled": False,
-    }
-    if mode == "client":
-        values["connect/timeout_ms"] = -1
-    for key, value in values.items():
-        conf.insert_json5(key, json.dumps(value))
-    return conf
+    return zenoh_config(mode=mode, listen=list(listen), connect=list(connect))
 
 
 def wait_for(predicate: Callable[[], object], timeout_s: float, what: str, *,

@@ -465,13 +465,9 @@ def _free_port() -> int:
 def _peer(listen: list[str], connect: list[str]):
     import zenoh
 
-    conf = zenoh.Config()
-    conf.insert_json5("mode", '"peer"')
-    conf.insert_json5("scouting/multicast/enabled", "false")
-    conf.insert_json5("transport/shared_memory/enabled", "false")
-    conf.insert_json5("listen/endpoints", json.dumps(listen))
-    conf.insert_json5("connect/endpoints", json.dumps(connect))
-    return zenoh.open(conf)
+    from common.transport import zenoh_config
+
+    return zenoh.open(zenoh_config(mode="peer", listen=listen, connect=connect))
 
 
 def test_messages_over_zenoh_loopback_and_events_readable_as_text():

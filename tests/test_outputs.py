@@ -14,7 +14,7 @@ import pytest
 
 from common.evaluation.io import read_events, read_tracks
 from fusion_server.events import EventRecord
-from fusion_server.outputs import EVENTS_FILE, TRACKS_FILE, RunOutputs, TracksWriter, plain_value
+from fusion_server.outputs import EVENTS_FILE, TRACKS_FILE, RunOutputs, TracksWriter
 from fusion_server.pipeline import TrackOutput
 
 
@@ -77,12 +77,6 @@ def test_non_finite_tracks_are_left_out(tmp_path: Path) -> None:
     with RunOutputs(tmp_path) as out:
         assert out.write_frame(0, 1, [_track(1, math.nan, 1.0), _track(2, 1.0, 1.0)]) == 1
     assert read_tracks(tmp_path / TRACKS_FILE).track_id.tolist() == ["2"]
-
-
-def test_plain_value_makes_numpy_and_non_finite_plain() -> None:
-    got = plain_value({"a": np.float32(1.5), "b": np.bool_(True), "c": (np.int16(2), math.inf), 3: np.arange(2)})
-    assert got == {"a": 1.5, "b": True, "c": [2, None], "3": [0, 1]}
-    assert type(got["a"]) is float and type(got["b"]) is bool and type(got["c"][0]) is int
 
 
 def test_a_killed_writer_loses_nothing_it_wrote(tmp_path: Path) -> None:

@@ -8,8 +8,9 @@ import numpy as np
 import pytest
 
 from common.evaluation.io import read_truth_events, read_truth_meta, read_truth_tracks
+from common.runfiles import TRACK_HEADER
 from common.synth.scenarios import get_scenario, list_scenarios
-from common.synth.truth import DWELL_WINDOW_S, TRACK_HEADER, derive_truth, visit_reason, write_truth
+from common.synth.truth import DWELL_WINDOW_S, derive_truth, visit_reason, write_truth
 
 
 @pytest.fixture(scope="module")
@@ -121,7 +122,7 @@ def test_truth_files_follow_the_documented_format(tmp_path):
     sc = get_scenario("dinner_visit")
     paths = write_truth(sc, tmp_path / "truth", n_frames=2000)
     lines = paths["tracks"].read_text().splitlines()
-    assert lines[0] == ",".join(TRACK_HEADER)
+    assert lines[0] == TRACK_HEADER
     table = read_truth_tracks(tmp_path)
     events = read_truth_events(tmp_path)
     meta = read_truth_meta(tmp_path)

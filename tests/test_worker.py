@@ -3,7 +3,6 @@
 
 from __future__ import annotations
 
-import json
 import os
 import re
 import signal
@@ -31,6 +30,7 @@ from camera_worker.worker import (
 from camera_worker.worker import HoldRegionsRejected
 from common import keys, maskcodec, messages
 from common.messages import HoldRegions, MaskFrame
+from common.transport import zenoh_config
 
 CAMERA = Path(sys.executable).parent / "voxelwatch-camera"
 W, H, FPS = 160, 120, 25.0
@@ -155,12 +155,7 @@ class Listener:
 
     def __init__(self) -> None:
         self.endpoint = f"tcp/127.0.0.1:{_free_port()}"
-        conf = zenoh.Config()
-        conf.insert_json5("mode", '"peer"')
-        conf.insert_json5("listen/endpoints", json.dumps([self.endpoint]))
-        conf.insert_json5("scouting/multicast/enabled", "false")
-        conf.insert_json5("transport/shared_memory/enabled", "false")
-        self.session = zenoh.open(conf)
+        self.session = zenoh.open(zenoh_config(mode="peer", listen=[self.endpoint]))
         self.lock = threading.Lock()
         self.payloads: list[bytes] = []
         self.alive: list[tuple[str, str]] = []

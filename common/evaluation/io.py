@@ -1,15 +1,10 @@
 """Reading, writing and validating the track and event files.
 
-Two documented formats, used both for ground truth and for a run's output:
-
-* **tracks CSV**, header ``frame,stamp_ns,id,x,y,z_top,posture``: one row per
-  person per frame; ``x``, ``y`` on the floor and ``z_top`` the top of the head,
-  metres, world frame; ``posture`` one of :data:`POSTURES`. Frames without rows
-  have nobody in them. A track id is any non-empty text (``7``, ``alice``).
-* **events JSON lines**: one object per line with ``kind``, ``track``,
-  ``frame``, ``stamp_ns``, ``x``, ``y``, ``details`` and an optional ``id``.
-  Kinds outside :data:`SCORED_KINDS` (``camera_lost`` and the like) are read
-  and kept but not scored.
+The formats are the run files of :mod:`common.runfiles` (a tracks CSV and
+events JSON lines), used both for ground truth and for a run's output.
+Postures are checked against :data:`POSTURES`; event kinds outside
+:data:`SCORED_KINDS` (``camera_lost`` and the like) are read and kept but
+not scored.
 
 Ground truth sits in ``TRUTH/truth/`` or directly in ``TRUTH/``, optionally
 with ``meta.json`` holding ``fps`` and ``n_frames``. Every problem raises
@@ -28,14 +23,11 @@ from typing import Any
 
 import numpy as np
 
-from common import messages
+from common import messages, runfiles
+from common.postures import POSTURES
+from common.runfiles import EVENTS_FILE, META_FILE, TRACK_COLUMNS, TRACKS_FILE
 
-TRACK_COLUMNS: tuple[str, ...] = ("frame", "stamp_ns", "id", "x", "y", "z_top", "posture")
-POSTURES: tuple[str, ...] = messages.POSTURES
 SCORED_KINDS: tuple[str, ...] = messages.PERSON_EVENT_KINDS
-TRACKS_FILE = "tracks.csv"
-EVENTS_FILE = "events.jsonl"
-META_FILE = "meta.json"
 
 
 class EvalFormatError(ValueError):
@@ -143,19 +135,8 @@ class Event:
     id: str | None = None
 
     def to_json(self) -> dict[str, Any]:
-        out: dict[str, Any] = {}
-        if self.id is not None:
-            out["id"] = self.id
-        out.update(
-            kind=self.kind,
-            track=self.track,
-            frame=self.frame,
-            stamp_ns=self.stamp_ns,
-            x=self.x,
-            y=self.y,
-            details=self.details,
-        )
-        return out
+        return runfiles.event_object(kind=self.kind, track=self.track, frame=self.frame, stamp_ns=self.stamp_ns,
+                                     x=self.x, y=self.y, details=self.details, id=self.id)
 
 
 @dataclass(frozen=True)
@@ -217,15 +198,8 @@ def read_tracks(path: str | Path) -> TrackTable:
 
 def write_tracks(path: str | Path, tracks: TrackTable | Iterable[Sequence[Any]]) -> Path:
     """Write a tracks CSV (header first, rows sorted by frame then id); returns the path."""
-    path = Path(path)
     table = tracks if isinstance(tracks, TrackTable) else TrackTable.from_rows(tracks)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    with path.open("w", newline="", encoding="utf-8") as fh:
-        writer = csv.writer(fh, lineterminator="\n")
-        writer.writerow(TRACK_COLUMNS)
-        for frame, stamp_ns, tid, x, y, z_top, posture in table.rows():
-            writer.writerow([frame, stamp_ns, tid, f"{x:.4f}", f"{y:.4f}", f"{z_top:.4f}", posture])
-    return path
+    return runfiles.write_tracks_file(path, table.rows())
 
 
 # ---------------------------------------------------------------- events
@@ -282,12 +256,7 @@ def event_from_json(obj: Any, where: str = "event") -> Event:
 
 def write_events(path: str | Path, events: Iterable[Event]) -> Path:
     """Write events as JSON lines, one object per line; returns the path."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    with path.open("w", encoding="utf-8") as fh:
-        for ev in events:
-            fh.write(json.dumps(ev.to_json(), separators=(",", ":")) + "\n")
-    return path
+    return runfiles.write_events_file(path, (ev.to_json() for ev in events))
 
 
 # ---------------------------------------------------------------- meta and folders

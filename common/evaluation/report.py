@@ -41,6 +41,7 @@ from common.evaluation.posture import posture_scores
 from common.evaluation.tracking import (
     CLEAR_RADIUS_M, PER_FRAME_RADIUS_M, band_summary, by_people_present, clear_mot, frame_span, per_frame_measures, ratio,
 )
+from common.plain import plain_value
 
 
 def evaluate(
@@ -290,7 +291,7 @@ def suite_table(rows: Mapping[str, Mapping[str, Any]] | Iterable[tuple[str, Mapp
 
 def to_json(results: Mapping[str, Any]) -> str:
     """The results as indented JSON text (None becomes null)."""
-    return json.dumps(_plain(results), indent=2, allow_nan=False)
+    return json.dumps(plain_value(results), indent=2, allow_nan=False)
 
 
 def write_json(results: Mapping[str, Any], path: str | Path) -> Path:
@@ -431,19 +432,3 @@ def fmt_pct(value: float | None) -> str:
 
 def fmt_num(value: float | None, digits: int) -> str:
     return "-" if value is None else f"{value:.{digits}f}"
-
-
-def _plain(value: Any) -> Any:
-    """Numpy scalars and arrays to plain Python; non-finite floats to None."""
-    if isinstance(value, Mapping):
-        return {str(k): _plain(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [_plain(v) for v in value]
-    if isinstance(value, np.ndarray):
-        return _plain(value.tolist())
-    if isinstance(value, (np.integer,)):
-        return int(value)
-    if isinstance(value, (float, np.floating)):
-        value = float(value)
-        return value if math.isfinite(value) else None
-    return value

@@ -32,14 +32,15 @@ from typing import Union
 
 import numpy as np
 
+from common.postures import BODY_POSTURES
 from common.synth.body import (
     N_Q, Q_ELBOW, Q_HIP_ABD, Q_HIP_FLEX, Q_KNEE, Q_NECK, Q_PITCH, Q_ROLL, Q_SHOULDER_ABD, Q_SHOULDER_FLEX,
     Q_SPINE, Q_TWIST, Q_YAW, TRUNK_PARTS, BodyShape, lowest_point_m, standing_pose,
 )
 from common.synth.scene import Room
 
-POSTURES = ("standing", "sitting", "lying", "bending")
-STANDING, SITTING, LYING, BENDING = range(4)
+STANDING, SITTING, LYING, BENDING = (BODY_POSTURES.index(p) for p in ("standing", "sitting", "lying", "bending"))
+"""Posture labels: indices into :data:`common.postures.BODY_POSTURES`."""
 FALL_DIRECTIONS = ("forward", "backward", "left", "right")
 
 Point = Union[str, tuple[float, float]]
@@ -256,7 +257,7 @@ class Timeline:
     def evaluate(self, t) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """Poses at times ``t`` (n,) seconds.
 
-        Returns q (n, N_Q) float64, label (n,) int8 (index into :data:`POSTURES`),
+        Returns q (n, N_Q) float64, label (n,) int8 (index into :data:`common.postures.BODY_POSTURES`),
         moving (n,) bool (walking), present (n,) bool. Rows where absent hold the last pose.
         """
         t = np.atleast_1d(np.asarray(t, dtype=np.float64))

@@ -1,15 +1,14 @@
 """Exact ground truth of a scenario: per-frame positions and postures, and events.
 
-Tracks (``truth/tracks.csv``, header ``frame,stamp_ns,id,x,y,z_top,posture``):
+Tracks (``truth/tracks.csv``, a tracks file of :mod:`common.runfiles`):
 one row per person per frame while the person's pelvis is inside the
 monitored volume (the room's floor rectangle); ``x, y`` the pelvis (hip-joint
 midpoint) projected on the floor, ``z_top`` the highest body point, metres;
 ``posture`` 'standing' (walking included), 'sitting', 'lying' or 'bending'
 (kneeling included).
 
-Events (``truth/events.jsonl``, one JSON object a line:
-``{"kind", "track", "frame", "stamp_ns", "x", "y", "details"}``). The frame
-of each kind:
+Events (``truth/events.jsonl``, an events file of :mod:`common.runfiles`,
+without ``id``). The frame of each kind:
 
 * ``fall``: the frame the body reaches the floor (end of the ~0.9 s drop);
   posture is 'lying' from that frame. details: direction.
@@ -34,18 +33,18 @@ of each kind:
 
 from __future__ import annotations
 
-import csv
 import json
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
-from common.synth.behaviour import LYING, POSTURES
+from common.postures import BODY_POSTURES
+from common.runfiles import EVENTS_FILE, META_FILE, TRACKS_FILE, event_object, write_events_file, write_tracks_file
+from common.synth.behaviour import LYING
 
 DWELL_WINDOW_S = 10.0
 LONG_LIE_S = 30.0
-TRACK_HEADER = ("frame", "stamp_ns", "id", "x", "y", "z_top", "posture")
 
 
 @dataclass(frozen=True)
@@ -61,8 +60,8 @@ class TruthEvent:
     details: dict = field(default_factory=dict)
 
     def to_json(self) -> dict:
-        return {"kind": self.kind, "track": self.track, "frame": self.frame, "stamp_ns": self.stamp_ns,
-                "x": round(self.x, 4), "y": round(self.y, 4), "details": self.details}
+        return event_object(kind=self.kind, track=self.track, frame=self.frame, stamp_ns=self.stamp_ns,
+                            x=round(self.x, 4), y=round(self.y, 4), details=self.details)
 
 
 @dataclass(frozen=True)
@@ -154,7 +153,7 @@ def derive_truth(scenario) -> Truth:
     fr, pid, x, y, z, lab = (c[order] for c in cols)
     return Truth(frame=fr.astype(np.int64), stamp_ns=stamps[fr.astype(np.int64)], person=pid.astype(np.int64),
                  x=x.astype(np.float64), y=y.astype(np.float64), z_top=z.astype(np.float64),
-                 posture=np.array([POSTURES[int(v)] for v in lab], dtype=str).reshape(-1), events=events)
+                 posture=np.array([BODY_POSTURES[int(v)] for v in lab], dtype=str).reshape(-1), events=events)
 
 
 def write_truth(scenario, out_dir, truth: Truth | None = None, *, n_frames: int | None = None) -> dict[str, Path]:
@@ -165,18 +164,10 @@ def write_truth(scenario, out_dir, truth: Truth | None = None, *, n_frames: int 
     truth = truth or derive_truth(scenario)
     n_frames = scenario.n_frames if n_frames is None else int(n_frames)
     truth = truth.cut(n_frames)
-    tracks = out / "tracks.csv"
-    with tracks.open("w", newline="", encoding="utf-8") as fh:
-        w = csv.writer(fh, lineterminator="\n")
-        w.writerow(TRACK_HEADER)
-        for i in range(truth.frame.shape[0]):
-            w.writerow([int(truth.frame[i]), int(truth.stamp_ns[i]), int(truth.person[i]), f"{truth.x[i]:.4f}",
-                        f"{truth.y[i]:.4f}", f"{truth.z_top[i]:.4f}", truth.posture[i]])
-    events = out / "events.jsonl"
-    with events.open("w", encoding="utf-8") as fh:
-        for ev in truth.events:
-            fh.write(json.dumps(ev.to_json(), separators=(",", ":")) + "\n")
-    meta = out / "meta.json"
+    tracks = write_tracks_file(out / TRACKS_FILE, zip(truth.frame, truth.stamp_ns, truth.person.tolist(), truth.x,
+                                                      truth.y, truth.z_top, truth.posture))
+    events = write_events_file(out / EVENTS_FILE, (ev.to_json() for ev in truth.events))
+    meta = out / META_FILE
     meta.write_text(json.dumps({
         "scenario": scenario.name,
         "description": scenario.spec.description,

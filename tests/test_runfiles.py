@@ -1,0 +1,50 @@
+"""Run files: the tracks CSV and events JSON lines written byte for byte the same by every writer."""
+
+from __future__ import annotations
+
+import io as text_io
+import math
+
+import numpy as np
+
+from common import runfiles
+from common.evaluation import io
+from common.evaluation.io import Event
+from fusion_server.outputs import RunOutputs
+from fusion_server.pipeline import TrackOutput
+
+
+def test_track_rows_by_hand() -> None:
+    buf = text_io.StringIO()
+    n = runfiles.write_track_rows(buf, [(3, 1_000_000_000, 7, 1.23456, -0.5, np.float64(1.7), "standing"),
+                                        (3, 1_000_000_000, "alice", 0.0, 2.0, 0.44444, "lying")])
+    assert n == 2
+    assert buf.getvalue() == "3,1000000000,7,1.2346,-0.5000,1.7000,standing\n3,1000000000,alice,0.0000,2.0000,0.4444,lying\n"
+
+
+def test_tracks_file_has_the_header_first(tmp_path) -> None:
+    path = runfiles.write_tracks_file(tmp_path / "a" / runfiles.TRACKS_FILE, [(0, 5, 1, 1.0, 2.0, 1.5, "sitting")])
+    assert path.read_text(encoding="utf-8") == "frame,stamp_ns,id,x,y,z_top,posture\n0,5,1,1.0000,2.0000,1.5000,sitting\n"
+    assert runfiles.TRACK_HEADER == ",".join(runfiles.TRACK_COLUMNS)
+
+
+def test_event_object_order_and_line_by_hand() -> None:
+    obj = runfiles.event_object(kind="fall", track=2, frame=10, stamp_ns=99, x=1.5, y=np.float32(2.25),
+                                details={"n": np.int64(3), "d": math.nan, "seat": "canapé"})
+    assert list(obj) == [f for f in runfiles.EVENT_FIELDS if f != "id"]
+    assert runfiles.event_line(obj) == (
+        '{"kind":"fall","track":2,"frame":10,"stamp_ns":99,"x":1.5,"y":2.25,"details":{"n":3,"d":null,"seat":"canapé"}}\n'
+    )
+    assert list(runfiles.event_object(kind="enter", track=None, frame=0, stamp_ns=0, x=None, y=None, details={},
+                                      id="e1")) == list(runfiles.EVENT_FIELDS)
+
+
+def test_live_and_evaluation_writers_write_the_same_bytes(tmp_path) -> None:
+    with RunOutputs(tmp_path / "live") as out:
+        out.write_frame(4, 400, [TrackOutput(id=2, x=1.0, y=2.123456, z_top=1.7, volume_m3=0.1, posture="bending",
+                                             reliability=0.9, vx=0.0, vy=0.0, still=False)])
+        out.write_event(Event("fall", 4, 400, "2", 1.0, 2.0, {"direction": "left"}, id="x").to_json())
+    io.write_tracks(tmp_path / "eval" / runfiles.TRACKS_FILE, [(4, 400, "2", 1.0, 2.123456, 1.7, "bending")])
+    io.write_events(tmp_path / "eval" / runfiles.EVENTS_FILE, [Event("fall", 4, 400, "2", 1.0, 2.0, {"direction": "left"}, id="x")])
+    for name in (runfiles.TRACKS_FILE, runfiles.EVENTS_FILE):
+        assert (tmp_path / "live" / name).read_bytes() == (tmp_path / "eval" / name).read_bytes()
