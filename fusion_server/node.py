@@ -79,11 +79,12 @@ from common import keys, maskcodec, messages
 from common.camera import Camera
 from common.maskcodec import MaskCodecError
 from common.messages import CameraStatus, Event, HoldRegions, MaskFrame, Status, TrackFrame, TrackState, WireError
+from common.plain import plain_value
 from common.ratelog import RateLimitedLog
 from common.site import Site
 from fusion_server.event_store import EventStore, parse_history_selector
 from fusion_server.events import EventRecord, event_id
-from fusion_server.outputs import RunOutputs, plain_value
+from fusion_server.outputs import RunOutputs
 from fusion_server.pipeline import FusedFrame, FusionPipeline
 from fusion_server.sync import FrameSet, FrameSynchroniser
 

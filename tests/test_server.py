@@ -8,7 +8,6 @@ reads what the server publishes: tracks, status, events and history.
 
 from __future__ import annotations
 
-import json
 import os
 import signal
 import socket
@@ -28,6 +27,7 @@ from common import keys, messages  # noqa: E402
 from common.camera import Camera  # noqa: E402
 from common.evaluation.io import read_events, read_tracks  # noqa: E402
 from common.messages import Event, HoldRegions, Status, TrackFrame, decode, decode_event, encode  # noqa: E402
+from procs import loopback_config  # noqa: E402
 from tinysite import BOX_XY, CAMERA_CENTRES, FPS, H, PERIOD_NS, W, box_mask, mask_frame, write_site  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -48,13 +48,7 @@ def _free_port() -> int:
 
 
 def _open_peer(listen: str) -> "zenoh.Session":
-    conf = zenoh.Config()
-    conf.insert_json5("mode", '"peer"')
-    conf.insert_json5("scouting/multicast/enabled", "false")
-    conf.insert_json5("transport/shared_memory/enabled", "false")
-    conf.insert_json5("listen/endpoints", json.dumps([listen]))
-    conf.insert_json5("connect/endpoints", "[]")
-    return zenoh.open(conf)
+    return zenoh.open(loopback_config(mode="peer", listen=[listen]))
 
 
 class Net:
