@@ -59,7 +59,8 @@ class EventReasoner:
     residents: people who live here; more present is a visit.
     utc_offset_h: local time = UTC + this (the stamps are Unix-epoch ns).
     presence, falls, sit_stand, entries, visits, inactivity: the parameter
-        groups of the presence test and of each detector.
+        groups of the presence test and of each detector; the detectors are
+        the attributes of the same names (``reasoner.falls.params`` ...).
     """
 
     def __init__(
