@@ -20,7 +20,7 @@ from fusion_server.carving import Carver
 from fusion_server.carving.occlusion import Occluder
 from fusion_server.detection import detect_blobs
 from fusion_server.explain import BlobExplainer
-from fusion_server.events import EventReasoner, EventRecord
+from fusion_server.events import EventReasoner, EventRecord, FallParams, InactivityParams
 from fusion_server.grid import CarveResult
 from fusion_server.hotspots import Hotspot
 from fusion_server.posture import PostureEstimator, PostureReading
@@ -137,8 +137,8 @@ class FusionPipeline:
             bounds_xy_m=_entry_edges(site),
             residents=site.residents,
             utc_offset_h=site.utc_offset_hours,
-            long_lie_s=site.events.long_lie_s,
-            inactivity_s=site.events.inactivity_s,
+            falls=FallParams(long_lie_s=site.events.long_lie_s),
+            inactivity=InactivityParams(inactivity_s=site.events.inactivity_s),
         )
         return cls(
             carver=carver, cameras=cameras, reasoner=reasoner, rng=np.random.default_rng(seed), min_cameras=min_cameras

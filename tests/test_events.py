@@ -4,7 +4,7 @@ synthetic articulated bodies of tests/test_posture.py."""
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from functools import lru_cache
 
 import numpy as np
@@ -12,8 +12,14 @@ import pytest
 
 from fusion_server.events import (
     EVENT_KINDS,
+    EntryParams,
     EventReasoner,
     EventRecord,
+    FallParams,
+    InactivityParams,
+    PresenceParams,
+    SitStandParams,
+    VisitParams,
     crossing_time,
     detect_fast_drop,
     drop_is_physical,
@@ -200,7 +206,8 @@ def test_fall_from_standing_is_one_fall_with_the_right_time_then_a_long_lie():
     # toppling, the body's floor centre moves from the feet to about half its height away
     p = Person(1).hold(fall_start_s, STAND, xy=(3.0, 3.0))
     p.move(fall_s, _fall_profiles(), (3.8, 3.0), _toppling).hold(65.0, LIE)
-    events = run([p], EventReasoner(long_lie_s=60.0, stand_up_from=("sitting",)))
+    reasoner = EventReasoner(falls=FallParams(long_lie_s=60.0), sit_stand=SitStandParams(stand_up_from=("sitting",)))
+    events = run([p], reasoner)
     falls = kinds(events, "fall")
     assert len(falls) == 1
     fall = falls[0]
@@ -257,7 +264,7 @@ def test_a_top_jumping_to_the_floor_raises_no_fall():
     p = Person(3).hold(3.0, STAND, xy=(2.0, 2.0)).hold(5.0, LIE, xy=(2.7, 2.0))
     assert kinds(run([p], EventReasoner()), "fall") == []
     # without the bound on speed the same frames read as a fall
-    assert len(kinds(run([p], EventReasoner(fall_max_accel_mps2=1e6)), "fall")) == 1
+    assert len(kinds(run([p], EventReasoner(falls=FallParams(max_accel_mps2=1e6))), "fall")) == 1
 
 
 def test_only_someone_who_was_upright_falls():
@@ -282,7 +289,7 @@ def test_only_someone_who_was_upright_falls():
         return kinds(out, "fall")
 
     assert falls(frames("bending", 1.2)) == []
-    assert len(falls(frames("bending", 1.2), fall_history_s=0.0)) == 1  # the drop itself is a fall's
+    assert len(falls(frames("bending", 1.2), falls=FallParams(upright_s=0.0))) == 1  # the drop itself is a fall's
     assert len(falls(frames("standing", 1.7))) == 1
 
 
@@ -291,7 +298,7 @@ def test_a_fall_before_the_track_is_established_is_a_fall():
     happened before the track was established, and counts once it is."""
     p = Person(1).hold(0.6, STAND, xy=(2.0, 2.0)).move(0.8, _fall_profiles(), (2.7, 2.0), _toppling)
     p.hold(4.0, LIE)
-    falls = kinds(run([p], EventReasoner(establish_s=1.5)), "fall")
+    falls = kinds(run([p], EventReasoner(presence=PresenceParams(establish_s=1.5))), "fall")
     assert len(falls) == 1
     assert 0.6 < t_s(falls[0].details["fall_stamp_ns"]) < 1.4
 
@@ -332,7 +339,7 @@ def test_a_posture_flip_at_constant_height_is_no_sit_or_stand():
     assert kinds(events) == ["sit_down"]
     assert events[0].details["height_change_m"] == pytest.approx(-0.45, abs=0.051)
     # without the height test the flips are a stand_up and a second sit_down
-    loose = run([p], EventReasoner(sit_min_change_frac=0.0, sit_max_change_frac=5.0))
+    loose = run([p], EventReasoner(sit_stand=SitStandParams(min_change_frac=0.0, max_change_frac=5.0)))
     assert kinds(loose) == ["sit_down", "stand_up", "sit_down"]
 
 
@@ -375,7 +382,7 @@ def test_fast_kneel_bend_or_squat_is_never_a_fall(pose):
     p = Person(3).hold(2.0, STAND, xy=(2.0, 2.0))
     p.move(0.5, lambda f: body_profile(blend("standing", pose, f))).hold(8.0, _profile(pose))
     p.move(0.8, lambda f: body_profile(blend(pose, "standing", f))).hold(2.0, STAND)
-    events = run([p], EventReasoner(long_lie_s=5.0))
+    events = run([p], EventReasoner(falls=FallParams(long_lie_s=5.0)))
     assert not kinds(events, "fall") and not kinds(events, "long_lie")
     assert set(kinds(events)) <= {"sit_down", "stand_up"}
 
@@ -385,7 +392,7 @@ def test_slow_lying_down_is_no_fall_but_becomes_a_long_lie():
     p.move(2.0, lambda f: body_profile(blend("standing", "kneeling", f)))
     # from kneeling, tipping over to lying in 5 s: the top falls at 0.44 m/s at most
     p.move(5.0, lambda f: body_profile(blend("kneeling", "standing", f), tilt_deg=90 * f)).hold(25.0, LIE)
-    events = run([p], EventReasoner(long_lie_s=20.0))
+    events = run([p], EventReasoner(falls=FallParams(long_lie_s=20.0)))
     assert not kinds(events, "fall")
     lies = kinds(events, "long_lie")
     assert len(lies) == 1 and lies[0].details["after_fall"] is False
@@ -397,7 +404,8 @@ def test_flopping_onto_a_bed_is_neither_fall_nor_long_lie():
     p = Person(6).hold(2.0, STAND, xy=(4.0, 1.0))
     p.move(0.6, lambda f: body_profile("standing", tilt_deg=90 * f, lift_m=0.45 * f))
     p.hold(30.0, _profile("standing", tilt_deg=90, lift_m=0.45))
-    events = run([p], EventReasoner(hotspots=[bed], long_lie_s=10.0, inactivity_s=15.0, inactivity_window_s=5.0))
+    events = run([p], EventReasoner(hotspots=[bed], falls=FallParams(long_lie_s=10.0),
+                                   inactivity=InactivityParams(inactivity_s=15.0, window_s=5.0)))
     assert not kinds(events, "fall") and not kinds(events, "long_lie")
     assert not kinds(events, "inactivity")  # still in bed is rest
 
@@ -405,7 +413,7 @@ def test_flopping_onto_a_bed_is_neither_fall_nor_long_lie():
 def test_getting_up_before_confirmation_is_no_fall():
     p = Person(7).hold(2.0, STAND, xy=(2.0, 2.0)).move(0.6, _fall_profiles())
     p.hold(0.5, LIE).move(1.0, lambda f: body_profile("standing", tilt_deg=90 * (1 - f))).hold(3.0, STAND)
-    events = run([p], EventReasoner(fall_confirm_s=1.0))
+    events = run([p], EventReasoner(falls=FallParams(confirm_s=1.0)))
     assert not kinds(events, "fall")
 
 
@@ -422,7 +430,8 @@ def test_enter_and_exit_through_a_door_and_at_the_edge():
     c = Person(3).absent(3.0).hold(0.3, xy=(5.8, 4.0), confirmed=False).walk((4.0, 3.0)).hold(1.0)
     d = Person(4).absent(1.5).hold(0.3, xy=(0.3, 2.8), confirmed=False).absent(1.0)  # never confirmed: noise
     e = Person(5).hold(3.0, xy=(0.3, 2.2))  # at the door when monitoring starts: not an entry
-    events = run([a, b, c, d, e], EventReasoner(doors=[DOOR], bounds_xy_m=(0.0, 0.0, 6.0, 5.0), edge_margin_m=0.4))
+    events = run([a, b, c, d, e], EventReasoner(doors=[DOOR], bounds_xy_m=(0.0, 0.0, 6.0, 5.0),
+                                               entries=EntryParams(edge_margin_m=0.4)))
     got = [(e.kind, e.track, e.details.get("door")) for e in events]
     assert got == [("exit", 5, "front door"), ("enter", 1, "front door"), ("enter", 3, "edge"),
                    ("exit", 1, "front door")]
@@ -462,7 +471,7 @@ TABLE = Hotspot("dinner table", [[1.0, 3.0], [3.0, 3.0], [3.0, 4.5], [1.0, 4.5]]
 
 def test_dwell_start_and_end_at_a_named_hotspot():
     p = Person(1).hold(1.0, xy=(2.0, 2.0)).walk((5.0, 0.5)).hold(30.0, SIT).walk((5.0, 2.5))
-    events = run([p], EventReasoner(hotspots=[TABLE, SOFA], dwell_window_s=10.0))
+    events = run([p], EventReasoner(hotspots=[TABLE, SOFA], visits=VisitParams(dwell_window_s=10.0)))
     dwell = [e for e in events if e.kind.startswith("dwell")]
     assert [e.kind for e in dwell] == ["dwell_start", "dwell_end"]
     assert {e.details["hotspot"] for e in dwell} == {"sofa"}
@@ -481,7 +490,8 @@ def _table_guests(n, seconds, arrive_s=0.0):
 def test_visit_for_dinner_at_the_dinner_table():
     t0 = DAY0_NS + 17 * 3600 * NS  # 17:00 UTC = 19:00 local at UTC+2
     people = _table_guests(3, 80.0)
-    events = run(people, EventReasoner(hotspots=[SOFA, TABLE], residents=1, utc_offset_h=2.0, visit_min_s=60.0), t0_ns=t0)
+    events = run(people, EventReasoner(hotspots=[SOFA, TABLE], residents=1, utc_offset_h=2.0,
+                                 visits=VisitParams(visit_min_s=60.0)), t0_ns=t0)
     visits = kinds(events, "visit")
     assert len(visits) == 1
     v = visits[0]
@@ -495,26 +505,27 @@ def test_visit_for_dinner_at_the_dinner_table():
 
 def test_no_visit_when_only_residents_are_home_and_hour_override():
     people = _table_guests(2, 80.0)
-    assert not kinds(run(people, EventReasoner(residents=2, visit_min_s=60.0)), "visit")
+    assert not kinds(run(people, EventReasoner(residents=2, visits=VisitParams(visit_min_s=60.0))), "visit")
 
     class Morning(EventReasoner):
         def step(self, *a, **kw):
             return super().step(*a, hour=8.25, **kw)
 
-    v = kinds(run(people, Morning(hotspots=[TABLE], residents=1, visit_min_s=60.0)), "visit")
+    v = kinds(run(people, Morning(hotspots=[TABLE], residents=1, visits=VisitParams(visit_min_s=60.0))), "visit")
     assert len(v) == 1 and v[0].details["reason"] == "for breakfast" and v[0].details["local_time"] == "08:15"
 
 
 def test_visit_needs_people_gathered_at_one_hotspot():
     apart = [Person(1).hold(40.0, SIT, xy=(1.5, 3.5)), Person(2).hold(40.0, SIT, xy=(5.0, 0.5))]
-    cfg = dict(hotspots=[SOFA, TABLE], residents=1, visit_min_s=5.0, dwell_window_s=5.0)
-    assert not kinds(run(apart, EventReasoner(**cfg)), "visit")
+    cfg = dict(hotspots=[SOFA, TABLE], residents=1)
+    visits = VisitParams(visit_min_s=5.0, dwell_window_s=5.0)
+    assert not kinds(run(apart, EventReasoner(**cfg, visits=visits)), "visit")
     # without the gathering rule, extra people for visit_min_s are enough; the hot spot is where they spent most time
-    v = kinds(run(apart, EventReasoner(**cfg, visit_gathering=False)), "visit")
+    v = kinds(run(apart, EventReasoner(**cfg, visits=replace(visits, visit_gathering=False))), "visit")
     assert len(v) == 1 and t_s(v[0].stamp_ns) == pytest.approx(5.0 + 0.8, abs=0.15)
     # gathered: at the moment the second of them has dwelt a window at the table
     together = _table_guests(2, 40.0) + [Person(3).hold(40.0, xy=(5.0, 0.5))]
-    v = kinds(run(together, EventReasoner(**cfg)), "visit")
+    v = kinds(run(together, EventReasoner(**cfg, visits=visits)), "visit")
     assert len(v) == 1 and v[0].details["hotspot"] == "dinner table" and v[0].details["people"] == 3
     assert t_s(v[0].stamp_ns) == pytest.approx(5.0 + 0.8, abs=0.5)
 
@@ -522,7 +533,8 @@ def test_visit_needs_people_gathered_at_one_hotspot():
 def test_inactivity_while_seated_still_but_not_in_bed():
     chair = Hotspot("armchair", [[0, 0], [1, 0], [1, 1], [0, 1]], kind="chair")
     p = Person(1).hold(2.0, xy=(0.5, 0.5)).hold(80.0, SIT)
-    r = EventReasoner(hotspots=[chair], inactivity_s=60.0, inactivity_window_s=10.0, dwell_window_s=10.0)
+    r = EventReasoner(hotspots=[chair], inactivity=InactivityParams(inactivity_s=60.0, window_s=10.0),
+                      visits=VisitParams(dwell_window_s=10.0))
     events = run([p], r)
     ina = kinds(events, "inactivity")
     assert len(ina) == 1
@@ -541,7 +553,8 @@ def test_same_inputs_same_events_and_unique_ids():
         p.move(0.8, _fall_profiles(), (5.0, 1.3), _toppling).hold(3.0, LIE)
         return [p] + _table_guests(2, 25.0)
 
-    cfg = dict(hotspots=[SOFA, TABLE], doors=[DOOR], residents=1, visit_min_s=20.0, dwell_window_s=5.0)
+    cfg = dict(hotspots=[SOFA, TABLE], doors=[DOOR], residents=1,
+               visits=VisitParams(visit_min_s=20.0, dwell_window_s=5.0))
     a = run(scene(), EventReasoner(**cfg))
     b = run(scene(), EventReasoner(**cfg))
     assert a == b and len(a) >= 6
@@ -554,8 +567,8 @@ def test_ghost_tracks_take_part_in_nothing():
     # a blob split off a person at the door for half a second, and a small blob at the wall for a minute
     split = Person(2).absent(2.0).hold(0.5, xy=(0.2, 2.6)).absent(1.0)
     small = [Est(3, 5.9, 4.0, np.where(np.arange(NZ) < 4, 20, 0).astype(np.int32))]  # 0.01 m^3
-    r = EventReasoner(doors=[DOOR], bounds_xy_m=(0.0, 0.0, 6.0, 5.0), residents=0, visit_min_s=1.0,
-                      visit_gathering=False)
+    r = EventReasoner(doors=[DOOR], bounds_xy_m=(0.0, 0.0, 6.0, 5.0), residents=0,
+                      visits=VisitParams(visit_min_s=1.0, visit_gathering=False))
     events = run([split], r)
     bank = PostureBank(voxel_m=VOXEL_M)
     for k in range(60 * FPS):
@@ -577,26 +590,17 @@ def test_bad_frames_and_tracks_are_counted_and_dropped():
     "kwargs, name",
     [
         (dict(residents=-1), "residents"),
-        (dict(fall_min_drop_m=0), "fall_min_drop_m"),
-        (dict(fall_max_accel_mps2=0), "fall_max_accel_mps2"),
-        (dict(fall_height_tol_m=-0.1), "fall_height_tol_m"),
-        (dict(fall_history_s=float("inf")), "fall_history_s"),
-        (dict(sit_min_change_frac=-0.1), "sit_min_change_frac"),
-        (dict(sit_max_change_frac=0.05), "sit_max_change_frac"),
-        (dict(sit_max_change_frac="big"), "sit_max_change_frac"),
-        (dict(posture_hold_s=float("nan")), "posture_hold_s"),
-        (dict(long_lie_s=float("nan")), "long_lie_s"),
-        (dict(low_top_frac=1.5), "low_top_frac"),
         (dict(bounds_xy_m=(0, 0, -1, 5)), "bounds_xy_m"),
         (dict(utc_offset_h=20), "utc_offset_h"),
         (dict(hotspots=[SOFA, SOFA]), "unique"),
+        (dict(hotspots=[[0, 0]]), "hotspots"),
         (dict(doors=[[0, 0]]), "doors"),
-        (dict(stand_up_from=("flying",)), "stand_up_from"),
-        (dict(meals=(("for tea", 17, 15),)), "meals"),
-        (dict(dwell_still_std_m=0.5, dwell_move_std_m=0.2), "move_std_m"),
+        (dict(falls=dict(long_lie_s=60.0)), "falls"),
+        (dict(presence=None), "presence"),
     ],
 )
 def test_reasoner_validation(kwargs, name):
+    # the thresholds are checked by their parameter groups: tests/test_event_detectors.py
     with pytest.raises(ValueError, match=name):
         EventReasoner(**kwargs)
 

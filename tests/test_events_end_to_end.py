@@ -251,10 +251,12 @@ def _inactivity() -> ScenarioSpec:
 def test_site_event_settings_reach_the_reasoner(house):
     cameras, make_site, root = house
     default = FusionPipeline.from_site(make_site(), cameras=cameras, cache_dir=root / "cache")
-    assert (default.reasoner.long_lie_ns, default.reasoner.inactivity_ns) == (30 * 10**9, 1800 * 10**9)
+    reasoner = default.reasoner
+    assert (reasoner.falls.params.long_lie_s, reasoner.inactivity.params.inactivity_s) == (30.0, 1800.0)
     tuned = FusionPipeline.from_site(make_site(long_lie_s=90.0, inactivity_s=600.0), cameras=cameras,
                                      cache_dir=root / "cache")
-    assert (tuned.reasoner.long_lie_ns, tuned.reasoner.inactivity_ns) == (90 * 10**9, 600 * 10**9)
+    reasoner = tuned.reasoner
+    assert (reasoner.falls.params.long_lie_s, reasoner.inactivity.params.inactivity_s) == (90.0, 600.0)
 
 
 def test_inactivity_of_a_seated_person_after_the_sites_inactivity_s(house):

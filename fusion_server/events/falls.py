@@ -1,0 +1,269 @@
+"""Falls and long lies (``fall``, ``long_lie``) of one person at a time.
+
+``fall``
+    A fast drop followed by lying on the floor. The body's top height must
+    drop by at least ``min_drop_m`` [0.5 m] at an average of at least
+    ``min_speed_mps`` [0.8 m/s] within ``window_s`` [2 s], ending *low* (top
+    at most ``low_top_frac`` [0.55] and mass centre at most
+    ``low_centre_frac`` [0.25] of the person's standing height), and the
+    person must then stay low for ``confirm_s`` [1 s] while reading
+    ``lying`` (or being very low: top <= ``flat_top_frac`` [0.45] of the
+    standing height). Emitted on the confirming frame; ``details`` carry
+    ``fall_stamp_ns``, the moment the top of the body passed halfway between
+    its height before the drop and its height on the floor, and
+    ``drop_start_ns``, when it began to come down. The drop must be one a
+    body can make (:func:`drop_is_physical`): the top never comes down
+    faster than it would after falling freely through its whole height at
+    ``max_accel_mps2`` [1.5 g], give or take ``height_tol_m`` [0.15 m]; a top
+    that jumps down between two frames is a blob changing under the track (a
+    body cut by holes in the masks, a track taking over a fragment), not a
+    fall. And only someone who was upright falls: the track must have read
+    standing or sitting for ``upright_s`` [0.5 s] in all since its first
+    frame (a person walks or sits before they fall; hull volume by a wall
+    that reads lying from its first frame has no such history). The top is
+    followed from the track's first frame, so that someone who falls while
+    their track is still being established (at start-up, or found late in a
+    crowd) falls from the height seen before, and is reported once the track
+    is established. Sitting down, kneeling, bending and squatting never end
+    low enough; lying down slowly is not fast enough (it may become a
+    ``long_lie``).
+``long_lie``
+    Lying on the floor (low, as above, and reading ``lying`` or very low)
+    continuously for ``long_lie_s`` [30 s] since the fall (or since lying
+    down, when no fall was seen). Lying on a bed or sofa is not low, so it
+    never counts.
+
+Low and on-the-floor spells forgive gaps up to ``low_gap_s`` [0.5 s]. A track
+without a posture reading is taken to stand ``standing_height_m`` [1.70 m] tall.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any, Sequence
+
+import numpy as np
+
+from fusion_server.events import _common
+from fusion_server.events._common import median, ns
+from fusion_server.events.records import Emitter
+from fusion_server.events.track import TopSample, TrackFrame
+
+
+@dataclass(frozen=True)
+class FallParams:
+    """Thresholds of :class:`FallDetector`, each described in the module text
+    (seconds, metres, m/s, m/s², fractions of the standing height)."""
+
+    window_s: float = 2.0
+    min_drop_m: float = 0.5
+    min_speed_mps: float = 0.8
+    max_accel_mps2: float = 1.5 * 9.81
+    height_tol_m: float = 0.15
+    confirm_s: float = 1.0
+    upright_s: float = 0.5
+    low_top_frac: float = 0.55
+    low_centre_frac: float = 0.25
+    flat_top_frac: float = 0.45
+    low_gap_s: float = 0.5
+    long_lie_s: float = 30.0
+    standing_height_m: float = 1.70
+
+    def __post_init__(self) -> None:
+        _common.positive(self, "window_s", "min_drop_m", "min_speed_mps", "max_accel_mps2", "long_lie_s",
+                         "standing_height_m")
+        _common.non_negative(self, "height_tol_m", "confirm_s", "upright_s", "low_gap_s")
+        _common.fraction(self, "low_top_frac", "low_centre_frac", "flat_top_frac")
+
+    @property
+    def tops_s(self) -> float:
+        """How far back the detector reads a track's tops, seconds: a drop may start a
+        window before the body gets low, and be looked for a window after."""
+        return 2 * self.window_s + self.confirm_s + 0.5
+
+
+class FallDetector:
+    """``fall`` and ``long_lie`` per track, from the track's tops and posture."""
+
+    def __init__(self, params: FallParams = FallParams()) -> None:
+        if not isinstance(params, FallParams):
+            raise ValueError(f"params must be FallParams, got {type(params).__name__}")
+        self.params = params
+        self._window_ns = ns(params.window_s)
+        self._confirm_ns = ns(params.confirm_s)
+        self._upright_ns = ns(params.upright_s)
+        self._low_gap_ns = ns(params.low_gap_s)
+        self._long_lie_ns = ns(params.long_lie_s)
+        self._tracks: dict[int, _FallTrack] = {}
+
+    def update(self, frame: TrackFrame, emit: Emitter) -> None:
+        """Follow one track through one frame; emits ``fall`` and ``long_lie``."""
+        if not math.isfinite(frame.top_m):
+            return
+        p = self.params
+        fs = self._tracks.setdefault(frame.track, _FallTrack())
+        stamp_ns = frame.stamp_ns
+        height_m = frame.standing_height_m if frame.standing_height_m is not None else p.standing_height_m
+        tops = frame.tops
+        # A median over the last three frames keeps one bad carve from toggling "low".
+        recent = [tops[-k] for k in range(1, min(3, len(tops)) + 1)]
+        top_med = median([s[1] for s in recent])
+        cen = [s[2] for s in recent if s[2] is not None]
+        centre_med = median(cen) if cen else None
+        low = top_med <= p.low_top_frac * height_m and (
+            centre_med is None or centre_med <= p.low_centre_frac * height_m
+        )
+        on_floor = low and (frame.posture == "lying" or top_med <= p.flat_top_frac * height_m)
+        if low:
+            if fs.low_since_ns is None:
+                fs.low_since_ns = stamp_ns
+                fs.drop = None
+                fs.fall_emitted = False
+                fs.long_lie_emitted = False
+                fs.floor_since_ns = None
+            fs.last_low_ns = stamp_ns
+        elif fs.low_since_ns is not None and stamp_ns - fs.last_low_ns > self._low_gap_ns:
+            fs.low_since_ns = None
+            fs.floor_since_ns = None
+        if fs.low_since_ns is None:
+            return
+        if fs.drop is None and stamp_ns - fs.low_since_ns <= self._window_ns:
+            fs.drop = self._find_drop(tops, fs.low_since_ns, height_m)
+        if on_floor:
+            if fs.floor_since_ns is None:
+                fs.floor_since_ns = stamp_ns
+            fs.last_floor_ns = stamp_ns
+        elif fs.floor_since_ns is not None and stamp_ns - fs.last_floor_ns > self._low_gap_ns:
+            fs.floor_since_ns = None
+        tid, x, y = frame.track, frame.x, frame.y
+        if (
+            not fs.fall_emitted
+            and fs.drop is not None
+            and on_floor
+            and stamp_ns - fs.low_since_ns >= self._confirm_ns
+            and frame.upright_ns >= self._upright_ns
+        ):
+            fs.fall_emitted = True
+            emit("fall", tid, x, y, **fs.drop, confirm_s=round((stamp_ns - fs.low_since_ns) * 1e-9, 3))
+        if fs.floor_since_ns is not None and not fs.long_lie_emitted:
+            since = fs.floor_since_ns
+            if fs.drop is not None:
+                since = min(since, fs.drop["fall_stamp_ns"])
+            if stamp_ns - since >= self._long_lie_ns:
+                fs.long_lie_emitted = True
+                emit(
+                    "long_lie", tid, x, y,
+                    lying_since_ns=since,
+                    duration_s=round((stamp_ns - since) * 1e-9, 3),
+                    after_fall=fs.drop is not None,
+                    fall_stamp_ns=fs.drop["fall_stamp_ns"] if fs.drop is not None else None,
+                )
+
+    def on_floor(self, track: int) -> bool:
+        """Whether the track is lying on the floor now (a long lie's business, not inactivity's)."""
+        fs = self._tracks.get(track)
+        return fs is not None and fs.floor_since_ns is not None
+
+    def forget(self, track: int) -> None:
+        """The track is gone."""
+        self._tracks.pop(track, None)
+
+    def _find_drop(self, tops: Sequence[TopSample], low_since_ns: int, height_m: float) -> dict[str, Any] | None:
+        p = self.params
+        start = low_since_ns - self._window_ns
+        samples = [s for s in tops if s[0] >= start]
+        if len(samples) < 2:
+            return None
+        t0 = samples[0][0]
+        t = np.array([(s[0] - t0) * 1e-9 for s in samples])
+        z = np.array([s[1] for s in samples])
+        pair = detect_fast_drop(t, z, window_s=p.window_s, min_drop_m=p.min_drop_m, min_speed_mps=p.min_speed_mps)
+        if pair is None:
+            return None
+        i, j = pair
+        if z[i] < p.flat_top_frac * height_m:
+            return None  # started on the floor already: not a fall from standing or sitting
+        if not drop_is_physical(t, z, i, j, max_accel_mps2=p.max_accel_mps2, tol_m=p.height_tol_m):
+            return None
+        t_fall = crossing_time(t, z, i, j, 0.5 * (z[i] + z[j]))
+        return dict(
+            fall_stamp_ns=t0 + int(round(t_fall * 1e9)),
+            drop_start_ns=int(samples[i][0]),
+            from_posture=samples[i][3] or "unknown",
+            top_before_m=round(float(z[i]), 3),
+            top_after_m=round(float(z[j]), 3),
+            drop_m=round(float(z[i] - z[j]), 3),
+            drop_speed_mps=round(float((z[i] - z[j]) / (t[j] - t[i])), 3),
+        )
+
+
+def detect_fast_drop(
+    t_s: np.ndarray, z_m: np.ndarray, *, window_s: float, min_drop_m: float, min_speed_mps: float
+) -> tuple[int, int] | None:
+    """The largest fast drop in a height series, as sample indices ``(i, j)``.
+
+    t_s: (N,) float64 increasing times, seconds; z_m: (N,) heights, metres.
+    A pair ``i < j`` qualifies when ``0 < t[j] - t[i] <= window_s``,
+    ``z[i] - z[j] >= min_drop_m`` and the average speed
+    ``(z[i] - z[j]) / (t[j] - t[i]) >= min_speed_mps``. The largest drop
+    wins; ties go to the earliest ``j``, then the latest ``i``.
+    """
+    t = np.asarray(t_s, dtype=np.float64)
+    z = np.asarray(z_m, dtype=np.float64)
+    if t.shape != z.shape or t.ndim != 1:
+        raise ValueError(f"t_s and z_m must be (N,) arrays of equal length, got {t.shape} and {z.shape}")
+    if len(t) < 2:
+        return None
+    drop = z[:, None] - z[None, :]
+    dt = t[None, :] - t[:, None]
+    ok = (dt > 0) & (dt <= window_s) & (drop >= min_drop_m) & (drop >= min_speed_mps * dt)
+    if not ok.any():
+        return None
+    best = np.where(ok, drop, -np.inf).max()
+    ii, jj = np.nonzero(ok & (drop >= best - 1e-12))
+    order = np.lexsort((-ii, jj))
+    return int(ii[order[0]]), int(jj[order[0]])
+
+
+def drop_is_physical(
+    t_s: np.ndarray, z_m: np.ndarray, i: int, j: int, *, max_accel_mps2: float, tol_m: float
+) -> bool:
+    """Whether the drop of ``z`` from sample ``i`` to ``j`` is one a falling body can make.
+
+    A top that falls from rest through its whole height ``z[i]`` at ``max_accel_mps2`` reaches
+    ``v = sqrt(2 * max_accel_mps2 * z[i])``; between no two samples in ``[i, j]`` may it have come
+    down faster than that, give or take ``tol_m`` of measured height. The tip of a rigid body
+    toppling over its feet accelerates down at up to 1.5 g; a top that comes down faster was not
+    one body falling. t_s, z_m: (N,) seconds and metres, as for :func:`detect_fast_drop`.
+    """
+    t = np.asarray(t_s, dtype=np.float64)[i : j + 1]
+    z = np.asarray(z_m, dtype=np.float64)[i : j + 1]
+    v_max = math.sqrt(2.0 * max_accel_mps2 * max(float(z[0]), 0.0))
+    drop = z[:, None] - z[None, :]
+    dt = t[None, :] - t[:, None]
+    return bool(np.all((dt <= 0) | (drop <= v_max * dt + tol_m)))
+
+
+def crossing_time(t_s: np.ndarray, z_m: np.ndarray, i: int, j: int, level_m: float) -> float:
+    """First time after sample ``i`` (up to ``j``) at which ``z`` falls to ``level_m``,
+    linearly interpolated between samples; seconds."""
+    t = np.asarray(t_s, dtype=np.float64)
+    z = np.asarray(z_m, dtype=np.float64)
+    for k in range(i + 1, j + 1):
+        if z[k] <= level_m:
+            z0, z1 = z[k - 1], z[k]
+            f = 1.0 if z0 == z1 else (z0 - level_m) / (z0 - z1)
+            return float(t[k - 1] + min(max(f, 0.0), 1.0) * (t[k] - t[k - 1]))
+    return float(t[j])
+
+
+@dataclass
+class _FallTrack:
+    low_since_ns: int | None = None
+    last_low_ns: int = 0
+    floor_since_ns: int | None = None
+    last_floor_ns: int = 0
+    drop: dict[str, Any] | None = None
+    fall_emitted: bool = False
+    long_lie_emitted: bool = False

@@ -1,0 +1,101 @@
+"""Inactivity (``inactivity``): someone keeping still for a long time.
+
+A person who is present, not lying on the floor (that is ``long_lie``) and
+not inside a hot spot whose kind is in ``rest_kinds`` [bed], has kept the
+same posture and stayed within ``std_m`` [0.15 m] (position variance over
+``window_s`` [30 s]) for ``inactivity_s`` [1800 s]. Once per still period;
+moving or changing posture re-arms it.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Iterable
+
+from fusion_server.events import _common
+from fusion_server.events._common import ns
+from fusion_server.events.records import Emitter
+from fusion_server.events.track import TrackFrame
+from fusion_server.hotspots import Hotspot, PositionWindow, hotspot_at
+
+
+@dataclass(frozen=True)
+class InactivityParams:
+    """Settings of :class:`InactivityDetector`, each described in the module text
+    (seconds, metres; ``rest_kinds``: hot spot kinds where keeping still is rest)."""
+
+    inactivity_s: float = 1800.0
+    window_s: float = 30.0
+    std_m: float = 0.15
+    rest_kinds: frozenset[str] = frozenset({"bed"})
+
+    def __post_init__(self) -> None:
+        _common.positive(self, "inactivity_s", "window_s", "std_m")
+        _common.names(self, "rest_kinds")
+
+
+class InactivityDetector:
+    """``inactivity`` per track.
+
+    hotspots: the site's hot spots; those of ``params.rest_kinds`` are for resting.
+    """
+
+    def __init__(self, params: InactivityParams = InactivityParams(), *, hotspots: Iterable[Hotspot] = ()) -> None:
+        if not isinstance(params, InactivityParams):
+            raise ValueError(f"params must be InactivityParams, got {type(params).__name__}")
+        self.params = params
+        self.hotspots = tuple(hotspots)
+        self._inactivity_ns = ns(params.inactivity_s)
+        self._var_m2 = params.std_m ** 2
+        self._tracks: dict[int, _InactivityTrack] = {}
+
+    def update(self, frame: TrackFrame, emit: Emitter, *, on_floor: bool) -> None:
+        """Follow one track through one frame; emits ``inactivity``.
+
+        on_floor: the person lies on the floor now (see :meth:`FallDetector.on_floor
+        <fusion_server.events.falls.FallDetector.on_floor>`).
+        """
+        st = self._tracks.get(frame.track)
+        if st is None:
+            st = self._tracks[frame.track] = _InactivityTrack(PositionWindow(window_s=self.params.window_s))
+        stamp_ns, x, y = frame.stamp_ns, frame.x, frame.y
+        if frame.posture != st.posture:
+            st.posture, st.posture_changed_ns = frame.posture, stamp_ns
+        st.still.add(stamp_ns, x, y)
+        still = st.still.full and st.still.variance_m2() <= self._var_m2
+        if not still or on_floor:
+            st.still_since_ns, st.emitted = None, False
+            return
+        if st.still_since_ns is None:
+            settled = st.still.settled_since_ns(math.sqrt(self._var_m2))
+            st.still_since_ns = max(settled, st.posture_changed_ns)
+        elif st.posture_changed_ns > st.still_since_ns:
+            # Standing up or sitting down in place is activity: start the clock again.
+            st.still_since_ns, st.emitted = st.posture_changed_ns, False
+        if st.emitted or stamp_ns - st.still_since_ns < self._inactivity_ns:
+            return
+        spot = hotspot_at(self.hotspots, x, y)
+        if spot is not None and spot.kind in self.params.rest_kinds:
+            return
+        st.emitted = True
+        emit(
+            "inactivity", frame.track, x, y,
+            still_since_ns=st.still_since_ns,
+            duration_s=round((stamp_ns - st.still_since_ns) * 1e-9, 3),
+            posture=frame.posture or "unknown",
+            hotspot=spot.name if spot is not None else None,
+        )
+
+    def forget(self, track: int) -> None:
+        """The track is gone."""
+        self._tracks.pop(track, None)
+
+
+@dataclass
+class _InactivityTrack:
+    still: PositionWindow
+    posture: str | None = None
+    posture_changed_ns: int = 0
+    still_since_ns: int | None = None
+    emitted: bool = False

@@ -1,0 +1,54 @@
+"""What the event detectors read of a track: :class:`TrackLike`, the attributes
+the reasoner reads of a tracker estimate, and :class:`TrackFrame`, what one
+frame tells a detector about one track."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Protocol, Sequence
+
+from fusion_server.posture import PostureReading
+
+TopSample = tuple[int, float, "float | None", "str | None"]
+"""``(stamp_ns, top_m, centre_m | None, posture | None)`` of one frame: heights above the floor, metres."""
+
+
+class TrackLike(Protocol):
+    """What the reasoner reads of a track estimate (any object with these attributes)."""
+
+    id: int
+    x: float
+    y: float
+    z_top_m: float
+    confirmed: bool
+
+
+@dataclass(frozen=True)
+class TrackFrame:
+    """One track in one frame, as the detectors see it.
+
+    track: track id. stamp_ns: the frame's time.
+    x, y: world floor position, metres.
+    posture: the reported posture name, None when the frame has none.
+    reading: the full posture reading, None when the posture came as a bare
+        name (or not at all).
+    top_m, centre_m: heights of the body's top and mass centre above the
+        floor, metres (top NaN when unknown; centre None without a reading).
+    standing_height_m: the reading's learnt standing height, None without one.
+    tops: the track's recent tops, oldest first, this frame's included: the
+        history the reasoner keeps from the track's first frame (frames with
+        a non-finite top are left out).
+    upright_ns: time the track read standing or sitting since its first frame.
+    """
+
+    track: int
+    stamp_ns: int
+    x: float
+    y: float
+    posture: str | None
+    reading: PostureReading | None
+    top_m: float
+    centre_m: float | None
+    standing_height_m: float | None
+    tops: Sequence[TopSample]
+    upright_ns: int

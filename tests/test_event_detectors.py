@@ -1,0 +1,276 @@
+"""Each event detector driven on its own with hand-built frames, and the checks of
+the parameter groups. Frames are 0.1 s apart; expectations are worked out by hand
+in the comments."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import pytest
+
+from fusion_server.events import (
+    DEFAULT_MEALS,
+    Emitter,
+    EntryDetector,
+    EntryParams,
+    EventRecord,
+    FallDetector,
+    FallParams,
+    InactivityDetector,
+    InactivityParams,
+    PresenceParams,
+    SitStandDetector,
+    SitStandParams,
+    TrackFrame,
+    VisitDetector,
+    VisitParams,
+)
+from fusion_server.hotspots import Hotspot
+
+TICK_NS = 100_000_000  # 0.1 s
+DOOR = Hotspot("front door", [[0.0, 2.0], [0.5, 2.0], [0.5, 3.0], [0.0, 3.0]])
+TABLE = Hotspot("dinner table", [[1.0, 3.0], [3.0, 3.0], [3.0, 4.5], [1.0, 4.5]], kind="table")
+BED = Hotspot("bed", [[3.0, 0.0], [5.0, 0.0], [5.0, 2.0], [3.0, 2.0]], kind="bed")
+
+
+def frame(k: int, *, track: int = 1, xy=(1.0, 1.0), posture=None, top_m=float("nan"), tops=(), upright_ns=0):
+    """Track ``track`` at tick ``k`` without a posture reading (so no centre and no learnt height)."""
+    return TrackFrame(track, k * TICK_NS, xy[0], xy[1], posture, None, top_m, None, None, tops, upright_ns)
+
+
+def emitter(k: int, out: list[EventRecord]) -> Emitter:
+    return Emitter(out, k * TICK_NS, k)
+
+
+# --------------------------------------------------------------------------- parameter groups
+
+
+def test_parameter_groups_hold_the_documented_defaults():
+    as_dict = dataclasses.asdict
+    assert as_dict(PresenceParams()) == dict(establish_s=0.8, min_volume_m3=0.04)
+    assert as_dict(FallParams()) == dict(
+        window_s=2.0, min_drop_m=0.5, min_speed_mps=0.8, max_accel_mps2=1.5 * 9.81, height_tol_m=0.15,
+        confirm_s=1.0, upright_s=0.5, low_top_frac=0.55, low_centre_frac=0.25, flat_top_frac=0.45,
+        low_gap_s=0.5, long_lie_s=30.0, standing_height_m=1.70,
+    )
+    assert as_dict(SitStandParams()) == dict(
+        stand_up_from={"sitting", "lying"}, min_change_frac=0.07, max_change_frac=0.65, hold_s=2.0,
+        seat_kinds={"sofa", "table", "chair", "armchair", "bench", "bed"},
+    )
+    assert as_dict(EntryParams()) == dict(edge_margin_m=0.4, startup_s=1.0)
+    assert as_dict(VisitParams()) == dict(
+        dwell_window_s=10.0, dwell_still_std_m=0.15, dwell_move_std_m=0.30, visit_min_s=10.0, visit_gap_s=30.0,
+        visit_gathering=True, meals=DEFAULT_MEALS,
+    )
+    assert as_dict(InactivityParams()) == dict(inactivity_s=1800.0, window_s=30.0, std_m=0.15, rest_kinds={"bed"})
+    # checked once, then frozen; kinds become sets and numbers floats
+    p = SitStandParams(stand_up_from=["sitting"], hold_s=3)
+    assert p.stand_up_from == frozenset({"sitting"}) and isinstance(p.hold_s, float)
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        p.hold_s = 1.0
+
+
+@pytest.mark.parametrize(
+    "group, kwargs, pattern",
+    [
+        (PresenceParams, dict(establish_s=-1), "establish_s.*-1"),
+        (PresenceParams, dict(min_volume_m3="0.04"), "min_volume_m3.*'0.04'"),
+        (FallParams, dict(window_s=0), "window_s.*0"),
+        (FallParams, dict(min_drop_m=0), "min_drop_m.*0"),
+        (FallParams, dict(max_accel_mps2=0), "max_accel_mps2.*0"),
+        (FallParams, dict(height_tol_m=-0.1), r"height_tol_m.*-0\.1"),
+        (FallParams, dict(upright_s=float("inf")), "upright_s.*inf"),
+        (FallParams, dict(long_lie_s=float("nan")), "long_lie_s.*nan"),
+        (FallParams, dict(low_top_frac=1.5), r"low_top_frac.*1\.5"),
+        (FallParams, dict(standing_height_m=True), "standing_height_m.*True"),
+        (SitStandParams, dict(min_change_frac=-0.1), r"min_change_frac.*-0\.1"),
+        (SitStandParams, dict(max_change_frac=0.05), r"max_change_frac.*0\.05"),
+        (SitStandParams, dict(max_change_frac="big"), "max_change_frac.*'big'"),
+        (SitStandParams, dict(hold_s=float("nan")), "hold_s.*nan"),
+        (SitStandParams, dict(stand_up_from=("flying",)), "stand_up_from.*flying"),
+        (SitStandParams, dict(seat_kinds="sofa"), "seat_kinds.*'sofa'"),
+        (EntryParams, dict(edge_margin_m=-0.4), r"edge_margin_m.*-0\.4"),
+        (EntryParams, dict(startup_s=float("nan")), "startup_s.*nan"),
+        (VisitParams, dict(visit_min_s=0), "visit_min_s.*0"),
+        (VisitParams, dict(visit_gap_s=-1), "visit_gap_s.*-1"),
+        (VisitParams, dict(dwell_window_s=-10), "dwell_window_s.*-10"),
+        (VisitParams, dict(dwell_still_std_m=0.5, dwell_move_std_m=0.2), r"dwell_move_std_m \(0\.2\)"),
+        (VisitParams, dict(meals=(("for tea", 17, 15),)), "meals.*'for tea', 17, 15"),
+        (InactivityParams, dict(inactivity_s=0), "inactivity_s.*0"),
+        (InactivityParams, dict(window_s=float("inf")), "window_s.*inf"),
+        (InactivityParams, dict(std_m=-0.15), r"std_m.*-0\.15"),
+        (InactivityParams, dict(rest_kinds=3), "rest_kinds.*3"),
+    ],
+)
+def test_parameter_groups_name_the_bad_field_and_value(group, kwargs, pattern):
+    with pytest.raises(ValueError, match=pattern):
+        group(**kwargs)
+
+
+@pytest.mark.parametrize("detector", [FallDetector, SitStandDetector, EntryDetector, VisitDetector, InactivityDetector])
+def test_detectors_take_only_their_own_group(detector):
+    with pytest.raises(ValueError, match="params"):
+        detector(PresenceParams())
+
+
+# --------------------------------------------------------------------------- falls
+
+
+def _fall_tops():
+    """(posture, top) per tick: standing at 1.75 m for 1 s (ticks 0-9), down 0.25 m a tick
+    to 0.5 m at tick 14, lying from tick 13, then at 0.25 m from tick 15."""
+    tops = [1.75] * 10 + [1.5, 1.25, 1.0, 0.75, 0.5] + [0.25] * 60
+    return [("standing" if k < 13 else "lying", z) for k, z in enumerate(tops)]
+
+
+def _run_falls(detector: FallDetector, upright_ns: int) -> list[EventRecord]:
+    out: list[EventRecord] = []
+    history = []
+    for k, (posture, top) in enumerate(_fall_tops()):
+        history.append((k * TICK_NS, top, None, posture))
+        f = frame(k, xy=(2.0, 1.5), posture=posture, top_m=top, tops=tuple(history), upright_ns=upright_ns)
+        detector.update(f, emitter(k, out))
+    return out
+
+
+def test_fall_detector_hand_worked():
+    falls = FallDetector(FallParams(long_lie_s=5.0))
+    out = _run_falls(falls, upright_ns=900_000_000)
+    # Low: the median of the last three tops at most 0.55 * 1.70 = 0.935 m, first at tick 14
+    # (1.0, 0.75, 0.5); lying there, so on the floor from 1.4 s. The largest fast drop in the 2 s
+    # before is 1.75 -> 0.5 m, from the latest 1.75 (tick 9) to tick 14: 1.25 m in 0.5 s. Halfway,
+    # 1.125 m, is passed halfway between ticks 11 (1.25) and 12 (1.0): 1.15 s. Confirmed 1 s after
+    # getting low: tick 24.
+    fall, lie = out
+    assert (fall.kind, fall.frame, fall.track, fall.x, fall.y) == ("fall", 24, 1, 2.0, 1.5)
+    assert fall.details == dict(
+        fall_stamp_ns=1_150_000_000, drop_start_ns=900_000_000, from_posture="standing", top_before_m=1.75,
+        top_after_m=0.5, drop_m=1.25, drop_speed_mps=2.5, confirm_s=1.0,
+    )
+    # On the floor since the fall (1.15 s, before the 1.4 s it got low): 5 s later is 6.15 s, tick 62.
+    assert (lie.kind, lie.frame) == ("long_lie", 62)
+    assert lie.details == dict(lying_since_ns=1_150_000_000, duration_s=5.05, after_fall=True,
+                               fall_stamp_ns=1_150_000_000)
+    assert falls.on_floor(1) and not falls.on_floor(2)
+    falls.forget(1)
+    assert not falls.on_floor(1)
+
+
+def test_fall_detector_needs_an_upright_history():
+    # upright for 0.4 s, under upright_s (0.5 s): the same drop is no fall
+    out = _run_falls(FallDetector(FallParams(long_lie_s=60.0)), upright_ns=400_000_000)
+    assert out == []
+
+
+# --------------------------------------------------------------------------- sit / stand
+
+
+def _run_postures(detector: SitStandDetector, postures: list[str]) -> list[tuple[str, int, str, str]]:
+    out: list[EventRecord] = []
+    for k, posture in enumerate(postures):
+        detector.update(frame(k, posture=posture), emitter(k, out))
+    return [(e.kind, e.frame, e.details["from_posture"], e.details["to_posture"]) for e in out]
+
+
+def test_sit_stand_detector_hand_worked():
+    # Bare posture names carry no height: only the postures and how long each was held count.
+    # Standing from 0 s, sitting at 3 s (standing held 3 s >= 2 s), standing at 6 s (sat 3 s).
+    seq = ["standing"] * 30 + ["sitting"] * 30 + ["standing"] * 10
+    assert _run_postures(SitStandDetector(), seq) == [("sit_down", 30, "standing", "sitting"),
+                                                      ("stand_up", 60, "sitting", "standing")]
+    # Sat 1 s only (under hold_s): standing again is no event; bending in between is ignored.
+    seq = ["standing"] * 30 + ["sitting"] * 10 + ["bending"] * 5 + ["standing"] * 10
+    assert _run_postures(SitStandDetector(), seq) == [("sit_down", 30, "standing", "sitting")]
+    # Up from lying is a stand_up only when lying is in stand_up_from.
+    seq = ["lying"] * 30 + ["standing"] * 5
+    assert _run_postures(SitStandDetector(), seq) == [("stand_up", 30, "lying", "standing")]
+    assert _run_postures(SitStandDetector(SitStandParams(stand_up_from=("sitting",))), seq) == []
+
+
+# --------------------------------------------------------------------------- entries
+
+
+def test_entry_detector_hand_worked():
+    entries = EntryDetector(doors=[DOOR], bounds_xy_m=(0.0, 0.0, 6.0, 5.0))
+    assert entries.place(0.2, 2.5) == "front door"
+    assert entries.place(5.8, 4.0) == "edge"  # 0.2 m from x_max, within 0.4 m
+    assert entries.place(0.45, 1.0) is None  # 0.45 m from x_min
+    assert entries.place(3.0, 2.5) is None
+    assert EntryDetector(doors=[DOOR]).place(5.8, 4.0) is None  # doors only
+
+    out: list[EventRecord] = []
+    emit = emitter(30, out)
+    # first seen in the door 2 s after monitoring began: an entry; 1 s after (not over startup_s): none
+    entries.first_arrival(1, 1.0, 2.5, first_xy=(0.2, 2.5), first_ns=2_000_000_000, start_ns=0, emit=emit)
+    entries.first_arrival(2, 1.0, 2.5, first_xy=(0.2, 2.5), first_ns=1_000_000_000, start_ns=0, emit=emit)
+    entries.first_arrival(3, 1.0, 2.5, first_xy=(3.0, 2.5), first_ns=2_000_000_000, start_ns=0, emit=emit)
+    # back at the edge after leaving: an entry; back mid-room: none
+    entries.return_arrival(4, 5.8, 4.0, since_ns=2_500_000_000, emit=emit)
+    entries.return_arrival(5, 3.0, 2.5, since_ns=2_500_000_000, emit=emit)
+    entries.exit(1, "front door", (0.25, 2.5), 2_900_000_000, emit)
+    assert [(e.kind, e.track, e.x, e.y, e.details) for e in out] == [
+        ("enter", 1, 1.0, 2.5, dict(door="front door", first_seen_ns=2_000_000_000)),
+        ("enter", 4, 5.8, 4.0, dict(door="edge", first_seen_ns=2_500_000_000)),
+        ("exit", 1, 0.25, 2.5, dict(door="front door", last_seen_ns=2_900_000_000)),
+    ]
+    assert all(e.stamp_ns == 3_000_000_000 and e.frame == 30 for e in out)
+
+
+# --------------------------------------------------------------------------- dwell and visits
+
+
+def test_visit_detector_hand_worked():
+    visits = VisitDetector(VisitParams(dwell_window_s=1.0, visit_min_s=2.0), hotspots=[TABLE], residents=1)
+    seats = {1: (1.5, 3.5), 2: (2.5, 3.5)}
+    out: list[EventRecord] = []
+    for k in range(26):
+        emit = emitter(k, out)
+        for tid, xy in seats.items():
+            visits.update(frame(k, track=tid, xy=xy), emit)
+        visits.step(k * TICK_NS, TICK_NS if k else 0, sorted(seats.items()), 19.0, emit)
+    # Still at the table: each dwells once the 1 s window is full (tick 10), settled since 0 s.
+    # Two people, one resident, since 0 s: 2 s later (tick 20) both dwell at the table: a visit
+    # there (its centroid), at 19:00 local time.
+    starts = [e for e in out if e.kind == "dwell_start"]
+    assert [(e.track, e.frame, e.x, e.y) for e in starts] == [(1, 10, 1.5, 3.5), (2, 10, 2.5, 3.5)]
+    assert starts[0].details == dict(hotspot="dinner table", label="dinner table", hotspot_kind="table", start_ns=0)
+    (visit,) = [e for e in out if e.kind == "visit"]
+    assert (visit.track, visit.frame) == (-1, 20)
+    assert (visit.x, visit.y) == pytest.approx((2.0, 3.75))
+    assert visit.details == dict(
+        people=2, residents=1, since_ns=0, duration_s=2.0, reason="for dinner", local_time="19:00",
+        hotspot="dinner table", hotspot_label="dinner table", hotspot_kind="table",
+    )
+    assert len(out) == 3
+    # track 1 leaves at 2.5 s: its dwell ends, lost, 2.5 s after it began
+    visits.lost(1, emitter(25, out))
+    assert out[-1].kind == "dwell_end" and (out[-1].track, out[-1].x, out[-1].y) == (1, 1.5, 3.5)
+    assert out[-1].details == dict(hotspot="dinner table", label="dinner table", hotspot_kind="table", start_ns=0,
+                                   duration_s=2.5, reason="lost")
+    visits.lost(1, emitter(26, out))  # no dwell left to end
+    assert len(out) == 4
+
+
+# --------------------------------------------------------------------------- inactivity
+
+
+def test_inactivity_detector_hand_worked():
+    params = InactivityParams(inactivity_s=5.0, window_s=2.0)
+    ina = InactivityDetector(params, hotspots=[BED])
+    out: list[EventRecord] = []
+    for k in range(121):
+        # seated still at (1, 1) to 6 s, then standing up in place
+        posture = "sitting" if k < 60 else "standing"
+        ina.update(frame(k, posture=posture), emitter(k, out), on_floor=False)
+    # The 2 s window is full at 2 s; still since its first sample (0 s) and the posture since 0 s:
+    # 5 s still at 5 s (tick 50). Standing up at 6 s starts the clock again: 11 s (tick 110).
+    assert [(e.kind, e.frame, e.details) for e in out] == [
+        ("inactivity", 50, dict(still_since_ns=0, duration_s=5.0, posture="sitting", hotspot=None)),
+        ("inactivity", 110, dict(still_since_ns=6_000_000_000, duration_s=5.0, posture="standing", hotspot=None)),
+    ]
+    # lying on the floor (a long lie's business) or still in bed is no inactivity
+    for on_floor, xy in ((True, (1.0, 1.0)), (False, (4.0, 1.0))):
+        ina, out = InactivityDetector(params, hotspots=[BED]), []
+        for k in range(121):
+            ina.update(frame(k, xy=xy, posture="lying"), emitter(k, out), on_floor=on_floor)
+        assert out == []
