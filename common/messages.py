@@ -226,13 +226,19 @@ class TrackFrame(_Message):
 
 
 class Event(_Message):
-    """One reasoned event: a fall, a sit-down, an entry, a lost camera ...
+    """One event: a fall, a sit-down, an entry, a lost camera ...
 
-    ``id`` is unique across the site's history; ``track`` is -1 when no
-    track is involved (camera events); ``frame`` is the fused frame number
-    (-1 when the event is tied to none); ``(x, y)`` is the world floor
-    position in metres (0, 0 for events without a place). ``details`` holds
-    kind-specific scalars (``duration_s``, ``zone``, ``cam`` ...).
+    The one event type of the system: the reasoner makes it, the store keeps
+    it, the run files and the ground truth hold it (:meth:`to_dict`,
+    :meth:`from_dict`), the wire carries it and the evaluation scores it.
+
+    ``id`` is unique across the site's history (:func:`event_id`: the stamp,
+    kind and track); ``track`` is the track (or, in ground truth, the person)
+    and -1 when no single one is involved (camera events); ``frame`` is the
+    fused frame number (-1 when the event is tied to none); ``(x, y)`` is the
+    world floor position in metres (0, 0 for events without a place).
+    ``details`` holds kind-specific scalars (``duration_s``, ``door``,
+    ``camera`` ...).
 
     Published as JSON text (:meth:`to_json`), so stock zenoh clients print it.
     """
@@ -240,8 +246,7 @@ class Event(_Message):
     TYPE: ClassVar[str] = "event"
 
     id: Annotated[str, StringConstraints(min_length=1, max_length=128)]
-    kind: Literal["fall", "long_lie", "sit_down", "stand_up", "enter", "exit", "dwell_start", "dwell_end",
-                  "visit", "inactivity", "camera_lost", "camera_back", "clock_skew"]
+    kind: Literal[EVENT_KINDS]
     track: Annotated[int, Field(ge=-1, le=_I64_MAX)]
     stamp_ns: StampNs
     frame: Annotated[int, Field(ge=-1, le=_I64_MAX)]
@@ -252,6 +257,39 @@ class Event(_Message):
     def to_json(self) -> str:
         """One-line JSON object with ``v``, ``type`` and every field (readable by any client)."""
         return json.dumps(_tagged(self), ensure_ascii=False, allow_nan=False, separators=(",", ":"))
+
+    def to_dict(self) -> dict[str, Any]:
+        """The fields as a plain dict, in the order of an events-file line (a copy)."""
+        return {"id": self.id, "kind": self.kind, "track": self.track, "frame": self.frame,
+                "stamp_ns": self.stamp_ns, "x": self.x, "y": self.y, "details": dict(self.details)}
+
+    @classmethod
+    def from_dict(cls, obj: Any) -> Event:
+        """An event from a dict of its fields (an events-file line, a store row, ...).
+
+        ``id`` may be left out (it is then :func:`event_id` of the stamp, kind
+        and track), ``track`` null for none (-1), ``x``/``y`` null for no place
+        (0, 0). WireError (a ValueError) naming the field on anything else.
+        """
+        if not isinstance(obj, dict):
+            raise WireError(f"{cls.__name__}: expected a map, got {type(obj).__name__}")
+        fields = dict(obj)
+        if fields.get("track") is None:
+            fields["track"] = -1
+        for name in ("x", "y"):
+            if fields.get(name) is None:
+                fields[name] = 0.0
+        if fields.get("details") is None:
+            fields["details"] = {}
+        if fields.get("id") is None:
+            try:
+                fields["id"] = event_id(fields["stamp_ns"], fields["kind"], fields["track"])
+            except (KeyError, TypeError, ValueError):
+                fields["id"] = "?"  # the missing or bad field is named below
+        try:
+            return cls.model_validate(fields)
+        except ValidationError as exc:
+            raise WireError(f"{cls.__name__}: {_describe(exc)}") from None
 
     @classmethod
     def from_json(cls, text: str | bytes) -> Event:
@@ -370,6 +408,11 @@ def decode_any(data: bytes) -> Message:
     if len(data) > cls.MAX_BYTES:
         raise WireError(_oversize(cls, len(data)))
     return _validate(obj, cls)
+
+
+def event_id(stamp_ns: int, kind: str, track: int) -> str:
+    """The deterministic event id ``f"{stamp_ns}-{kind}-{track}"``."""
+    return f"{int(stamp_ns)}-{kind}-{int(track)}"
 
 
 def decode_event(data: bytes) -> Event:

@@ -12,7 +12,8 @@ names and layouts are defined.
   them. A track id is any non-empty text (``7``, ``alice``).
 * **events JSON lines** (:data:`EVENTS_FILE`): one compact JSON object per
   line (:func:`event_line`: UTF-8, no spaces, non-finite numbers as
-  ``null``) with the fields :data:`EVENT_FIELDS`; ``id`` is optional.
+  ``null``), a :class:`common.messages.Event` with the fields
+  :data:`EVENT_FIELDS`; ``id`` is optional for readers.
 * **meta** (:data:`META_FILE`): a JSON object about a recording (``fps``,
   ``n_frames`` and whatever its writer adds).
 """
@@ -37,7 +38,8 @@ TRACK_HEADER = ",".join(TRACK_COLUMNS)
 """The first line of a tracks file (without its newline)."""
 
 EVENT_FIELDS: tuple[str, ...] = ("id", "kind", "track", "frame", "stamp_ns", "x", "y", "details")
-"""The fields of an event line, in the order :func:`event_object` puts them; ``id`` is optional."""
+"""The fields of an event line, in the order ``common.messages.Event.to_dict`` puts them (a reader
+takes ``id`` as optional)."""
 
 
 def write_track_rows(fh: IO[str], rows: Iterable[Sequence[Any]]) -> int:
@@ -63,24 +65,6 @@ def write_tracks_file(path: str | Path, rows: Iterable[Sequence[Any]]) -> Path:
         fh.write(TRACK_HEADER + "\n")
         write_track_rows(fh, rows)
     return path
-
-
-def event_object(
-    *,
-    kind: str,
-    track: Any,
-    frame: int,
-    stamp_ns: int,
-    x: float | None,
-    y: float | None,
-    details: Mapping[str, Any],
-    id: str | None = None,
-) -> dict[str, Any]:
-    """One event as the dict an event line holds, fields in :data:`EVENT_FIELDS` order
-    (``id`` left out when None). ``x``, ``y`` world frame, metres."""
-    out: dict[str, Any] = {} if id is None else {"id": id}
-    out.update(kind=kind, track=track, frame=frame, stamp_ns=stamp_ns, x=x, y=y, details=details)
-    return out
 
 
 def event_line(obj: Mapping[str, Any]) -> str:

@@ -1,6 +1,6 @@
 """The event history: an SQLite file the fusion server writes before it publishes.
 
-:class:`EventStore` keeps every :class:`~fusion_server.events.EventRecord`
+:class:`EventStore` keeps every :class:`~common.messages.Event`
 in one table keyed by the event id. ``add`` is idempotent (a second event
 with the same id is ignored and reported as not added) and has committed
 to disk when it returns, so an event that was published is always in the
@@ -35,7 +35,7 @@ from datetime import datetime, timedelta, timezone
 from pathlib import Path
 from typing import Any, Iterable, Mapping
 
-from fusion_server.events import EventRecord
+from common.messages import Event
 
 SCHEMA_VERSION = 1
 DEFAULT_LIMIT = 1000
@@ -94,7 +94,7 @@ class EventStore:
 
     # ------------------------------------------------------------------ writing
 
-    def add(self, event: EventRecord | Mapping[str, Any]) -> bool:
+    def add(self, event: Event | Mapping[str, Any]) -> bool:
         """Store one event and commit. True if it was new, False if its id was
         already stored (the stored one is kept). ValueError for a malformed event."""
         row = _row(event)
@@ -108,7 +108,7 @@ class EventStore:
                 raise ValueError(f"event store {self.path}: cannot write event {row[0]!r}: {exc}") from None
             return cur.rowcount == 1
 
-    def add_many(self, events: Iterable[EventRecord | Mapping[str, Any]]) -> int:
+    def add_many(self, events: Iterable[Event | Mapping[str, Any]]) -> int:
         """Store several events in one transaction; returns how many were new."""
         rows = [_row(e) for e in events]
         with self._lock:
@@ -132,7 +132,7 @@ class EventStore:
         limit: int = DEFAULT_LIMIT,
         *,
         newest_first: bool = False,
-    ) -> list[EventRecord]:
+    ) -> list[Event]:
         """Events with ``since_ns <= stamp_ns < until_ns`` (either bound optional)
         and a kind in ``kinds`` (None: all), oldest first (or newest first),
         at most ``limit``; ties in time keep the order they were added in."""
@@ -163,12 +163,12 @@ class EventStore:
             except sqlite3.Error as exc:
                 raise ValueError(f"event store {self.path}: cannot read: {exc}") from None
         return [
-            EventRecord(id=r[0], kind=r[1], track=r[2], stamp_ns=r[3], frame=r[4], x=r[5], y=r[6],
-                        details=json.loads(r[7]))
+            Event(id=r[0], kind=r[1], track=r[2], stamp_ns=r[3], frame=r[4], x=r[5], y=r[6],
+                  details=json.loads(r[7]))
             for r in rows
         ]
 
-    def query_filter(self, flt: "HistoryFilter") -> list[EventRecord]:
+    def query_filter(self, flt: "HistoryFilter") -> list[Event]:
         """:meth:`query` with a :class:`HistoryFilter` from :func:`parse_history_selector`."""
         return self.query(flt.since_ns, flt.until_ns, flt.kinds, flt.limit)
 
@@ -291,10 +291,8 @@ def parse_time_ns(text: str | int, *, utc_offset_h: float = 0.0) -> int:
 # --------------------------------------------------------------------------- helpers
 
 
-def _row(event: EventRecord | Mapping[str, Any]) -> tuple:
-    rec = EventRecord.from_dict(event.to_dict() if isinstance(event, EventRecord) else event)
-    if not 0 <= rec.stamp_ns < 2**63:
-        raise ValueError(f"event {rec.id!r}: stamp_ns {rec.stamp_ns} is out of range")
+def _row(event: Event | Mapping[str, Any]) -> tuple:
+    rec = event if isinstance(event, Event) else Event.from_dict(dict(event))
     try:
         details = json.dumps(rec.details, sort_keys=True, allow_nan=False, separators=(",", ":"))
     except (TypeError, ValueError) as exc:

@@ -66,7 +66,6 @@ or no sign of life at all), ``skewed``, ``degraded`` (no mask for
 
 from __future__ import annotations
 
-import json
 import logging
 import math
 import statistics
@@ -78,12 +77,12 @@ from typing import Any
 from common import keys, maskcodec, messages
 from common.camera import Camera
 from common.maskcodec import MaskCodecError
-from common.messages import CameraStatus, Event, HoldRegions, MaskFrame, Status, TrackFrame, TrackState, WireError
-from common.plain import plain_value
+from common.messages import (
+    CameraStatus, Event, HoldRegions, MaskFrame, Status, TrackFrame, TrackState, WireError, event_id,
+)
 from common.ratelog import RateLimitedLog
 from common.site import Site
 from fusion_server.event_store import EventStore, parse_history_selector
-from fusion_server.events import EventRecord, event_id
 from fusion_server.outputs import RunOutputs
 from fusion_server.pipeline import FusedFrame, FusionPipeline
 from fusion_server.sync import FrameSet, FrameSynchroniser
@@ -458,7 +457,7 @@ class FusionNode:
                 continue
             self.holds_sent[cam] = (boxes, mono)
 
-    def _emit(self, rec: EventRecord) -> None:
+    def _emit(self, rec: Event) -> None:
         """Store (committed), then queue for publishing, then write one event."""
         if self.store is not None:
             try:
@@ -472,7 +471,7 @@ class FusionNode:
         log.info("event %s: track %d at (%.2f, %.2f) %s", rec.kind, rec.track, rec.x, rec.y, rec.details or "")
         try:
             key = keys.event_key(self.prefix, rec.kind, int(rec.track))
-            self._out.events.append((key, wire_event(rec).to_json()))
+            self._out.events.append((key, rec.to_json()))
         except (ValueError, WireError) as exc:
             self.c.events_unpublishable += 1
             log.error("event %s could not be published: %s", rec.id, exc)
@@ -587,7 +586,7 @@ def history_replies(store: EventStore, history_key: str, asked_key: str, paramet
     consolidation keeps one reply per key, so one key per event lets stock
     clients see them all), else on the history key. Payloads are JSON text, or
     msgpack with ``format=msgpack``. ValueError (the reply-error text) on a bad
-    selector. A stored event that cannot be sent is logged and left out.
+    selector. A stored event too large to send is logged and left out.
     """
     import zenoh  # key expressions only: no session
 
@@ -596,11 +595,6 @@ def history_replies(store: EventStore, history_key: str, asked_key: str, paramet
     asked = zenoh.KeyExpr(asked_key)
     replies: list[tuple[str, bytes | str, str]] = []
     for rec in records:
-        try:
-            msg = wire_event(rec)
-        except WireError as exc:
-            log.warning("history: stored event %s cannot be sent: %s", rec.id, exc)
-            continue
         key = history_key
         try:
             own = f"{history_key}/{keys.validate_chunk(rec.id, 'event id')}"
@@ -608,35 +602,23 @@ def history_replies(store: EventStore, history_key: str, asked_key: str, paramet
                 key = own
         except (ValueError, zenoh.ZError):
             pass
-        if flt.format == "msgpack":
-            replies.append((key, messages.encode(msg), messages.MSGPACK_ENCODING))
-        else:
-            replies.append((key, msg.to_json(), messages.JSON_ENCODING))
+        try:
+            if flt.format == "msgpack":
+                replies.append((key, messages.encode(rec), messages.MSGPACK_ENCODING))
+            else:
+                replies.append((key, rec.to_json(), messages.JSON_ENCODING))
+        except (ValueError, WireError) as exc:
+            log.warning("history: stored event %s cannot be sent: %s", rec.id, exc)
     return replies
 
 
 # --------------------------------------------------------------------------- wire conversion
 
 
-def camera_event(kind: str, cam: str, stamp_ns: int, frame: int, **details: Any) -> EventRecord:
+def camera_event(kind: str, cam: str, stamp_ns: int, frame: int, **details: Any) -> Event:
     """A camera-health event (``camera_lost``, ``camera_back``, ``clock_skew``) at a server time."""
-    return EventRecord(id=event_id(stamp_ns, f"{kind}-{cam}", -1), kind=kind, track=-1, stamp_ns=int(stamp_ns),
-                       frame=int(frame), x=0.0, y=0.0, details={"camera": cam, **details})
-
-
-def wire_event(rec: EventRecord) -> Event:
-    """The wire message of an event; lists or maps in ``details`` travel as JSON text."""
-    obj = plain_value(rec.to_dict())
-    details = {}
-    for k, v in obj["details"].items():
-        details[k] = json.dumps(v, separators=(",", ":")) if isinstance(v, (list, dict)) else v
-    obj["details"] = details
-    obj["x"] = obj["x"] if obj["x"] is not None else 0.0
-    obj["y"] = obj["y"] if obj["y"] is not None else 0.0
-    try:
-        return Event.model_validate(obj)
-    except ValueError as exc:
-        raise WireError(f"Event {rec.id}: {exc}") from None
+    return Event(id=event_id(stamp_ns, f"{kind}-{cam}", -1), kind=kind, track=-1, stamp_ns=int(stamp_ns),
+                 frame=int(frame), x=0.0, y=0.0, details={"camera": cam, **details})
 
 
 class _Mismatch(WireError):

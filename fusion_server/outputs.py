@@ -4,7 +4,7 @@ Both are the run files of :mod:`common.runfiles`, which the evaluation
 reads too, so a live run can be scored like a replay:
 
 * ``tracks.csv``: one row per confirmed track per fused frame;
-* ``events.jsonl``: one ``EventRecord.to_dict()`` object per line.
+* ``events.jsonl``: one ``Event.to_dict()`` object per line.
 
 Each frame's rows and each event go out in one ``write`` followed by a
 flush, so a server that is killed loses nothing it had written. Files are
@@ -21,6 +21,7 @@ from collections.abc import Iterable, Mapping
 from pathlib import Path
 from typing import Any, Protocol
 
+from common.messages import Event
 from common.plain import plain_value
 from common.runfiles import EVENTS_FILE, TRACK_COLUMNS, TRACK_HEADER, TRACKS_FILE, event_line, write_track_rows
 
@@ -44,10 +45,6 @@ class TrackRow(Protocol):
     y: float
     z_top: float
     posture: str
-
-
-class EventLike(Protocol):
-    def to_dict(self) -> dict[str, Any]: ...
 
 
 class TracksWriter:
@@ -94,9 +91,9 @@ class EventsWriter:
         self._fh = _open_append(self.path, header=None)
         self.events_written = 0
 
-    def write(self, event: EventLike | Mapping[str, Any]) -> None:
-        """Append one event (an ``EventRecord`` or its ``to_dict()``) as one line."""
-        obj = event.to_dict() if hasattr(event, "to_dict") else dict(event)
+    def write(self, event: Event | Mapping[str, Any]) -> None:
+        """Append one event (an :class:`~common.messages.Event` or its ``to_dict()``) as one line."""
+        obj = event.to_dict() if isinstance(event, Event) else dict(event)
         self._fh.write(event_line(obj))
         self._fh.flush()
         self.events_written += 1
@@ -131,7 +128,7 @@ class RunOutputs:
     def write_frame(self, frame: int, stamp_ns: int, tracks: Iterable[TrackRow]) -> int:
         return self.tracks.write_frame(frame, stamp_ns, tracks)
 
-    def write_event(self, event: EventLike | Mapping[str, Any]) -> None:
+    def write_event(self, event: Event | Mapping[str, Any]) -> None:
         self.events.write(event)
 
     def close(self) -> None:

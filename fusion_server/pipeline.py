@@ -15,12 +15,13 @@ from pathlib import Path
 import numpy as np
 
 from common.camera import Camera
+from common.messages import Event
 from common.site import Site
 from fusion_server.carving import Carver
 from fusion_server.carving.occlusion import Occluder
 from fusion_server.detection import detect_blobs
 from fusion_server.explain import BlobExplainer
-from fusion_server.events import EventReasoner, EventRecord, FallParams, InactivityParams
+from fusion_server.events import EventReasoner, FallParams, InactivityParams
 from fusion_server.grid import CarveResult
 from fusion_server.hotspots import Hotspot
 from fusion_server.posture import PostureEstimator, PostureReading
@@ -64,7 +65,7 @@ class FusedFrame:
     stamp_ns: int
     cameras: tuple[str, ...]
     tracks: list[TrackOutput]
-    events: list[EventRecord]
+    events: list[Event]
     holds: dict[str, list[tuple[int, int, int, int]]]
     carve: CarveResult
 

@@ -15,8 +15,8 @@ from common.evaluation.report import evaluate, format_table, suite_table, suite_
 NS = 66_666_667  # one frame at 15 fps
 
 
-def ev(kind: str, frame: int, track: str | None = "1", x: float | None = 1.0, y: float | None = 1.0, *, late_s: float = 0.0) -> Event:
-    return Event(kind=kind, frame=frame, stamp_ns=frame * NS + int(late_s * 1e9), track=track, x=x, y=y)
+def ev(kind: str, frame: int, track: int | None = 1, x: float | None = 1.0, y: float | None = 1.0, *, late_s: float = 0.0) -> Event:
+    return Event.from_dict(dict(kind=kind, frame=frame, stamp_ns=frame * NS + int(late_s * 1e9), track=track, x=x, y=y))
 
 
 def test_window_is_thirty_frames_inclusive() -> None:
@@ -56,15 +56,16 @@ def test_position_gate_applies_to_enter_and_exit_only() -> None:
     assert (s.per_kind["enter"].tp, s.per_kind["exit"].tp, s.per_kind["fall"].tp) == (0, 1, 1)
     # with no gates at all the entry matches too
     assert score_events(truth, run, position_gate_m={}).per_kind["enter"].tp == 1
-    # events without a position are matched on time alone
-    assert score_events([ev("enter", 10, x=None, y=None)], [ev("enter", 11)]).per_kind["enter"].tp == 1
+    # an event without a place sits at (0, 0), as on the wire: the gate applies to it like to any other
+    assert score_events([ev("enter", 10, x=None, y=None)], [ev("enter", 11, x=0.3, y=0.0)]).per_kind["enter"].tp == 1
+    assert score_events([ev("enter", 10, x=None, y=None)], [ev("enter", 11)]).per_kind["enter"].tp == 0
 
 
 def test_track_requirement_uses_tracking_links() -> None:
-    # truth person A was matched to run track 7 in frames 95..105, to track 8 from frame 200
-    links = TrackLinks({("A", "7"): range(95, 106), ("A", "8"): range(200, 300)})
-    truth = [ev("fall", 100, track="A"), ev("fall", 250, track="A")]
-    run = [ev("fall", 110, track="7"), ev("fall", 255, track="7")]
+    # truth person 21 was matched to run track 7 in frames 95..105, to track 8 from frame 200
+    links = TrackLinks({("21", "7"): range(95, 106), ("21", "8"): range(200, 300)})
+    truth = [ev("fall", 100, track=21), ev("fall", 250, track=21)]
+    run = [ev("fall", 110, track=7), ev("fall", 255, track=7)]
     assert score_events(truth, run).per_kind["fall"].tp == 2
     strict = score_events(truth, run, track_links=links)
     assert strict.per_kind["fall"].tp == 1 and strict.track_required
@@ -135,30 +136,30 @@ def test_long_recordings_split_into_small_problems() -> None:
 
 def write_scenario(root, *, falls_truth: list[int], falls_run: list[int], fps: float | None = 15.0, n_frames: int = 900,
                    flat: bool = False) -> tuple:
-    """One person A standing at (2, 2); the run follows as track 5, 0.1 m off, and says sitting in 20 frames."""
+    """One person 21 standing at (2, 2); the run follows as track 5, 0.1 m off, and says sitting in 20 frames."""
     truth_dir, run_dir = root / "truth_root", root / "run"
     tdir = truth_dir if flat else truth_dir / "truth"
     truth_rows, run_rows = [], []
     for f in range(100, 200):
-        truth_rows.append((f, f * NS, "A", 2.0, 2.0, 1.7, "bending" if f < 110 else "standing"))
+        truth_rows.append((f, f * NS, "21", 2.0, 2.0, 1.7, "bending" if f < 110 else "standing"))
         run_rows.append((f, f * NS, "5", 2.1, 2.0, 1.7, "sitting" if f >= 180 else "standing"))
     io.write_tracks(tdir / "tracks.csv", truth_rows)
     io.write_tracks(run_dir / "tracks.csv", run_rows)
-    io.write_events(tdir / "events.jsonl", [ev("fall", f, track="A") for f in falls_truth])
-    io.write_events(run_dir / "events.jsonl", [ev("fall", f, track="5") for f in falls_run])
+    io.write_events(tdir / "events.jsonl", [ev("fall", f, track=21) for f in falls_truth])
+    io.write_events(run_dir / "events.jsonl", [ev("fall", f, track=5) for f in falls_run])
     if fps is not None:
         (tdir / "meta.json").write_text(json.dumps({"fps": fps, "n_frames": n_frames}))
     return truth_dir, run_dir
 
 
-@pytest.mark.parametrize("origin_s, shifted", [(0.0, False), (0.4, False), (-1_709_650_000.0, True)])
+@pytest.mark.parametrize("origin_s, shifted", [(0.0, False), (0.4, False), (1_709_650_000.0, True)])
 def test_a_run_on_another_clock_is_brought_to_the_truth_clock_for_delays(tmp_path, origin_s, shifted) -> None:
-    # a replay of masks without capture times stamps frame f at f / fps; the truth at its recording's date
+    # a run stamped with the date of its recording; the truth frame f at f / fps (or the other way round)
     truth_dir, run_dir = write_scenario(tmp_path, falls_truth=[150], falls_run=[160])
     off = int(origin_s * 1e9)
     rows = [(f, f * NS + off, "5", 2.1, 2.0, 1.7, "standing") for f in range(100, 200)]
     io.write_tracks(run_dir / "tracks.csv", rows)
-    io.write_events(run_dir / "events.jsonl", [Event("fall", 160, 160 * NS + off, track="5", x=1.0, y=1.0)])
+    io.write_events(run_dir / "events.jsonl", [ev("fall", 160, track=5).model_copy(update={"stamp_ns": 160 * NS + off})])
     r = evaluate(truth_dir, run_dir)
     # ten frames late, on the truth's clock; a small offset (a live run's clocks) is left alone
     expected = 10 * NS / 1e9 + (0.0 if shifted else origin_s)

@@ -76,21 +76,23 @@ def test_track_header_errors(tmp_path) -> None:
 
 def test_events_round_trip(tmp_path) -> None:
     events = [
-        Event(kind="fall", frame=40, stamp_ns=4000, track="3", x=1.5, y=2.0, details={"from": "standing"}, id="e2"),
-        Event(kind="enter", frame=10, stamp_ns=1000, track="3", x=0.2, y=5.0),
-        Event(kind="visit", frame=20, stamp_ns=2000),
-        Event(kind="camera_lost", frame=30, stamp_ns=3000, details={"camera": "cam2"}),
+        Event(kind="fall", frame=40, stamp_ns=4000, track=3, x=1.5, y=2.0, details={"from": "standing"}, id="e2"),
+        Event.from_dict(dict(kind="enter", frame=10, stamp_ns=1000, track=3, x=0.2, y=5.0)),
+        Event.from_dict(dict(kind="visit", frame=20, stamp_ns=2000)),
+        Event.from_dict(dict(kind="camera_lost", frame=30, stamp_ns=3000, details={"camera": "cam2"})),
     ]
     path = io.write_events(tmp_path / "events.jsonl", events)
     back = io.read_events(path)
     assert [e.frame for e in back] == [10, 20, 30, 40]
-    assert back[3] == events[0] and back[2].kind == "camera_lost" and back[1].x is None
+    assert back == [events[1], events[2], events[3], events[0]]
+    assert back[0].id == "1000-enter-3" and (back[1].track, back[1].x, back[1].y) == (-1, 0.0, 0.0)
 
 
-def test_events_accept_integer_tracks_and_blank_lines(tmp_path) -> None:
-    text = '\n{"kind": "fall", "track": 7, "frame": 3, "stamp_ns": 300, "x": 1, "y": 2, "details": {}}\n\n'
-    (e,) = io.read_events(write(tmp_path / "events.jsonl", text))
-    assert (e.track, e.x, e.frame) == ("7", 1.0, 3)
+def test_events_accept_tracks_as_numbers_or_their_text_and_blank_lines(tmp_path) -> None:
+    text = ('\n{"kind": "fall", "track": 7, "frame": 3, "stamp_ns": 300, "x": 1, "y": 2, "details": {}}\n\n'
+            '{"kind": "fall", "track": "8", "frame": 4, "stamp_ns": 400, "x": 1, "y": 2}\n')
+    first, second = io.read_events(write(tmp_path / "events.jsonl", text))
+    assert (first.track, first.x, first.frame, second.track) == (7, 1.0, 3, 8)
 
 
 @pytest.mark.parametrize(
@@ -151,4 +153,4 @@ def test_table_constructors() -> None:
     assert len(TrackTable.empty()) == 0 and TrackTable.empty().xy_m.shape == (0, 2)
     t = TrackTable.from_rows([(5, 0, 12, 1, 2, 1.7, "standing")])
     assert t.track_id.tolist() == ["12"] and t.fps_from_stamps() is None
-    assert json.loads(json.dumps(Event(kind="fall", frame=1, stamp_ns=2).to_json()))["kind"] == "fall"
+    assert json.loads(Event.from_dict(dict(kind="fall", frame=1, stamp_ns=2)).to_json())["kind"] == "fall"

@@ -40,13 +40,16 @@ def scenario(tmp_path) -> tuple[Path, Path]:
         ax, ay = 1.0 + 0.03 * f, 3.0
         bx, by = 6.0, 1.0 + 0.02 * f
         a_post = "lying" if f >= 100 else "standing"
-        truth_rows += [(f, f * NS, "A", ax, ay, 1.7, a_post), (f, f * NS, "B", bx, by, 1.6, "sitting" if f > 60 else "standing")]
+        truth_rows += [(f, f * NS, "21", ax, ay, 1.7, a_post), (f, f * NS, "22", bx, by, 1.6, "sitting" if f > 60 else "standing")]
         run_rows += [(f, f * NS, "1", ax + 0.05, ay, 1.7, a_post), (f, f * NS, "2", bx, by - 0.05, 1.6, "standing")]
     truth_dir, run_dir = tmp_path / "truth", tmp_path / "run"
     io.write_tracks(truth_dir / "truth" / "tracks.csv", truth_rows)
     io.write_tracks(run_dir / "tracks.csv", run_rows)
-    io.write_events(truth_dir / "truth" / "events.jsonl", [Event("fall", 100, 100 * NS, "A", 4.0, 3.0), Event("sit_down", 61, 61 * NS, "B", 6.0, 2.2)])
-    io.write_events(run_dir / "events.jsonl", [Event("fall", 105, 105 * NS, "1", 4.15, 3.0), Event("enter", 0, 0, "2", 6.0, 1.0)])
+    def ev(kind: str, frame: int, track: int, x: float, y: float) -> Event:
+        return Event.from_dict(dict(kind=kind, frame=frame, stamp_ns=frame * NS, track=track, x=x, y=y))
+
+    io.write_events(truth_dir / "truth" / "events.jsonl", [ev("fall", 100, 21, 4.0, 3.0), ev("sit_down", 61, 22, 6.0, 2.2)])
+    io.write_events(run_dir / "events.jsonl", [ev("fall", 105, 1, 4.15, 3.0), ev("enter", 0, 2, 6.0, 1.0)])
     return truth_dir, run_dir
 
 

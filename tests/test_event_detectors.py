@@ -8,12 +8,12 @@ import dataclasses
 
 import pytest
 
+from common.messages import Event
 from fusion_server.events import (
     DEFAULT_MEALS,
     Emitter,
     EntryDetector,
     EntryParams,
-    EventRecord,
     FallDetector,
     FallParams,
     InactivityDetector,
@@ -21,7 +21,7 @@ from fusion_server.events import (
     PresenceParams,
     SitStandDetector,
     SitStandParams,
-    TrackFrame,
+    TrackSnapshot,
     VisitDetector,
     VisitParams,
 )
@@ -35,10 +35,10 @@ BED = Hotspot("bed", [[3.0, 0.0], [5.0, 0.0], [5.0, 2.0], [3.0, 2.0]], kind="bed
 
 def frame(k: int, *, track: int = 1, xy=(1.0, 1.0), posture=None, top_m=float("nan"), tops=(), upright_ns=0):
     """Track ``track`` at tick ``k`` without a posture reading (so no centre and no learnt height)."""
-    return TrackFrame(track, k * TICK_NS, xy[0], xy[1], posture, None, top_m, None, None, tops, upright_ns)
+    return TrackSnapshot(track, k * TICK_NS, xy[0], xy[1], posture, None, top_m, None, None, tops, upright_ns)
 
 
-def emitter(k: int, out: list[EventRecord]) -> Emitter:
+def emitter(k: int, out: list[Event]) -> Emitter:
     return Emitter(out, k * TICK_NS, k)
 
 
@@ -123,8 +123,8 @@ def _fall_tops():
     return [("standing" if k < 13 else "lying", z) for k, z in enumerate(tops)]
 
 
-def _run_falls(detector: FallDetector, upright_ns: int) -> list[EventRecord]:
-    out: list[EventRecord] = []
+def _run_falls(detector: FallDetector, upright_ns: int) -> list[Event]:
+    out: list[Event] = []
     history = []
     for k, (posture, top) in enumerate(_fall_tops()):
         history.append((k * TICK_NS, top, None, posture))
@@ -166,7 +166,7 @@ def test_fall_detector_needs_an_upright_history():
 
 
 def _run_postures(detector: SitStandDetector, postures: list[str]) -> list[tuple[str, int, str, str]]:
-    out: list[EventRecord] = []
+    out: list[Event] = []
     for k, posture in enumerate(postures):
         detector.update(frame(k, posture=posture), emitter(k, out))
     return [(e.kind, e.frame, e.details["from_posture"], e.details["to_posture"]) for e in out]
@@ -198,7 +198,7 @@ def test_entry_detector_hand_worked():
     assert entries.place(3.0, 2.5) is None
     assert EntryDetector(doors=[DOOR]).place(5.8, 4.0) is None  # doors only
 
-    out: list[EventRecord] = []
+    out: list[Event] = []
     emit = emitter(30, out)
     # first seen in the door 2 s after monitoring began: an entry; 1 s after (not over startup_s): none
     entries.first_arrival(1, 1.0, 2.5, first_xy=(0.2, 2.5), first_ns=2_000_000_000, start_ns=0, emit=emit)
@@ -222,7 +222,7 @@ def test_entry_detector_hand_worked():
 def test_visit_detector_hand_worked():
     visits = VisitDetector(VisitParams(dwell_window_s=1.0, visit_min_s=2.0), hotspots=[TABLE], residents=1)
     seats = {1: (1.5, 3.5), 2: (2.5, 3.5)}
-    out: list[EventRecord] = []
+    out: list[Event] = []
     for k in range(26):
         emit = emitter(k, out)
         for tid, xy in seats.items():
@@ -257,7 +257,7 @@ def test_visit_detector_hand_worked():
 def test_inactivity_detector_hand_worked():
     params = InactivityParams(inactivity_s=5.0, window_s=2.0)
     ina = InactivityDetector(params, hotspots=[BED])
-    out: list[EventRecord] = []
+    out: list[Event] = []
     for k in range(121):
         # seated still at (1, 1) to 6 s, then standing up in place
         posture = "sitting" if k < 60 else "standing"

@@ -14,7 +14,6 @@ from fusion_server.events import (
     EVENT_KINDS,
     EntryParams,
     EventReasoner,
-    EventRecord,
     FallParams,
     InactivityParams,
     PresenceParams,
@@ -23,7 +22,6 @@ from fusion_server.events import (
     crossing_time,
     detect_fast_drop,
     drop_is_physical,
-    event_id,
     height_change_m,
     local_hour,
     time_of_day_label,
@@ -166,21 +164,23 @@ def test_detect_fast_drop_hand_worked():
     assert crossing_time(t, z, i, j, 1.05) == pytest.approx(0.3 + 0.0875)
 
 
-def test_event_record_round_trip_and_wire_model():
+def test_event_round_trip_through_a_dict():
     from common.messages import EVENT_KINDS as WIRE_KINDS
-    from common.messages import Event
+    from common.messages import Event, event_id
 
-    rec = EventRecord(event_id(5, "fall", 3), "fall", 3, 5, 1, 1.5, 2.0, {"fall_stamp_ns": 4, "from_posture": "standing"})
+    rec = Event(id=event_id(5, "fall", 3), kind="fall", track=3, stamp_ns=5, frame=1, x=1.5, y=2.0,
+                details={"fall_stamp_ns": 4, "from_posture": "standing"})
     assert rec.id == "5-fall-3"
-    assert EventRecord.from_dict(rec.to_dict()) == rec
-    Event(**rec.to_dict())  # the wire model accepts the record as it is
+    assert Event.from_dict(rec.to_dict()) == rec
     assert set(EVENT_KINDS) <= set(WIRE_KINDS)
     with pytest.raises(ValueError, match="'track'"):
-        EventRecord.from_dict({**rec.to_dict(), "track": "3"})
+        Event.from_dict({**rec.to_dict(), "track": "3"})
     with pytest.raises(ValueError, match="'x'"):
-        EventRecord.from_dict({**rec.to_dict(), "x": float("nan")})
+        Event.from_dict({**rec.to_dict(), "x": float("nan")})
     with pytest.raises(ValueError, match="'kind'"):
-        EventRecord.from_dict({k: v for k, v in rec.to_dict().items() if k != "kind"})
+        Event.from_dict({k: v for k, v in rec.to_dict().items() if k != "kind"})
+    with pytest.raises(ValueError, match="'details"):
+        Event.from_dict({**rec.to_dict(), "details": {"path": [1, 2]}})
 
 
 # --------------------------------------------------------------------------- falls
@@ -648,7 +648,6 @@ def _run_synthetic(name: str, seed: int = 0):
     voxelised body as height profile, confirmed from its 3rd frame; a person
     who leaves stays reported at the last position for 35 frames, unconfirmed
     from the 8th (the tracker's defaults)."""
-    from common.evaluation.io import Event as ScoredEvent
     from common.synth.body import pose_body
     from common.synth.scenarios import get_scenario
     from common.synth.truth import derive_truth
@@ -682,9 +681,7 @@ def _run_synthetic(name: str, seed: int = 0):
                     del seen[pid]
         stamp = sc.stamp_ns(f)
         events += reasoner.step(stamp, f, tracks, bank.update(stamp, tracks))
-    as_scored = lambda e: ScoredEvent(kind=e.kind, frame=e.frame, stamp_ns=e.stamp_ns, track=str(e.track),  # noqa: E731
-                                      x=e.x, y=e.y, details=dict(e.details))
-    return [as_scored(e) for e in events], [as_scored(e) for e in derive_truth(sc).events]
+    return events, derive_truth(sc).events
 
 
 @pytest.mark.parametrize(

@@ -272,8 +272,8 @@ def test_inactivity_of_a_seated_person_after_the_sites_inactivity_s(house):
     due = sat.frame + int(round(INACTIVITY_S * scenario.fps))
     truth = derive_truth(scenario)
     row = truth.rows_at(due)[0]
-    expected = Event("inactivity", due, int(truth.stamp_ns[row]), track=sat.track, x=float(truth.x[row]),
-                     y=float(truth.y[row]))
+    expected = Event.from_dict(dict(kind="inactivity", frame=due, stamp_ns=int(truth.stamp_ns[row]), track=sat.track,
+                                    x=float(truth.x[row]), y=float(truth.y[row])))
     run = scene.run_events("inactivity")
     score = score_events([expected], run, kinds=("inactivity",)).per_kind["inactivity"]
     print(f"inactivity due at frame {due}: run at {[e.frame for e in run]}; (tp, fp, fn) "
@@ -283,7 +283,7 @@ def test_inactivity_of_a_seated_person_after_the_sites_inactivity_s(house):
     assert alarm.details["posture"] == "sitting" and alarm.details["hotspot"] == "sofa"
     assert alarm.details["duration_s"] >= INACTIVITY_S
     tracks = read_tracks(scene.run_dir / "tracks.csv")
-    assert set(np.unique(tracks.track_id).tolist()) == {alarm.track}  # the one person, tracked throughout
+    assert set(np.unique(tracks.track_id).tolist()) == {str(alarm.track)}  # the one person, tracked throughout
     assert np.hypot(alarm.x - expected.x, alarm.y - expected.y) <= 0.5
 
 

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from common.evaluation.io import read_events, read_tracks
-from fusion_server.events import EventRecord
+from common.messages import Event
 from fusion_server.outputs import EVENTS_FILE, TRACKS_FILE, RunOutputs, TracksWriter
 from fusion_server.pipeline import TrackOutput
 
@@ -23,8 +23,8 @@ def _track(tid: int, x: float, y: float, z: float = 1.7, posture: str = "standin
                        vx=0.0, vy=0.0, still=False)
 
 
-def _event(stamp_ns: int, kind: str = "fall", track: int = 1, **details) -> EventRecord:
-    return EventRecord(id=f"{stamp_ns}-{kind}-{track}", kind=kind, track=track, stamp_ns=stamp_ns, frame=stamp_ns // 10,
+def _event(stamp_ns: int, kind: str = "fall", track: int = 1, **details) -> Event:
+    return Event(id=f"{stamp_ns}-{kind}-{track}", kind=kind, track=track, stamp_ns=stamp_ns, frame=stamp_ns // 10,
                        x=1.25, y=2.5, details=details)
 
 
@@ -41,10 +41,10 @@ def test_round_trip_through_the_evaluation_readers(tmp_path: Path) -> None:
     assert table.x.tolist() == pytest.approx([1.0, 3.1235, 1.1])
     assert table.posture.tolist() == ["standing", "sitting", "lying"]
     events = read_events(tmp_path / "run" / EVENTS_FILE)
-    assert [(e.kind, e.track, e.stamp_ns) for e in events] == [("fall", "1", 3000), ("camera_lost", "-1", 4000)]
+    assert [(e.kind, e.track, e.stamp_ns) for e in events] == [("fall", 1, 3000), ("camera_lost", -1, 4000)]
     assert events[0].details == {"zone": "sofa", "duration_s": 12.5, "n": 3}
     lines = (tmp_path / "run" / EVENTS_FILE).read_text().splitlines()
-    assert EventRecord.from_dict(json.loads(lines[0])) == _event(3000, zone="sofa", duration_s=12.5, n=3)
+    assert Event.from_dict(json.loads(lines[0])) == _event(3000, zone="sofa", duration_s=12.5, n=3)
 
 
 def test_restart_appends_after_the_last_complete_line(tmp_path: Path) -> None:
@@ -83,14 +83,14 @@ def test_a_killed_writer_loses_nothing_it_wrote(tmp_path: Path) -> None:
     script = textwrap.dedent(f"""
         import sys, time
         from fusion_server.outputs import RunOutputs
-        from fusion_server.events import EventRecord
+        from common.messages import Event
         from fusion_server.pipeline import TrackOutput
         out = RunOutputs({str(tmp_path)!r})
         for f in range(50):
             out.write_frame(f, f * 100, [TrackOutput(id=1, x=1.0, y=float(f), z_top=1.7, volume_m3=0.1,
                             posture="standing", reliability=1.0, vx=0.0, vy=0.0, still=False)])
             if f % 10 == 0:
-                out.write_event(EventRecord(id=str(f), kind="enter", track=1, stamp_ns=f * 100, frame=f,
+                out.write_event(Event(id=str(f), kind="enter", track=1, stamp_ns=f * 100, frame=f,
                                             x=1.0, y=0.0, details={{}}))
         print("written", flush=True)
         time.sleep(60)

@@ -9,7 +9,7 @@ import numpy as np
 
 from common import runfiles
 from common.evaluation import io
-from common.evaluation.io import Event
+from common.messages import Event
 from fusion_server.outputs import RunOutputs
 from fusion_server.pipeline import TrackOutput
 
@@ -28,23 +28,28 @@ def test_tracks_file_has_the_header_first(tmp_path) -> None:
     assert runfiles.TRACK_HEADER == ",".join(runfiles.TRACK_COLUMNS)
 
 
-def test_event_object_order_and_line_by_hand() -> None:
-    obj = runfiles.event_object(kind="fall", track=2, frame=10, stamp_ns=99, x=1.5, y=np.float32(2.25),
-                                details={"n": np.int64(3), "d": math.nan, "seat": "canapé"})
-    assert list(obj) == [f for f in runfiles.EVENT_FIELDS if f != "id"]
+def test_event_line_order_by_hand() -> None:
+    obj = Event(id="e1", kind="fall", track=2, frame=10, stamp_ns=99, x=1.5, y=2.25,
+                details={"n": 3, "seat": "canapé"}).to_dict()
+    assert list(obj) == list(runfiles.EVENT_FIELDS)
     assert runfiles.event_line(obj) == (
-        '{"kind":"fall","track":2,"frame":10,"stamp_ns":99,"x":1.5,"y":2.25,"details":{"n":3,"d":null,"seat":"canapé"}}\n'
+        '{"id":"e1","kind":"fall","track":2,"frame":10,"stamp_ns":99,"x":1.5,"y":2.25,'
+        '"details":{"n":3,"seat":"canapé"}}\n'
     )
-    assert list(runfiles.event_object(kind="enter", track=None, frame=0, stamp_ns=0, x=None, y=None, details={},
-                                      id="e1")) == list(runfiles.EVENT_FIELDS)
+    # numpy values are made plain and non-finite numbers null
+    assert runfiles.event_line({"x": np.float32(2.25), "d": {"n": np.int64(3), "v": math.nan}}) == (
+        '{"x":2.25,"d":{"n":3,"v":null}}\n'
+    )
 
 
 def test_live_and_evaluation_writers_write_the_same_bytes(tmp_path) -> None:
     with RunOutputs(tmp_path / "live") as out:
         out.write_frame(4, 400, [TrackOutput(id=2, x=1.0, y=2.123456, z_top=1.7, volume_m3=0.1, posture="bending",
                                              reliability=0.9, vx=0.0, vy=0.0, still=False)])
-        out.write_event(Event("fall", 4, 400, "2", 1.0, 2.0, {"direction": "left"}, id="x").to_json())
+        out.write_event(Event(id="x", kind="fall", track=2, frame=4, stamp_ns=400, x=1.0, y=2.0,
+                              details={"direction": "left"}))
     io.write_tracks(tmp_path / "eval" / runfiles.TRACKS_FILE, [(4, 400, "2", 1.0, 2.123456, 1.7, "bending")])
-    io.write_events(tmp_path / "eval" / runfiles.EVENTS_FILE, [Event("fall", 4, 400, "2", 1.0, 2.0, {"direction": "left"}, id="x")])
+    io.write_events(tmp_path / "eval" / runfiles.EVENTS_FILE,
+                    [Event(id="x", kind="fall", track=2, frame=4, stamp_ns=400, x=1.0, y=2.0, details={"direction": "left"})])
     for name in (runfiles.TRACKS_FILE, runfiles.EVENTS_FILE):
         assert (tmp_path / "live" / name).read_bytes() == (tmp_path / "eval" / name).read_bytes()

@@ -129,6 +129,7 @@ def test_truth_files_follow_the_documented_format(tmp_path):
     assert meta.fps == 15.0 and meta.n_frames == 2000
     assert table.frame.max() < 2000 and set(table.posture) <= {"standing", "sitting", "lying", "bending"}
     raw = [json.loads(s) for s in paths["events"].read_text().splitlines()]
-    assert all(set(r) == {"kind", "track", "frame", "stamp_ns", "x", "y", "details"} for r in raw)
+    assert all(list(r) == ["id", "kind", "track", "frame", "stamp_ns", "x", "y", "details"] for r in raw)
+    assert all(r["id"] == f"{r['stamp_ns']}-{r['kind']}-{r['track']}" for r in raw)
     assert len(events) == len(raw) and all(e.frame < 2000 for e in events)
     assert {e.kind for e in events} >= {"enter", "sit_down", "dwell_start"}

@@ -274,13 +274,13 @@ def _match_kind(
                 if df > window_frames:
                     continue
                 dist_m = _distance_m(t, r)
-                if gate_m is not None and dist_m is not None and dist_m > gate_m:
+                if gate_m is not None and dist_m > gate_m:
                     continue
-                if links is not None and t.track is not None and r.track is not None:
-                    if not links.linked(t.track, r.track, t.frame - window_frames, t.frame + window_frames):
+                if links is not None and t.track >= 0 and r.track >= 0:
+                    if not links.linked(str(t.track), str(r.track), t.frame - window_frames, t.frame + window_frames):
                         continue
                 # the distance only breaks ties between equal frame differences
-                cost[a, b] = df + (0.0 if dist_m is None else 1e-3 * min(dist_m, 100.0))
+                cost[a, b] = df + 1e-3 * min(dist_m, 100.0)
         rows, cols = gated_assignment(cost, window_frames + 1.0)
         matched.extend((t_idx[a], r_idx[b]) for a, b in zip(rows.tolist(), cols.tolist()))
     return matched
@@ -307,9 +307,7 @@ def _clusters(truth: Sequence[Event], run: Sequence[Event], window_frames: int):
         yield group
 
 
-def _distance_m(a: Event, b: Event) -> float | None:
-    if a.x is None or a.y is None or b.x is None or b.y is None:
-        return None
+def _distance_m(a: Event, b: Event) -> float:
     return math.hypot(a.x - b.x, a.y - b.y)
 
 

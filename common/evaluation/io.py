@@ -2,9 +2,10 @@
 
 The formats are the run files of :mod:`common.runfiles` (a tracks CSV and
 events JSON lines), used both for ground truth and for a run's output.
-Postures are checked against :data:`POSTURES`; event kinds outside
-:data:`SCORED_KINDS` (``camera_lost`` and the like) are read and kept but
-not scored.
+Postures are checked against :data:`POSTURES`; events are
+:class:`~common.messages.Event`, the system's one event type, and kinds
+outside :data:`SCORED_KINDS` (``camera_lost`` and the like) are read and kept
+but not scored.
 
 Ground truth sits in ``TRUTH/truth/`` or directly in ``TRUTH/``, optionally
 with ``meta.json`` holding ``fps`` and ``n_frames``. Every problem raises
@@ -17,13 +18,14 @@ import csv
 import json
 import math
 from collections.abc import Iterable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from common import messages, runfiles
+from common.messages import Event
 from common.postures import POSTURES
 from common.runfiles import EVENTS_FILE, META_FILE, TRACK_COLUMNS, TRACKS_FILE
 
@@ -122,24 +124,6 @@ _FIELDS = ("frame", "stamp_ns", "track_id", "x", "y", "z_top", "posture")
 
 
 @dataclass(frozen=True)
-class Event:
-    """One event. ``x``, ``y`` world frame, metres (None when the event has no place)."""
-
-    kind: str
-    frame: int
-    stamp_ns: int
-    track: str | None = None
-    x: float | None = None
-    y: float | None = None
-    details: dict[str, Any] = field(default_factory=dict)
-    id: str | None = None
-
-    def to_json(self) -> dict[str, Any]:
-        return runfiles.event_object(kind=self.kind, track=self.track, frame=self.frame, stamp_ns=self.stamp_ns,
-                                     x=self.x, y=self.y, details=self.details, id=self.id)
-
-
-@dataclass(frozen=True)
 class Meta:
     """What ``meta.json`` says about a recording; None where it says nothing."""
 
@@ -224,39 +208,43 @@ def read_events(path: str | Path) -> list[Event]:
 
 
 def event_from_json(obj: Any, where: str = "event") -> Event:
-    """Validate one decoded event object; ``where`` prefixes every error message."""
+    """Validate one decoded event object; ``where`` prefixes every error message.
+
+    The object is an :class:`~common.messages.Event` as its ``to_dict`` writes
+    it, with ``id`` optional, ``track`` an integer (or its text; null or -1 for
+    none) and ``x``/``y`` null for no place.
+    """
     if not isinstance(obj, dict):
         raise EvalFormatError(f"{where}: expected a JSON object, got {type(obj).__name__}")
     for name in ("kind", "frame", "stamp_ns"):
         if name not in obj:
             raise EvalFormatError(f"{where}, field {name}: required field is missing")
-    kind = obj["kind"]
-    if not isinstance(kind, str) or not kind:
-        raise EvalFormatError(f"{where}, field kind: expected a non-empty string, got {kind!r}")
-    frame = _json_int(obj["frame"], where, "frame", minimum=0)
-    stamp_ns = _json_int(obj["stamp_ns"], where, "stamp_ns")
+    fields = dict(obj)
+    fields["frame"] = _json_int(obj["frame"], where, "frame", minimum=0)
+    fields["stamp_ns"] = _json_int(obj["stamp_ns"], where, "stamp_ns")
     track = obj.get("track")
-    if track is not None:
-        if isinstance(track, bool) or not isinstance(track, (str, int)) or str(track) == "":
-            raise EvalFormatError(f"{where}, field track: expected a track id (string or integer) or null, got {track!r}")
-        track = str(track)
+    if isinstance(track, str):
+        try:
+            fields["track"] = int(track)
+        except ValueError:
+            raise EvalFormatError(f"{where}, field track: expected an integer track id or null, got {track!r}") from None
     x = _json_coord(obj.get("x"), where, "x")
     y = _json_coord(obj.get("y"), where, "y")
     if (x is None) != (y is None):
         raise EvalFormatError(f"{where}, fields x/y: give both or neither")
-    details = obj.get("details") or {}
-    if not isinstance(details, dict):
+    details = obj.get("details")
+    if details is not None and not isinstance(details, dict):
         raise EvalFormatError(f"{where}, field details: expected an object, got {type(details).__name__}")
-    ev_id = obj.get("id")
-    return Event(
-        kind=kind, frame=frame, stamp_ns=stamp_ns, track=track, x=x, y=y, details=details,
-        id=None if ev_id is None else str(ev_id),
-    )
+    try:
+        return Event.from_dict(fields)
+    except messages.WireError as exc:
+        text = str(exc).removeprefix("Event: ").replace("field '", "field ").replace("':", ":")
+        raise EvalFormatError(f"{where}, {text}") from None
 
 
 def write_events(path: str | Path, events: Iterable[Event]) -> Path:
     """Write events as JSON lines, one object per line; returns the path."""
-    return runfiles.write_events_file(path, (ev.to_json() for ev in events))
+    return runfiles.write_events_file(path, (ev.to_dict() for ev in events))
 
 
 # ---------------------------------------------------------------- meta and folders

@@ -190,13 +190,13 @@ def timeline(
             k = m_runs == rid
             ax.scatter(m_frames[k] * scale, m_lv[k] + 0.15, s=6, color=colours(run_ids[rid] % 10), label=f"run {rid}")
         for e in truth_events:
-            if e.track == person:
+            if str(e.track) == person:
                 marker, colour = EVENT_MARKERS.get(e.kind, OTHER_MARKER)
                 ax.axvline(e.frame * scale, color=colour, linestyle="--", linewidth=1.0)
                 ax.text(e.frame * scale, 4.55, e.kind, rotation=90, fontsize=7, va="bottom", ha="right", color=colour)
         linked = set(m_runs.tolist())
         for e in run_events:
-            if e.track is not None and e.track in linked:
+            if e.track >= 0 and str(e.track) in linked:
                 marker, colour = EVENT_MARKERS.get(e.kind, OTHER_MARKER)
                 ax.scatter([e.frame * scale], [4.45], marker=marker, s=60, color=colour, edgecolors="black", linewidths=0.5, zorder=5)
         ax.set_yticks([v for _, v in levels], [name for name, _ in levels], fontsize=8)

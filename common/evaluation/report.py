@@ -26,7 +26,6 @@ summed hour; fall delays pooled.
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import math
 from collections.abc import Iterable, Mapping, Sequence
@@ -81,7 +80,7 @@ def evaluate(
     if offset_ns is not None and abs(offset_ns) >= CLOCK_OFFSET_LIMIT_NS:
         # a replay of a recording without its capture times (mask folders, video files) stamps
         # frames from 0: delays are measured on the truth's clock, through the shared frames
-        run_events = [dataclasses.replace(e, stamp_ns=e.stamp_ns - offset_ns) for e in run_events]
+        run_events = [e.model_copy(update={"stamp_ns": e.stamp_ns - offset_ns}) for e in run_events]
         notes.append(f"the run's clock differs from the truth's by {offset_ns / 1e9:.3f} s over the frames both have: "
                      "run event stamps shifted by that much for delays")
     fps_value, fps_source = _frame_rate(fps, meta, truth, run)

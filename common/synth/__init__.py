@@ -15,10 +15,10 @@ from common.synth.scenarios import (
 )
 from common.synth.scene import CAMERA_IDS, default_cameras, default_room, default_site
 from common.synth.source import SyntheticCamera
-from common.synth.truth import Truth, TruthEvent, derive_truth, write_truth
+from common.synth.truth import Truth, derive_truth, write_truth
 
 __all__ = [
     "CAMERA_IDS", "DEFAULT_SCENARIO", "HouseOutput", "LightChange", "Scenario", "ScenarioSpec", "SyntheticCamera",
-    "Truth", "TruthEvent", "default_cameras", "default_room", "default_site", "derive_truth", "get_scenario",
+    "Truth", "default_cameras", "default_room", "default_site", "derive_truth", "get_scenario",
     "list_scenarios", "measure_render", "scenario_descriptions", "scenario_spec", "write_scenario", "write_truth",
 ]

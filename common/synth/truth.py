@@ -7,8 +7,9 @@ midpoint) projected on the floor, ``z_top`` the highest body point, metres;
 ``posture`` 'standing' (walking included), 'sitting', 'lying' or 'bending'
 (kneeling included).
 
-Events (``truth/events.jsonl``, an events file of :mod:`common.runfiles`,
-without ``id``). The frame of each kind:
+Events (``truth/events.jsonl``, an events file of :mod:`common.runfiles`):
+:class:`~common.messages.Event` with the person id as ``track``. The frame
+of each kind:
 
 * ``fall``: the frame the body reaches the floor (end of the ~0.9 s drop);
   posture is 'lying' from that frame. details: direction.
@@ -34,34 +35,24 @@ without ``id``). The frame of each kind:
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from common.postures import BODY_POSTURES
-from common.runfiles import EVENTS_FILE, META_FILE, TRACKS_FILE, event_object, write_events_file, write_tracks_file
+from common.messages import Event, event_id
+from common.runfiles import EVENTS_FILE, META_FILE, TRACKS_FILE, write_events_file, write_tracks_file
 from common.synth.behaviour import LYING
 
 DWELL_WINDOW_S = 10.0
 LONG_LIE_S = 30.0
 
 
-@dataclass(frozen=True)
-class TruthEvent:
-    """One true event; ``track`` is the person id, ``x, y`` metres, world frame."""
-
-    kind: str
-    track: int
-    frame: int
-    stamp_ns: int
-    x: float
-    y: float
-    details: dict = field(default_factory=dict)
-
-    def to_json(self) -> dict:
-        return event_object(kind=self.kind, track=self.track, frame=self.frame, stamp_ns=self.stamp_ns,
-                            x=round(self.x, 4), y=round(self.y, 4), details=self.details)
+def _event(kind: str, person: int, frame: int, stamp_ns: int, x: float, y: float, details: dict) -> Event:
+    """A true event; ``track`` is the person id, ``x, y`` metres, world frame (four decimals)."""
+    return Event(id=event_id(stamp_ns, kind, person), kind=kind, track=int(person), frame=int(frame),
+                 stamp_ns=int(stamp_ns), x=round(float(x), 4), y=round(float(y), 4), details=details)
 
 
 @dataclass(frozen=True)
@@ -80,14 +71,14 @@ class Truth:
     y: np.ndarray
     z_top: np.ndarray
     posture: np.ndarray
-    events: list[TruthEvent]
+    events: list[Event]
 
     def rows_at(self, frame: int) -> np.ndarray:
         """Indices of the rows of ``frame``."""
         lo, hi = np.searchsorted(self.frame, [frame, frame + 1])
         return np.arange(lo, hi)
 
-    def events_of(self, kind: str) -> list[TruthEvent]:
+    def events_of(self, kind: str) -> list[Event]:
         return [e for e in self.events if e.kind == kind]
 
     def cut(self, n_frames: int) -> "Truth":
@@ -108,16 +99,16 @@ def derive_truth(scenario) -> Truth:
     states = scenario.states
     in_volume = [st["present"] & room.inside_volume(st["xy"]) for st in states]
     rows = []
-    events: list[TruthEvent] = []
+    events: list[Event] = []
     for person, st, inside in zip(scenario.people, states, in_volume):
         pid = person.person_id
         f = frames[inside]
         rows.append((f, np.full(f.shape, pid), st["xy"][inside, 0], st["xy"][inside, 1], st["z_top"][inside],
                      st["label"][inside]))
 
-        def event(kind: str, frame: int, details: dict, xy=None) -> TruthEvent:
+        def event(kind: str, frame: int, details: dict, xy=None) -> Event:
             x, y = (st["xy"][frame] if xy is None else xy)
-            return TruthEvent(kind, pid, int(frame), int(stamps[frame]), float(x), float(y), details)
+            return _event(kind, pid, int(frame), int(stamps[frame]), float(x), float(y), details)
 
         for t_s, kind, details in person.events:
             fr = scenario.frame_of(t_s)
@@ -137,11 +128,11 @@ def derive_truth(scenario) -> Truth:
     window = int(round(DWELL_WINDOW_S * fps))
     for pid, hs, a, b, xy in dwells:
         start = a + window
-        events.append(TruthEvent("dwell_start", pid, start, int(stamps[start]), float(xy[0]), float(xy[1]),
+        events.append(_event("dwell_start", pid, start, int(stamps[start]), float(xy[0]), float(xy[1]),
                                  {"hotspot": hs.name, "since_frame": int(a)}))
         if b < n:
             st = states[[p.person_id for p in scenario.people].index(pid)]
-            events.append(TruthEvent("dwell_end", pid, b, int(stamps[b]), float(st["xy"][b, 0]), float(st["xy"][b, 1]),
+            events.append(_event("dwell_end", pid, b, int(stamps[b]), float(st["xy"][b, 0]), float(st["xy"][b, 1]),
                                      {"hotspot": hs.name}))
     events += _visits(scenario, in_volume, dwells, window, stamps)
     events.sort(key=lambda e: (e.frame, e.track, e.kind))
@@ -166,7 +157,7 @@ def write_truth(scenario, out_dir, truth: Truth | None = None, *, n_frames: int 
     truth = truth.cut(n_frames)
     tracks = write_tracks_file(out / TRACKS_FILE, zip(truth.frame, truth.stamp_ns, truth.person.tolist(), truth.x,
                                                       truth.y, truth.z_top, truth.posture))
-    events = write_events_file(out / EVENTS_FILE, (ev.to_json() for ev in truth.events))
+    events = write_events_file(out / EVENTS_FILE, (ev.to_dict() for ev in truth.events))
     meta = out / META_FILE
     meta.write_text(json.dumps({
         "scenario": scenario.name,
@@ -240,7 +231,7 @@ def _dwell_intervals(scenario, states, in_volume):
     return out
 
 
-def _visits(scenario, in_volume, dwells, window, stamps) -> list[TruthEvent]:
+def _visits(scenario, in_volume, dwells, window, stamps) -> list[Event]:
     residents = scenario.spec.residents
     resident_of = {p.person_id: p.resident for p in scenario.people}
     count = np.sum(in_volume, axis=0) if in_volume else np.zeros(scenario.n_frames, dtype=int)
@@ -261,7 +252,7 @@ def _visits(scenario, in_volume, dwells, window, stamps) -> list[TruthEvent]:
         visitor = p2 if resident_of.get(p1, True) and not resident_of.get(p2, True) else p1
         if resident_of.get(visitor, True):
             visitor = p2 if not resident_of.get(p2, True) else visitor
-        out.append(TruthEvent("visit", visitor, start, int(stamps[start]), float(xy[0]), float(xy[1]), {
+        out.append(_event("visit", visitor, start, int(stamps[start]), float(xy[0]), float(xy[1]), {
             "hotspot": hs.name,
             "reason": visit_reason(hs.kind, scenario.local_hour(start)),
             "people": ",".join(str(p) for p in sorted((p1, p2))),

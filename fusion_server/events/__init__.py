@@ -2,7 +2,7 @@
 
 :class:`EventReasoner` takes one fused frame at a time -- its stamp, number,
 the tracker's estimates and the posture readings -- and returns the
-:class:`EventRecord` s that frame decides. Same inputs, same events, same ids.
+:class:`~common.messages.Event` s that frame decides. Same inputs, same events, same ids.
 
 One detector per family of kinds, each with a frozen parameter group checked
 once (defaults and meanings in each module's text):
@@ -32,9 +32,9 @@ from fusion_server.events.falls import FallDetector, FallParams, crossing_time, 
 from fusion_server.events.inactivity import InactivityDetector, InactivityParams
 from fusion_server.events.local_time import DEFAULT_MEALS, local_hour, time_of_day_label
 from fusion_server.events.reasoner import EventReasoner, PresenceParams
-from fusion_server.events.records import EVENT_KINDS, Emitter, EventRecord, event_id
+from fusion_server.events.records import EVENT_KINDS, Emitter
 from fusion_server.events.sit_stand import SitStandDetector, SitStandParams, height_change_m
-from fusion_server.events.track import TrackFrame, TrackLike
+from fusion_server.events.track import TrackSnapshot, TrackLike
 from fusion_server.events.visits import VisitDetector, VisitParams
 
 __all__ = [
@@ -44,7 +44,6 @@ __all__ = [
     "EntryDetector",
     "EntryParams",
     "EventReasoner",
-    "EventRecord",
     "FallDetector",
     "FallParams",
     "InactivityDetector",
@@ -52,14 +51,13 @@ __all__ = [
     "PresenceParams",
     "SitStandDetector",
     "SitStandParams",
-    "TrackFrame",
+    "TrackSnapshot",
     "TrackLike",
     "VisitDetector",
     "VisitParams",
     "crossing_time",
     "detect_fast_drop",
     "drop_is_physical",
-    "event_id",
     "height_change_m",
     "local_hour",
     "time_of_day_label",

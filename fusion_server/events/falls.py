@@ -48,7 +48,7 @@ import numpy as np
 from fusion_server.events import _common
 from fusion_server.events._common import median, ns
 from fusion_server.events.records import Emitter
-from fusion_server.events.track import TopSample, TrackFrame
+from fusion_server.events.track import TopSample, TrackSnapshot
 
 
 @dataclass(frozen=True)
@@ -97,7 +97,7 @@ class FallDetector:
         self._long_lie_ns = ns(params.long_lie_s)
         self._tracks: dict[int, _FallTrack] = {}
 
-    def update(self, frame: TrackFrame, emit: Emitter) -> None:
+    def update(self, frame: TrackSnapshot, emit: Emitter) -> None:
         """Follow one track through one frame; emits ``fall`` and ``long_lie``."""
         if not math.isfinite(frame.top_m):
             return

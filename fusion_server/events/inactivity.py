@@ -16,7 +16,7 @@ from typing import Iterable
 from fusion_server.events import _common
 from fusion_server.events._common import ns
 from fusion_server.events.records import Emitter
-from fusion_server.events.track import TrackFrame
+from fusion_server.events.track import TrackSnapshot
 from fusion_server.hotspots import Hotspot, PositionWindow, hotspot_at
 
 
@@ -50,7 +50,7 @@ class InactivityDetector:
         self._var_m2 = params.std_m ** 2
         self._tracks: dict[int, _InactivityTrack] = {}
 
-    def update(self, frame: TrackFrame, emit: Emitter, *, on_floor: bool) -> None:
+    def update(self, frame: TrackSnapshot, emit: Emitter, *, on_floor: bool) -> None:
         """Follow one track through one frame; emits ``inactivity``.
 
         on_floor: the person lies on the floor now (see :meth:`FallDetector.on_floor

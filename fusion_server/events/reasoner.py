@@ -23,15 +23,16 @@ from collections import deque
 from dataclasses import dataclass, field
 from typing import Any, Iterable, Mapping, Sequence
 
+from common.messages import Event
 from fusion_server.events import _common
 from fusion_server.events._common import ns
 from fusion_server.events.entries import EntryDetector, EntryParams
 from fusion_server.events.falls import FallDetector, FallParams
 from fusion_server.events.inactivity import InactivityDetector, InactivityParams
 from fusion_server.events.local_time import local_hour
-from fusion_server.events.records import Emitter, EventRecord
+from fusion_server.events.records import Emitter
 from fusion_server.events.sit_stand import SitStandDetector, SitStandParams
-from fusion_server.events.track import TopSample, TrackFrame, TrackLike
+from fusion_server.events.track import TopSample, TrackLike, TrackSnapshot
 from fusion_server.events.visits import VisitDetector, VisitParams
 from fusion_server.hotspots import Hotspot
 from fusion_server.posture import PostureReading
@@ -117,7 +118,7 @@ class EventReasoner:
         postures: Mapping[int, PostureReading | str] | None = None,
         *,
         hour: float | None = None,
-    ) -> list[EventRecord]:
+    ) -> list[Event]:
         """Events decided by one frame.
 
         stamp_ns: frame time (Unix-epoch ns for time-of-day labels).
@@ -150,7 +151,7 @@ class EventReasoner:
                 self.rejected_tracks += 1
                 continue
             current[tid] = tr
-        out: list[EventRecord] = []
+        out: list[Event] = []
         emit = Emitter(out, stamp_ns, frame)
         for tid in sorted(t for t in self._tracks if t not in current):
             self._vanished(tid, self._tracks.pop(tid), emit)
@@ -199,7 +200,7 @@ class EventReasoner:
                 tr.tops.popleft()
         if not tr.present and (tr.exited or not tr.confirmed_once):
             return  # not (yet) a person, or gone through a door: nothing to reason about
-        seen = TrackFrame(tid, stamp_ns, x, y, posture, reading, top_m, centre_m, height_m, tr.tops, tr.upright_ns)
+        seen = TrackSnapshot(tid, stamp_ns, x, y, posture, reading, top_m, centre_m, height_m, tr.tops, tr.upright_ns)
         self.sit_stand.update(seen, emit)
         self.falls.update(seen, emit)
         self.visits.update(seen, emit)

@@ -33,7 +33,7 @@ import numpy as np
 from fusion_server.events import _common
 from fusion_server.events._common import median, ns
 from fusion_server.events.records import Emitter
-from fusion_server.events.track import TrackFrame
+from fusion_server.events.track import TrackSnapshot
 from fusion_server.hotspots import Hotspot, hotspot_at
 from fusion_server.posture import PostureReading
 
@@ -85,7 +85,7 @@ class SitStandDetector:
         self._hold_ns = ns(params.hold_s)
         self._tracks: dict[int, _SitStandTrack] = {}
 
-    def update(self, frame: TrackFrame, emit: Emitter) -> None:
+    def update(self, frame: TrackSnapshot, emit: Emitter) -> None:
         """Follow one track through one frame; emits ``sit_down`` and ``stand_up``."""
         posture, reading = frame.posture, frame.reading
         if posture not in ("standing", "sitting", "lying"):

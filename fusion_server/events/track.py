@@ -1,5 +1,5 @@
 """What the event detectors read of a track: :class:`TrackLike`, the attributes
-the reasoner reads of a tracker estimate, and :class:`TrackFrame`, what one
+the reasoner reads of a tracker estimate, and :class:`TrackSnapshot`, what one
 frame tells a detector about one track."""
 
 from __future__ import annotations
@@ -24,7 +24,7 @@ class TrackLike(Protocol):
 
 
 @dataclass(frozen=True)
-class TrackFrame:
+class TrackSnapshot:
     """One track in one frame, as the detectors see it.
 
     track: track id. stamp_ns: the frame's time.

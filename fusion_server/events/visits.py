@@ -29,7 +29,7 @@ from fusion_server.events import _common
 from fusion_server.events._common import ns
 from fusion_server.events.local_time import DEFAULT_MEALS, time_of_day_label
 from fusion_server.events.records import Emitter
-from fusion_server.events.track import TrackFrame
+from fusion_server.events.track import TrackSnapshot
 from fusion_server.hotspots import DwellChange, DwellDetector, Hotspot, hotspot_index
 
 
@@ -88,7 +88,7 @@ class VisitDetector:
         self._visit = _VisitState(len(self.hotspots))
         self._new_dwell()  # checks the hot spots now rather than on a first track's frame
 
-    def update(self, frame: TrackFrame, emit: Emitter) -> None:
+    def update(self, frame: TrackSnapshot, emit: Emitter) -> None:
         """Follow one track's dwelling through one frame; emits ``dwell_start`` and ``dwell_end``."""
         dwell = self._dwell.get(frame.track)
         if dwell is None:
