@@ -25,7 +25,7 @@ from fusion_server.events import EventReasoner, EventRecord, event_id
 from fusion_server.grid import CarveResult
 from fusion_server.hotspots import Hotspot
 from fusion_server.posture import PostureEstimator, PostureReading
-from fusion_server.tracker import TrackEstimate, Tracker
+from fusion_server.tracker import PopulationParams, TrackEstimate, Tracker
 
 
 NEW_TARGET_MIN_VOLUME_M3 = 0.05
@@ -98,7 +98,11 @@ class FusionPipeline:
         self.carver = carver
         self.cameras = dict(cameras)
         self.reasoner = reasoner
-        self.tracker = Tracker(rng=rng, id_source=itertools.count(1), new_target_min_volume_m3=NEW_TARGET_MIN_VOLUME_M3)
+        self.tracker = Tracker(
+            rng=rng,
+            id_source=itertools.count(1),
+            population=PopulationParams(new_target_min_volume_m3=NEW_TARGET_MIN_VOLUME_M3),
+        )
         self.hold_radius_m = float(hold_radius_m)
         self.min_cameras = int(min_cameras if min_cameras is not None else carver.min_cameras)
         self.camera_ids: tuple[str, ...] = carver.camera_ids
