@@ -351,7 +351,7 @@ def _register_bench(sub) -> None:
 
 
 def _bench(args: argparse.Namespace) -> int:
-    from common.benchmark import SECTIONS, run_bench
+    from fusion_server.benchmark import SECTIONS, run_bench
 
     sections = args.sections.split(",") if args.sections else SECTIONS
     run_bench(sections=sections, quick=args.quick, json_path=args.json)

@@ -2,10 +2,14 @@
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
-__all__ = ["associate"]
+from fusion_server.detection import Blob
+
+__all__ = ["associate", "floor_distance_cost"]
 
 
 def associate(cost: np.ndarray, gate: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -49,3 +53,15 @@ def associate(cost: np.ndarray, gate: float) -> tuple[np.ndarray, np.ndarray, np
     unmatched_tracks = np.setdiff1d(np.arange(n_tracks), matches[:, 0]).astype(np.intp)
     unmatched_dets = np.setdiff1d(np.arange(n_dets), matches[:, 1]).astype(np.intp)
     return matches, unmatched_tracks, unmatched_dets
+
+
+def floor_distance_cost(target_xy: np.ndarray, blobs: Sequence[Blob]) -> np.ndarray:
+    """Floor distance from each target to each blob's centroid, the tracker's default cost.
+
+    target_xy: (T, 2) float64 floor positions, world frame, metres.
+    blobs: D blobs (their ``x``, ``y`` centroid, world metres).
+    Returns (T, D) float64 metres.
+    """
+    positions = np.asarray(target_xy, dtype=np.float64).reshape(-1, 2)
+    blob_xy = np.array([[b.x, b.y] for b in blobs]).reshape(-1, 2)
+    return np.linalg.norm(positions[:, None, :] - blob_xy[None, :, :], axis=2)

@@ -3,6 +3,11 @@
 The whole algorithmic chain of the fusion server, shared line for line by the
 live server and offline replay through :class:`fusion_server.node.FusionNode`. Pure: no zenoh, no clock, no files (the carving
 lookup-table cache aside, which the carver owns).
+
+Each stage is built in one place: the carver and the event reasoner of a site
+by :func:`build_carver` and :func:`build_reasoner`, the tracker by
+:func:`build_tracker`. ``FusionPipeline.from_site`` and the benchmark
+(``fusion_server.benchmark``) both build through them.
 """
 
 from __future__ import annotations
@@ -19,13 +24,13 @@ from common.messages import Event
 from common.site import Site
 from fusion_server.carving import Carver
 from fusion_server.carving.occlusion import Occluder
-from fusion_server.detection import detect_blobs
+from fusion_server.detection import Blob, detect_blobs
 from fusion_server.explain import BlobExplainer
 from fusion_server.events import EventReasoner, FallParams, InactivityParams
 from fusion_server.grid import CarveResult
 from fusion_server.hotspots import Hotspot
 from fusion_server.posture import PostureEstimator, PostureReading
-from fusion_server.tracker import TrackEstimate, Tracker
+from fusion_server.tracker import PopulationParams, TrackEstimate, Tracker
 
 
 NEW_TARGET_MIN_VOLUME_M3 = 0.05
@@ -77,7 +82,7 @@ class FusionPipeline:
       carver: the voxel carver of the site's cameras and volume.
       cameras: camera id -> full-resolution camera (for hold regions).
       reasoner: the event reasoner (hot spots, doors, residents).
-      rng: generator for the particle filters.
+      rng: generator for the particle filters of the tracker (:func:`build_tracker`).
       hold_radius_m: half-width of the floor square around a still person
         whose projection a camera must not learn.
       min_cameras: fewest cameras a frame set needs to be fused.
@@ -98,7 +103,7 @@ class FusionPipeline:
         self.carver = carver
         self.cameras = dict(cameras)
         self.reasoner = reasoner
-        self.tracker = Tracker(rng=rng, id_source=itertools.count(1), new_target_min_volume_m3=NEW_TARGET_MIN_VOLUME_M3)
+        self.tracker = build_tracker(rng)
         self.hold_radius_m = float(hold_radius_m)
         self.min_cameras = int(min_cameras if min_cameras is not None else carver.min_cameras)
         self.camera_ids: tuple[str, ...] = carver.camera_ids
@@ -118,31 +123,12 @@ class FusionPipeline:
         """The pipeline a site file describes (calibrations loaded unless given;
         event timing from its ``[events]`` section)."""
         cameras = dict(cameras) if cameras is not None else site.load_cameras()
-        carving = site.carving
-        kwargs = {} if cache_dir is None else {"cache_dir": cache_dir}
-        carver = Carver(
-            cameras=cameras,
-            volume_min_m=site.volume.min_m,
-            volume_max_m=site.volume.max_m,
-            voxel_sizes_m=carving.voxel_sizes_m,
-            min_cameras=carving.min_cameras,
-            min_ratio=carving.min_ratio,
-            mask_scale=carving.mask_scale,
-            occluders=[Occluder(name=o.name, polygon_m=tuple(o.polygon_m), z_min_m=o.z_m[0], z_max_m=o.z_m[1])
-                       for o in site.occluders],
-            **kwargs,
-        )
-        reasoner = EventReasoner(
-            hotspots=[Hotspot(name=h.name, polygon_m=np.asarray(h.polygon_m), kind=h.kind) for h in site.hotspots],
-            doors=[Hotspot(name=d.name, polygon_m=np.asarray(d.polygon_m), kind="door") for d in site.doors],
-            bounds_xy_m=_entry_edges(site),
-            residents=site.residents,
-            utc_offset_h=site.utc_offset_hours,
-            falls=FallParams(long_lie_s=site.events.long_lie_s),
-            inactivity=InactivityParams(inactivity_s=site.events.inactivity_s),
-        )
         return cls(
-            carver=carver, cameras=cameras, reasoner=reasoner, rng=np.random.default_rng(seed), min_cameras=min_cameras
+            carver=build_carver(site, cameras, cache_dir=cache_dir),
+            cameras=cameras,
+            reasoner=build_reasoner(site),
+            rng=np.random.default_rng(seed),
+            min_cameras=min_cameras,
         )
 
     def step(self, masks: Mapping[str, np.ndarray], stamp_ns: int, frame: int) -> FusedFrame:
@@ -153,11 +139,9 @@ class FusionPipeline:
         stamp_ns: the frame set's capture time. frame: its frame number.
         """
         carve = self.carver.carve(masks, stamp_ns)
-        # only the blobs that explain foreground of their own are people: the rest are phantoms
-        # where other people's cones cross, or duplicates of someone already accepted
-        blobs = self.explainer.explain(detect_blobs(carve), masks, carve.grid).people
+        blobs = self.detect_people(carve, masks)
         estimates = self.tracker.step(carve, blobs, stamp_ns)
-        readings = self._update_postures(estimates, stamp_ns)
+        readings = self.update_postures(estimates, stamp_ns)
         events = self.reasoner.step(stamp_ns, frame, estimates, readings)
         confirmed = [e for e in estimates if e.confirmed]
         tracks = [_output(e, readings.get(e.id)) for e in confirmed]
@@ -219,7 +203,16 @@ class FusionPipeline:
                     holds[cam_id].append(tuple(int(v) for v in box))
         return holds
 
-    def _update_postures(self, estimates: list[TrackEstimate], stamp_ns: int) -> dict[int, PostureReading]:
+    def detect_people(self, carve: CarveResult, masks: Mapping[str, np.ndarray]) -> list[Blob]:
+        """The blobs of ``carve`` that are people, given the frame set's ``masks``."""
+        # only the blobs that explain foreground of their own are people: the rest are phantoms
+        # where other people's cones cross, or duplicates of someone already accepted
+        return self.explainer.explain(detect_blobs(carve), masks, carve.grid).people
+
+    def update_postures(self, estimates: list[TrackEstimate], stamp_ns: int) -> dict[int, PostureReading]:
+        """Feed each track's posture estimator this frame's estimate (a new track gets a new
+        estimator, a gone one loses its own). Returns track id -> reading, for the tracks
+        whose posture is known."""
         live = {e.id for e in estimates}
         for tid in [t for t in self._postures if t not in live]:
             del self._postures[tid]
@@ -232,6 +225,48 @@ class FusionPipeline:
             if reading is not None:
                 readings[est.id] = reading
         return readings
+
+
+def build_carver(site: Site, cameras: Mapping[str, Camera], *, cache_dir: str | Path | None = None) -> Carver:
+    """The carver of the site's volume, carving settings and occluders over ``cameras``
+    (camera id -> full-resolution camera); lookup tables cached in ``cache_dir`` [None:
+    the carver's default cache]."""
+    carving = site.carving
+    kwargs = {} if cache_dir is None else {"cache_dir": cache_dir}
+    return Carver(
+        cameras=cameras,
+        volume_min_m=site.volume.min_m,
+        volume_max_m=site.volume.max_m,
+        voxel_sizes_m=carving.voxel_sizes_m,
+        min_cameras=carving.min_cameras,
+        min_ratio=carving.min_ratio,
+        mask_scale=carving.mask_scale,
+        occluders=[Occluder(name=o.name, polygon_m=tuple(o.polygon_m), z_min_m=o.z_m[0], z_max_m=o.z_m[1])
+                   for o in site.occluders],
+        **kwargs,
+    )
+
+
+def build_reasoner(site: Site) -> EventReasoner:
+    """The event reasoner of the site's hot spots, doors, residents and ``[events]`` timing."""
+    return EventReasoner(
+        hotspots=[Hotspot(name=h.name, polygon_m=np.asarray(h.polygon_m), kind=h.kind) for h in site.hotspots],
+        doors=[Hotspot(name=d.name, polygon_m=np.asarray(d.polygon_m), kind="door") for d in site.doors],
+        bounds_xy_m=_entry_edges(site),
+        residents=site.residents,
+        utc_offset_h=site.utc_offset_hours,
+        falls=FallParams(long_lie_s=site.events.long_lie_s),
+        inactivity=InactivityParams(inactivity_s=site.events.inactivity_s),
+    )
+
+
+def build_tracker(rng: np.random.Generator) -> Tracker:
+    """The pipeline's tracker: track ids from 1, new tracks only on person-sized blobs."""
+    return Tracker(
+        rng=rng,
+        id_source=itertools.count(1),
+        population=PopulationParams(new_target_min_volume_m3=NEW_TARGET_MIN_VOLUME_M3),
+    )
 
 
 def _entry_edges(site: Site) -> tuple[float, float, float, float] | None:

@@ -5,8 +5,9 @@ Seed paper 000, sections 2.2.2 and 2.3. Every frame:
 1. each target's 2.5D particle filter moves to the new time and refines the
    target's floor position on the frame's floor count map (never beyond the
    volume's floor: there is no evidence there);
-2. targets are matched to the detected blobs by the Hungarian method on the
-   floor distance between the target and the blob's centroid, with a gate;
+2. targets are matched to the detected blobs by the Hungarian method on a
+   cost (by default the floor distance between the target and the blob's
+   centroid), with a gate;
    a target left out that stands on a matched blob shares it (two people
    touching above tau1 make one blob) once it is old enough to be a person
    rather than a ghost; a target alone on a low blob (a body lying on the
@@ -32,17 +33,176 @@ from __future__ import annotations
 import itertools
 import math
 from collections import deque
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
+from typing import Protocol
 
 import numpy as np
 
-from fusion_server.association import associate
+from fusion_server.association import associate, floor_distance_cost
 from fusion_server.detection import Blob
 from fusion_server.grid import CarveResult
 from fusion_server.particle_filter import FloorEvidence, ParticleFilter, floor_evidence
 
-__all__ = ["TrackEstimate", "Tracker"]
+__all__ = [
+    "AssociationParams",
+    "ConfirmationParams",
+    "CostFunction",
+    "FilterFactory",
+    "MotionParams",
+    "PopulationParams",
+    "TrackEstimate",
+    "Tracker",
+]
+
+CostFunction = Callable[[np.ndarray, Sequence[Blob]], np.ndarray]
+"""``(target_xy, blobs) -> cost``: target_xy (T, 2) float64 floor positions, world
+frame, metres; blobs the frame's D blobs; cost (T, D), NaN or +inf where a pair
+must not match."""
+
+
+class FilterFactory(Protocol):
+    """Makes the particle filter of a target starting at floor ``(x_m, y_m)``, world
+    metres, with box half-size ``alpha_m``; every draw comes from ``rng``."""
+
+    def __call__(self, x_m: float, y_m: float, alpha_m: float, *, rng: np.random.Generator) -> ParticleFilter: ...
+
+
+@dataclass(frozen=True)
+class AssociationParams:
+    """How targets take this frame's blobs.
+
+    gate_m: largest cost of a target-blob pair that can match, in the unit of
+        the tracker's cost function (metres of floor distance by default)
+        [0.6 m; a walker moves 0.1 m per frame at 15 fps and a blob's centroid
+        can sit 0.2-0.3 m off the person when it includes furniture or an arm].
+    share_blobs: a target left unmatched whose filter still sees evidence and
+        whose position lies on a blob's footprint counts as matched to that
+        blob [True]. Two people touching above tau1 form one blob; the
+        paper's one-to-one assignment would starve one of them. With False
+        the tracker follows the paper strictly.
+    share_min_age_frames: only targets at least this old share a blob [15
+        frames, 1 s at 15 fps]. People who come to touch were tracked apart
+        before; a target a few frames old that has lost its own blob is a
+        ghost (hull voxels where two people's silhouettes cross, a fragment
+        of a body lying half hidden) and must not live on a person's blob.
+    low_top_m: a target matched on its own to a blob no higher than this
+        [0.8 m] stands on a body lying on the floor, and is placed at the
+        blob's centroid. The filter's square box settles on part of an
+        elongated body (the box fits anywhere along it, so the estimate
+        also drifts with the velocity fed back into the motion model),
+        while the centroid of a lying body lies within about 0.1 m of the
+        pelvis. Standing, sitting and kneeling bodies reach higher.
+    """
+
+    gate_m: float = 0.6
+    share_blobs: bool = True
+    share_min_age_frames: int = 15
+    low_top_m: float = 0.8
+
+    def __post_init__(self) -> None:
+        _non_negative("gate_m", self.gate_m)
+        _non_negative("low_top_m", self.low_top_m)
+        if int(self.share_min_age_frames) < 0:
+            raise ValueError(f"share_min_age_frames must be non-negative, got {self.share_min_age_frames}")
+        _hold_as(self, float, "gate_m", "low_top_m")
+        _hold_as(self, int, "share_min_age_frames")
+        _hold_as(self, bool, "share_blobs")
+
+
+@dataclass(frozen=True)
+class ConfirmationParams:
+    """When a target is trusted as a person and when it is destroyed.
+
+    The reliability follows ``r = r + l (M - r)`` with ``M`` = 1 on a matched
+    frame and 0 on a miss, and ``l = min(l_max, 1 / age + l_min)``.
+
+    learning_rate_max, learning_rate_min: l_max and l_min [0.3, 0.05].
+    confirm_reliability: r at or above which a target is a person [0.6].
+    delete_reliability: r below which a target is destroyed [0.1]. With the
+        defaults a new target is confirmed on its 3rd matched frame and a
+        one-frame ghost destroyed on its 4th miss; a target seen for 4 s
+        (60 frames at 15 fps) is unconfirmed on the 8th missed frame and
+        destroyed on the 36th; never later than the 45th.
+    leave_margin_m: a target left unmatched this close to the border of the
+        volume's floor loses its confirmation at once [0.1 m]. A body cannot
+        come that close to a wall, so it is someone who walked out through a
+        door (the filter stops a coasting target at the border); they are
+        gone, not hidden.
+    """
+
+    learning_rate_max: float = 0.3
+    learning_rate_min: float = 0.05
+    confirm_reliability: float = 0.6
+    delete_reliability: float = 0.1
+    leave_margin_m: float = 0.1
+
+    def __post_init__(self) -> None:
+        if not 0 < self.learning_rate_max <= 1:
+            raise ValueError(f"learning_rate_max must be in (0, 1], got {self.learning_rate_max}")
+        if not 0 <= self.learning_rate_min <= self.learning_rate_max:
+            raise ValueError(f"learning_rate_min must be in [0, learning_rate_max], got {self.learning_rate_min}")
+        if not 0 <= self.delete_reliability < self.confirm_reliability <= 1:
+            raise ValueError(
+                "need 0 <= delete_reliability < confirm_reliability <= 1, "
+                f"got {self.delete_reliability} and {self.confirm_reliability}"
+            )
+        _non_negative("leave_margin_m", self.leave_margin_m)
+        _hold_as(self, float, "learning_rate_max", "learning_rate_min", "confirm_reliability", "delete_reliability", "leave_margin_m")
+
+
+@dataclass(frozen=True)
+class PopulationParams:
+    """Which blobs start new targets and when two targets become one.
+
+    new_target_min_distance_m: an unmatched blob this close to an existing
+        target does not start a new one [0.3 m].
+    new_target_min_volume_m3: an unmatched blob smaller than this does not
+        start a new target [0: every blob the detector keeps]. The fusion
+        pipeline asks for a person-sized blob (see
+        ``fusion_server.pipeline.NEW_TARGET_MIN_VOLUME_M3``).
+    merge_distance_m, merge_frames: duplicate targets closer than this for
+        this many consecutive frames merge, the older one kept [0.3 m, 8
+        frames]. People do not stand closer than 0.3 m centre to centre for
+        half a second.
+    """
+
+    new_target_min_distance_m: float = 0.3
+    new_target_min_volume_m3: float = 0.0
+    merge_distance_m: float = 0.3
+    merge_frames: int = 8
+
+    def __post_init__(self) -> None:
+        _non_negative("new_target_min_distance_m", self.new_target_min_distance_m)
+        _non_negative("new_target_min_volume_m3", self.new_target_min_volume_m3)
+        _non_negative("merge_distance_m", self.merge_distance_m)
+        if int(self.merge_frames) < 1:
+            raise ValueError(f"merge_frames must be at least 1, got {self.merge_frames}")
+        _hold_as(self, float, "new_target_min_distance_m", "new_target_min_volume_m3", "merge_distance_m")
+        _hold_as(self, int, "merge_frames")
+
+
+@dataclass(frozen=True)
+class MotionParams:
+    """The smoothed velocity of a target and when it counts as still.
+
+    velocity_tau_s: time constant of the velocity smoothing [0.3 s].
+    still_speed_mps, still_window_s: a target is still when its smoothed
+        speed stayed below the speed for the whole window, or when the blobs
+        matched to it over the window stayed within ``still_speed_mps *
+        still_window_s`` [0.15 m/s, 1.0 s].
+    """
+
+    velocity_tau_s: float = 0.3
+    still_speed_mps: float = 0.15
+    still_window_s: float = 1.0
+
+    def __post_init__(self) -> None:
+        if not self.velocity_tau_s > 0:
+            raise ValueError(f"velocity_tau_s must be positive, got {self.velocity_tau_s}")
+        _non_negative("still_speed_mps", self.still_speed_mps)
+        _non_negative("still_window_s", self.still_window_s)
+        _hold_as(self, float, "velocity_tau_s", "still_speed_mps", "still_window_s")
 
 
 @dataclass(frozen=True, eq=False)
@@ -56,16 +216,17 @@ class TrackEstimate:
     volume_m3: volume of the matched blob (of this target's part of it when
         several targets share it), or of the last one matched.
     reliability: r in [0, 1] from the IIR filter.
-    confirmed: r >= the tracker's ``confirm_reliability``.
+    confirmed: r >= the tracker's ``confirmation.confirm_reliability``.
     age_frames: frames since the target was created, counting this one.
     vx, vy: smoothed floor velocity, metres per second.
     height_profile: (nz,) int32 voxels per height layer of the matched blob
         (this target's part when shared; else of the last one matched).
     blob: the blob matched this frame, or None. Several tracks can share one
         blob when people touch above tau1.
-    still: the smoothed speed stayed below the tracker's ``still_speed_mps``
-        for the last ``still_window_s``, or the blobs matched over that window
-        stayed put (within ``still_speed_mps * still_window_s``).
+    still: the smoothed speed stayed below the tracker's
+        ``motion.still_speed_mps`` for the last ``motion.still_window_s``, or
+        the blobs matched over that window stayed put (within
+        ``still_speed_mps * still_window_s``).
     alpha_m: half-size of the filter's square floor box, metres.
     stamp_ns: the frame time.
     """
@@ -95,54 +256,20 @@ class Tracker:
     rng: numpy Generator for every particle filter (required).
     id_source: iterator or zero-argument callable giving new track ids
         [a fresh ``itertools.count(1)``].
-    gate_m: largest target-to-blob floor distance that can match [0.6 m; a
-        walker moves 0.1 m per frame at 15 fps and a blob's centroid can sit
-        0.2-0.3 m off the person when it includes furniture or an arm].
-    learning_rate_max, learning_rate_min: l_max and l_min of the learning
-        rate [0.3, 0.05].
-    confirm_reliability: r at or above which a target is a person [0.6].
-    delete_reliability: r below which a target is destroyed [0.1]. With the
-        defaults a new target is confirmed on its 3rd matched frame and a
-        one-frame ghost destroyed on its 4th miss; a target seen for 4 s
-        (60 frames at 15 fps) is unconfirmed on the 8th missed frame and
-        destroyed on the 36th; never later than the 45th.
-    merge_distance_m, merge_frames: duplicate targets closer than this for
-        this many consecutive frames merge [0.3 m, 8 frames]. People do not
-        stand closer than 0.3 m centre to centre for half a second.
-    new_target_min_distance_m: an unmatched blob this close to an existing
-        target does not start a new one [0.3 m].
-    new_target_min_volume_m3: an unmatched blob smaller than this does not
-        start a new target [0: every blob the detector keeps]. The fusion
-        pipeline asks for a person-sized blob (see
-        ``fusion_server.pipeline.NEW_TARGET_MIN_VOLUME_M3``).
-    velocity_tau_s: time constant of the velocity smoothing [0.3 s].
-    still_speed_mps, still_window_s: a target is still when its smoothed
-        speed stayed below the speed for the whole window [0.15 m/s, 1.0 s].
-    n_particles, k_m, alpha_range_m, position_noise_m, alpha_noise_m,
-    resample_below: passed to each :class:`ParticleFilter` [200, 0.1 m,
-        (0.15, 0.6) m, 0.3 m, 0.1 m, 0.5].
-    share_blobs: a target left unmatched whose filter still sees evidence
-        and whose position lies on a blob's footprint counts as matched to
-        that blob [True]. Two people touching above tau1 form one blob; the
-        paper's one-to-one assignment would starve one of them. With False
-        the tracker follows the paper strictly.
-    share_min_age_frames: only targets at least this old share a blob [15
-        frames, 1 s at 15 fps]. People who come to touch were tracked apart
-        before; a target a few frames old that has lost its own blob is a
-        ghost (hull voxels where two people's silhouettes cross, a fragment
-        of a body lying half hidden) and must not live on a person's blob.
-    leave_margin_m: a target left unmatched this close to the border of the
-        volume's floor loses its confirmation at once [0.1 m]. A body cannot
-        come that close to a wall, so it is someone who walked out through a
-        door (the filter stops a coasting target at the border); they are
-        gone, not hidden.
-    low_top_m: a target matched on its own to a blob no higher than this
-        [0.8 m] stands on a body lying on the floor, and is placed at the
-        blob's centroid. The filter's square box settles on part of an
-        elongated body (the box fits anywhere along it, so the estimate
-        also drifts with the velocity fed back into the motion model),
-        while the centroid of a lying body lies within about 0.1 m of the
-        pelvis. Standing, sitting and kneeling bodies reach higher.
+    association, confirmation, population, motion: the parameter groups
+        :class:`AssociationParams`, :class:`ConfirmationParams`,
+        :class:`PopulationParams` and :class:`MotionParams` [None: the
+        group's defaults].
+    cost_function: ``(target_xy (T, 2) float64 world metres, blobs (D,)) ->
+        (T, D) cost`` of matching each target to each blob, in the unit of
+        ``association.gate_m``; NaN or +inf forbids a pair
+        [:func:`~fusion_server.association.floor_distance_cost`].
+    filter_factory: ``(x_m, y_m, alpha_m, *, rng) -> ParticleFilter``, the
+        filter of a new target (and of one restarted on its blob)
+        [:class:`~fusion_server.particle_filter.ParticleFilter` with its
+        defaults; ``functools.partial(ParticleFilter, n_particles=100)``
+        changes one setting]. It is called once here, so that bad filter
+        settings fail at construction.
     """
 
     def __init__(
@@ -150,87 +277,31 @@ class Tracker:
         *,
         rng: np.random.Generator,
         id_source: Iterator[int] | Callable[[], int] | None = None,
-        gate_m: float = 0.6,
-        learning_rate_max: float = 0.3,
-        learning_rate_min: float = 0.05,
-        confirm_reliability: float = 0.6,
-        delete_reliability: float = 0.1,
-        merge_distance_m: float = 0.3,
-        merge_frames: int = 8,
-        new_target_min_distance_m: float = 0.3,
-        new_target_min_volume_m3: float = 0.0,
-        velocity_tau_s: float = 0.3,
-        still_speed_mps: float = 0.15,
-        still_window_s: float = 1.0,
-        n_particles: int = 200,
-        k_m: float = 0.1,
-        alpha_range_m: tuple[float, float] = (0.15, 0.6),
-        position_noise_m: float = 0.3,
-        alpha_noise_m: float = 0.1,
-        resample_below: float = 0.5,
-        share_blobs: bool = True,
-        share_min_age_frames: int = 15,
-        low_top_m: float = 0.8,
-        leave_margin_m: float = 0.1,
+        association: AssociationParams | None = None,
+        confirmation: ConfirmationParams | None = None,
+        population: PopulationParams | None = None,
+        motion: MotionParams | None = None,
+        cost_function: CostFunction = floor_distance_cost,
+        filter_factory: FilterFactory = ParticleFilter,
     ):
         if not isinstance(rng, np.random.Generator):
             raise ValueError(f"rng must be a numpy Generator, got {type(rng).__name__}")
-        for name, value in (
-            ("gate_m", gate_m),
-            ("merge_distance_m", merge_distance_m),
-            ("new_target_min_distance_m", new_target_min_distance_m),
-            ("new_target_min_volume_m3", new_target_min_volume_m3),
-            ("still_speed_mps", still_speed_mps),
-            ("still_window_s", still_window_s),
-            ("low_top_m", low_top_m),
-            ("leave_margin_m", leave_margin_m),
-        ):
-            if not (np.isfinite(value) and value >= 0):
-                raise ValueError(f"{name} must be a finite non-negative number, got {value}")
-        if not velocity_tau_s > 0:
-            raise ValueError(f"velocity_tau_s must be positive, got {velocity_tau_s}")
-        if not 0 < learning_rate_max <= 1:
-            raise ValueError(f"learning_rate_max must be in (0, 1], got {learning_rate_max}")
-        if not 0 <= learning_rate_min <= learning_rate_max:
-            raise ValueError(f"learning_rate_min must be in [0, learning_rate_max], got {learning_rate_min}")
-        if not 0 <= delete_reliability < confirm_reliability <= 1:
-            raise ValueError(
-                f"need 0 <= delete_reliability < confirm_reliability <= 1, got {delete_reliability} and {confirm_reliability}"
-            )
-        if int(merge_frames) < 1:
-            raise ValueError(f"merge_frames must be at least 1, got {merge_frames}")
-        if int(share_min_age_frames) < 0:
-            raise ValueError(f"share_min_age_frames must be non-negative, got {share_min_age_frames}")
-        self._pf_args = dict(
-            n_particles=n_particles,
-            k_m=k_m,
-            alpha_range_m=alpha_range_m,
-            position_noise_m=position_noise_m,
-            alpha_noise_m=alpha_noise_m,
-            resample_below=resample_below,
-        )
-        # One throw-away filter makes bad filter settings fail here, not on the first frame.
-        self._max_half_m = ParticleFilter(0.0, 0.0, alpha_range_m[0], rng=rng, **self._pf_args).max_half_m
         self.rng = rng
+        self.association = association if association is not None else AssociationParams()
+        self.confirmation = confirmation if confirmation is not None else ConfirmationParams()
+        self.population = population if population is not None else PopulationParams()
+        self.motion = motion if motion is not None else MotionParams()
+        self.cost_function = cost_function
+        self.filter_factory = filter_factory
+        # A filter made now makes bad filter settings fail here, not on the first frame, and
+        # tells how far the floor evidence must reach. It draws its particles from ``rng``
+        # like every target's filter, so it is part of the sequence the tracks depend on.
+        probe = self._new_filter(0.0, 0.0, 0.0)
+        self._alpha_range_m = probe.alpha_range_m
+        self._max_half_m = probe.max_half_m
         if id_source is None:
             id_source = itertools.count(1)
         self._next_id: Callable[[], int] = id_source if callable(id_source) else (lambda it=id_source: next(it))
-        self.gate_m = float(gate_m)
-        self.learning_rate_max = float(learning_rate_max)
-        self.learning_rate_min = float(learning_rate_min)
-        self.confirm_reliability = float(confirm_reliability)
-        self.delete_reliability = float(delete_reliability)
-        self.merge_distance_m = float(merge_distance_m)
-        self.merge_frames = int(merge_frames)
-        self.new_target_min_distance_m = float(new_target_min_distance_m)
-        self.new_target_min_volume_m3 = float(new_target_min_volume_m3)
-        self.velocity_tau_s = float(velocity_tau_s)
-        self.still_speed_mps = float(still_speed_mps)
-        self.still_window_s = float(still_window_s)
-        self.share_blobs = bool(share_blobs)
-        self.share_min_age_frames = int(share_min_age_frames)
-        self.low_top_m = float(low_top_m)
-        self.leave_margin_m = float(leave_margin_m)
         self._targets: list[_Target] = []
         self._close_frames: dict[tuple[int, int], int] = {}
         self._last_stamp_ns: int | None = None
@@ -241,7 +312,8 @@ class Tracker:
 
     def learning_rate(self, age_frames: int) -> float:
         """l = min(l_max, 1 / age + l_min), the paper's equation (2)."""
-        return min(self.learning_rate_max, 1.0 / max(age_frames, 1) + self.learning_rate_min)
+        c = self.confirmation
+        return min(c.learning_rate_max, 1.0 / max(age_frames, 1) + c.learning_rate_min)
 
     def step(self, result: CarveResult, blobs: list[Blob], stamp_ns: int) -> list[TrackEstimate]:
         """Advance all targets to ``stamp_ns`` with this frame's floor maps and blobs.
@@ -259,15 +331,17 @@ class Tracker:
         grid = result.grid
         floor_lo = grid.origin_m[:2]
         floor_hi = floor_lo + np.asarray(grid.shape[:2], dtype=np.float64) * grid.voxel_m
+        tau_s = self.motion.velocity_tau_s
         for t in self._targets:
-            t.track(evidence, stamp_ns, dt_s, self.velocity_tau_s, (floor_lo, floor_hi))
+            t.track(evidence, stamp_ns, dt_s, tau_s, (floor_lo, floor_hi))
 
         positions = np.array([[t.x, t.y] for t in self._targets]).reshape(-1, 2)
-        blob_xy = np.array([[b.x, b.y] for b in blobs]).reshape(-1, 2)
-        cost = np.linalg.norm(positions[:, None, :] - blob_xy[None, :, :], axis=2)
-        matches, unmatched_targets, unmatched_blobs = associate(cost, self.gate_m)
+        cost = np.asarray(self.cost_function(positions, blobs))
+        if cost.shape != (len(self._targets), len(blobs)):
+            raise ValueError(f"cost_function gave shape {cost.shape}, need {(len(self._targets), len(blobs))}")
+        matches, unmatched_targets, unmatched_blobs = associate(cost, self.association.gate_m)
         blob_of = {int(ti): int(bi) for ti, bi in matches}
-        if self.share_blobs and len(unmatched_targets) and blobs:
+        if self.association.share_blobs and len(unmatched_targets) and blobs:
             self._share(blob_of, unmatched_targets, blobs, result)
             unmatched_blobs = [bi for bi in unmatched_blobs if int(bi) not in blob_of.values()]
         parts = self._split_shared(blob_of, blobs, result)
@@ -278,42 +352,47 @@ class Tracker:
             t.age += 1
             hit = 1.0 if blob is not None else 0.0
             t.reliability += self.learning_rate(t.age) * (hit - t.reliability)
-            if blob is None and _border_distance(t.x, t.y, floor_lo, floor_hi) <= self.leave_margin_m:
-                t.reliability = min(t.reliability, np.nextafter(self.confirm_reliability, 0.0))
+            if blob is None and _border_distance(t.x, t.y, floor_lo, floor_hi) <= self.confirmation.leave_margin_m:
+                t.reliability = min(t.reliability, np.nextafter(self.confirmation.confirm_reliability, 0.0))
             profile, volume_m3 = parts.get(n, (None, None)) if blob is not None else (None, None)
             if blob is not None and profile is None:
                 profile, volume_m3 = blob.height_profile, blob.volume_m3
-            t.observe(blob, profile, volume_m3, result, self.rng)
-            if blob is not None and n not in parts and blob.z_top_m <= self.low_top_m:
-                t.centre_on(blob, dt_s, self.velocity_tau_s, result)
+            t.observe(blob, profile, volume_m3, result, self._new_filter)
+            if blob is not None and n not in parts and blob.z_top_m <= self.association.low_top_m:
+                t.centre_on(blob, dt_s, tau_s, result)
 
+        pop = self.population
         for bi in unmatched_blobs:
             blob = blobs[int(bi)]
-            if blob.volume_m3 < self.new_target_min_volume_m3:
+            if blob.volume_m3 < pop.new_target_min_volume_m3:
                 continue
-            if any(math.hypot(t.x - blob.x, t.y - blob.y) < self.new_target_min_distance_m for t in self._targets):
+            if any(math.hypot(t.x - blob.x, t.y - blob.y) < pop.new_target_min_distance_m for t in self._targets):
                 continue
             self._targets.append(self._create(blob, evidence, result, stamp_ns))
 
         self._merge_duplicates()
-        self._targets = [t for t in self._targets if t.reliability >= self.delete_reliability]
+        self._targets = [t for t in self._targets if t.reliability >= self.confirmation.delete_reliability]
         live = {t.id for t in self._targets}
         self._close_frames = {k: v for k, v in self._close_frames.items() if k[0] in live and k[1] in live}
 
         nz = result.grid.shape[2]
         for t in self._targets:
-            t.update_stillness(stamp_ns, self.still_window_s, self.still_speed_mps)
-        return [t.estimate(stamp_ns, self.confirm_reliability, nz) for t in sorted(self._targets, key=lambda t: t.id)]
+            t.update_stillness(stamp_ns, self.motion.still_window_s, self.motion.still_speed_mps)
+        confirm = self.confirmation.confirm_reliability
+        return [t.estimate(stamp_ns, confirm, nz) for t in sorted(self._targets, key=lambda t: t.id)]
+
+    def _new_filter(self, x_m: float, y_m: float, alpha_m: float) -> ParticleFilter:
+        return self.filter_factory(x_m, y_m, alpha_m, rng=self.rng)
 
     def _create(self, blob: Blob, evidence: FloorEvidence, result: CarveResult, stamp_ns: int) -> "_Target":
-        lo, hi = self._pf_args["alpha_range_m"]
+        lo, hi = self._alpha_range_m
         alpha_m = float(np.clip(0.5 * math.sqrt(blob.footprint_area_m2), lo, hi))
-        pf = ParticleFilter(blob.x, blob.y, alpha_m, rng=self.rng, **self._pf_args)
+        pf = self._new_filter(blob.x, blob.y, alpha_m)
         t = _Target(id=int(self._next_id()), pf=pf, x=blob.x, y=blob.y, alpha_m=alpha_m)
-        t.track(evidence, stamp_ns, 0.0, self.velocity_tau_s)
+        t.track(evidence, stamp_ns, 0.0, self.motion.velocity_tau_s)
         t.age = 1
         t.reliability = self.learning_rate(1)
-        t.observe(blob, blob.height_profile, blob.volume_m3, result, self.rng)
+        t.observe(blob, blob.height_profile, blob.volume_m3, result, self._new_filter)
         return t
 
     def _share(self, blob_of: dict[int, int], unmatched: np.ndarray, blobs: list[Blob], result: CarveResult) -> None:
@@ -329,7 +408,7 @@ class Tracker:
             owner[b.footprint[:, 0], b.footprint[:, 1]] = bi
         for ti in unmatched:
             t = self._targets[int(ti)]
-            if not t.pf.supported or t.age < self.share_min_age_frames:
+            if not t.pf.supported or t.age < self.association.share_min_age_frames:
                 continue
             i = int(math.floor((t.x - grid.origin_m[0]) / grid.voxel_m))
             j = int(math.floor((t.y - grid.origin_m[1]) / grid.voxel_m))
@@ -365,10 +444,10 @@ class Tracker:
         doomed: set[int] = set()
         for a, b in itertools.combinations(targets, 2):
             key = (min(a.id, b.id), max(a.id, b.id))
-            if math.hypot(a.x - b.x, a.y - b.y) >= self.merge_distance_m:
+            if math.hypot(a.x - b.x, a.y - b.y) >= self.population.merge_distance_m:
                 continue
             close_now[key] = self._close_frames.get(key, 0) + 1
-            if close_now[key] >= self.merge_frames and a.id not in doomed and b.id not in doomed:
+            if close_now[key] >= self.population.merge_frames and a.id not in doomed and b.id not in doomed:
                 keep, drop = (a, b) if (a.age, -a.id) >= (b.age, -b.id) else (b, a)
                 keep.reliability = max(keep.reliability, drop.reliability)
                 doomed.add(drop.id)
@@ -421,16 +500,22 @@ class _Target:
         self.x, self.y, self.alpha_m = float(est[0]), float(est[1]), float(est[2])
 
     def observe(
-        self, blob: Blob | None, profile: np.ndarray | None, volume_m3: float | None, result: CarveResult, rng: np.random.Generator
+        self,
+        blob: Blob | None,
+        profile: np.ndarray | None,
+        volume_m3: float | None,
+        result: CarveResult,
+        new_filter: Callable[[float, float, float], ParticleFilter],
     ) -> None:
-        """Take this frame's measurements of the target (its part of ``blob``)."""
+        """Take this frame's measurements of the target (its part of ``blob``);
+        ``new_filter(x_m, y_m, alpha_m)`` makes a filter should it need a fresh one."""
         self.blob = blob
         if blob is not None:
             self.volume_m3 = float(volume_m3)
             self.height_profile = profile
             if not self.pf.supported:
                 # The particles lost the person while a blob still matched: restart them on it.
-                self.pf = _restart(self.pf, blob, self.alpha_m, rng)
+                self.pf = _restart(self.pf, blob, self.alpha_m, new_filter)
                 self.x, self.y = blob.x, blob.y
         top = _box_top(result, self.x, self.y, self.alpha_m)
         if top > 0:
@@ -495,20 +580,11 @@ class _Target:
         )
 
 
-def _restart(pf: ParticleFilter, blob: Blob, alpha_m: float, rng: np.random.Generator) -> ParticleFilter:
-    fresh = ParticleFilter(
-        blob.x,
-        blob.y,
-        alpha_m,
-        rng=rng,
-        n_particles=len(pf.weights),
-        k_m=pf.k_m,
-        alpha_range_m=pf.alpha_range_m,
-        position_noise_m=pf.position_noise_m,
-        alpha_noise_m=pf.alpha_noise_m,
-        resample_below=pf.resample_below,
-        max_dt_s=pf.max_dt_s,
-    )
+def _restart(
+    pf: ParticleFilter, blob: Blob, alpha_m: float, new_filter: Callable[[float, float, float], ParticleFilter]
+) -> ParticleFilter:
+    """A fresh filter on ``blob`` that goes on from ``pf``'s last step."""
+    fresh = new_filter(blob.x, blob.y, alpha_m)
     fresh.last_stamp_ns = pf.last_stamp_ns
     return fresh
 
@@ -538,3 +614,14 @@ def _keep_window(samples: deque, sample: tuple, window_ns: int) -> None:
     samples.append(sample)
     while len(samples) > 1 and samples[1][0] <= sample[0] - window_ns:
         samples.popleft()
+
+
+def _non_negative(name: str, value: float) -> None:
+    if not (np.isfinite(value) and value >= 0):
+        raise ValueError(f"{name} must be a finite non-negative number, got {value}")
+
+
+def _hold_as(params, cast: type, *names: str) -> None:
+    """Hold the named fields of a frozen parameter group as ``cast`` of the values given."""
+    for name in names:
+        object.__setattr__(params, name, cast(getattr(params, name)))

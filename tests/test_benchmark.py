@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from common.benchmark import PIPELINE_ROWS, PipelineRow, _pipeline_table, bench_pipeline
+from fusion_server.benchmark import PIPELINE_ROWS, PipelineRow, _pipeline_table, bench_pipeline
 
 
 def test_pipeline_section_tracks_the_people_it_places():

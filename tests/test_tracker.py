@@ -2,14 +2,25 @@
 
 from __future__ import annotations
 
+import functools
 import itertools
+import re
 
 import numpy as np
 import pytest
 
+from fusion_server.association import floor_distance_cost
 from fusion_server.detection import detect_blobs
 from fusion_server.grid import CarveResult, VoxelGrid, floor_maps
-from fusion_server.tracker import TrackEstimate, Tracker
+from fusion_server.particle_filter import ParticleFilter
+from fusion_server.tracker import (
+    AssociationParams,
+    ConfirmationParams,
+    MotionParams,
+    PopulationParams,
+    TrackEstimate,
+    Tracker,
+)
 
 GRID = VoxelGrid.from_bounds((0.0, 0.0, 0.0), (6.0, 4.0, 2.0), 0.05)
 FRAME_NS = 1_000_000_000 // 15
@@ -61,7 +72,7 @@ def reliability_oracle(hits: list[bool], l_max=0.3, l_min=0.05) -> list[float]:
 
 
 def test_learning_rate_follows_the_paper():
-    tr = Tracker(rng=np.random.default_rng(0), learning_rate_max=0.3, learning_rate_min=0.05)
+    tr = Tracker(rng=np.random.default_rng(0), confirmation=ConfirmationParams(learning_rate_max=0.3, learning_rate_min=0.05))
     assert tr.learning_rate(1) == 0.3
     assert tr.learning_rate(4) == pytest.approx(0.3)
     assert tr.learning_rate(5) == pytest.approx(0.25)
@@ -173,9 +184,9 @@ def test_two_people_walking_past_keep_their_identities(bridge, heights):
 
 def test_strict_paper_association_starves_the_second_target_of_a_merged_blob():
     scenes, _ = walk_past(bridge=MERGING_BRIDGE, heights=SHORT_HEIGHTS)
-    out = run(Tracker(rng=np.random.default_rng(7), share_blobs=False), scenes)
+    out = run(Tracker(rng=np.random.default_rng(7), association=AssociationParams(share_blobs=False)), scenes)
     assert min(e.reliability for o in out[40:60] for e in o) < 0.9
-    out = run(Tracker(rng=np.random.default_rng(7), share_blobs=True), scenes)
+    out = run(Tracker(rng=np.random.default_rng(7), association=AssociationParams(share_blobs=True)), scenes)
     assert min(e.reliability for o in out[40:60] for e in o) > 0.99
 
 
@@ -193,7 +204,7 @@ def test_duplicate_target_on_one_person_is_merged_into_the_older():
     # frames only the older track remains.
     bag = box((2.3, 1.85, 0.45), (2.5, 2.15, 0.85))  # 0.024 m^3, 0.4 m from the centre
     scenes = [frame(n, person(2.0, 2.0), bag if n == 5 else []) for n in range(40)]
-    tr = Tracker(rng=np.random.default_rng(2), merge_frames=8, merge_distance_m=0.3)
+    tr = Tracker(rng=np.random.default_rng(2), population=PopulationParams(merge_frames=8, merge_distance_m=0.3))
     out = run(tr, scenes)
     assert {e.id for e in out[5]} == {1, 2}
     merged_at = next(n for n in range(6, 40) if {e.id for e in out[n]} == {1})
@@ -226,7 +237,7 @@ def test_ids_come_from_the_injected_source():
 
 def test_still_after_a_window_without_motion():
     scenes = [frame(n, person(1.0 + min(n, 15) * 0.06, 2.0)) for n in range(45)]
-    out = run(Tracker(rng=np.random.default_rng(5), still_window_s=1.0, still_speed_mps=0.15), scenes)
+    out = run(Tracker(rng=np.random.default_rng(5), motion=MotionParams(still_window_s=1.0, still_speed_mps=0.15)), scenes)
     still = [o[0].still for o in out]
     assert not any(still[:16])  # walking at 0.9 m/s, then the first second of standing
     assert all(still[40:])
@@ -254,22 +265,103 @@ def test_stamps_must_not_go_back():
 
 
 @pytest.mark.parametrize(
-    "bad",
+    "group, bad",
     [
-        {"gate_m": -1.0},
-        {"learning_rate_max": 0.0},
-        {"learning_rate_min": 0.5},
-        {"confirm_reliability": 0.05},
-        {"merge_frames": 0},
-        {"velocity_tau_s": 0.0},
-        {"n_particles": 0},
-        {"rng": None},
+        (AssociationParams, {"gate_m": -1.0}),
+        (AssociationParams, {"low_top_m": float("nan")}),
+        (AssociationParams, {"share_min_age_frames": -1}),
+        (ConfirmationParams, {"learning_rate_max": 0.0}),
+        (ConfirmationParams, {"learning_rate_min": 0.5}),
+        (ConfirmationParams, {"confirm_reliability": 0.05}),
+        (ConfirmationParams, {"delete_reliability": -0.1}),
+        (ConfirmationParams, {"leave_margin_m": -0.1}),
+        (PopulationParams, {"new_target_min_distance_m": -0.3}),
+        (PopulationParams, {"new_target_min_volume_m3": float("inf")}),
+        (PopulationParams, {"merge_distance_m": -1.0}),
+        (PopulationParams, {"merge_frames": 0}),
+        (MotionParams, {"velocity_tau_s": 0.0}),
+        (MotionParams, {"still_speed_mps": -0.15}),
+        (MotionParams, {"still_window_s": float("nan")}),
     ],
 )
-def test_bad_settings_name_themselves(bad):
-    kwargs = {"rng": np.random.default_rng(0), **bad}
-    with pytest.raises(ValueError, match=next(iter(bad))):
-        Tracker(**kwargs)
+def test_bad_parameters_name_the_field_and_the_value(group, bad):
+    ((name, value),) = bad.items()
+    with pytest.raises(ValueError, match=rf"{name}.*got.*{re.escape(str(value))}"):
+        group(**bad)
+
+
+def test_parameter_groups_hold_the_types_they_state():
+    merge_frames = PopulationParams(merge_frames=8.0).merge_frames
+    assert merge_frames == 8 and type(merge_frames) is int
+    assert type(AssociationParams(gate_m=1).gate_m) is float
+    with pytest.raises(AttributeError):
+        AssociationParams().gate_m = 1.0  # frozen
+
+
+@pytest.mark.parametrize(
+    "bad, name",
+    [
+        ({"rng": None}, "rng"),
+        ({"filter_factory": functools.partial(ParticleFilter, n_particles=0)}, "n_particles"),
+        ({"filter_factory": functools.partial(ParticleFilter, alpha_range_m=(0.6, 0.15))}, "alpha_range_m"),
+    ],
+)
+def test_bad_tracker_arguments_name_themselves(bad, name):
+    with pytest.raises(ValueError, match=name):
+        Tracker(**{"rng": np.random.default_rng(0), **bad})
+
+
+def test_a_custom_cost_decides_the_assignment():
+    """Two people 0.5 m apart, A at x = 2.0 and B at x = 2.5, stand still. The cost below is
+    the floor distance except that the target on A may not take A's blob. Both swapped pairs
+    cost 0.5 m, within the 0.6 m gate, and two matches beat one (the associator first makes as
+    many admissible matches as it can), so A's target takes B's blob and B's target A's blob."""
+    scenes = [frame(n, person(2.0, 2.0), person(2.5, 2.0)) for n in range(3)]
+    seen = []
+
+    def no_a_on_a(target_xy, blobs):
+        seen.append((target_xy.shape, len(blobs)))
+        cost = floor_distance_cost(target_xy, blobs)
+        blob_on_a = np.array([b.x < 2.25 for b in blobs])
+        cost[np.ix_(target_xy[:, 0] < 2.25, blob_on_a)] = np.inf
+        return cost
+
+    def blob_x_by_place(estimates):
+        return {("A" if e.x < 2.25 else "B"): round(e.blob.x, 1) for e in estimates}
+
+    default = run(Tracker(rng=np.random.default_rng(0)), scenes)
+    custom = run(Tracker(rng=np.random.default_rng(0), cost_function=no_a_on_a), scenes)
+    assert seen == [((0, 2), 2), ((2, 2), 2), ((2, 2), 2)]
+    assert [blob_x_by_place(o) for o in default[1:]] == [{"A": 2.0, "B": 2.5}] * 2
+    assert [blob_x_by_place(o) for o in custom[1:]] == [{"A": 2.5, "B": 2.0}] * 2
+    # every target matched on every frame either way
+    for out in (default, custom):
+        np.testing.assert_allclose([e.reliability for e in out[2]], reliability_oracle([True] * 3)[2])
+
+
+def test_a_cost_of_the_wrong_shape_is_refused():
+    tr = Tracker(rng=np.random.default_rng(0), cost_function=lambda target_xy, blobs: np.zeros((1, 1)))
+    res = frame(0, person(2.0, 2.0), person(4.0, 2.0))
+    with pytest.raises(ValueError, match="cost_function"):
+        tr.step(res, detect_blobs(res), res.stamp_ns)
+
+
+def test_the_filter_factory_makes_every_filter():
+    """Called once at construction (at the floor's origin, alpha 0), then once per new
+    target at its blob's centroid with alpha = half the root of its footprint area."""
+    calls = []
+
+    def factory(x_m, y_m, alpha_m, *, rng):
+        calls.append((x_m, y_m, alpha_m))
+        return ParticleFilter(x_m, y_m, alpha_m, rng=rng, n_particles=50)
+
+    tr = Tracker(rng=np.random.default_rng(0), filter_factory=factory)
+    assert calls == [(0.0, 0.0, 0.0)]
+    out = run(tr, [frame(n, person(2.0, 2.0)) for n in range(3)])
+    assert len(calls) == 2
+    blob = out[0][0].blob
+    assert calls[1] == (blob.x, blob.y, pytest.approx(0.5 * np.sqrt(blob.footprint_area_m2)))
+    assert out[2][0].confirmed and np.hypot(out[2][0].x - 2.0, out[2][0].y - 2.0) < 0.05
 
 
 @pytest.mark.parametrize("drift_m, still", [(0.0, True), (0.05, True), (0.3, False)])

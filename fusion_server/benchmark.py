@@ -15,7 +15,7 @@ import os
 import platform
 import sys
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -25,7 +25,10 @@ import numpy as np
 from common.transport import free_port
 
 if TYPE_CHECKING:
+    from common.camera import Camera
+    from common.site import Site
     from fusion_server.carving.bench import Cylinder
+    from fusion_server.pipeline import FusionPipeline
 
 SECTIONS = ("codec", "worker", "render", "carving", "tracking", "pipeline", "latency")
 
@@ -181,43 +184,37 @@ def bench_carving(quick: bool) -> list[dict[str, Any]]:
 
 
 def bench_tracking(quick: bool) -> list[dict[str, Any]]:
-    """Cost per frame of detection, association + filtering, posture and reasoning for 1, 4, 8 people."""
+    """Cost per frame of detection (the blobs and the explanation that keeps the people among
+    them), association + filtering, posture and reasoning for 1, 4, 8 people, with the stages
+    of a :class:`FusionPipeline` built as the pipeline builds them, in an 8 x 6 x 2.5 m room."""
     import tempfile
 
-    from fusion_server.carving import Carver
     from fusion_server.carving.bench import MaskRenderer, room_rig
-    from fusion_server.detection import detect_blobs
-    from fusion_server.events import EventReasoner
-    from fusion_server.posture import PostureEstimator
-    from fusion_server.tracker import Tracker
+    from fusion_server.pipeline import FusionPipeline, build_carver, build_reasoner
 
-    cams = room_rig(n_cameras=5)
+    volume_max_m = (8.0, 6.0, 2.5)
+    cams = room_rig(n_cameras=5, volume_max_m=volume_max_m)
+    site = _room_site(cams, volume_max_m)
     frames = 20 if quick else 45
     rows = []
     with tempfile.TemporaryDirectory() as cache:
-        carver = Carver(cameras=cams, volume_min_m=(0, 0, 0), volume_max_m=(8, 6, 2.5), cache_dir=cache)
-        renderer = MaskRenderer(cams)
+        carver = build_carver(site, cams, cache_dir=cache)
+        renderer = MaskRenderer({c: cam.scaled(site.carving.mask_scale) for c, cam in cams.items()})
         for people in (1, 4, 8):
-            walk = _walk(people, np.random.default_rng(people), frames)
-            carves = [carver.carve(renderer.render(bodies), _stamp_ns(f)) for f, bodies in enumerate(walk)]
-            tracker = Tracker(rng=np.random.default_rng(0), id_source=itertools.count(1))
-            reasoner = EventReasoner(bounds_xy_m=(0, 0, 8, 6))
-            postures: dict[int, PostureEstimator] = {}
+            walk = _walk(people, np.random.default_rng(people), frames, volume_max_m=volume_max_m)
+            mask_sets = [renderer.render(bodies) for bodies in walk]
+            carves = [carver.carve(masks, _stamp_ns(f)) for f, masks in enumerate(mask_sets)]
+            pipeline = FusionPipeline(carver=carver, cameras=cams, reasoner=build_reasoner(site), rng=np.random.default_rng(0))
             t = {"detect": 0.0, "track": 0.0, "posture": 0.0, "reason": 0.0}
-            for f, carve in enumerate(carves):
+            for f, (carve, masks) in enumerate(zip(carves, mask_sets)):
                 t0 = time.perf_counter()
-                blobs = detect_blobs(carve)
+                blobs = pipeline.detect_people(carve, masks)
                 t1 = time.perf_counter()
-                estimates = tracker.step(carve, blobs, carve.stamp_ns)
+                estimates = pipeline.tracker.step(carve, blobs, carve.stamp_ns)
                 t2 = time.perf_counter()
-                readings = {}
-                for est in estimates:
-                    pe = postures.setdefault(est.id, PostureEstimator(voxel_m=carver.grid.voxel_m))
-                    reading = pe.update(carve.stamp_ns, est.height_profile)
-                    if reading is not None:
-                        readings[est.id] = reading
+                readings = pipeline.update_postures(estimates, carve.stamp_ns)
                 t3 = time.perf_counter()
-                reasoner.step(carve.stamp_ns, f, estimates, readings)
+                pipeline.reasoner.step(carve.stamp_ns, f, estimates, readings)
                 t4 = time.perf_counter()
                 for key, dt in zip(t, (t1 - t0, t2 - t1, t3 - t2, t4 - t3)):
                     t[key] += dt
@@ -229,15 +226,14 @@ def bench_tracking(quick: bool) -> list[dict[str, Any]]:
 
 def bench_pipeline(quick: bool, rows: Sequence[PipelineRow] = PIPELINE_ROWS) -> list[dict[str, Any]]:
     """The whole fused path of one frame set on one core: decode its masks, then
-    ``FusionPipeline.step`` (carve, detect, explain, track, posture, events), with the
-    site file's default carving settings (:class:`common.site.Carving`)."""
+    ``FusionPipeline.step`` (carve, detect, explain, track, posture, events), every stage
+    built as the pipeline builds it from a site file that gives the room and its cameras
+    and leaves every other setting at its default (:class:`common.site.Carving`)."""
     import tempfile
 
-    from common.site import Carving
-    from fusion_server.carving import Carver
     from fusion_server.carving.bench import MaskRenderer, room_rig
+    from fusion_server.pipeline import FusionPipeline, build_carver, build_reasoner
 
-    carving = Carving()
     poses, frames = (10, 30) if quick else (16, 90)
     out = []
     with tempfile.TemporaryDirectory() as cache:
@@ -246,17 +242,18 @@ def bench_pipeline(quick: bool, rows: Sequence[PipelineRow] = PIPELINE_ROWS) -> 
         ):
             volume_max_m = (*room_m, 2.5)
             cams = room_rig(n_cameras=n_cams, volume_max_m=volume_max_m, width=width, height=height)
+            site = _room_site(cams, volume_max_m)
+            carving = site.carving
             t0 = time.perf_counter()
-            carver = Carver(
-                cameras=cams, volume_min_m=(0.0, 0.0, 0.0), volume_max_m=volume_max_m,
-                voxel_sizes_m=carving.voxel_sizes_m, min_cameras=carving.min_cameras, min_ratio=carving.min_ratio,
-                mask_scale=carving.mask_scale, cache_dir=cache,
-            )
+            carver = build_carver(site, cams, cache_dir=cache)
             build_s = time.perf_counter() - t0
             renderer = MaskRenderer({c: cam.scaled(carving.mask_scale) for c, cam in cams.items()})
             for row in group:
+                pipeline = FusionPipeline(
+                    carver=carver, cameras=cams, reasoner=build_reasoner(site), rng=np.random.default_rng(0)
+                )
                 fig = measure_pipeline(
-                    carver, cams, renderer, people=row.people, rng=np.random.default_rng(row.people),
+                    pipeline, renderer, people=row.people, rng=np.random.default_rng(row.people),
                     volume_max_m=volume_max_m, poses=poses, frames=frames,
                 )
                 met = None if row.target_fps is None else bool(fig["fps"] >= row.target_fps)
@@ -266,13 +263,14 @@ def bench_pipeline(quick: bool, rows: Sequence[PipelineRow] = PIPELINE_ROWS) -> 
                     "min_ratio": carving.min_ratio, "mask_scale": carving.mask_scale, "lut_build_s": build_s,
                     "lut_bytes": carver.lut_nbytes, **fig, "target_fps": row.target_fps, "met": met,
                 })
-            del carver, renderer
+            del carver, renderer, pipeline
     return out
 
 
-def measure_pipeline(carver, cameras, renderer, *, people: int, rng: np.random.Generator,
+def measure_pipeline(pipeline: FusionPipeline, renderer, *, people: int, rng: np.random.Generator,
                      volume_max_m: Sequence[float], poses: int, frames: int, warmup: int = 5) -> dict[str, Any]:
-    """Time decode + ``FusionPipeline.step`` over ``frames`` frame sets after ``warmup`` untimed ones.
+    """Time decode + ``pipeline.step`` over ``frames`` frame sets after ``warmup`` untimed ones
+    (``pipeline`` fresh: it keeps its tracks from one frame set to the next).
 
     ``people`` walk from random places at 0.5 m/s; ``renderer`` draws their true
     silhouettes at ``poses`` successive places, encoded once, and the frame sets walk
@@ -282,8 +280,6 @@ def measure_pipeline(carver, cameras, renderer, *, people: int, rng: np.random.G
     ``tracks_at_end`` (confirmed tracks after the last frame set) and ``tracks_mean``.
     """
     from common import maskcodec
-    from fusion_server.events import EventReasoner
-    from fusion_server.pipeline import FusionPipeline
 
     if poses < 2 or frames < 1 or warmup < 0:
         raise ValueError(f"need poses >= 2, frames >= 1, warmup >= 0; got {poses}, {frames}, {warmup}")
@@ -292,10 +288,6 @@ def measure_pipeline(carver, cameras, renderer, *, people: int, rng: np.random.G
         {c: (maskcodec.encode_mask(m, codec), m.shape[1], m.shape[0]) for c, m in renderer.render(bodies).items()}
         for bodies in _walk(people, rng, poses, volume_max_m=volume_max_m)
     ]
-    pipeline = FusionPipeline(
-        carver=carver, cameras=cameras, reasoner=EventReasoner(bounds_xy_m=(0.0, 0.0, *volume_max_m[:2])),
-        rng=np.random.default_rng(0),
-    )
     decode_s, step_s, tracks = [], [], []
     period = 2 * (poses - 1)
     for f in range(warmup + frames):
@@ -535,6 +527,19 @@ def _walk(people: int, rng: np.random.Generator, frames: int, *, volume_max_m: S
          for p, h in zip(start, heading)]
         for f in range(frames)
     ]
+
+
+def _room_site(cameras: Mapping[str, Camera], volume_max_m: Sequence[float]) -> Site:
+    """A site file of the room from the origin to ``volume_max_m`` seen by ``cameras``, every
+    other setting its default (no hot spots, no doors: people come and go across the edges).
+    Its calibration files are never read: the pipeline is given the cameras."""
+    from common.site import CameraSpec, Site, Volume
+
+    return Site(
+        name="bench",
+        volume=Volume(max_m=tuple(volume_max_m)),
+        cameras=[CameraSpec(id=c, calibration=f"{c}.yaml") for c in cameras],
+    )
 
 
 def _stamp_ns(frame: int) -> int:
