@@ -8,8 +8,6 @@ reads what the server publishes: tracks, status, events and history.
 
 from __future__ import annotations
 
-import os
-import signal
 import socket
 import subprocess
 import sys
@@ -27,7 +25,7 @@ from common import keys, messages  # noqa: E402
 from common.camera import Camera  # noqa: E402
 from common.evaluation.io import read_events, read_tracks  # noqa: E402
 from common.messages import Event, HoldRegions, Status, TrackFrame, decode, decode_event, encode  # noqa: E402
-from procs import loopback_config  # noqa: E402
+from procs import Proc, loopback_config  # noqa: E402
 from tinysite import BOX_XY, CAMERA_CENTRES, FPS, H, PERIOD_NS, W, box_mask, mask_frame, write_site  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -141,43 +139,21 @@ class Net:
         self.session.close()
 
 
-class Server:
+class Server(Proc):
     """A ``voxelwatch-fusion`` process connected to the test's session."""
 
     def __init__(self, site_file: Path, tmp: Path, net: Net, *extra: str) -> None:
-        self.log_path = tmp / f"server-{time.monotonic_ns()}.log"
-        self.cmd = [sys.executable, "-m", "fusion_server.cli", "--site", str(site_file),
-                    "--listen", f"tcp/127.0.0.1:{_free_port()}", "--connect", net.endpoint,
-                    "--cache-dir", str(site_file.parent / "cache"), *extra]
-        self._log = self.log_path.open("w")
-        self.proc = subprocess.Popen(self.cmd, stdout=self._log, stderr=subprocess.STDOUT, cwd=ROOT,
-                                     env={**os.environ, "PYTHONUNBUFFERED": "1"})
+        argv = [sys.executable, "-m", "fusion_server.cli", "--site", str(site_file),
+                "--listen", f"tcp/127.0.0.1:{_free_port()}", "--connect", net.endpoint,
+                "--cache-dir", str(site_file.parent / "cache"), *extra]
+        super().__init__("fusion", argv, tmp / f"server-{time.monotonic_ns()}.log")
         self.net = net
 
     def wait_ready(self, timeout_s: float = 30.0) -> None:
         deadline = time.monotonic() + timeout_s
         while not self.net.fusion_alive.wait(0.1):
-            assert self.proc.poll() is None, f"server exited with {self.proc.returncode}:\n{self.output()}"
+            assert self.alive(), f"server exited with {self.popen.returncode}:\n{self.output()}"
             assert time.monotonic() < deadline, f"server not ready after {timeout_s} s:\n{self.output()}"
-
-    def stop(self, timeout_s: float = 20.0) -> int:
-        if self.proc.poll() is None:
-            self.proc.send_signal(signal.SIGTERM)
-        try:
-            return self.proc.wait(timeout=timeout_s)
-        finally:
-            self._log.close()
-
-    def kill(self) -> None:
-        if self.proc.poll() is None:
-            self.proc.kill()
-            self.proc.wait(timeout=10)
-        self._log.close()
-
-    def output(self) -> str:
-        if not self._log.closed:
-            self._log.flush()
-        return self.log_path.read_text()
 
 
 @pytest.fixture
@@ -227,7 +203,7 @@ def test_tracks_a_box_holds_it_and_writes_files_then_exits_when_idle(site, tmp_p
     out = tmp_path / "out"
     server = start_server("--store", str(tmp_path / "events.sqlite"), "--out", str(out), "--exit-after-idle", "2.0")
     net.publish_box(cams, range(70), box_until=45)  # 1.5 s standing still, then gone
-    assert server.proc.wait(timeout=20) == 0, server.output()
+    assert server.popen.wait(timeout=20) == 0, server.output()
     with net.lock:
         frames = list(net.tracks)
         holds = {cid: list(msgs) for cid, msgs in net.holds.items()}
@@ -271,7 +247,7 @@ def test_a_flood_of_masks_is_dropped_and_counted_and_tracking_goes_on(site, tmp_
         return st if st and all(c.received >= 45 and c.state == "ok" for c in st.cameras) else None
 
     status = wait_for(settled, 10.0, "a status with every camera back to normal")
-    assert server.proc.poll() is None
+    assert server.popen.poll() is None
     lost = status.frame_sets_dropped + sum(c.dropped for c in status.cameras)
     assert lost > 0 and status.frame_sets < n_flood
     with net.lock:
