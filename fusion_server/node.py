@@ -191,9 +191,6 @@ class Outbox:
     holds: list[tuple[str, bytes]] = field(default_factory=list)
     status: bytes | None = None
 
-    def __bool__(self) -> bool:
-        return bool(self.tracks or self.events or self.holds or self.status is not None)
-
 
 @dataclass
 class _CameraHealth:

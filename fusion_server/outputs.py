@@ -22,18 +22,15 @@ from pathlib import Path
 from typing import Any, Protocol
 
 from common.messages import Event
-from common.plain import plain_value
-from common.runfiles import EVENTS_FILE, TRACK_COLUMNS, TRACK_HEADER, TRACKS_FILE, event_line, write_track_rows
+from common.runfiles import EVENTS_FILE, TRACK_HEADER, TRACKS_FILE, event_line, write_track_rows
 
-# the file names, the columns and the JSON cleaner stay importable from here
+# the file names stay importable from here
 __all__ = [
     "EVENTS_FILE",
     "TRACKS_FILE",
-    "TRACK_COLUMNS",
     "EventsWriter",
     "RunOutputs",
     "TracksWriter",
-    "plain_value",
 ]
 
 
