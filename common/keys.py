@@ -77,6 +77,11 @@ def hold_key(prefix: str, cam: str) -> str:
     return f"{validate_prefix(prefix)}/cam/{validate_chunk(cam, 'camera id')}/hold"
 
 
+def look_key(prefix: str, cam: str) -> str:
+    """Fusion -> worker: the people whose colours camera ``cam`` should describe."""
+    return f"{validate_prefix(prefix)}/cam/{validate_chunk(cam, 'camera id')}/look"
+
+
 def alive_camera_key(prefix: str, cam: str) -> str:
     """``<p>/alive/cam/<cam>``: liveliness token of one camera worker."""
     return f"{validate_prefix(prefix)}/alive/cam/{validate_chunk(cam, 'camera id')}"
@@ -131,12 +136,12 @@ def camera_of(key: str, prefix: str) -> str:
     if not key.startswith(head):
         raise ValueError(f"key {key!r} is not under prefix {prefix!r}")
     rest = key[len(head):].split("/")
-    if len(rest) == 3 and rest[0] == "cam" and rest[2] in ("mask", "hold"):
+    if len(rest) == 3 and rest[0] == "cam" and rest[2] in ("mask", "hold", "look"):
         cam = rest[1]
     elif len(rest) == 3 and rest[0] == "alive" and rest[1] == "cam":
         cam = rest[2]
     else:
-        raise ValueError(f"key {key!r} is not a camera mask, hold or liveliness key under {prefix!r}")
+        raise ValueError(f"key {key!r} is not a camera mask, hold, look or liveliness key under {prefix!r}")
     try:
         return validate_chunk(cam, "camera id")
     except ValueError as exc:

@@ -8,6 +8,7 @@ model's fields. Binary fields are msgpack ``bin``, strings UTF-8 ``str``.
 |----------------|-----------------|------------------------------|
 | MaskFrame      | ``mask``        | ``<p>/cam/<cam>/mask``       |
 | HoldRegions    | ``hold``        | ``<p>/cam/<cam>/hold``       |
+| LookRequest    | ``look``        | ``<p>/cam/<cam>/look``       |
 | TrackFrame     | ``tracks``      | ``<p>/tracks``               |
 | Event          | ``event``       | ``<p>/events/<kind>/<track>``, ``<p>/history/events`` |
 | Status         | ``status``      | ``<p>/status``               |
@@ -46,7 +47,7 @@ from pydantic import (
     model_validator,
 )
 
-from common import keys, maskcodec
+from common import appearance, keys, maskcodec
 from common.postures import POSTURES  # the wire's posture names (TrackState.posture)
 
 SCHEMA_VERSION = 1
@@ -110,6 +111,24 @@ DetailValue = (Annotated[str, StringConstraints(max_length=1024)] | Annotated[in
 DetailKey = Annotated[str, StringConstraints(min_length=1, max_length=64)]
 
 _CONFIG = ConfigDict(strict=True, frozen=True, extra="forbid", allow_inf_nan=False)
+_N_BANDS = len(appearance.BANDS)
+
+
+class Appearance(BaseModel):
+    """Colour descriptor of one person in one camera frame (:mod:`common.appearance`).
+
+    ``hist`` holds one histogram per body band (head, torso, legs), each
+    ``appearance.N_BINS`` bytes summing to about 255 (all zero when the band
+    showed no foreground); ``pixels`` the foreground pixels each counts;
+    ``visible`` the share of each band's box that no nearer person hides.
+    """
+
+    model_config = _CONFIG
+
+    track: NonNegInt
+    hist: Annotated[bytes, Field(min_length=_N_BANDS * appearance.N_BINS, max_length=_N_BANDS * appearance.N_BINS)]
+    pixels: Annotated[list[NonNegInt], Field(min_length=_N_BANDS, max_length=_N_BANDS)]
+    visible: Annotated[list[Fraction], Field(min_length=_N_BANDS, max_length=_N_BANDS)]
 
 
 class _Message(BaseModel):
@@ -128,7 +147,9 @@ class MaskFrame(_Message):
     ``maskcodec.CODECS``); ``maskcodec.decode_mask(data, codec, width, height)``
     restores it. ``seq`` counts captured frames (gaps are drops),
     ``stamp_ns`` is the capture time, ``fg_fraction`` the share of
-    foreground pixels.
+    foreground pixels. ``looks``: the colour descriptors of the people the
+    fusion server last asked about (:class:`LookRequest`), measured on this
+    frame; empty when nobody was asked about.
     """
 
     TYPE: ClassVar[str] = "mask"
@@ -144,6 +165,7 @@ class MaskFrame(_Message):
     codec: Annotated[str, AfterValidator(_codec)]
     data: bytes
     fg_fraction: Fraction
+    looks: list[Appearance] = Field(default_factory=list, max_length=MAX_TRACKS)
 
     @model_validator(mode="after")
     def _consistent(self) -> MaskFrame:
@@ -183,12 +205,47 @@ class HoldRegions(_Message):
         return self
 
 
+class PersonRegion(BaseModel):
+    """Where one tracked person lies in a camera's image: one box per body band
+    (head, torso, legs; full-resolution pixels, exclusive ends; ``(0, 0, 0, 0)``
+    for a band out of view) and the person's distance from the camera, metres."""
+
+    model_config = _CONFIG
+
+    track: NonNegInt
+    depth_m: Annotated[float, Field(ge=0.0, le=1e4)]
+    boxes: Annotated[list[Box], Field(min_length=_N_BANDS, max_length=_N_BANDS)]
+
+
+class LookRequest(_Message):
+    """The people whose colours a camera should describe on its next frame.
+
+    The worker answers once, in the ``looks`` of the next :class:`MaskFrame`
+    it sends, unless the request is older than ``ttl_ms`` by then.
+    """
+
+    TYPE: ClassVar[str] = "look"
+
+    cam: CamId
+    stamp_ns: StampNs
+    people: list[PersonRegion] = Field(max_length=MAX_TRACKS)
+    ttl_ms: Annotated[int, Field(ge=0, le=60_000)] = 1000
+
+    @model_validator(mode="after")
+    def _unique(self) -> LookRequest:
+        ids = [p.track for p in self.people]
+        if len(set(ids)) != len(ids):
+            raise ValueError(f"people repeat: tracks {sorted(i for i in set(ids) if ids.count(i) > 1)}")
+        return self
+
+
 class TrackState(BaseModel):
     """One tracked person in one fused frame; world frame, metres, Z up.
 
     ``(x, y)`` is the floor position, ``z_top`` the top of the body,
     ``volume_m3`` the occupied volume, ``(vx, vy)`` the floor velocity in m/s,
-    ``still`` whether the person has not moved for a while.
+    ``still`` whether the person has not moved for a while, ``person`` the
+    name of the enrolled resident this is (None for anyone else).
     """
 
     model_config = _CONFIG
@@ -203,6 +260,7 @@ class TrackState(BaseModel):
     vx: float
     vy: float
     still: bool
+    person: Annotated[str, StringConstraints(min_length=1, max_length=64)] | None = None
 
 
 class TrackFrame(_Message):
@@ -370,8 +428,8 @@ class WorkerStats(_Message):
                                                                         max_length=MAX_STAGES)
 
 
-Message = MaskFrame | HoldRegions | TrackFrame | Event | Status | WorkerStats
-MESSAGE_TYPES: dict[str, type[_Message]] = {m.TYPE: m for m in (MaskFrame, HoldRegions, TrackFrame, Event,
+Message = MaskFrame | HoldRegions | LookRequest | TrackFrame | Event | Status | WorkerStats
+MESSAGE_TYPES: dict[str, type[_Message]] = {m.TYPE: m for m in (MaskFrame, HoldRegions, LookRequest, TrackFrame, Event,
                                                                 Status, WorkerStats)}
 """Wire tag -> model, for tools that record or replay any message."""
 

@@ -78,7 +78,7 @@ from common import keys, maskcodec, messages
 from common.camera import Camera
 from common.maskcodec import MaskCodecError
 from common.messages import (
-    CameraStatus, Event, HoldRegions, MaskFrame, Status, TrackFrame, TrackState, WireError, event_id,
+    CameraStatus, Event, HoldRegions, LookRequest, MaskFrame, Status, TrackFrame, TrackState, WireError, event_id,
 )
 from common.ratelog import RateLimitedLog
 from common.site import Site
@@ -183,12 +183,14 @@ class Outbox:
     tracks: encoded :class:`~common.messages.TrackFrame`, one per fused frame.
     events: ``(key expression, JSON text)`` per event.
     holds: ``(camera id, encoded HoldRegions)``.
+    looks: ``(camera id, encoded LookRequest)``.
     status: the encoded :class:`~common.messages.Status`, or None when not due.
     """
 
     tracks: list[bytes] = field(default_factory=list)
     events: list[tuple[str, str]] = field(default_factory=list)
     holds: list[tuple[str, bytes]] = field(default_factory=list)
+    looks: list[tuple[str, bytes]] = field(default_factory=list)
     status: bytes | None = None
 
 
@@ -284,6 +286,7 @@ class FusionNode:
         self.last_mask_mono: float | None = None
         self._next_status = -math.inf
         self._out = Outbox()
+        self._looks: dict[tuple[str, int], list] = {}  # (camera, mask stamp) -> its descriptors
 
     # ------------------------------------------------------------------ inputs
 
@@ -322,6 +325,8 @@ class FusionNode:
             self.rlog.warn(f"camera {cam}", "ahead", f"mask {msg.seq} is stamped {lead_ms:.0f} ms ahead of the "
                            f"other cameras: left out of the frame sets (its clock runs fast)", mono)
             return
+        if msg.looks:
+            self.add_looks(cam, msg.stamp_ns, msg.looks)
         count = self.sync.counters[cam]
         before = dict(count)
         for fs in self.sync.push(cam, msg.seq, msg.stamp_ns, mask):
@@ -391,11 +396,19 @@ class FusionNode:
 
     # ------------------------------------------------------------------ fusing
 
+    def add_looks(self, cam: str, stamp_ns: int, looks: list) -> None:
+        """The colour descriptors camera ``cam`` measured on its frame stamped ``stamp_ns``
+        (they arrive with its mask); they join that mask's frame set."""
+        self._looks[(cam, int(stamp_ns))] = list(looks)
+
     def fuse(self, fs: FrameSet, now_ns: int, mono: float) -> FusedFrame:
-        """Fuse one frame set: tracks, events (stored, written, queued) and holds. Errors of
-        the pipeline propagate (:meth:`tick` counts them; the offline replay stops on them)."""
+        """Fuse one frame set: tracks, events (stored, written, queued), holds and look
+        requests. Errors of the pipeline propagate (:meth:`tick` counts them; the offline
+        replay stops on them)."""
         frame = _frame_of(fs)
-        fused = self.pipeline.step(fs.payloads, fs.stamp_ns, frame)
+        looks = {cam: self._looks[(cam, stamp)] for cam, stamp in fs.stamps_ns.items() if (cam, stamp) in self._looks}
+        self._looks = {k: v for k, v in self._looks.items() if k[1] > max(fs.stamps_ns.values(), default=fs.stamp_ns)}
+        fused = self.pipeline.step(fs.payloads, fs.stamp_ns, frame, looks)
         self.c.frames_fused += 1
         self.last_frame = int(fused.frame)
         self.last_stamp = (int(fused.stamp_ns), int(now_ns))
@@ -406,6 +419,7 @@ class FusionNode:
         for rec in fused.events:
             self._emit(rec)
         self._queue_holds(fused, mono)
+        self._queue_looks(fused, mono)
         return fused
 
     def _fuse_next(self, now_ns: int, mono: float) -> None:
@@ -438,6 +452,14 @@ class FusionNode:
             self._out.tracks.append(messages.encode(msg))
         except (ValueError, WireError) as exc:
             self.rlog.warn("fusion", "tracks", f"tracks of frame {fused.frame} not published: {exc}", mono)
+
+    def _queue_looks(self, fused: FusedFrame, mono: float) -> None:
+        for cam, people in fused.looks.items():
+            try:
+                msg = LookRequest(cam=cam, stamp_ns=int(fused.stamp_ns), people=people[: messages.MAX_TRACKS])
+                self._out.looks.append((cam, messages.encode(msg)))
+            except (ValueError, WireError) as exc:
+                self.rlog.warn(f"camera {cam}", "look", f"look request not published: {exc}", mono)
 
     def _queue_holds(self, fused: FusedFrame, mono: float) -> None:
         for cam in self.camera_ids:
@@ -637,7 +659,7 @@ def _track_state(t: Any) -> TrackState:
         id=int(t.id), x=float(t.x), y=float(t.y), z_top=max(0.0, float(t.z_top)),
         volume_m3=max(0.0, _finite(t.volume_m3)), posture=posture,
         reliability=min(1.0, max(0.0, _finite(t.reliability))), vx=_finite(t.vx), vy=_finite(t.vy),
-        still=bool(t.still),
+        still=bool(t.still), person=getattr(t, "person", None),
     )
 
 

@@ -12,15 +12,16 @@ by :func:`build_carver` and :func:`build_reasoner`, the tracker by
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
-from collections.abc import Mapping
-from dataclasses import dataclass
+from collections.abc import Iterable, Mapping
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
 from common.camera import Camera
-from common.messages import Event
+from common.messages import Appearance, Event, PersonRegion
 from common.site import Site
 from fusion_server.carving import Carver
 from fusion_server.carving.occlusion import Occluder
@@ -29,6 +30,7 @@ from fusion_server.explain import BlobExplainer
 from fusion_server.events import EventReasoner, FallParams, InactivityParams
 from fusion_server.grid import CarveResult
 from fusion_server.hotspots import Hotspot
+from fusion_server.identity import IdentityKeeper, IdentityParams, Resident
 from fusion_server.posture import PostureEstimator, PostureReading
 from fusion_server.tracker import PopulationParams, TrackEstimate, Tracker
 
@@ -55,6 +57,7 @@ class TrackOutput:
     vx: float
     vy: float
     still: bool
+    person: str | None = None
 
 
 @dataclass(frozen=True)
@@ -64,6 +67,8 @@ class FusedFrame:
     holds: camera id -> full-resolution pixel boxes ``(x0, y0, x1, y1)``
         (exclusive ends) around each still person, which that camera must not
         learn into its background.
+    looks: camera id -> the people whose colours that camera should describe
+        on its next frame (sent as a :class:`~common.messages.LookRequest`).
     """
 
     frame: int
@@ -73,6 +78,7 @@ class FusedFrame:
     events: list[Event]
     holds: dict[str, list[tuple[int, int, int, int]]]
     carve: CarveResult
+    looks: dict[str, list[PersonRegion]] = field(default_factory=dict)
 
 
 class FusionPipeline:
@@ -83,6 +89,8 @@ class FusionPipeline:
       cameras: camera id -> full-resolution camera (for hold regions).
       reasoner: the event reasoner (hot spots, doors, residents).
       rng: generator for the particle filters of the tracker (:func:`build_tracker`).
+      identity: who is who (:class:`~fusion_server.identity.IdentityKeeper`)
+        [None: one over ``cameras`` with default settings and no residents].
       hold_radius_m: half-width of the floor square around a still person
         whose projection a camera must not learn.
       min_cameras: fewest cameras a frame set needs to be fused.
@@ -97,6 +105,7 @@ class FusionPipeline:
         rng: np.random.Generator,
         hold_radius_m: float = 0.45,
         min_cameras: int | None = None,
+        identity: IdentityKeeper | None = None,
     ) -> None:
         if hold_radius_m <= 0:
             raise ValueError(f"hold_radius_m must be positive, got {hold_radius_m}")
@@ -108,7 +117,9 @@ class FusionPipeline:
         self.min_cameras = int(min_cameras if min_cameras is not None else carver.min_cameras)
         self.camera_ids: tuple[str, ...] = carver.camera_ids
         self.explainer = BlobExplainer(self.cameras)
+        self.identity = identity if identity is not None else IdentityKeeper(self.cameras)
         self._postures: dict[int, PostureEstimator] = {}
+        self._labels: dict[int, int] = {}  # target id -> label, as of the last frame
 
     @classmethod
     def from_site(
@@ -131,20 +142,26 @@ class FusionPipeline:
             min_cameras=min_cameras,
         )
 
-    def step(self, masks: Mapping[str, np.ndarray], stamp_ns: int, frame: int) -> FusedFrame:
+    def step(self, masks: Mapping[str, np.ndarray], stamp_ns: int, frame: int,
+             looks: Mapping[str, Iterable[Appearance]] | None = None) -> FusedFrame:
         """Fuse one frame set.
 
         masks: camera id -> (H, W) uint8 mask, 0 background, 255 foreground,
             at full or downscaled resolution; absent cameras do not vote.
         stamp_ns: the frame set's capture time. frame: its frame number.
+        looks: camera id -> the colour descriptors that came with its mask.
         """
         carve = self.carver.carve(masks, stamp_ns)
         blobs = self.detect_people(carve, masks)
-        estimates = self.tracker.step(carve, blobs, stamp_ns)
+        bodies = self.tracker.step(carve, blobs, stamp_ns)
+        estimates = self.label(bodies, looks or {}, stamp_ns)
         readings = self.update_postures(estimates, stamp_ns)
-        events = self.reasoner.step(stamp_ns, frame, estimates, readings)
+        standing = {b.id: float(e.z_top_m) for b, e in zip(bodies, estimates)
+                    if readings.get(e.id) is not None and readings[e.id].posture == "standing"}
+        self.identity.learn(bodies, standing, stamp_ns)
+        events = [self._named(ev) for ev in self.reasoner.step(stamp_ns, frame, estimates, readings)]
         confirmed = [e for e in estimates if e.confirmed]
-        tracks = [_output(e, readings.get(e.id)) for e in confirmed]
+        tracks = [_output(e, readings.get(e.id), self.identity.name_of(e.id)) for e in confirmed]
         # A seated or lying person is held even when the tracker's estimate jitters
         # (late masks, a camera rejoining): losing the hold would let the cameras
         # learn exactly the people who must never fade, those on the floor.
@@ -158,7 +175,29 @@ class FusionPipeline:
             events=events,
             holds=holds,
             carve=carve,
+            looks=self.identity.regions(bodies, stamp_ns),
         )
+
+    def label(self, bodies: list[TrackEstimate], looks: Mapping[str, Iterable[Appearance]],
+              stamp_ns: int) -> list[TrackEstimate]:
+        """The tracker's estimates under the labels of the people they are (ids users
+        see; negative for a target not yet confirmed). What the posture estimators
+        and the event reasoner keep of a body follows it when its label changes."""
+        labels = self.identity.assign(bodies, looks, stamp_ns)
+        renames = {self._labels.get(tid, -tid): label for tid, label in labels.items()
+                   if self._labels.get(tid, -tid) != label}
+        if renames:
+            self._postures = _rekey(self._postures, renames)
+            self.reasoner.rename(renames)
+        self._labels = labels
+        return [dataclasses.replace(b, id=labels[b.id]) for b in bodies]
+
+    def _named(self, event: Event) -> Event:
+        """``event`` with the enrolled resident's name in its details, when it is about one."""
+        name = self.identity.name_of(event.track) if event.track > 0 else None
+        if name is None:
+            return event
+        return event.model_copy(update={"details": {**event.details, "person": name}})
 
     def hold_regions(self, still: list[TrackEstimate]) -> dict[str, list[tuple[int, int, int, int]]]:
         """Per camera, the image boxes of the given people: a floor rectangle
@@ -279,7 +318,12 @@ def _entry_edges(site: Site) -> tuple[float, float, float, float] | None:
     return (lo[0], lo[1], hi[0], hi[1])
 
 
-def _output(est: TrackEstimate, reading: PostureReading | None) -> TrackOutput:
+def _rekey(states: dict, renames: Mapping[int, int]) -> dict:
+    """``states`` with the keys in ``renames`` renamed at once (a swap is two renames)."""
+    return {renames.get(k, k): v for k, v in states.items()}
+
+
+def _output(est: TrackEstimate, reading: PostureReading | None, person: str | None = None) -> TrackOutput:
     return TrackOutput(
         id=int(est.id),
         x=float(est.x),
@@ -291,6 +335,7 @@ def _output(est: TrackEstimate, reading: PostureReading | None) -> TrackOutput:
         vx=float(est.vx),
         vy=float(est.vy),
         still=bool(est.still),
+        person=person,
     )
 
 

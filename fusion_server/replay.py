@@ -5,14 +5,17 @@ forms frame set ``i``), segmented with the camera worker's own segmenter,
 fused by the live server's own :class:`~fusion_server.node.FusionNode`
 (which writes the tracks and events files as the live server does), and the hold
 regions of still people go back to the segmenters for the next frame, as
-the live server sends them over zenoh.
+the live server sends them over zenoh; so do its look requests, answered on
+the next frame with the camera worker's own colour descriptors.
 
 Inputs per camera, under ``INPUT/<camera id>/``:
 
 * ``video.*`` (or the only video file there): frames to segment;
   ``background.*`` beside it is learnt first when present;
 * ``masks/``: a folder of recorded masks (one image per frame, 0 background,
-  255 foreground), fused as they are;
+  255 foreground), fused as they are; ``colour.avi`` beside it, when
+  present, holds the colour frames the masks were made from (at the masks'
+  size), for the people's colour descriptors;
 * otherwise the folder itself as an image folder.
 
 Or ``synthetic=SCENARIO``: every camera of the synthetic house rendered in
@@ -29,8 +32,10 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from camera_worker.looks import LookAnswerer
 from camera_worker.segmentation import ForegroundSegmenter, window_frames_for
 from camera_worker.sources import FrameSource, SourceError, open_source
+from common.messages import LookRequest
 from common.site import Site
 from fusion_server.node import FusionNode, FusionSettings
 from fusion_server.outputs import RunOutputs
@@ -56,14 +61,25 @@ class ReplaySummary:
 
 
 class _MaskFolder:
-    """Recorded masks: one image per frame, sorted by name."""
+    """Recorded masks: one image per frame, sorted by name; the colour frames beside
+    them when there are any."""
 
-    def __init__(self, folder: Path, fps: float) -> None:
+    def __init__(self, folder: Path, fps: float, colour: FrameSource | None = None) -> None:
         self.files = sorted(p for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
         if not self.files:
             raise SourceError(f"mask folder {folder}: no mask images ({', '.join(IMAGE_SUFFIXES)})")
         self.fps = fps
         self.index = 0
+        self.colour = colour
+        if colour is not None:
+            colour.open()
+
+    def read_colour(self) -> np.ndarray | None:
+        """The colour frame of the mask last read, or None (none recorded, or ended)."""
+        if self.colour is None:
+            return None
+        frame = self.colour.read()
+        return None if frame is None else frame.image
 
     def read(self) -> tuple[int, np.ndarray] | None:
         if self.index >= len(self.files):
@@ -76,7 +92,8 @@ class _MaskFolder:
         return self.index - 1, np.where(mask > 127, 255, 0).astype(np.uint8)
 
     def close(self) -> None:
-        pass
+        if self.colour is not None:
+            self.colour.close()
 
 
 class _SegmentedCamera:
@@ -139,6 +156,7 @@ def replay(
     inputs = _open_inputs(site, cam_ids, input_dir, synthetic, seed, background_frames)
     summary = ReplaySummary(cameras=tuple(cam_ids))
     holds: dict[str, list] = {}
+    asked: dict[str, LookAnswerer] = {cam: LookAnswerer() for cam in inputs}
     total = _expected_frames(inputs, max_frames)
     start = time.perf_counter()
     try:
@@ -147,15 +165,20 @@ def replay(
             while max_frames is None or summary.frames < max_frames:
                 t0 = time.perf_counter()
                 images: dict[str, np.ndarray] | None = {} if overlay_every else None
-                masks, stamp_ns, frame_index, t_segment = _next_masks(inputs, holds, images)
+                masks, stamp_ns, frame_index, t_segment = _next_masks(inputs, holds, images, asked)
                 if masks is None:
                     break
                 t1 = time.perf_counter()
+                for cam, answerer in asked.items():
+                    if answerer.last:
+                        node.add_looks(cam, stamp_ns, answerer.last)
                 frame_set = FrameSet(stamp_ns=stamp_ns, payloads=masks, stamps_ns={cam: stamp_ns for cam in masks},
                                      seqs={cam: frame_index for cam in masks})
                 fused = node.fuse(frame_set, stamp_ns, t1)
                 node.take()  # nothing is published offline
                 holds = fused.holds
+                for cam, people in fused.looks.items():
+                    asked[cam].ask(LookRequest(cam=cam, stamp_ns=fused.stamp_ns, people=people))
                 t2 = time.perf_counter()
                 summary.frames += 1
                 summary.track_rows += len(fused.tracks)
@@ -192,7 +215,9 @@ def _open_inputs(site, cam_ids, input_dir, synthetic, seed, background_frames) -
             if not folder.is_dir():
                 raise SourceError(f"replay input {input_dir}: no folder for camera {cam!r} ({folder})")
             if (folder / "masks").is_dir():
-                inputs[cam] = _MaskFolder(folder / "masks", spec.fps)
+                colour = folder / "colour.avi"
+                source = open_source(str(colour), cam_id=cam, fps=spec.fps) if colour.is_file() else None
+                inputs[cam] = _MaskFolder(folder / "masks", spec.fps, source)
                 continue
             video = _find_video(folder, "video")
             background = _find_video(folder, "background")
@@ -206,10 +231,12 @@ def _open_inputs(site, cam_ids, input_dir, synthetic, seed, background_frames) -
     return inputs
 
 
-def _next_masks(inputs: dict, holds: dict, images: dict | None = None):
+def _next_masks(inputs: dict, holds: dict, images: dict | None = None, asked: dict | None = None):
     """The next frame set: (masks, stamp_ns, frame index, seconds spent segmenting),
     or (None, ...) when any camera's recording has ended. ``images`` receives
-    each segmented camera's frame."""
+    each segmented camera's frame; ``asked`` (camera id -> LookAnswerer) has each
+    camera answer its pending look request on its frame (into ``answerer.last``).
+    The stamp given to the answerers is the frame's own (the set's is the median)."""
     masks: dict[str, np.ndarray] = {}
     stamps: list[int] = []
     indices: list[int] = []
@@ -223,12 +250,16 @@ def _next_masks(inputs: dict, holds: dict, images: dict | None = None):
             masks[cam] = mask
             indices.append(index)
             stamps.append(int(round(index * 1e9 / item.fps)))
+            if asked is not None:
+                asked[cam].answer(item.read_colour(), mask, stamps[-1])
             continue
         frame = item.read_frame()
         if frame is None:
             return None, 0, 0, t_segment
         t = time.perf_counter()
         masks[cam], _ = item.segmenter.apply(frame.image, holds=holds.get(cam, ()))
+        if asked is not None:
+            asked[cam].answer(frame.image, masks[cam], frame.stamp_ns)
         t_segment += time.perf_counter() - t
         if images is not None:
             images[cam] = frame.image

@@ -129,7 +129,7 @@ def test_messages_are_frozen():
 
 
 def test_type_tags_are_unique():
-    assert len(messages.MESSAGE_TYPES) == 6
+    assert len(messages.MESSAGE_TYPES) == 7
     assert all(cls.TYPE == tag for tag, cls in messages.MESSAGE_TYPES.items())
 
 

@@ -4,6 +4,7 @@ median, and the checks their parameter groups run once, in ``__post_init__``."""
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from typing import Any, Iterable
 
 
@@ -65,3 +66,8 @@ def names(params: Any, name: str, allowed: Iterable[str] | None = None) -> None:
     if allowed is not None and not value <= frozenset(allowed):
         raise ValueError(f"{name} may hold {', '.join(repr(a) for a in allowed)}, got {sorted(value)}")
     object.__setattr__(params, name, value)
+
+
+def rekey(states: dict, renames: Mapping[int, int]) -> dict:
+    """``states`` (track id -> state) with the ids in ``renames`` ({old: new}) renamed at once."""
+    return {renames.get(k, k): v for k, v in states.items()}

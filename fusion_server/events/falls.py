@@ -40,6 +40,7 @@ without a posture reading is taken to stand ``standing_height_m`` [1.70 m] tall.
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any, Sequence
 
@@ -164,6 +165,10 @@ class FallDetector:
         """Whether the track is lying on the floor now (a long lie's business, not inactivity's)."""
         fs = self._tracks.get(track)
         return fs is not None and fs.floor_since_ns is not None
+
+    def rename(self, renames: Mapping[int, int]) -> None:
+        """Tracks change ids ({old: new}, at once); their state goes with them."""
+        self._tracks = _common.rekey(self._tracks, renames)
 
     def forget(self, track: int) -> None:
         """The track is gone."""

@@ -10,6 +10,7 @@ moving or changing posture re-arms it.
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Iterable
 
@@ -86,6 +87,10 @@ class InactivityDetector:
             posture=frame.posture or "unknown",
             hotspot=spot.name if spot is not None else None,
         )
+
+    def rename(self, renames: Mapping[int, int]) -> None:
+        """Tracks change ids ({old: new}, at once); their state goes with them."""
+        self._tracks = _common.rekey(self._tracks, renames)
 
     def forget(self, track: int) -> None:
         """The track is gone."""

@@ -162,6 +162,13 @@ class EventReasoner:
         self.visits.step(stamp_ns, dt_ns, present, h, emit)
         return out
 
+    def rename(self, renames: Mapping[int, int]) -> None:
+        """Tracks change ids (``{old: new}``, applied at once, so a swap is two renames):
+        what the reasoner and its detectors keep of each goes with it."""
+        self._tracks = _common.rekey(self._tracks, renames)
+        for detector in (self.sit_stand, self.falls, self.visits, self.inactivity):
+            detector.rename(renames)
+
     # ------------------------------------------------------------------ per track
 
     def _track_step(self, tid: int, est: TrackLike, reading: Any, stamp_ns: int, emit: Emitter) -> None:

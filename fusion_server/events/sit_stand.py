@@ -25,6 +25,7 @@ kneeling behind a sofa looks the same.
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Iterable, Sequence
 
@@ -124,6 +125,10 @@ class SitStandDetector:
             emit("sit_down", frame.track, frame.x, frame.y, from_posture=prev, to_posture=posture, **extra)
         elif stand_up:
             emit("stand_up", frame.track, frame.x, frame.y, from_posture=prev, to_posture=posture, **extra)
+
+    def rename(self, renames: Mapping[int, int]) -> None:
+        """Tracks change ids ({old: new}, at once); their state goes with them."""
+        self._tracks = _common.rekey(self._tracks, renames)
 
     def forget(self, track: int) -> None:
         """The track is gone."""

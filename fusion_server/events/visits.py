@@ -20,6 +20,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any, Iterable, Sequence
 
@@ -102,6 +103,10 @@ class VisitDetector:
         if dwell is not None:
             for ch in dwell.lost(emit.stamp_ns):
                 emit(ch.kind, track, ch.x, ch.y, **_dwell_details(ch))
+
+    def rename(self, renames: Mapping[int, int]) -> None:
+        """Tracks change ids ({old: new}, at once); their state goes with them."""
+        self._dwell = _common.rekey(self._dwell, renames)
 
     def forget(self, track: int) -> None:
         """The track is gone."""

@@ -1,0 +1,562 @@
+"""Who is who: long-term appearance of each person, identity through crossings and absences.
+
+The tracker follows bodies (its *targets*, numbered as it creates them); this
+module gives each body the identity of a person (its *label*, the track id
+users see) and keeps a long-term appearance model per person, after the
+second seed paper's height and normalised colour histograms:
+
+* **Asking**: each frame, for the targets due (every ``1 / rate_hz`` seconds,
+  and at once for a new one) it computes per camera a
+  :class:`~common.messages.PersonRegion`: the image boxes of the body's head,
+  torso and legs bands and the body's distance from the camera. The camera
+  worker answers with colour histograms of its foreground in those boxes
+  (:mod:`common.appearance`), leaving out what nearer people hide. A band is
+  also left out here when a *farther* person's box covers much of it (their
+  colours would show through around the body).
+* **Learning**: a person's model (per band, a histogram averaged over the
+  clean views; the standing height) takes a frame's views only while the
+  body reads standing, and, for a few seconds after the body came close to
+  another, only when the views agree with the model: the labels of two
+  people who crossed may have swapped, and a model must not learn the other
+  person's clothes.
+* **A label for a new body**: a target gets a label when the tracker first
+  confirms it: a person lost within ``reid_window_s`` whose model its views
+  match (clearly better than any other's), or whose body was lost just
+  there a moment ago (a track that broke up, or merged into a neighbour's
+  and split off again), gets their label back; otherwise a new label.
+  Residents enrolled in the site file are such lost people that never
+  expire.
+* **Swaps**: two labelled bodies that were close and are now apart are
+  compared with the other's model too; when swapping their labels explains
+  their views better, frame after frame, the labels (and models) swap.
+
+Time comes from the frame stamps only.
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+from collections import deque
+from collections.abc import Callable, Iterable, Mapping, Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from common import appearance
+from common.camera import Camera
+from common.messages import Appearance, PersonRegion
+
+__all__ = ["AppearanceModel", "IdentityKeeper", "IdentityParams", "Resident"]
+
+_N_BANDS = len(appearance.BANDS)
+
+
+@dataclass(frozen=True)
+class IdentityParams:
+    """Settings of :class:`IdentityKeeper` (defaults in brackets).
+
+    rate_hz: descriptor requests per body per second, to every camera [3 Hz:
+        about 330 bytes per person per second per camera on the wire].
+    body_radius_m: half-width of the floor square a band box covers [0.22 m].
+    min_pixels: fewest foreground pixels of a band view that count [40].
+    min_visible: least share of a band's box that no nearer person hides [0.7].
+    max_farther_overlap: most of a band's box a farther person's box may cover
+        [0.15].
+    learn_rate: weight of one frame's views in a model once it has more than
+        ``1 / learn_rate`` frames [0.05].
+    settle_s: after two bodies came within ``close_m`` of each other, their
+        models learn only views that agree with them (distance below
+        ``agree``) for this long [3 s; 1.0 m; 0.3].
+    reid_window_s: how long a lost person can come back under their own
+        label [600 s].
+    reid_distance: largest appearance distance (mean Hellinger over bands) at
+        which a new body takes a lost person's label [0.3].
+    reid_margin: the best lost person must beat the next by this much [0.08].
+    near_s, near_m: a lost person whose body was lost less than ``near_s``
+        ago within ``near_m`` of the new body (or whose body merged into a
+        neighbour now within ``near_m``) is taken at a looser distance,
+        ``near_distance`` [4 s, 1.2 m, 0.45], and with no views at all when
+        they are the only such person.
+    height_tolerance_m: standing heights further apart than this count
+        against a match, by ``(difference - tolerance) / 0.1 m`` [0.06 m].
+    swap_margin, swap_evidence: a frame adds the amount by which the swapped
+        labels explain the two bodies' views better, less the margin; the
+        labels swap once the sum passes the evidence [0.05, 0.6].
+    min_model_frames: frames a model needs before it is compared [5].
+    """
+
+    rate_hz: float = 3.0
+    body_radius_m: float = 0.22
+    min_pixels: int = 40
+    min_visible: float = 0.7
+    max_farther_overlap: float = 0.15
+    learn_rate: float = 0.05
+    settle_s: float = 3.0
+    close_m: float = 1.0
+    agree: float = 0.3
+    reid_window_s: float = 600.0
+    reid_distance: float = 0.3
+    reid_margin: float = 0.08
+    near_s: float = 4.0
+    near_m: float = 1.2
+    near_distance: float = 0.45
+    height_tolerance_m: float = 0.06
+    swap_margin: float = 0.05
+    swap_evidence: float = 0.6
+    min_model_frames: int = 5
+
+    def __post_init__(self) -> None:
+        for name in ("rate_hz", "body_radius_m", "learn_rate", "reid_window_s"):
+            value = float(getattr(self, name))
+            if not (math.isfinite(value) and value > 0):
+                raise ValueError(f"{name} must be a positive number, got {getattr(self, name)!r}")
+        for name in ("min_visible", "max_farther_overlap", "agree", "reid_distance", "reid_margin",
+                     "near_distance", "swap_margin", "learn_rate"):
+            value = float(getattr(self, name))
+            if not 0 <= value <= 1:
+                raise ValueError(f"{name} must lie in [0, 1], got {getattr(self, name)!r}")
+        for name in ("settle_s", "close_m", "near_s", "near_m", "height_tolerance_m", "swap_evidence"):
+            value = float(getattr(self, name))
+            if not (math.isfinite(value) and value >= 0):
+                raise ValueError(f"{name} must be a finite non-negative number, got {getattr(self, name)!r}")
+        for name in ("min_pixels", "min_model_frames"):
+            if int(getattr(self, name)) < 0:
+                raise ValueError(f"{name} must be a non-negative int, got {getattr(self, name)!r}")
+
+
+@dataclass
+class AppearanceModel:
+    """A person's long-term appearance: per band a normalised colour histogram and
+    the number of frames it has learnt; the standing height (metres, NaN unknown)."""
+
+    hist: np.ndarray = field(default_factory=lambda: np.zeros((_N_BANDS, appearance.N_BINS)))
+    frames: np.ndarray = field(default_factory=lambda: np.zeros(_N_BANDS))
+    height_m: float = float("nan")
+    height_frames: int = 0
+
+    def learn(self, view: "View", learn_rate: float, height_m: float | None) -> None:
+        """Take one frame's views (bands without views are left as they are)."""
+        for k in range(_N_BANDS):
+            if view.weight[k] <= 0:
+                continue
+            self.frames[k] += 1
+            rate = max(learn_rate, 1.0 / self.frames[k])
+            self.hist[k] += rate * (view.hist[k] - self.hist[k])
+        if height_m is not None and math.isfinite(height_m):
+            self.height_frames += 1
+            rate = max(learn_rate, 1.0 / self.height_frames)
+            self.height_m = height_m if not math.isfinite(self.height_m) else self.height_m + rate * (height_m - self.height_m)
+
+    def mature(self, min_frames: int) -> bool:
+        return bool(self.frames[1] >= min_frames or self.frames.sum() >= 2 * min_frames)
+
+    def distance(self, view: "View") -> float | None:
+        """Mean Hellinger distance over the bands both hold, weighted by the view's
+        weights; None when they share no band."""
+        total = weight = 0.0
+        for k in range(_N_BANDS):
+            if view.weight[k] <= 0 or self.frames[k] <= 0:
+                continue
+            w = view.weight[k] * min(1.0, self.frames[k] / 3.0)
+            total += w * appearance.hellinger(self.hist[k], view.hist[k])
+            weight += w
+        return total / weight if weight > 0 else None
+
+    def as_view(self) -> "View":
+        return View(hist=self.hist.copy(), weight=np.minimum(self.frames, 10.0) / 10.0)
+
+    def to_dict(self) -> dict:
+        return {"bands": list(appearance.BANDS), "hist": np.round(self.hist, 5).tolist(),
+                "frames": self.frames.tolist(), "height_m": None if not math.isfinite(self.height_m) else self.height_m,
+                "height_frames": self.height_frames}
+
+    @classmethod
+    def from_dict(cls, d: Mapping, *, where: str = "appearance model") -> "AppearanceModel":
+        try:
+            if list(d["bands"]) != list(appearance.BANDS):
+                raise ValueError(f"bands must be {list(appearance.BANDS)}, got {d['bands']!r}")
+            hist = np.asarray(d["hist"], dtype=np.float64)
+            frames = np.asarray(d["frames"], dtype=np.float64)
+            if hist.shape != (_N_BANDS, appearance.N_BINS) or frames.shape != (_N_BANDS,):
+                raise ValueError(f"hist must be {_N_BANDS}x{appearance.N_BINS} and frames {_N_BANDS} numbers")
+            if not (np.all(np.isfinite(hist)) and np.all(hist >= 0) and np.all(frames >= 0)):
+                raise ValueError("hist and frames must be finite and non-negative")
+            height = d.get("height_m")
+            height = float("nan") if height is None else float(height)
+            return cls(hist=hist, frames=frames, height_m=height, height_frames=int(d.get("height_frames", 0)))
+        except (KeyError, TypeError, ValueError) as exc:
+            raise ValueError(f"{where}: {exc}") from None
+
+
+@dataclass
+class View:
+    """One frame's views of a body: per band a normalised histogram and a weight in [0, 1]
+    (0: no clean view of that band)."""
+
+    hist: np.ndarray
+    weight: np.ndarray
+
+    @property
+    def empty(self) -> bool:
+        return not bool(np.any(self.weight > 0))
+
+
+@dataclass(frozen=True)
+class Resident:
+    """A person enrolled in the site: their name and appearance model."""
+
+    name: str
+    model: AppearanceModel
+
+
+@dataclass
+class _Person:
+    label: int
+    model: AppearanceModel
+    name: str | None = None
+
+
+@dataclass
+class _Body:
+    label: int  # negative until the tracker first confirms the target
+    next_ask_ns: int = -(2**62)
+    views: deque = field(default_factory=lambda: deque(maxlen=8))  # recent (stamp, View)
+    view: View | None = None  # this frame's
+    xy: tuple[float, float] = (0.0, 0.0)
+    stamp_ns: int = 0
+    close_until_ns: int = -(2**62)
+    close_to: set[int] = field(default_factory=set)  # targets this one came close to recently
+
+
+@dataclass
+class _Lost:
+    person: _Person
+    xy: tuple[float, float]
+    lost_ns: int
+    partner: int | None  # target id of the body it merged into, if any
+
+
+class IdentityKeeper:
+    """Labels for the tracker's targets, appearance models for the people behind them.
+
+    cameras: camera id -> full-resolution camera (for the regions).
+    params: :class:`IdentityParams`.
+    residents: enrolled people; their labels come first (1, 2, ...).
+    """
+
+    def __init__(self, cameras: Mapping[str, Camera], params: IdentityParams | None = None,
+                 residents: Sequence[Resident] = ()) -> None:
+        self.cameras = dict(cameras)
+        self.p = params if params is not None else IdentityParams()
+        self._bodies: dict[int, _Body] = {}
+        self._people: dict[int, _Person] = {}
+        self._lost: dict[int, _Lost] = {}
+        self._labels = itertools.count(1)
+        self._asked: dict[str, dict[int, np.ndarray]] = {}  # camera -> target -> usable bands
+        self._swap_evidence: dict[tuple[int, int], float] = {}
+        self.swaps = 0
+        self.reclaimed = 0
+        for r in residents:
+            label = next(self._labels)
+            person = _Person(label=label, model=r.model, name=r.name)
+            self._lost[label] = _Lost(person=person, xy=(math.nan, math.nan), lost_ns=2**62, partner=None)
+
+    # ------------------------------------------------------------------ per frame
+
+    def assign(self, estimates: Sequence, looks: Mapping[str, Iterable[Appearance]], stamp_ns: int) -> dict[int, int]:
+        """Take this frame's descriptors and give every target its label.
+
+        estimates: the tracker's estimates (``id`` is the target id; ``x``, ``y``,
+            ``confirmed``). looks: camera id -> the descriptors that came with its mask.
+        Returns {target id: label} for every live target; labels change only for
+        targets the tracker just confirmed (and for swapped pairs).
+        """
+        p = self.p
+        live = {int(e.id): e for e in estimates}
+        for tid in [t for t in self._bodies if t not in live]:
+            self._forget(tid, live, stamp_ns)
+        for tid, est in live.items():
+            body = self._bodies.get(tid)
+            if body is None:
+                body = self._bodies[tid] = _Body(label=-tid)
+            body.xy, body.stamp_ns, body.view = (float(est.x), float(est.y)), stamp_ns, None
+        self._take_looks(looks, stamp_ns)
+        self._mark_close(live, stamp_ns)
+        for tid, est in sorted(live.items()):
+            body = self._bodies[tid]
+            if body.label < 0 and est.confirmed:
+                self._label_new(tid, body, stamp_ns)
+        self._check_swaps(live, stamp_ns)
+        self._expire(stamp_ns)
+        return {tid: self._bodies[tid].label for tid in live}
+
+    def learn(self, estimates: Sequence, standing: Mapping[int, float], stamp_ns: int) -> None:
+        """Let each labelled, confirmed body's person learn this frame's views.
+
+        standing: target id -> standing height (metres) for the bodies that read
+        standing this frame; only those learn.
+        """
+        p = self.p
+        for est in estimates:
+            tid = int(est.id)
+            body = self._bodies.get(tid)
+            if body is None or body.label < 0 or not est.confirmed or tid not in standing:
+                continue
+            person = self._people[body.label]
+            view = body.view
+            if view is None or view.empty:
+                continue
+            if stamp_ns < body.close_until_ns and person.model.mature(p.min_model_frames):
+                d = person.model.distance(view)
+                if d is None or d > p.agree:
+                    continue
+            person.model.learn(view, p.learn_rate, standing[tid])
+
+    def regions(self, estimates: Sequence, stamp_ns: int) -> dict[str, list[PersonRegion]]:
+        """Per camera, the regions of the targets due for a descriptor (sent as a
+        :class:`~common.messages.LookRequest`); cameras with none are left out."""
+        p = self.p
+        due = []
+        for est in estimates:
+            body = self._bodies.get(int(est.id))
+            if body is not None and stamp_ns >= body.next_ask_ns:
+                due.append(est)
+                body.next_ask_ns = stamp_ns + int(round(1e9 / p.rate_hz))
+        if not due:
+            return {}
+        everyone = list(estimates)
+        out: dict[str, list[PersonRegion]] = {}
+        for cam_id, cam in self.cameras.items():
+            boxes, depths = _band_boxes(cam, everyone, p.body_radius_m)
+            asked = self._asked.setdefault(cam_id, {})
+            regions = []
+            for est in due:
+                i = everyone.index(est)
+                if depths[i] is None or not any(_area(b) for b in boxes[i]):
+                    continue
+                usable = np.array([_farther_overlap(boxes[i][k], i, boxes, depths) <= p.max_farther_overlap
+                                   for k in range(_N_BANDS)])
+                asked[int(est.id)] = usable
+                regions.append(PersonRegion(track=int(est.id), depth_m=float(depths[i]),
+                                            boxes=[tuple(int(v) for v in b) for b in boxes[i]]))
+            if regions:
+                out[cam_id] = regions
+        return out
+
+    # ------------------------------------------------------------------ queries
+
+    def name_of(self, label: int) -> str | None:
+        person = self._people.get(label)
+        return person.name if person is not None else None
+
+    def model_of(self, label: int) -> AppearanceModel | None:
+        person = self._people.get(label)
+        return person.model if person is not None else None
+
+    # ------------------------------------------------------------------ internals
+
+    def _take_looks(self, looks: Mapping[str, Iterable[Appearance]], stamp_ns: int) -> None:
+        p = self.p
+        sums: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+        for cam_id, items in looks.items():
+            asked = self._asked.get(cam_id, {})
+            for look in items:
+                tid = int(look.track)
+                usable = asked.pop(tid, None)
+                if tid not in self._bodies or usable is None:
+                    continue
+                hist = np.frombuffer(look.hist, dtype=np.uint8).reshape(_N_BANDS, appearance.N_BINS).astype(np.float64)
+                acc = sums.setdefault(tid, (np.zeros((_N_BANDS, appearance.N_BINS)), np.zeros(_N_BANDS)))
+                for k in range(_N_BANDS):
+                    if not usable[k] or look.pixels[k] < p.min_pixels or look.visible[k] < p.min_visible:
+                        continue
+                    total = hist[k].sum()
+                    if total <= 0:
+                        continue
+                    w = min(1.0, look.pixels[k] / 400.0) * float(look.visible[k])
+                    acc[0][k] += w * hist[k] / total
+                    acc[1][k] += w
+        for tid, (h, w) in sums.items():
+            body = self._bodies[tid]
+            norm = np.where(w > 0, w, 1.0)[:, None]
+            view = View(hist=h / norm, weight=np.minimum(w, 1.0))
+            if not view.empty:
+                body.view = view
+                body.views.append((stamp_ns, view))
+
+    def _mark_close(self, live: Mapping[int, object], stamp_ns: int) -> None:
+        p = self.p
+        until = stamp_ns + int(round(p.settle_s * 1e9))
+        for a, b in itertools.combinations(sorted(live), 2):
+            ba, bb = self._bodies[a], self._bodies[b]
+            if math.dist(ba.xy, bb.xy) < p.close_m:
+                ba.close_until_ns = bb.close_until_ns = until
+                ba.close_to.add(b)
+                bb.close_to.add(a)
+        for body in self._bodies.values():
+            if stamp_ns >= body.close_until_ns:
+                body.close_to.clear()
+
+    def _recent_view(self, body: _Body) -> View | None:
+        """The body's views so far, averaged."""
+        if not body.views:
+            return None
+        h = np.zeros((_N_BANDS, appearance.N_BINS))
+        w = np.zeros(_N_BANDS)
+        for _, v in body.views:
+            h += v.weight[:, None] * v.hist
+            w += v.weight
+        return View(hist=h / np.where(w > 0, w, 1.0)[:, None], weight=np.minimum(w, 1.0))
+
+    def _label_new(self, tid: int, body: _Body, stamp_ns: int) -> None:
+        p = self.p
+        view = self._recent_view(body)
+        scored = []
+        for label, lost in self._lost.items():
+            near = self._near(lost, body, stamp_ns)
+            d = lost.person.model.distance(view) if view is not None else None
+            if d is not None:
+                d += self._height_penalty(lost.person.model, body)
+            scored.append((label, near, d))
+        chosen = None
+        with_d = sorted((d, label, near) for label, near, d in scored if d is not None)
+        if with_d:
+            d0, label0, near0 = with_d[0]
+            d1 = with_d[1][0] if len(with_d) > 1 else math.inf
+            limit = p.near_distance if near0 else p.reid_distance
+            if d0 <= limit and (d1 - d0 >= p.reid_margin or near0 and not any(n for _, l, n in with_d[1:] if n)):
+                chosen = label0
+        if chosen is None:
+            near_only = [label for label, near, d in scored if near]
+            if len(near_only) == 1 and not with_d:
+                chosen = near_only[0]
+        if chosen is not None:
+            lost = self._lost.pop(chosen)
+            self._people[chosen] = lost.person
+            body.label = chosen
+            self.reclaimed += 1
+        else:
+            label = next(self._labels)
+            self._people[label] = _Person(label=label, model=AppearanceModel())
+            body.label = label
+        if view is not None:
+            self._people[body.label].model.learn(view, p.learn_rate, None)
+
+    def _height_penalty(self, model: AppearanceModel, body: _Body) -> float:
+        return 0.0  # the new body's standing height is not known at confirmation
+
+    def _near(self, lost: _Lost, body: _Body, stamp_ns: int) -> bool:
+        p = self.p
+        if stamp_ns - lost.lost_ns > p.near_s * 1e9 or stamp_ns < lost.lost_ns:
+            return False
+        if lost.partner is not None and lost.partner in self._bodies:
+            if math.dist(self._bodies[lost.partner].xy, body.xy) < p.near_m:
+                return True
+        return math.dist(lost.xy, body.xy) < p.near_m
+
+    def _forget(self, tid: int, live: Mapping[int, object], stamp_ns: int) -> None:
+        body = self._bodies.pop(tid)
+        for asked in self._asked.values():
+            asked.pop(tid, None)
+        if body.label < 0:
+            return
+        person = self._people.pop(body.label)
+        partner = None
+        nearest = math.inf
+        for other, ob in self._bodies.items():
+            if other in live:
+                d = math.dist(ob.xy, body.xy)
+                if d < 0.5 and d < nearest:
+                    partner, nearest = other, d
+        self._lost[body.label] = _Lost(person=person, xy=body.xy, lost_ns=stamp_ns, partner=partner)
+
+    def _expire(self, stamp_ns: int) -> None:
+        window = self.p.reid_window_s * 1e9
+        for label in [l for l, lost in self._lost.items() if lost.person.name is None and stamp_ns - lost.lost_ns > window]:
+            del self._lost[label]
+
+    def _check_swaps(self, live: Mapping[int, object], stamp_ns: int) -> None:
+        p = self.p
+        seen: set[tuple[int, int]] = set()
+        for a in sorted(live):
+            ba = self._bodies[a]
+            for b in sorted(ba.close_to):
+                if b <= a or b not in live:
+                    continue
+                key = (a, b)
+                seen.add(key)
+                bb = self._bodies[b]
+                if ba.label < 0 or bb.label < 0 or ba.view is None or bb.view is None:
+                    continue
+                if math.dist(ba.xy, bb.xy) < p.close_m:
+                    continue  # still together: their views mix
+                ma, mb = self._people[ba.label].model, self._people[bb.label].model
+                if not (ma.mature(p.min_model_frames) and mb.mature(p.min_model_frames)):
+                    continue
+                d = [ma.distance(ba.view), mb.distance(bb.view), ma.distance(bb.view), mb.distance(ba.view)]
+                if any(x is None for x in d):
+                    continue
+                gain = (d[0] + d[1]) - (d[2] + d[3]) - p.swap_margin
+                e = max(0.0, self._swap_evidence.get(key, 0.0) + gain)
+                if e >= p.swap_evidence:
+                    ba.label, bb.label = bb.label, ba.label
+                    self.swaps += 1
+                    e = 0.0
+                self._swap_evidence[key] = e
+        self._swap_evidence = {k: v for k, v in self._swap_evidence.items() if k in seen}
+
+
+def _band_boxes(cam: Camera, estimates: Sequence, radius_m: float):
+    """Per estimate, its band boxes in ``cam`` (full-resolution pixels, clipped; empty
+    ``(0, 0, 0, 0)`` when out of view) and its distance from the camera (None when its
+    body's centre projects nowhere)."""
+    n = len(estimates)
+    corners = []
+    for est in estimates:
+        top = max(float(est.z_top_m), 0.3)
+        for lo, hi in appearance.BAND_FRACTIONS:
+            for x, y, z in itertools.product((est.x - radius_m, est.x + radius_m), (est.y - radius_m, est.y + radius_m),
+                                             (lo * top, hi * top)):
+                corners.append((x, y, z))
+    pts = np.asarray(corners, dtype=np.float64).reshape(n, _N_BANDS, 8, 3)
+    uv, valid = cam.project(pts.reshape(-1, 3))
+    uv = uv.reshape(n, _N_BANDS, 8, 2)
+    valid = valid.reshape(n, _N_BANDS, 8)
+    centre = cam.center
+    boxes, depths = [], []
+    for i, est in enumerate(estimates):
+        person = []
+        for k in range(_N_BANDS):
+            if not valid[i, k].all():
+                person.append((0, 0, 0, 0))  # partly off the image or behind: no clean view
+                continue
+            x0, y0 = np.floor(uv[i, k].min(axis=0)).astype(int)
+            x1, y1 = np.ceil(uv[i, k].max(axis=0)).astype(int) + 1
+            box = (max(0, x0), max(0, y0), min(cam.width, x1), min(cam.height, y1))
+            person.append(box if box[2] > box[0] and box[3] > box[1] else (0, 0, 0, 0))
+        boxes.append(person)
+        mid = np.array([est.x, est.y, 0.5 * max(float(est.z_top_m), 0.3)])
+        depths.append(float(np.linalg.norm(mid - centre)) if valid[i].any() else None)
+    return boxes, depths
+
+
+def _area(box) -> int:
+    return max(0, box[2] - box[0]) * max(0, box[3] - box[1])
+
+
+def _farther_overlap(box, i: int, boxes, depths) -> float:
+    """Largest share of ``box`` covered by one band box of a person farther than person ``i``."""
+    area = _area(box)
+    if area == 0:
+        return 1.0
+    worst = 0.0
+    for j, other in enumerate(boxes):
+        if j == i or depths[j] is None or depths[i] is None or depths[j] <= depths[i]:
+            continue
+        for b in other:
+            w = min(box[2], b[2]) - max(box[0], b[0])
+            h = min(box[3], b[3]) - max(box[1], b[1])
+            if w > 0 and h > 0:
+                worst = max(worst, w * h / area)
+    return worst
