@@ -227,6 +227,8 @@ class _Body:
     stamp_ns: int = 0
     close_until_ns: int = -(2**62)
     close_to: set[int] = field(default_factory=set)  # targets this one came close to recently
+    born_ns: int = 0
+    fresh_until_ns: int = 0  # a new label that may yet give way to a neighbour's (see _exchange)
 
 
 @dataclass
@@ -279,7 +281,8 @@ class IdentityKeeper:
         for tid, est in live.items():
             body = self._bodies.get(tid)
             if body is None:
-                body = self._bodies[tid] = _Body(label=-tid)
+                body = self._bodies[tid] = _Body(label=-tid, born_ns=stamp_ns)
+                self._ask_partners(est)
             body.xy, body.stamp_ns, body.view = (float(est.x), float(est.y)), stamp_ns, None
         self._take_looks(looks, stamp_ns)
         self._mark_close(live, stamp_ns)
@@ -287,6 +290,11 @@ class IdentityKeeper:
             body = self._bodies[tid]
             if body.label < 0 and est.confirmed:
                 self._label_new(tid, body, stamp_ns)
+            elif stamp_ns < body.fresh_until_ns and body.view is not None:
+                fresh = body.label
+                if self._exchange(body, self._recent_view(body), stamp_ns):
+                    del self._people[fresh]  # a label nobody needs any more
+                    body.fresh_until_ns = 0
         self._check_swaps(live, stamp_ns)
         self._expire(stamp_ns)
         return {tid: self._bodies[tid].label for tid in live}
@@ -394,57 +402,88 @@ class IdentityKeeper:
                 ba.close_until_ns = bb.close_until_ns = until
                 ba.close_to.add(b)
                 bb.close_to.add(a)
+        for lost in self._lost.values():
+            partner = self._bodies.get(lost.partner) if lost.partner is not None else None
+            if partner is not None and stamp_ns - lost.lost_ns < 60e9:
+                partner.close_until_ns = max(partner.close_until_ns, until)  # two people in one body
         for body in self._bodies.values():
             if stamp_ns >= body.close_until_ns:
                 body.close_to.clear()
 
     def _recent_view(self, body: _Body) -> View | None:
-        """The body's views so far, averaged."""
-        if not body.views:
-            return None
-        h = np.zeros((_N_BANDS, appearance.N_BINS))
-        w = np.zeros(_N_BANDS)
-        for _, v in body.views:
-            h += v.weight[:, None] * v.hist
-            w += v.weight
-        return View(hist=h / np.where(w > 0, w, 1.0)[:, None], weight=np.minimum(w, 1.0))
+        """The body's views so far (the last few), averaged."""
+        return _view_since(body, -(2**62))
 
     def _label_new(self, tid: int, body: _Body, stamp_ns: int) -> None:
+        """Give a body the tracker just confirmed its label: a lost person's, or a new one."""
         p = self.p
         view = self._recent_view(body)
+        if view is not None and self._exchange(body, view, stamp_ns):
+            return
         scored = []
         for label, lost in self._lost.items():
-            near = self._near(lost, body, stamp_ns)
             d = lost.person.model.distance(view) if view is not None else None
-            if d is not None:
-                d += self._height_penalty(lost.person.model, body)
-            scored.append((label, near, d))
+            scored.append((label, self._near(lost, body, stamp_ns), d))
         chosen = None
         with_d = sorted((d, label, near) for label, near, d in scored if d is not None)
         if with_d:
             d0, label0, near0 = with_d[0]
             d1 = with_d[1][0] if len(with_d) > 1 else math.inf
-            limit = p.near_distance if near0 else p.reid_distance
-            if d0 <= limit and (d1 - d0 >= p.reid_margin or near0 and not any(n for _, l, n in with_d[1:] if n)):
+            others_near = any(near for _, _, near in with_d[1:])
+            if d0 <= (p.near_distance if near0 else p.reid_distance) and (
+                    d1 - d0 >= p.reid_margin or (near0 and not others_near)):
                 chosen = label0
-        if chosen is None:
-            near_only = [label for label, near, d in scored if near]
-            if len(near_only) == 1 and not with_d:
+        elif view is None:
+            near_only = [label for label, near, _ in scored if near]
+            if len(near_only) == 1:
                 chosen = near_only[0]
         if chosen is not None:
-            lost = self._lost.pop(chosen)
-            self._people[chosen] = lost.person
-            body.label = chosen
-            self.reclaimed += 1
+            self._reclaim(body, chosen)
         else:
             label = next(self._labels)
             self._people[label] = _Person(label=label, model=AppearanceModel())
             body.label = label
+            body.fresh_until_ns = stamp_ns + int(round(p.near_s * 1e9))
         if view is not None:
             self._people[body.label].model.learn(view, p.learn_rate, None)
 
-    def _height_penalty(self, model: AppearanceModel, body: _Body) -> float:
-        return 0.0  # the new body's standing height is not known at confirmation
+    def _ask_partners(self, est) -> None:
+        """A new body beside a body a lost person merged into: ask for the neighbour's views
+        at once too, to tell which of the two is which."""
+        for lost in self._lost.values():
+            partner = self._bodies.get(lost.partner) if lost.partner is not None else None
+            if partner is not None and math.dist(partner.xy, (float(est.x), float(est.y))) < self.p.near_m:
+                partner.next_ask_ns = -(2**62)
+
+    def _exchange(self, body: _Body, view: View, stamp_ns: int) -> bool:
+        """A body split off a neighbour that a lost person's body had merged into: when
+        the neighbour's own person explains the new body's views better, and the lost
+        person the neighbour's (the tracker kept the wrong one on the neighbour), the
+        new body takes the neighbour's label and the neighbour the lost person's."""
+        p = self.p
+        for label, lost in self._lost.items():
+            partner = self._bodies.get(lost.partner) if lost.partner is not None else None
+            if partner is None or partner.label < 0 or not self._near(lost, body, stamp_ns):
+                continue
+            pview = _view_since(partner, body.born_ns)
+            mine, theirs = lost.person.model, self._people[partner.label].model
+            if pview is None or not (mine.mature(p.min_model_frames) and theirs.mature(p.min_model_frames)):
+                continue
+            d = [mine.distance(view), theirs.distance(pview), theirs.distance(view), mine.distance(pview)]
+            if any(x is None for x in d):
+                continue
+            if d[2] + d[3] + p.swap_margin < d[0] + d[1] and d[2] <= p.near_distance:
+                body.label = partner.label
+                self._reclaim(partner, label)
+                self.swaps += 1
+                return True
+        return False
+
+    def _reclaim(self, body: _Body, label: int) -> None:
+        lost = self._lost.pop(label)
+        self._people[label] = lost.person
+        body.label = label
+        self.reclaimed += 1
 
     def _near(self, lost: _Lost, body: _Body, stamp_ns: int) -> bool:
         p = self.p
@@ -505,6 +544,16 @@ class IdentityKeeper:
                     e = 0.0
                 self._swap_evidence[key] = e
         self._swap_evidence = {k: v for k, v in self._swap_evidence.items() if k in seen}
+
+
+def _view_since(body: _Body, since_ns: int) -> View | None:
+    """The body's views from ``since_ns`` on, averaged (None when there are none)."""
+    views = [v for t, v in body.views if t >= since_ns]
+    if not views:
+        return None
+    h = sum(v.weight[:, None] * v.hist for v in views)
+    w = sum(v.weight for v in views)
+    return View(hist=h / np.where(w > 0, w, 1.0)[:, None], weight=np.minimum(w, 1.0))
 
 
 def _band_boxes(cam: Camera, estimates: Sequence, radius_m: float):
