@@ -43,6 +43,11 @@ class LookAnswerer:
         self.answered = 0
         self.expired = 0
 
+    @property
+    def pending(self) -> bool:
+        """Whether a request waits for a frame."""
+        return self._request is not None
+
     def ask(self, request: LookRequest) -> None:
         """A new request replaces one not yet answered (same people, newer boxes)."""
         self._request = request

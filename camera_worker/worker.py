@@ -2,8 +2,9 @@
 
 :func:`run` is the only part that talks to zenoh, reads the clock or
 sleeps. Per frame it calls the pure pieces: :meth:`HoldBook.boxes` (hold
-regions still in force), ``ForegroundSegmenter.apply`` and
-:func:`build_mask_frame` (:func:`step` is the two together).
+regions still in force), ``ForegroundSegmenter.apply``,
+:meth:`~camera_worker.looks.LookAnswerer.answer` (only while a look request
+is pending) and :func:`build_mask_frame` (:func:`step` is them together).
 
 What :func:`run` does:
 
@@ -19,8 +20,15 @@ What :func:`run` does:
   :class:`~common.messages.HoldRegions` from ``<p>/cam/<cam>/hold`` through a
   ring channel (never a growing queue); broken hold messages are counted and
   dropped with a rate-limited log line;
-* counts frames read, dropped and published, and the time of each stage
-  (read, segment, encode, publish), logged every ``stats_period_s``.
+* takes :class:`~common.messages.LookRequest` from ``<p>/cam/<cam>/look`` the
+  same way (a broken one, or one for another camera, is counted and dropped
+  with a rate-limited line naming the key and the problem); the newest
+  request is answered on the next frame segmented, its colour descriptors
+  travelling in that frame's ``MaskFrame.looks`` (a request older than its
+  time to live by then is counted as expired and left unanswered);
+* counts frames read, dropped and published, look requests answered,
+  expired and rejected, and the time of each stage (read, segment, looks,
+  encode, publish), logged every ``stats_period_s``.
 
 :func:`measure_worker` times the same stages on a synthetic 640x480 clip for
 the benchmark command.
@@ -38,8 +46,10 @@ from pathlib import Path
 from typing import Any, Sequence
 
 import cv2
+import msgpack
 import numpy as np
 
+from camera_worker.looks import LookAnswerer
 from camera_worker.segmentation import Box, ForegroundSegmenter, SegmentStats, window_frames_for
 from camera_worker.sources import (
     Frame,
@@ -50,7 +60,7 @@ from camera_worker.sources import (
     open_source,
 )
 from common import keys, maskcodec, messages
-from common.messages import HoldRegions, MaskFrame, WireError
+from common.messages import Appearance, HoldRegions, LookRequest, MaskFrame, PersonRegion, WireError
 from common.ratelog import RateLimitedLog
 
 __all__ = [
@@ -60,6 +70,7 @@ __all__ = [
     "WorkerCounters",
     "WorkerSettings",
     "build_mask_frame",
+    "looks_bytes",
     "measure_worker",
     "run",
     "step",
@@ -67,8 +78,9 @@ __all__ = [
 
 log = logging.getLogger("voxelwatch.camera")
 
-STAGES = ("read", "segment", "encode", "publish")
-"""The timed stages of one frame, in order."""
+STAGES = ("read", "segment", "looks", "encode", "publish")
+"""The timed stages of one frame, in order (``looks``: answering a look request, nearly
+nothing on the frames without one)."""
 
 
 @dataclass(frozen=True)
@@ -108,6 +120,7 @@ class WorkerSettings:
     backoff_s: float = 0.5
     max_backoff_s: float = 30.0
     hold_queue: int = 8
+    look_queue: int = 4
     expected_size: tuple[int, int] | None = None
 
     def __post_init__(self) -> None:
@@ -121,6 +134,8 @@ class WorkerSettings:
             raise ValueError(f"stats_period_s must be > 0, got {self.stats_period_s!r}")
         if self.hold_queue < 1:
             raise ValueError(f"hold_queue must be >= 1, got {self.hold_queue!r}")
+        if self.look_queue < 1:
+            raise ValueError(f"look_queue must be >= 1, got {self.look_queue!r}")
 
 
 @dataclass
@@ -128,8 +143,10 @@ class WorkerCounters:
     """What a worker has done since it started; ``state`` is ``ok``, ``degraded`` or ``stopped``.
 
     ``dropped``: frames captured but never segmented (newest-wins buffer
-    overwrote them). ``stage_s``: total seconds per stage; ``timed``: frames
-    timed.
+    overwrote them). ``looks_answered``/``looks_expired``: look requests
+    answered on a frame, or found older than their time to live;
+    ``looks_rejected``: look messages dropped (broken, or for another camera).
+    ``stage_s``: total seconds per stage; ``timed``: frames timed.
     """
 
     read: int = 0
@@ -138,6 +155,9 @@ class WorkerCounters:
     publish_errors: int = 0
     holds_accepted: int = 0
     holds_rejected: int = 0
+    looks_answered: int = 0
+    looks_expired: int = 0
+    looks_rejected: int = 0
     source_failures: int = 0
     reconnects: int = 0
     light_changes: int = 0
@@ -199,8 +219,10 @@ def build_mask_frame(
     src_size: tuple[int, int],
     codec: str = maskcodec.DEFAULT_CODEC,
     fg_fraction: float | None = None,
+    looks: Sequence[Appearance] = (),
 ) -> MaskFrame:
-    """The wire message of one mask. ``mask``: ``(h, w) uint8`` 0/255; ``src_size``: capture ``(W, H)``."""
+    """The wire message of one mask. ``mask``: ``(h, w) uint8`` 0/255; ``src_size``: capture ``(W, H)``;
+    ``looks``: the colour descriptors answering a look request on this frame."""
     h, w = mask.shape
     if fg_fraction is None:
         fg_fraction = float(np.count_nonzero(mask)) / mask.size
@@ -208,6 +230,7 @@ def build_mask_frame(
         cam=cam, seq=int(seq), stamp_ns=int(stamp_ns), width=int(w), height=int(h),
         src_width=int(src_size[0]), src_height=int(src_size[1]), codec=codec,
         data=maskcodec.encode_mask(mask, codec), fg_fraction=min(1.0, max(0.0, float(fg_fraction))),
+        looks=list(looks),
     )
 
 
@@ -219,12 +242,15 @@ def step(
     seq: int,
     holds: Sequence[Box] = (),
     codec: str = maskcodec.DEFAULT_CODEC,
+    answerer: LookAnswerer | None = None,
 ) -> tuple[MaskFrame, np.ndarray, SegmentStats]:
-    """Segment one frame and wrap its mask for the wire: ``(message, mask, stats)``."""
+    """Segment one frame and wrap its mask for the wire: ``(message, mask, stats)``; with an
+    ``answerer`` holding a request, the message carries its answer on this frame."""
     mask, stats = segmenter.apply(frame.image, holds=holds)
     h, w = frame.image.shape[:2]
+    looks = answerer.answer(frame.image, mask, frame.stamp_ns) if answerer is not None and answerer.pending else []
     msg = build_mask_frame(mask, cam=cam, seq=seq, stamp_ns=frame.stamp_ns, src_size=(w, h), codec=codec,
-                           fg_fraction=stats.fg_fraction)
+                           fg_fraction=stats.fg_fraction, looks=looks)
     return msg, mask, stats
 
 
@@ -280,13 +306,15 @@ def run(session: Any, settings: WorkerSettings, *, stop: threading.Event | None 
         congestion_control=zenoh.CongestionControl.DROP, express=True)
     hold_sub = session.declare_subscriber(keys.hold_key(settings.prefix, settings.cam),
                                           zenoh.handlers.RingChannel(settings.hold_queue))
-    loop = _Loop(settings, segmenter, source, publisher, hold_sub, counters, stop)
+    look_sub = session.declare_subscriber(keys.look_key(settings.prefix, settings.cam),
+                                          zenoh.handlers.RingChannel(settings.look_queue))
+    loop = _Loop(settings, segmenter, source, publisher, hold_sub, look_sub, counters, stop)
     try:
         return loop.run()
     finally:
         counters.state = "stopped"
         loop.close()
-        for entity in (hold_sub, publisher, token):
+        for entity in (look_sub, hold_sub, publisher, token):
             try:
                 entity.undeclare()
             except Exception:  # noqa: BLE001 - the session may already be closing
@@ -298,15 +326,19 @@ class _Loop:
     """The per-frame loop of :func:`run` (state that the loop shares between its stages)."""
 
     def __init__(self, settings: WorkerSettings, segmenter: ForegroundSegmenter, source: FrameSource,
-                 publisher: Any, hold_sub: Any, counters: WorkerCounters, stop: threading.Event) -> None:
+                 publisher: Any, hold_sub: Any, look_sub: Any, counters: WorkerCounters,
+                 stop: threading.Event) -> None:
         self.s = settings
         self.segmenter = segmenter
         self.source = source
         self.publisher = publisher
         self.hold_sub = hold_sub
+        self.look_sub = look_sub
+        self.look_key = keys.look_key(settings.prefix, settings.cam)
         self.c = counters
         self.stop = stop
         self.holds = HoldBook(settings.cam)
+        self.answerer = LookAnswerer()
         self.reader: LiveReader | None = None
         self.seq_offset = 0          # added to a recorded source's index: sequence numbers go on when looping
         self.last_seq = -1
@@ -315,6 +347,7 @@ class _Loop:
         self._size_warned: tuple[int, int] | None = None
         self.pace_origin: tuple[float, int] | None = None   # (monotonic s, stamp_ns) of the paced start
         self._bad_holds = RateLimitedLog(log, 5.0)
+        self._bad_looks = RateLimitedLog(log, 5.0)
         self._next_stats = time.monotonic() + settings.stats_period_s
 
     def run(self) -> int:
@@ -341,25 +374,27 @@ class _Loop:
                 self.segmenter.reset()
                 continue
             t2 = time.perf_counter()
+            looks = self._answer_looks(frame, mask)
+            t3 = time.perf_counter()
             h, w = frame.image.shape[:2]
             self.last_seq = self.seq_offset + frame.index
             msg = build_mask_frame(mask, cam=self.s.cam, seq=self.last_seq,
                                    stamp_ns=frame.stamp_ns, src_size=(w, h), codec=self.s.codec,
-                                   fg_fraction=stats.fg_fraction)
+                                   fg_fraction=stats.fg_fraction, looks=looks)
             payload = messages.encode(msg)
-            t3 = time.perf_counter()
+            t4 = time.perf_counter()
             try:
                 self.publisher.put(payload)
                 self.c.published += 1
             except Exception as exc:  # noqa: BLE001 - zenoh errors must not stop the camera
                 self.c.publish_errors += 1
                 log.warning("camera %s: publish failed: %s", self.s.cam, exc)
-            t4 = time.perf_counter()
+            t5 = time.perf_counter()
             if stats.light_change:
                 self.c.light_changes += 1
                 log.info("camera %s: sudden light change at frame %d: re-learning the background",
                          self.s.cam, msg.seq)
-            for name, dt in zip(STAGES, (t1 - t0, t2 - t1, t3 - t2, t4 - t3)):
+            for name, dt in zip(STAGES, (t1 - t0, t2 - t1, t3 - t2, t4 - t3, t5 - t4)):
                 self.c.stage_s[name] += dt
             self.c.timed += 1
             frames += 1
@@ -460,6 +495,26 @@ class _Loop:
                 self.c.holds_rejected += 1
                 self._bad_holds.warn(f"camera {self.s.cam}", "hold", f"hold message dropped: {exc}", time.monotonic())
 
+    def _answer_looks(self, frame: Frame, mask: np.ndarray) -> list[Appearance]:
+        """Take the look requests that arrived and answer the newest on this frame ([] when none is
+        pending: one ``try_recv`` is all a frame without a request costs)."""
+        while (sample := self.look_sub.try_recv()) is not None:
+            try:
+                msg = messages.decode(sample.payload.to_bytes(), LookRequest)
+                if msg.cam != self.s.cam:
+                    raise WireError(f"LookRequest for camera {msg.cam!r} received by camera {self.s.cam!r}")
+            except WireError as exc:
+                self.c.looks_rejected += 1
+                self._bad_looks.warn(f"camera {self.s.cam}", "look",
+                                     f"look request on {self.look_key} dropped: {exc}", time.monotonic())
+                continue
+            self.answerer.ask(msg)
+        if not self.answerer.pending:
+            return []
+        looks = self.answerer.answer(frame.image, mask, frame.stamp_ns)
+        self.c.looks_answered, self.c.looks_expired = self.answerer.answered, self.answerer.expired
+        return looks
+
     def _source_event(self, text: str) -> None:
         log.warning("camera %s: %s", self.s.cam, text)
 
@@ -510,7 +565,8 @@ def _summary(c: WorkerCounters) -> str:
     ms = c.stage_ms()
     stages = ", ".join(f"{s} {ms[s]:.2f}" for s in STAGES)
     return (f"state {c.state}, read {c.read}, dropped {c.dropped}, published {c.published}, "
-            f"holds {c.holds_accepted} (rejected {c.holds_rejected}), source failures {c.source_failures}, "
+            f"holds {c.holds_accepted} (rejected {c.holds_rejected}), looks answered {c.looks_answered} "
+            f"(expired {c.looks_expired}, rejected {c.looks_rejected}), source failures {c.source_failures}, "
             f"ms/frame: {stages}")
 
 
@@ -525,6 +581,7 @@ def measure_worker(
     codec: str = maskcodec.DEFAULT_CODEC,
     mask_scale: float = 1.0,
     holds: bool = False,
+    looks: bool = False,
     n_people: int = 2,
     seed: int = 0,
     session: Any = None,
@@ -534,13 +591,17 @@ def measure_worker(
     A synthetic clip of a room with ``n_people`` walking figures (``seed``) is
     written to a temporary MJPG video and read back, so ``read`` is a real
     decode; the empty room is learned first, untimed. Each frame is segmented (with a hold box over the first figure
-    when ``holds``), encoded as a MaskFrame, and put on a zenoh publisher
+    when ``holds``), answers a look request naming every figure when ``looks``
+    (the worst case: the fusion server asks about each person a few times a
+    second, not every frame), is encoded as a MaskFrame, and put on a zenoh publisher
     (``session``, or a private peer session with no network). OpenCV runs
     with one thread for the measurement.
 
-    Returns ``{"frames", "width", "height", "mask_width", "mask_height",
+    Returns ``{"frames", "people", "looks", "width", "height", "mask_width", "mask_height",
     "ms": {stage: mean ms, "total": ...}, "fps": {stage: frames/s, "total": ...},
-    "mask_bytes_median", "mask_bytes_p95", "message_bytes_median", "fg_fraction_median"}``.
+    "mask_bytes_median", "mask_bytes_p95", "message_bytes_median", "fg_fraction_median",
+    "look_bytes_per_person"}`` (the last: encoded descriptor bytes per person answered, median
+    over frames; 0 without ``looks``).
     """
     import zenoh
 
@@ -560,13 +621,15 @@ def measure_worker(
         segmenter = ForegroundSegmenter(window_frames=500, mask_scale=mask_scale)
         with tempfile.TemporaryDirectory(prefix="vw-bench-") as tmp:
             path = Path(tmp) / "clip.avi"
-            room, boxes = _write_clip(path, n_frames, width, height, n_people, rng)
+            room, figures = _write_clip(path, n_frames, width, height, n_people, rng)
             for _ in range(30):   # the empty room first, as a background clip would give it (not timed)
                 segmenter.learn(np.clip(room + rng.normal(0, 2.0, room.shape), 0, 255).astype(np.uint8))
             stage_s = {s: 0.0 for s in STAGES}
             sizes: list[int] = []
             msg_sizes: list[int] = []
             fg: list[float] = []
+            look_sizes: list[float] = []
+            answerer = LookAnswerer()
             with VideoFileSource(path, fps=15.0) as source:
                 i = 0
                 while True:
@@ -575,20 +638,28 @@ def measure_worker(
                     if frame is None:
                         break
                     t1 = time.perf_counter()
-                    mask, stats = segmenter.apply(frame.image, holds=[boxes[i]] if holds else ())
+                    if looks:   # what arrived from the fusion server before this frame (not timed)
+                        answerer.ask(LookRequest(cam="bench", stamp_ns=frame.stamp_ns,
+                                                 people=[f.region(width, height) for f in figures[i]]))
+                    mask, stats = segmenter.apply(frame.image, holds=[figures[i][0].box(width, height)] if holds else ())
                     t2 = time.perf_counter()
-                    msg = build_mask_frame(mask, cam="bench", seq=i, stamp_ns=frame.stamp_ns,
-                                           src_size=(width, height), codec=codec, fg_fraction=stats.fg_fraction)
-                    payload = messages.encode(msg)
+                    described = answerer.answer(frame.image, mask, frame.stamp_ns) if answerer.pending else []
                     t3 = time.perf_counter()
-                    publisher.put(payload)
+                    msg = build_mask_frame(mask, cam="bench", seq=i, stamp_ns=frame.stamp_ns,
+                                           src_size=(width, height), codec=codec, fg_fraction=stats.fg_fraction,
+                                           looks=described)
+                    payload = messages.encode(msg)
                     t4 = time.perf_counter()
+                    publisher.put(payload)
+                    t5 = time.perf_counter()
                     if i >= 5:   # the first frames initialise the model and the codec
-                        for name, dt in zip(STAGES, (t1 - t0, t2 - t1, t3 - t2, t4 - t3)):
+                        for name, dt in zip(STAGES, (t1 - t0, t2 - t1, t3 - t2, t4 - t3, t5 - t4)):
                             stage_s[name] += dt
                         sizes.append(len(msg.data))
                         msg_sizes.append(len(payload))
                         fg.append(stats.fg_fraction)
+                        if described:
+                            look_sizes.append(looks_bytes(described) / len(described))
                     i += 1
         publisher.undeclare()
     finally:
@@ -601,6 +672,8 @@ def measure_worker(
     mh, mw = mask.shape
     return {
         "frames": n,
+        "people": n_people,
+        "looks": looks,
         "width": width,
         "height": height,
         "mask_width": mw,
@@ -611,14 +684,48 @@ def measure_worker(
         "mask_bytes_p95": float(np.percentile(sizes, 95)),
         "message_bytes_median": float(statistics.median(msg_sizes)),
         "fg_fraction_median": float(statistics.median(fg)),
+        "look_bytes_per_person": float(statistics.median(look_sizes)) if look_sizes else 0.0,
     }
 
 
+def looks_bytes(looks: Sequence[Appearance]) -> int:
+    """What ``looks`` add to an encoded MaskFrame, bytes (the msgpack of the list)."""
+    return len(msgpack.packb([a.model_dump(mode="python") for a in looks], use_bin_type=True))
+
+
+@dataclass(frozen=True)
+class _Figure:
+    """One walking figure of the benchmark clip: an ellipse body centred at ``(cx, top + bh / 2)``
+    of ``bw`` x ``bh`` pixels, a head circle of radius ``bw / 3`` above it; ``depth_m`` orders them."""
+
+    cx: int
+    top: int
+    bw: int
+    bh: int
+    depth_m: float
+    track: int
+
+    def box(self, width: int, height: int) -> Box:
+        """The whole figure, with a margin (a hold box)."""
+        return (max(self.cx - self.bw, 0), self.top - self.bw, min(self.cx + self.bw, width), self.top + self.bh + 4)
+
+    def region(self, width: int, height: int) -> PersonRegion:
+        """Head, torso and legs boxes as the fusion server would send them."""
+        r = self.bw // 3
+        half = self.bw // 2
+        clip = lambda x0, y0, x1, y1: (max(x0, 0), max(y0, 0), min(x1, width), min(y1, height))  # noqa: E731
+        head = clip(self.cx - r, self.top - self.bw // 3 - r, self.cx + r + 1, self.top)
+        torso = clip(self.cx - half, self.top, self.cx + half + 1, self.top + self.bh // 2)
+        legs = clip(self.cx - half, self.top + self.bh // 2, self.cx + half + 1, self.top + self.bh + 1)
+        boxes = [b if b[0] < b[2] and b[1] < b[3] else (0, 0, 0, 0) for b in (head, torso, legs)]
+        return PersonRegion(track=self.track, depth_m=self.depth_m, boxes=boxes)
+
+
 def _write_clip(path: Path, n_frames: int, width: int, height: int, n_people: int,
-                rng: np.random.Generator) -> tuple[np.ndarray, list[Box]]:
+                rng: np.random.Generator) -> tuple[np.ndarray, list[list[_Figure]]]:
     """A room (smooth textured walls, floor) with figures walking across.
 
-    Returns the empty room ``(H, W, 3) uint8`` and the first figure's box in every frame.
+    Returns the empty room ``(H, W, 3) uint8`` and every figure in every frame.
     """
     base = rng.normal(0, 1, (height // 8, width // 8, 3)).astype(np.float32)
     room = cv2.resize(cv2.GaussianBlur(base, (0, 0), 2), (width, height), interpolation=cv2.INTER_LINEAR)
@@ -630,20 +737,20 @@ def _write_clip(path: Path, n_frames: int, width: int, height: int, n_people: in
     starts = rng.uniform(0.1, 0.9, n_people) * width
     speeds = rng.uniform(0.5, 2.0, n_people) * rng.choice([-1, 1], n_people)
     colours = rng.integers(20, 235, (n_people, 3))
-    boxes: list[Box] = []
+    figures: list[list[_Figure]] = []
     try:
         for i in range(n_frames):
             img = room.copy()
+            figures.append([])
             for k in range(n_people):
                 cx = int((starts[k] + speeds[k] * i) % width)
                 bw, bh = width // 14, height // 3
                 top = height // 3
                 cv2.ellipse(img, (cx, top + bh // 2), (bw // 2, bh // 2), 0, 0, 360, colours[k].tolist(), -1)
                 cv2.circle(img, (cx, top - bw // 3), bw // 3, (90, 120, 170), -1)
-                if k == 0:
-                    boxes.append((max(cx - bw, 0), top - bw, min(cx + bw, width), top + bh + 4))
+                figures[-1].append(_Figure(cx, top, bw, bh, depth_m=2.0 + 0.5 * k, track=k + 1))
             noise = rng.normal(0, 2.0, img.shape).astype(np.float32)
             writer.write(np.clip(img + noise, 0, 255).astype(np.uint8))
     finally:
         writer.release()
-    return room, boxes
+    return room, figures

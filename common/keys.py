@@ -7,12 +7,23 @@ site may replace with any valid multi-chunk key (``care/home-12`` ...).
 |------------------------------|------------------|---------------------------------|
 | ``<p>/cam/<cam>/mask``       | worker -> fusion | ``messages.MaskFrame``          |
 | ``<p>/cam/<cam>/hold``       | fusion -> worker | ``messages.HoldRegions``        |
+| ``<p>/cam/<cam>/look``       | fusion -> worker | ``messages.LookRequest``        |
 | ``<p>/alive/cam/<cam>``      | liveliness token | none                            |
 | ``<p>/alive/fusion``         | liveliness token | none                            |
 | ``<p>/tracks``               | fusion -> users  | ``messages.TrackFrame``         |
 | ``<p>/events/<kind>/<track>``| fusion -> users  | ``messages.Event`` (JSON text)  |
 | ``<p>/history/events``       | queryable        | ``messages.Event`` per reply    |
 | ``<p>/status``               | fusion -> users  | ``messages.Status``             |
+
+Who may do what (for a site's access control): camera ``<cam>`` publishes
+``<p>/cam/<cam>/mask`` and declares ``<p>/alive/cam/<cam>``, and subscribes
+to ``<p>/cam/<cam>/hold`` and ``<p>/cam/<cam>/look``; the fusion server
+subscribes to ``<p>/cam/*/mask`` and ``<p>/alive/**``, publishes
+``<p>/cam/*/hold``, ``<p>/cam/*/look``, ``<p>/tracks``, ``<p>/events/**``
+and ``<p>/status``, declares ``<p>/alive/fusion`` and the history
+queryable; readers subscribe to tracks, events and status and query the
+history. The answers to look requests travel inside the masks
+(``MaskFrame.looks``): colour histograms, never pixels.
 
 Chunks that come from configuration (site, camera ids, event kinds) are
 checked by :func:`validate_chunk` so that a camera called ``a/b`` or ``*``
@@ -78,7 +89,7 @@ def hold_key(prefix: str, cam: str) -> str:
 
 
 def look_key(prefix: str, cam: str) -> str:
-    """Fusion -> worker: the people whose colours camera ``cam`` should describe."""
+    """``<p>/cam/<cam>/look``: the people whose colours camera ``cam`` should describe."""
     return f"{validate_prefix(prefix)}/cam/{validate_chunk(cam, 'camera id')}/look"
 
 

@@ -30,10 +30,12 @@ if TYPE_CHECKING:
     from fusion_server.carving.bench import Cylinder
     from fusion_server.pipeline import FusionPipeline
 
-SECTIONS = ("codec", "worker", "render", "carving", "tracking", "pipeline", "latency")
+SECTIONS = ("codec", "worker", "render", "carving", "tracking", "pipeline", "looks", "latency")
 
 _FPS = 15.0
 """Frame rate of the synthetic frame sets, frames per second."""
+LOOK_BUDGET_B = 1024.0
+"""Most descriptor bytes per person per second per camera the looks may cost on the wire."""
 
 
 @dataclass(frozen=True)
@@ -309,6 +311,119 @@ def measure_pipeline(pipeline: FusionPipeline, renderer, *, people: int, rng: np
             "tracks_mean": float(np.mean(tracks))}
 
 
+def bench_looks(quick: bool, *, cameras: int = 5, width: int = 640, height: int = 480,
+                room_m: tuple[float, float] = (8.0, 6.0), people: Sequence[int] | None = None,
+                describe_people: int = 4) -> dict[str, Any]:
+    """What appearance costs: the descriptor bytes on the wire per person per second per
+    camera, at the identity keeper's default request rate, for 1, 4 and 8 people (``quick``: 1
+    and 4, for 2 s instead of 10) walking in a
+    room seen by ``cameras`` (the requests are the pipeline's own, answered from the rendered
+    frames); and a camera worker's time to answer a request naming ``describe_people``
+    people, per frame at ``width`` x ``height``."""
+    import tempfile
+
+    from camera_worker.worker import measure_worker
+    from fusion_server.carving.bench import MaskRenderer, room_rig
+    from fusion_server.identity import IdentityParams
+    from fusion_server.pipeline import FusionPipeline, build_carver, build_reasoner
+
+    poses, frames = (4, 30) if quick else (16, 150)  # rendering a pose costs more than fusing it
+    if people is None:
+        people = (1, 4) if quick else (1, 4, 8)
+    volume_max_m = (*room_m, 2.5)
+    cams = room_rig(n_cameras=cameras, volume_max_m=volume_max_m, width=width, height=height)
+    site = _room_site(cams, volume_max_m)
+    rows = []
+    with tempfile.TemporaryDirectory() as cache:
+        carver = build_carver(site, cams, cache_dir=cache)
+        renderer = MaskRenderer({c: cam.scaled(site.carving.mask_scale) for c, cam in cams.items()})
+        for n in people:
+            pipeline = FusionPipeline(carver=carver, cameras=cams, reasoner=build_reasoner(site),
+                                      rng=np.random.default_rng(0))
+            fig = measure_look_budget(pipeline, renderer, people=n, rng=np.random.default_rng(n),
+                                      volume_max_m=volume_max_m, poses=poses, frames=frames,
+                                      capture_size=(width, height))
+            rows.append({"cameras": cameras, "width": width, "height": height, "room_m": list(room_m), "people": n,
+                         **fig, "budget_B": LOOK_BUDGET_B, "met": bool(fig["B_per_person_s_camera"] < LOOK_BUDGET_B)})
+        del carver, renderer
+    worker = measure_worker(n_frames=60 if quick else 300, width=width, height=height, n_people=describe_people,
+                            looks=True)
+    return {
+        "rate_hz": IdentityParams().rate_hz,
+        "budget": rows,
+        "describe": {"people": describe_people, "width": width, "height": height, "frames": worker["frames"],
+                     "ms": worker["ms"]["looks"], "ms_per_person": worker["ms"]["looks"] / describe_people,
+                     "worker_total_ms": worker["ms"]["total"],
+                     "look_bytes_per_person": worker["look_bytes_per_person"]},
+    }
+
+
+def measure_look_budget(pipeline: FusionPipeline, renderer, *, people: int, rng: np.random.Generator,
+                        volume_max_m: Sequence[float], poses: int, frames: int, capture_size: tuple[int, int],
+                        warmup: int = 15) -> dict[str, Any]:
+    """The wire cost of the look answers over ``frames`` frame sets after ``warmup`` ones (the
+    tracker confirming the people, and their first requests, which go out at once).
+
+    ``people`` walk as in :func:`measure_pipeline` (``poses`` rendered places walked to and
+    fro); each frame set, every camera answers the request the previous one made of it
+    (:func:`camera_worker.looks.describe` on a frame whose foreground is one colour) and its
+    MaskFrame is encoded with and without the answer. Returns ``frames``, ``seconds``,
+    ``descriptors`` (answered people, all cameras), ``answers_per_person_s_camera``,
+    ``B_per_descriptor`` and ``B_per_person_s_camera`` (the extra MaskFrame bytes).
+    """
+    import cv2
+
+    from camera_worker.looks import describe
+    from common import maskcodec, messages
+    from common.messages import MaskFrame
+
+    if poses < 2 or frames < 1 or warmup < 0:
+        raise ValueError(f"need poses >= 2, frames >= 1, warmup >= 0; got {poses}, {frames}, {warmup}")
+    width, height = capture_size
+    codec = maskcodec.DEFAULT_CODEC
+    rendered = [renderer.render(bodies) for bodies in _walk(people, rng, poses, volume_max_m=volume_max_m)]
+    encoded = [{c: maskcodec.encode_mask(m, codec) for c, m in masks.items()} for masks in rendered]
+    images = []
+    for masks in rendered:
+        per_cam = {}
+        for c, m in masks.items():
+            fg = cv2.resize(m, (width, height), interpolation=cv2.INTER_NEAREST) > 0
+            img = np.full((height, width, 3), 128, np.uint8)
+            img[fg] = (40, 60, 190)
+            per_cam[c] = img
+        images.append(per_cam)
+    period = 2 * (poses - 1)
+    asked: dict[str, list] = {}
+    extra_bytes = 0
+    descriptors = 0
+    for f in range(warmup + frames):
+        k = f % period
+        k = k if k < poses else period - k
+        masks = rendered[k]
+        looks = {c: describe(regions, images[k][c], masks[c]) for c, regions in asked.items() if c in masks}
+        if f >= warmup:
+            for c, answer in looks.items():
+                if not answer:
+                    continue
+                m = masks[c]
+                plain = MaskFrame(cam=c, seq=f, stamp_ns=_stamp_ns(f), width=m.shape[1], height=m.shape[0],
+                                  src_width=width, src_height=height, codec=codec, data=encoded[k][c],
+                                  fg_fraction=float(np.count_nonzero(m)) / m.size)
+                extra_bytes += (len(messages.encode(plain.model_copy(update={"looks": answer})))
+                                - len(messages.encode(plain)))
+                descriptors += len(answer)
+        fused = pipeline.step(masks, _stamp_ns(f), f, looks)
+        asked = fused.looks
+    seconds = frames / _FPS
+    n_cams = len(rendered[0])
+    return {
+        "frames": frames, "seconds": seconds, "descriptors": descriptors,
+        "answers_per_person_s_camera": descriptors / people / seconds / n_cams,
+        "B_per_descriptor": extra_bytes / descriptors if descriptors else 0.0,
+        "B_per_person_s_camera": extra_bytes / people / seconds / n_cams,
+    }
+
+
 def measure_latency(*, seconds: float = 20.0, fps: float = 15.0, n_cameras: int = 5) -> dict[str, Any]:
     """Capture-to-track and capture-to-event latency over zenoh on loopback.
 
@@ -489,6 +604,28 @@ def _pipeline_table(rows) -> str:
     return "\n".join(lines)
 
 
+def _looks_table(r) -> str:
+    rows = r["budget"]
+    r0 = rows[0]
+    lines = [
+        f"\nappearance descriptors on the wire: {r0['cameras']} cameras {r0['width']}x{r0['height']}, "
+        f"requests at {r['rate_hz']:g} Hz per person (the identity keeper's default), {r0['seconds']:.0f} s walked",
+        "people  answers/person/s/camera  B/descriptor  B/person/s/camera  budget  met",
+    ]
+    for row in rows:
+        lines.append(
+            f"{row['people']:>6}  {row['answers_per_person_s_camera']:>23.2f}  {row['B_per_descriptor']:>12.1f}  "
+            f"{row['B_per_person_s_camera']:>17.1f}  {row['budget_B']:>6.0f}  {'yes' if row['met'] else 'no':>3}"
+        )
+    d = r["describe"]
+    lines.append(
+        f"camera worker answering a request for {d['people']} people at {d['width']}x{d['height']}, one core: "
+        f"{d['ms']:.2f} ms per frame ({d['ms_per_person']:.2f} ms a person; the whole frame {d['worker_total_ms']:.2f} ms), "
+        f"{d['look_bytes_per_person']:.0f} B a person"
+    )
+    return "\n".join(lines)
+
+
 def _latency_table(r) -> str:
     t, e = r["track_ms"], r["event_ms"]
     line = (
@@ -502,11 +639,11 @@ def _latency_table(r) -> str:
 
 _SECTION_FUNCS = {
     "codec": bench_codec, "worker": bench_worker, "render": bench_render, "carving": bench_carving, "tracking": bench_tracking,
-    "pipeline": bench_pipeline,
+    "pipeline": bench_pipeline, "looks": bench_looks,
 }
 _SECTION_TABLES = {
     "codec": _codec_table, "worker": _worker_table, "render": _render_table, "carving": _carving_table, "tracking": _tracking_table,
-    "pipeline": _pipeline_table,
+    "pipeline": _pipeline_table, "looks": _looks_table,
 }
 
 
@@ -577,4 +714,5 @@ def _wait_for(session, key: str, *, timeout_s: float) -> None:
     raise RuntimeError(f"no fusion server appeared on {key} within {timeout_s:.0f} s")
 
 
-__all__ = ["PIPELINE_ROWS", "SECTIONS", "PipelineRow", "machine", "measure_latency", "measure_pipeline", "run_bench"]
+__all__ = ["LOOK_BUDGET_B", "PIPELINE_ROWS", "SECTIONS", "PipelineRow", "machine", "measure_latency",
+           "measure_look_budget", "measure_pipeline", "run_bench"]

@@ -10,7 +10,8 @@ node hands back:
   bounded inboxes (drop-oldest, counted as ``inbox_dropped``); a payload over
   the mask size limit is never copied, only its size goes on;
 * ``<p>/tracks`` and ``<p>/status`` (congestion control DROP),
-  ``<p>/cam/<cam>/hold`` (DROP), ``<p>/events/<kind>/<track>`` (JSON text,
+  ``<p>/cam/<cam>/hold`` and ``<p>/cam/<cam>/look`` (DROP: a newer request
+  replaces a lost one), ``<p>/events/<kind>/<track>`` (JSON text,
   BLOCK, reliable; the 32 most recent event keys keep their publishers);
 * the token ``<p>/alive/fusion``;
 * a queryable on ``<p>/history/events/**`` (which includes
@@ -240,6 +241,9 @@ class _Server:
         self.hold_pubs = {cam: self._keep(self.session.declare_publisher(
             keys.hold_key(p, cam), encoding=messages.MSGPACK_ENCODING, congestion_control=drop))
             for cam in self.node.camera_ids}
+        self.look_pubs = {cam: self._keep(self.session.declare_publisher(
+            keys.look_key(p, cam), encoding=messages.MSGPACK_ENCODING, congestion_control=drop))
+            for cam in self.node.camera_ids}
         # the store is open (run() opened it) before anyone can ask it anything
         self._history = _HistoryResponder(self.node.store, p, self.s.site.utc_offset_hours, self.s.history_queue,
                                           self.node.c)
@@ -303,6 +307,8 @@ class _Server:
             self._put(self._event_publisher(key), text, f"event on {key}")
         for cam, payload in out.holds:
             self._put(self.hold_pubs[cam], payload, f"hold regions of camera {cam}")
+        for cam, payload in out.looks:
+            self._put(self.look_pubs[cam], payload, f"look request of camera {cam}")
         if out.status is not None:
             self._put(self.status_pub, out.status, "status")
 

@@ -24,7 +24,7 @@ zenoh = pytest.importorskip("zenoh")
 from common import keys, messages  # noqa: E402
 from common.camera import Camera  # noqa: E402
 from common.evaluation.io import read_events, read_tracks  # noqa: E402
-from common.messages import Event, HoldRegions, Status, TrackFrame, decode, decode_event, encode  # noqa: E402
+from common.messages import Event, HoldRegions, LookRequest, Status, TrackFrame, decode, decode_event, encode  # noqa: E402
 from procs import Proc, loopback_config  # noqa: E402
 from tinysite import BOX_XY, CAMERA_CENTRES, FPS, H, PERIOD_NS, W, box_mask, mask_frame, write_site  # noqa: E402
 
@@ -61,9 +61,12 @@ class Net:
         self.status: list[Status] = []
         self.events: list[Event] = []
         self.holds: dict[str, list[HoldRegions]] = {cid: [] for cid in CAMERA_CENTRES}
+        self.looks: dict[str, list[LookRequest]] = {cid: [] for cid in CAMERA_CENTRES}
         self.fusion_alive = threading.Event()
         self._entities = [
             *(self.session.declare_subscriber(keys.hold_key(prefix, cid), self._on(self.holds[cid], HoldRegions))
+              for cid in CAMERA_CENTRES),
+            *(self.session.declare_subscriber(keys.look_key(prefix, cid), self._on(self.looks[cid], LookRequest))
               for cid in CAMERA_CENTRES),
             self.session.declare_subscriber(keys.tracks_key(prefix), self._on(self.tracks, TrackFrame)),
             self.session.declare_subscriber(keys.status_key(prefix), self._on(self.status, Status)),
@@ -207,6 +210,7 @@ def test_tracks_a_box_holds_it_and_writes_files_then_exits_when_idle(site, tmp_p
     with net.lock:
         frames = list(net.tracks)
         holds = {cid: list(msgs) for cid, msgs in net.holds.items()}
+        looks = {cid: list(msgs) for cid, msgs in net.looks.items()}
     assert len(frames) >= 50, server.output()
     assert all(f.cameras == ["c1", "c2", "c3"] for f in frames)
     assert [f.frame for f in frames] == sorted({f.frame for f in frames})
@@ -223,6 +227,16 @@ def test_tracks_a_box_holds_it_and_writes_files_then_exits_when_idle(site, tmp_p
         assert all(m.cam == cid and m.ttl_ms == 2000 and len(m.boxes) == 1 for m in held)
         assert all(x0 <= u < x1 and y0 <= v < y1 for m in held for (x0, y0, x1, y1) in m.boxes)
         assert holds[cid][-1].boxes == [] and holds[cid][0].boxes != []
+        # and every camera is asked for the person's colours: head, torso and legs boxes around it
+        assert looks[cid], f"no look requests for {cid}"
+        assert all(m.cam == cid and len(m.people) == 1 for m in looks[cid])
+        for m in looks[cid]:
+            (person,) = m.people
+            x0 = min(b[0] for b in person.boxes if b[2] > b[0])
+            x1 = max(b[2] for b in person.boxes if b[2] > b[0])
+            assert x0 <= u < x1 and person.depth_m > 0
+        stamps = [m.stamp_ns for m in looks[cid]]
+        assert stamps == sorted(stamps)
     table = read_tracks(out / "tracks.csv")
     assert len(table) == sum(len(f.tracks) for f in frames)
     assert np.allclose(table.x, BOX_XY[0], atol=0.2) and np.allclose(table.y, BOX_XY[1], atol=0.2)

@@ -1,4 +1,4 @@
-"""Camera worker: the pure pieces (hold book, mask messages, step), the benchmark, and real
+"""Camera worker: the pure pieces (hold book, mask messages, step, look answers), the benchmark, and real
 ``voxelwatch-camera`` processes talking to a plain zenoh subscriber on loopback."""
 
 from __future__ import annotations
@@ -18,18 +18,20 @@ import numpy as np
 import pytest
 import zenoh
 
+from camera_worker.looks import LookAnswerer
 from camera_worker.segmentation import ForegroundSegmenter
 from camera_worker.sources import Frame
 from camera_worker.worker import (
     HoldBook,
     WorkerSettings,
     build_mask_frame,
+    looks_bytes,
     measure_worker,
     step,
 )
 from camera_worker.worker import HoldRegionsRejected
-from common import keys, maskcodec, messages
-from common.messages import HoldRegions, MaskFrame
+from common import appearance, keys, maskcodec, messages
+from common.messages import HoldRegions, LookRequest, MaskFrame, PersonRegion
 from common.transport import zenoh_config
 
 CAMERA = Path(sys.executable).parent / "voxelwatch-camera"
@@ -92,6 +94,41 @@ def test_step_segments_and_wraps_one_frame():
     assert np.count_nonzero(mask[15:45, 30:40]) >= 296 and np.count_nonzero(mask) == np.count_nonzero(mask[15:45, 30:40])
 
 
+def _person_request(stamp_ns: int, track: int = 3, cam: str = "cam1") -> LookRequest:
+    # head, torso and legs bands over the person drawn at rows 30..90, columns 60..80
+    return LookRequest(cam=cam, stamp_ns=stamp_ns, ttl_ms=500, people=[PersonRegion(
+        track=track, depth_m=2.0, boxes=[(60, 30, 80, 40), (60, 40, 80, 65), (60, 65, 80, 90)])])
+
+
+def test_step_answers_a_pending_look_request_once_and_only_in_time():
+    rng = np.random.default_rng(0)
+    room = np.clip(rng.normal(120, 30, (H, W, 3)), 0, 255).astype(np.uint8)
+    seg = ForegroundSegmenter(min_area_px=20, mask_scale=0.5)
+    for _ in range(10):
+        seg.learn(room)
+    person = room.copy()
+    person[30:90, 60:80] = (30, 200, 40)
+    answerer = LookAnswerer()
+    msg, _, _ = step(seg, Frame(4, 99, person), cam="cam1", seq=4, answerer=answerer)
+    assert msg.looks == [] and not answerer.pending                     # nothing asked: nothing sent
+    answerer.ask(_person_request(stamp_ns=0))
+    msg, _, _ = step(seg, Frame(5, 100_000_000, person), cam="cam1", seq=5, answerer=answerer)
+    (look,) = msg.looks
+    assert look.track == 3 and all(p > 0 for p in look.pixels) and look.visible == [1.0, 1.0, 1.0]
+    assert len(look.hist) == 3 * appearance.N_BINS
+    torso = np.frombuffer(look.hist, np.uint8)[appearance.N_BINS:2 * appearance.N_BINS]
+    green = appearance.colour_bins(np.array([[30, 200, 40]], np.uint8))[0]
+    assert torso[green] >= 250                                          # the shirt's colour, nothing else
+    back = messages.decode(messages.encode(msg), MaskFrame)
+    assert back.looks == msg.looks
+    assert looks_bytes(msg.looks) == len(messages.encode(msg)) - len(messages.encode(msg.model_copy(update={"looks": []}))) + 1
+    msg, _, _ = step(seg, Frame(6, 200_000_000, person), cam="cam1", seq=6, answerer=answerer)
+    assert msg.looks == [] and answerer.answered == 1                   # answered once
+    answerer.ask(_person_request(stamp_ns=0))
+    msg, _, _ = step(seg, Frame(7, 600_000_001, person), cam="cam1", seq=7, answerer=answerer)
+    assert msg.looks == [] and answerer.expired == 1 and not answerer.pending  # older than its ttl
+
+
 def test_worker_settings_name_bad_values():
     with pytest.raises(ValueError, match="camera id"):
         WorkerSettings(cam="a/b", prefix="voxelwatch/x", source="0")
@@ -99,16 +136,28 @@ def test_worker_settings_name_bad_values():
         WorkerSettings(cam="c", prefix="voxelwatch/x", source="0", codec="gif")
     with pytest.raises(ValueError, match="max_frames"):
         WorkerSettings(cam="c", prefix="voxelwatch/x", source="0", max_frames=0)
+    with pytest.raises(ValueError, match="look_queue"):
+        WorkerSettings(cam="c", prefix="voxelwatch/x", source="0", look_queue=0)
 
 
 def test_measure_worker_reports_every_stage():
     result = measure_worker(n_frames=20, width=W, height=H)
     assert result["frames"] == 15 and (result["width"], result["height"]) == (W, H)
-    assert set(result["ms"]) == {"read", "segment", "encode", "publish", "total"}
+    assert set(result["ms"]) == {"read", "segment", "looks", "encode", "publish", "total"}
     assert all(v > 0 for v in result["ms"].values())
     assert result["fps"]["total"] == pytest.approx(1e3 / result["ms"]["total"])
     assert 0 < result["mask_bytes_median"] <= result["message_bytes_median"]
     assert result["fg_fraction_median"] > 0
+    assert result["look_bytes_per_person"] == 0
+
+
+def test_measure_worker_answers_a_look_request_per_frame():
+    quiet = measure_worker(n_frames=20, width=W, height=H, n_people=3)
+    asked = measure_worker(n_frames=20, width=W, height=H, n_people=3, looks=True)
+    assert asked["people"] == 3 and asked["looks"] is True
+    assert asked["ms"]["looks"] > 10 * quiet["ms"]["looks"]     # describing costs; an idle check does not
+    assert 100 < asked["look_bytes_per_person"] < 200
+    assert asked["message_bytes_median"] > quiet["message_bytes_median"] + 3 * 100
 
 
 # --- real processes on loopback ------------------------------------------------------------------
@@ -163,6 +212,7 @@ class Listener:
         self.live = self.session.liveliness().declare_subscriber(
             keys.alive_cameras_wildcard(self.prefix), self._on_alive, history=True)
         self.hold_pub = self.session.declare_publisher(keys.hold_key(self.prefix, "cam1"))
+        self.look_pub = self.session.declare_publisher(keys.look_key(self.prefix, "cam1"))
 
     def _on_mask(self, sample) -> None:
         with self.lock:
@@ -185,6 +235,7 @@ class Listener:
         self.sub.undeclare()
         self.live.undeclare()
         self.hold_pub.undeclare()
+        self.look_pub.undeclare()
         self.session.close()
 
 
@@ -226,17 +277,25 @@ def _check_masks(masks: list[MaskFrame], start_ns: int | None, period_ns: int) -
 def test_worker_process_publishes_decodable_masks_in_order(tmp_path, listener):
     """A recorded clip played at its own rate from a given start stamp: every mask decodes, seq
     increases, stamps are start + seq / fps, the walker is in the masks; holds over zenoh are taken (a broken one is
-    counted and dropped); the process exits 0 at the end of the clip and its liveliness goes."""
+    counted and dropped); look requests are answered in the masks' ``looks`` with the walker's colours (a broken
+    one and one for another camera are refused, counted and logged once with the key); the process exits 0 at the
+    end of the clip and its liveliness goes."""
     _write_clips(tmp_path)
     site = _write_site(tmp_path)
     start_ns = time.time_ns() + 1_000_000_000     # a shared start: frames go out at their stamps
     proc = _start(site, listener, "--start-ns", str(start_ns))
     try:
-        assert _wait(lambda: listener.count() >= 5), proc.stderr.read() if proc.poll() is not None else ""
+        assert _wait(lambda: listener.count() >= BOX_FROM + 5), proc.stderr.read() if proc.poll() is not None else ""
         for k in range(5):     # a few times, in case the worker's subscription is still on its way
             hold = HoldRegions(cam="cam1", stamp_ns=start_ns + k, boxes=[(0, 0, 8, 8)], ttl_ms=200)
             listener.hold_pub.put(messages.encode(hold))
             listener.hold_pub.put(b"\x92broken")
+            # the walker's bands along its whole path (rows 30..100)
+            look = LookRequest(cam="cam1", stamp_ns=time.time_ns(), people=[PersonRegion(
+                track=7, depth_m=3.0, boxes=[(0, 30, W, 45), (0, 45, W, 70), (0, 70, W, 100)])])
+            listener.look_pub.put(messages.encode(look))
+            listener.look_pub.put(messages.encode(look.model_copy(update={"cam": "cam2"})))
+            listener.look_pub.put(b"\x93broken")
             time.sleep(0.05)
         out, err = proc.communicate(timeout=60)
     finally:
@@ -255,6 +314,16 @@ def test_worker_process_publishes_decodable_masks_in_order(tmp_path, listener):
         assert m.fg_fraction <= 1.3 * 70 * 24 / (W * H)
     counted = re.search(r"stopped: .*holds (\d+) \(rejected (\d+)\)", err)
     assert counted and int(counted.group(1)) >= 1 and int(counted.group(2)) >= 1, err
+    answered = [m for m in masks if m.looks]
+    assert answered and all(len(m.looks) == 1 and m.looks[0].track == 7 for m in answered)
+    red = appearance.colour_bins(np.array([[40, 40, 200]], np.uint8))[0]
+    for m in answered:
+        torso = np.frombuffer(m.looks[0].hist, np.uint8)[appearance.N_BINS:2 * appearance.N_BINS]
+        assert m.looks[0].pixels[1] > 0 and torso[red] >= 200, m.looks[0]  # the walker's colour (MJPG shifts a few)
+    looks = re.search(r"stopped: .*looks answered (\d+) \(expired (\d+), rejected (\d+)\)", err)
+    assert looks and int(looks.group(1)) >= len(answered) and int(looks.group(3)) >= 2, err
+    look_key = keys.look_key(Listener.prefix, "cam1")
+    assert f"look request on {look_key} dropped" in err and "camera 'cam2'" in err and "Traceback" not in err
     assert "learned the background from 15 frames" in err
     alive_key = keys.alive_camera_key(Listener.prefix, "cam1")
     assert _wait(lambda: ("SampleKind.DELETE", alive_key) in listener.alive, 5.0), listener.alive
