@@ -15,7 +15,7 @@ which moves neither hue nor saturation, and the grey bins are wide. Each
 band's histogram goes on the wire as :data:`N_BINS` bytes summing to about
 255, with the number of pixels it counts and the share of its box that no
 nearer person covers, so that the receiver can weigh it. A person costs
-about 110 bytes a descriptor; the fusion server asks for a few a second
+about 150 bytes a descriptor; the fusion server asks for a few a second
 (``fusion_server.identity.AppearanceParams.rate_hz``).
 """
 

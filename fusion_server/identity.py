@@ -57,7 +57,7 @@ class IdentityParams:
     """Settings of :class:`IdentityKeeper` (defaults in brackets).
 
     rate_hz: descriptor requests per body per second, to every camera [3 Hz:
-        about 330 bytes per person per second per camera on the wire].
+        about 450 bytes per person per second per camera on the wire].
     body_radius_m: half-width of the floor square a band box covers [0.22 m].
     min_pixels: fewest foreground pixels of a band view that count [40].
     min_visible: least share of a band's box that no nearer person hides [0.7].
