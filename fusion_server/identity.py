@@ -36,6 +36,7 @@ Time comes from the frame stamps only.
 from __future__ import annotations
 
 import itertools
+import logging
 import math
 from collections import deque
 from collections.abc import Callable, Iterable, Mapping, Sequence
@@ -48,6 +49,8 @@ from common.camera import Camera
 from common.messages import Appearance, PersonRegion
 
 __all__ = ["AppearanceModel", "IdentityKeeper", "IdentityParams", "Resident"]
+
+log = logging.getLogger("voxelwatch.identity")
 
 _N_BANDS = len(appearance.BANDS)
 
@@ -84,6 +87,15 @@ class IdentityParams:
         labels explain the two bodies' views better, less the margin; the
         labels swap once the sum passes the evidence [0.05, 0.6].
     min_model_frames: frames a model needs before it is compared [5].
+    decide_s, decide_views: a confirmed body that a lost person could be waits
+        for its label (and is not reported) until its torso has been seen in
+        views weighing ``decide_views`` in all (about that many clear camera
+        views) or for ``decide_s``, whichever comes first [0.5 s, 3]; it is
+        asked for views every frame meanwhile. With nobody lost it is
+        labelled at once.
+    same_person: two lost people whose models lie closer than this are taken
+        for one person lost twice (a track that broke up more than once): the
+        runner-up does not make the best match ambiguous [0.2].
     """
 
     rate_hz: float = 3.0
@@ -105,6 +117,9 @@ class IdentityParams:
     swap_margin: float = 0.05
     swap_evidence: float = 0.6
     min_model_frames: int = 5
+    decide_s: float = 0.5
+    decide_views: float = 3.0
+    same_person: float = 0.2
 
     def __post_init__(self) -> None:
         for name in ("rate_hz", "body_radius_m", "learn_rate", "reid_window_s"):
@@ -116,7 +131,8 @@ class IdentityParams:
             value = float(getattr(self, name))
             if not 0 <= value <= 1:
                 raise ValueError(f"{name} must lie in [0, 1], got {getattr(self, name)!r}")
-        for name in ("settle_s", "close_m", "near_s", "near_m", "height_tolerance_m", "swap_evidence"):
+        for name in ("settle_s", "close_m", "near_s", "near_m", "height_tolerance_m", "swap_evidence", "decide_s",
+                     "decide_views", "same_person"):
             value = float(getattr(self, name))
             if not (math.isfinite(value) and value >= 0):
                 raise ValueError(f"{name} must be a finite non-negative number, got {getattr(self, name)!r}")
@@ -221,13 +237,14 @@ class _Person:
 class _Body:
     label: int  # negative until the tracker first confirms the target
     next_ask_ns: int = -(2**62)
-    views: deque = field(default_factory=lambda: deque(maxlen=8))  # recent (stamp, View)
+    views: deque = field(default_factory=lambda: deque(maxlen=16))  # recent (stamp, View)
     view: View | None = None  # this frame's
     xy: tuple[float, float] = (0.0, 0.0)
     stamp_ns: int = 0
     close_until_ns: int = -(2**62)
     close_to: set[int] = field(default_factory=set)  # targets this one came close to recently
     born_ns: int = 0
+    confirmed_ns: int | None = None  # when the tracker first confirmed it
     fresh_until_ns: int = 0  # a new label that may yet give way to a neighbour's (see _exchange)
 
 
@@ -272,7 +289,9 @@ class IdentityKeeper:
         estimates: the tracker's estimates (``id`` is the target id; ``x``, ``y``,
             ``confirmed``). looks: camera id -> the descriptors that came with its mask.
         Returns {target id: label} for every live target; labels change only for
-        targets the tracker just confirmed (and for swapped pairs).
+        targets the tracker just confirmed (and for swapped pairs). A label
+        stays negative while the body waits for its identity (see
+        ``IdentityParams.decide_s``): such a body is not reported yet.
         """
         p = self.p
         live = {int(e.id): e for e in estimates}
@@ -289,6 +308,8 @@ class IdentityKeeper:
         for tid, est in sorted(live.items()):
             body = self._bodies[tid]
             if body.label < 0 and est.confirmed:
+                if body.confirmed_ns is None:
+                    body.confirmed_ns = stamp_ns
                 self._label_new(tid, body, stamp_ns)
             elif stamp_ns < body.fresh_until_ns and body.view is not None:
                 fresh = body.label
@@ -328,7 +349,7 @@ class IdentityKeeper:
         due = []
         for est in estimates:
             body = self._bodies.get(int(est.id))
-            if body is not None and stamp_ns >= body.next_ask_ns:
+            if body is not None and (stamp_ns >= body.next_ask_ns or body.label < 0):
                 due.append(est)
                 body.next_ask_ns = stamp_ns + int(round(1e9 / p.rate_hz))
         if not due:
@@ -415,9 +436,15 @@ class IdentityKeeper:
         return _view_since(body, -(2**62))
 
     def _label_new(self, tid: int, body: _Body, stamp_ns: int) -> None:
-        """Give a body the tracker just confirmed its label: a lost person's, or a new one."""
+        """Give a body the tracker confirmed its label: a lost person's, or a new one; or
+        wait for more views while a lost person could be it."""
         p = self.p
         view = self._recent_view(body)
+        seen = sum(v.weight[1] for _, v in body.views)
+        waited = stamp_ns - body.confirmed_ns >= p.decide_s * 1e9
+        candidates = any(lost.person.model.mature(1) or self._near(lost, body, stamp_ns) for lost in self._lost.values())
+        if candidates and seen < p.decide_views and not waited:
+            return
         if view is not None and self._exchange(body, view, stamp_ns):
             return
         scored = []
@@ -428,8 +455,11 @@ class IdentityKeeper:
         with_d = sorted((d, label, near) for label, near, d in scored if d is not None)
         if with_d:
             d0, label0, near0 = with_d[0]
-            d1 = with_d[1][0] if len(with_d) > 1 else math.inf
-            others_near = any(near for _, _, near in with_d[1:])
+            best = self._lost[label0].person.model.as_view()
+            rivals = [(d, near) for d, label, near in with_d[1:]
+                      if (self._lost[label].person.model.distance(best) or 1.0) >= p.same_person]
+            d1 = rivals[0][0] if rivals else math.inf
+            others_near = any(near for _, near in rivals)
             if d0 <= (p.near_distance if near0 else p.reid_distance) and (
                     d1 - d0 >= p.reid_margin or (near0 and not others_near)):
                 chosen = label0
@@ -437,8 +467,13 @@ class IdentityKeeper:
             near_only = [label for label, near, _ in scored if near]
             if len(near_only) == 1:
                 chosen = near_only[0]
+        if log.isEnabledFor(logging.DEBUG):
+            log.debug("body %d confirmed at (%.2f, %.2f) with %s views; lost people (label, near, distance): %s",
+                      tid, *body.xy, "no" if view is None else "some",
+                      [(label, near, None if d is None else round(d, 3)) for label, near, d in scored])
         if chosen is not None:
             self._reclaim(body, chosen)
+            log.info("person %d is back (body %d at %.2f, %.2f)", chosen, tid, *body.xy)
         else:
             label = next(self._labels)
             self._people[label] = _Person(label=label, model=AppearanceModel())
@@ -473,6 +508,7 @@ class IdentityKeeper:
             if any(x is None for x in d):
                 continue
             if d[2] + d[3] + p.swap_margin < d[0] + d[1] and d[2] <= p.near_distance:
+                log.info("person %d split off person %d's body: labels exchanged", label, partner.label)
                 body.label = partner.label
                 self._reclaim(partner, label)
                 self.swaps += 1
@@ -539,6 +575,7 @@ class IdentityKeeper:
                 gain = (d[0] + d[1]) - (d[2] + d[3]) - p.swap_margin
                 e = max(0.0, self._swap_evidence.get(key, 0.0) + gain)
                 if e >= p.swap_evidence:
+                    log.info("persons %d and %d had swapped bodies: swapped back", ba.label, bb.label)
                     ba.label, bb.label = bb.label, ba.label
                     self.swaps += 1
                     e = 0.0

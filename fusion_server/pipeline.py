@@ -190,7 +190,8 @@ class FusionPipeline:
             self._postures = _rekey(self._postures, renames)
             self.reasoner.rename(renames)
         self._labels = labels
-        return [dataclasses.replace(b, id=labels[b.id]) for b in bodies]
+        # a body waiting for its identity is not reported (nor taken for a person) yet
+        return [dataclasses.replace(b, id=labels[b.id], confirmed=b.confirmed and labels[b.id] > 0) for b in bodies]
 
     def _named(self, event: Event) -> Event:
         """``event`` with the enrolled resident's name in its details, when it is about one."""
