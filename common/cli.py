@@ -92,8 +92,9 @@ def _register_passthrough(sub) -> None:
 
 
 def _register_site(sub) -> None:
-    p = sub.add_parser("site", help="check a site file and its calibrations")
-    p.add_argument("action", choices=["check"], help="check: validate the file and load every calibration")
+    p = sub.add_parser("site", help="check a site file, its calibrations and enrolled residents")
+    p.add_argument("action", choices=["check"],
+                   help="check: validate the file, load every calibration and every enrolled resident's model")
     p.add_argument("path", help="the site TOML file")
     p.set_defaults(handler=_site_check)
 
@@ -103,13 +104,27 @@ def _site_check(args: argparse.Namespace) -> int:
 
     site = load_site(args.path)
     cameras = site.load_cameras()
+    residents = site.load_residents()
     print(f"site {site.name}: prefix {site.prefix}, volume {list(site.volume.min_m)} .. {list(site.volume.max_m)} m")
     for cam_id, cam in cameras.items():
         x, y, z = cam.center
         print(f"  camera {cam_id}: {cam.model} {cam.width}x{cam.height}, centre ({x:.2f}, {y:.2f}, {z:.2f}) m")
     print(f"  {len(site.hotspots)} hot spots, {len(site.doors)} doors, {len(site.occluders)} occluders; long lie after {site.events.long_lie_s:g} s, "
           f"inactivity after {site.events.inactivity_s:g} s")
+    print(f"  identity: a person who leaves keeps their track id for {site.identity.reid_window_s:g} s; "
+          f"colours asked {site.identity.rate_hz:g} times a second; {site.residents} residents, {len(residents)} enrolled")
+    for spec, resident in zip(site.enrolled, residents):
+        print(f"  enrolled {resident.name}: {_model_summary(resident.model)} ({site.resolve(spec.model)})")
     return 0
+
+
+def _model_summary(model) -> str:
+    """Frames learnt per body band and the standing height of an appearance model, in words."""
+    from common.appearance import BANDS
+
+    bands = ", ".join(f"{band} {int(n)}" for band, n in zip(BANDS, model.frames))
+    height = f"{model.height_m:.2f} m tall" if model.height_m == model.height_m else "height unknown"
+    return f"frames learnt {bands}; {height}"
 
 
 def _register_router(sub) -> None:
