@@ -444,6 +444,8 @@ def site_to_toml(site: Site) -> str:
     data = site.model_dump(mode="json", exclude={"base_dir"})
     lines: list[str] = []
     for key, value in data.items():
+        if value == []:
+            continue  # an empty list of tables: left out, so that tables can be added below by hand
         if not isinstance(value, (dict, list)) or (isinstance(value, list) and not _is_table_list(value)):
             lines.append(f"{key} = {_toml_value(value)}")
     for key, value in data.items():

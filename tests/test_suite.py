@@ -89,7 +89,7 @@ def test_cameras_for_keeps_opposite_corners_last():
         cameras_for(6, cams)
 
 
-def test_the_suite_scores_an_enrolled_resident(tmp_path, capsys):
+def test_the_suite_scores_an_enrolled_resident(tmp_path):
     """With an enrolment (here a model of colours nobody in the house wears), the site of the
     suite enrols it and every scenario scores who carries the name."""
     from fusion_server.identity import AppearanceModel
@@ -101,10 +101,12 @@ def test_the_suite_scores_an_enrolled_resident(tmp_path, capsys):
     model.height_m = 1.0
     enrolment = tmp_path / "nobody.json"
     enrolment.write_text(json.dumps({"name": "Nobody", **model.to_dict()}))
-    report = tmp_path / "suite.json"
+    import io
+
+    report, stream = tmp_path / "suite.json", io.StringIO()
     run_suite(out_dir=tmp_path / "suite", scenarios=["two_pass"], max_frames=FRAMES, json_path=report,
-              enrolled=enrolment, enrolled_person=2)
-    table = capsys.readouterr().out
+              enrolled=enrolment, enrolled_person=2, stream=stream)
+    table = stream.getvalue()
     assert "false res" in table and "res named" in table
     data = json.loads(report.read_text())["5cam"]
     res = data["scenarios"]["two_pass"]["resident"]
