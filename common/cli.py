@@ -7,6 +7,7 @@ own arguments and hands plain values to the library.
 from __future__ import annotations
 
 import argparse
+import json
 import logging
 import sys
 from collections.abc import Callable, Sequence
@@ -92,8 +93,9 @@ def _register_passthrough(sub) -> None:
 
 
 def _register_site(sub) -> None:
-    p = sub.add_parser("site", help="check a site file and its calibrations")
-    p.add_argument("action", choices=["check"], help="check: validate the file and load every calibration")
+    p = sub.add_parser("site", help="check a site file, its calibrations and enrolled residents")
+    p.add_argument("action", choices=["check"],
+                   help="check: validate the file, load every calibration and every enrolled resident's model")
     p.add_argument("path", help="the site TOML file")
     p.set_defaults(handler=_site_check)
 
@@ -103,13 +105,27 @@ def _site_check(args: argparse.Namespace) -> int:
 
     site = load_site(args.path)
     cameras = site.load_cameras()
+    residents = site.load_residents()
     print(f"site {site.name}: prefix {site.prefix}, volume {list(site.volume.min_m)} .. {list(site.volume.max_m)} m")
     for cam_id, cam in cameras.items():
         x, y, z = cam.center
         print(f"  camera {cam_id}: {cam.model} {cam.width}x{cam.height}, centre ({x:.2f}, {y:.2f}, {z:.2f}) m")
     print(f"  {len(site.hotspots)} hot spots, {len(site.doors)} doors, {len(site.occluders)} occluders; long lie after {site.events.long_lie_s:g} s, "
           f"inactivity after {site.events.inactivity_s:g} s")
+    print(f"  identity: a person who leaves keeps their track id for {site.identity.reid_window_s:g} s; "
+          f"colours asked {site.identity.rate_hz:g} times a second; {site.residents} residents, {len(residents)} enrolled")
+    for spec, resident in zip(site.enrolled, residents):
+        print(f"  enrolled {resident.name}: {_model_summary(resident.model)} ({site.resolve(spec.model)})")
     return 0
+
+
+def _model_summary(model) -> str:
+    """Frames learnt per body band and the standing height of an appearance model, in words."""
+    from common.appearance import BANDS
+
+    bands = ", ".join(f"{band} {int(n)}" for band, n in zip(BANDS, model.frames))
+    height = f"{model.height_m:.2f} m tall" if model.height_m == model.height_m else "height unknown"
+    return f"frames learnt {bands}; {height}"
 
 
 def _register_router(sub) -> None:
@@ -261,6 +277,46 @@ def _progress_bar():
     return show
 
 
+def _register_enrol(sub) -> None:
+    p = sub.add_parser("enrol", help="learn a resident's appearance from a clip of them alone, for the site file")
+    p.add_argument("--site", type=Path, help="the site TOML file (default with --synthetic: the synthetic house)")
+    p.add_argument("--name", required=True, help="the resident's name (1-64 characters), shown on their tracks and events")
+    src = p.add_mutually_exclusive_group(required=True)
+    src.add_argument("--input", type=Path, help="folder with one sub-folder per camera, as voxelwatch replay reads")
+    src.add_argument("--synthetic", metavar="SCENARIO", help="a synthetic-house scenario (its person 1)")
+    p.add_argument("--out", type=Path, required=True, help="the enrolment file to write (JSON)")
+    p.add_argument("--frames", type=int, default=None, help="use only the first N frame sets")
+    p.add_argument("--seed", type=int, default=0, help="seed of the tracker (and of the synthetic scenario)")
+    p.add_argument("--cache-dir", type=Path, default=None, help="carving lookup-table cache")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.set_defaults(handler=_enrol)
+
+
+def _enrol(args: argparse.Namespace) -> int:
+    import tempfile
+
+    from common.site import load_site
+    from fusion_server.enrolment import enrol
+
+    with tempfile.TemporaryDirectory(prefix="voxelwatch-site-") as tmp:
+        if args.site is not None:
+            site = load_site(args.site)
+        elif args.synthetic is None:
+            raise ValueError("--site is required with --input")
+        else:
+            from common.synth import default_site
+
+            site = default_site(Path(tmp))
+        done = enrol(site, args.name, args.out, input_dir=args.input, synthetic=args.synthetic, seed=args.seed,
+                     max_frames=args.frames, cache_dir=args.cache_dir, progress=None if args.quiet else _progress_bar())
+    if not args.quiet:
+        print(file=sys.stderr)
+    print(f"enrolled {done.summary()} -> {args.out}")
+    print(f"  name it in the site file: [[enrolled]] name = {json.dumps(done.name, ensure_ascii=False)}, "
+          f"model = {json.dumps(str(args.out.resolve()), ensure_ascii=False)} (or a path relative to the site file)")
+    return 0
+
+
 def _register_eval(sub) -> None:
     p = sub.add_parser("eval", help="score runs against ground truth (one run, or the scenario suite)")
     p.add_argument("--truth", type=Path, help="ground-truth folder (truth/tracks.csv, truth/events.jsonl)")
@@ -280,6 +336,11 @@ def _register_eval(sub) -> None:
     p.add_argument("--out", type=Path, default=Path("voxelwatch-suite"), help="with --suite: working folder")
     p.add_argument("--jobs", type=int, default=1, help="with --suite: scenarios replayed at once, one process each")
     p.add_argument("--mask-scale", type=float, default=None, help="with --suite: masks downscaled by this factor")
+    p.add_argument("--enrolled", type=Path, default=None, metavar="FILE",
+                   help="with --suite: enrol this file (voxelwatch enrol --synthetic walk, same --seed) and score "
+                        "who carries its name")
+    p.add_argument("--enrolled-person", type=int, default=1, metavar="ID",
+                   help="with --enrolled: the house's person the file enrols (default 1)")
     p.add_argument("--seed", type=int, default=0)
     p.set_defaults(handler=_eval)
 
@@ -288,6 +349,8 @@ def _eval(args: argparse.Namespace) -> int:
     if args.suite and args.world == "random":
         from fusion_server.world_suite import parse_seeds, run_world_suite
 
+        if args.enrolled is not None:
+            raise ValueError("--enrolled is for the house suite: a random world's people are its own")
         if args.seeds is None:
             raise ValueError("--world random needs --seeds, e.g. --seeds 0-19 to tune or --seeds 1000-1049 to report")
         run_world_suite(seeds=parse_seeds(args.seeds), out_dir=args.out, jobs=args.jobs, frames=args.frames,
@@ -299,7 +362,8 @@ def _eval(args: argparse.Namespace) -> int:
         return run_suite(
             out_dir=args.out, scenarios=args.scenarios.split(",") if args.scenarios else None, quick=args.quick,
             camera_counts=[int(c) for c in args.cameras.split(",")], max_frames=args.frames, seed=args.seed,
-            json_path=args.json, jobs=args.jobs, mask_scale=args.mask_scale,
+            json_path=args.json, jobs=args.jobs, mask_scale=args.mask_scale, enrolled=args.enrolled,
+            enrolled_person=args.enrolled_person,
         )
     if args.truth is None or args.run is None:
         raise ValueError("give --truth and --run, or --suite")
@@ -361,5 +425,5 @@ def _bench(args: argparse.Namespace) -> int:
 _SUBCOMMANDS: list[Callable] = [
     _register_demo,
     _register_bench,
-    _register_synth, _register_replay, _register_eval, _register_site, _register_router, _register_passthrough,
+    _register_synth, _register_replay, _register_enrol, _register_eval, _register_site, _register_router, _register_passthrough,
 ]

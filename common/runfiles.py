@@ -5,11 +5,14 @@ comes in them, and the evaluation reads both; this module is where their
 names and layouts are defined.
 
 * **tracks CSV** (:data:`TRACKS_FILE`), header :data:`TRACK_HEADER`
-  (``frame,stamp_ns,id,x,y,z_top,posture``): one row per person per frame;
-  ``x``, ``y`` on the floor and ``z_top`` the top of the head, metres, world
-  frame, four decimals; ``posture`` one of
-  :data:`common.postures.POSTURES`. Frames without rows have nobody in
-  them. A track id is any non-empty text (``7``, ``alice``).
+  (``frame,stamp_ns,id,x,y,z_top,posture,person``): one row per person per
+  frame; ``x``, ``y`` on the floor and ``z_top`` the top of the head, metres,
+  world frame, four decimals; ``posture`` one of
+  :data:`common.postures.POSTURES`; ``person`` the name of the enrolled
+  resident the track is, empty for anyone else. Frames without rows have
+  nobody in them. A track id is any non-empty text (``7``, ``alice``).
+  Readers find columns by the header: ``person`` is optional
+  (:data:`REQUIRED_TRACK_COLUMNS`), as files written before it lack it.
 * **events JSON lines** (:data:`EVENTS_FILE`): one compact JSON object per
   line (:func:`event_line`: UTF-8, no spaces, non-finite numbers as
   ``null``), a :class:`common.messages.Event` with the fields
@@ -32,8 +35,10 @@ TRACKS_FILE = "tracks.csv"
 EVENTS_FILE = "events.jsonl"
 META_FILE = "meta.json"
 
-TRACK_COLUMNS: tuple[str, ...] = ("frame", "stamp_ns", "id", "x", "y", "z_top", "posture")
+TRACK_COLUMNS: tuple[str, ...] = ("frame", "stamp_ns", "id", "x", "y", "z_top", "posture", "person")
 """The columns of a tracks file, in the order they are written."""
+REQUIRED_TRACK_COLUMNS: tuple[str, ...] = TRACK_COLUMNS[:7]
+"""The columns a reader needs (``person`` came later and may be absent)."""
 TRACK_HEADER = ",".join(TRACK_COLUMNS)
 """The first line of a tracks file (without its newline)."""
 
@@ -43,15 +48,17 @@ takes ``id`` as optional)."""
 
 
 def write_track_rows(fh: IO[str], rows: Iterable[Sequence[Any]]) -> int:
-    """Write ``(frame, stamp_ns, id, x, y, z_top, posture)`` rows to the open text file ``fh``
-    as tracks-file lines (no header); returns the number of rows.
+    """Write ``(frame, stamp_ns, id, x, y, z_top, posture[, person])`` rows to the open text
+    file ``fh`` as tracks-file lines (no header); returns the number of rows.
 
-    ``x``, ``y``, ``z_top`` metres, written with four decimals; ``id`` as its text.
+    ``x``, ``y``, ``z_top`` metres, written with four decimals; ``id`` as its text;
+    ``person`` empty when absent or None.
     """
     writer = csv.writer(fh, lineterminator="\n")
     n = 0
-    for frame, stamp_ns, track_id, x, y, z_top, posture in rows:
-        writer.writerow([int(frame), int(stamp_ns), track_id, f"{x:.4f}", f"{y:.4f}", f"{z_top:.4f}", posture])
+    for frame, stamp_ns, track_id, x, y, z_top, posture, *rest in rows:
+        person = rest[0] if rest and rest[0] is not None else ""
+        writer.writerow([int(frame), int(stamp_ns), track_id, f"{x:.4f}", f"{y:.4f}", f"{z_top:.4f}", posture, person])
         n += 1
     return n
 

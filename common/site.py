@@ -26,6 +26,14 @@ Schema (all lengths in metres, world frame Z up, floor at Z = 0)::
     long_lie_s = 30.0            # on the floor this long after a fall: long_lie (5..3600)
     inactivity_s = 1800.0        # still this long, outside bed: inactivity (30..86400)
 
+    [identity]
+    reid_window_s = 600.0        # a person who leaves and comes back within this keeps their track id
+    rate_hz = 3.0                # colour descriptor requests per person per second per camera
+
+    [[enrolled]]                 # a resident recognised by appearance (at most `residents` of them)
+    name = "Ada"                 # unique, 1..64 characters; shown as `person` on tracks and events
+    model = "residents/ada.json" # appearance model written by `voxelwatch enrol`
+
     [zenoh]
     prefix = ""                  # default voxelwatch/<name>
     mode = "peer"                # peer | client | router
@@ -65,17 +73,19 @@ Schema (all lengths in metres, world frame Z up, floor at Z = 0)::
 
 from __future__ import annotations
 
+import json
 import math
 import tomllib
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, ValidationInfo, field_validator, model_validator
 
 from common import keys
 
 if TYPE_CHECKING:
     from common.camera import Camera
+    from fusion_server.identity import Resident
 
 NAME_PATTERN = r"^[A-Za-z0-9_-]+$"
 
@@ -176,6 +186,43 @@ class EventSettings(_Model):
     stillness is judged over the last 30 s of positions."""
 
 
+class IdentitySettings(_Model):
+    """Who is who: how long a person who left keeps their track id, and how often
+    the cameras describe each person's colours."""
+
+    reid_window_s: float = Field(default=600.0, gt=0.0, le=7 * 86400.0, allow_inf_nan=False)
+    """A person who leaves and comes back within this many seconds keeps their track id."""
+    rate_hz: float = Field(default=3.0, gt=0.0, le=30.0, allow_inf_nan=False)
+    """Colour descriptor requests per person per second, to every camera (about 110
+    bytes per person per request on the wire)."""
+
+
+MAX_NAME_CHARS = 64
+
+
+class EnrolledSpec(_Model):
+    """A resident recognised by appearance: a name and the appearance model
+    (``voxelwatch enrol``'s JSON file, relative to the site file)."""
+
+    name: str
+    model: str = Field(min_length=1)
+
+    @field_validator("name")
+    @classmethod
+    def _name_ok(cls, name: str) -> str:
+        return check_person_name(name)
+
+
+def check_person_name(name: str) -> str:
+    """``name`` when it can name an enrolled person (1..64 characters, not only spaces);
+    ValueError otherwise."""
+    if not name.strip():
+        raise ValueError("a name must not be empty")
+    if len(name) > MAX_NAME_CHARS:
+        raise ValueError(f"a name must be at most {MAX_NAME_CHARS} characters, got {len(name)}")
+    return name
+
+
 class ZenohSettings(_Model):
     """How this process joins the zenoh network."""
 
@@ -265,12 +312,16 @@ class Site(_Model):
     volume: Volume = Field(default_factory=Volume)
     carving: Carving = Field(default_factory=Carving)
     events: EventSettings = Field(default_factory=EventSettings)
+    identity: IdentitySettings = Field(default_factory=IdentitySettings)
     zenoh: ZenohSettings = Field(default_factory=ZenohSettings)
     cameras: list[CameraSpec] = Field(min_length=1)
     hotspots: list[HotSpotSpec] = Field(default_factory=list)
     doors: list[DoorSpec] = Field(default_factory=list)
     occluders: list[OccluderSpec] = Field(default_factory=list)
+    enrolled: list[EnrolledSpec] = Field(default_factory=list)
     base_dir: Path = Field(default=Path("."), exclude=True)
+    source: str = Field(default="<site>", exclude=True)
+    """Where the site came from (its file), for messages."""
 
     @field_validator("cameras")
     @classmethod
@@ -280,6 +331,19 @@ class Site(_Model):
         if dupes:
             raise ValueError(f"camera ids must be unique, repeated: {dupes}")
         return cameras
+
+    @field_validator("enrolled")
+    @classmethod
+    def _enrolled_ok(cls, enrolled: list[EnrolledSpec], info: ValidationInfo) -> list[EnrolledSpec]:
+        names = [e.name for e in enrolled]
+        dupes = sorted({n for n in names if names.count(n) > 1})
+        if dupes:
+            raise ValueError(f"enrolled names must be unique, repeated: {dupes}")
+        residents = info.data.get("residents")
+        if residents is not None and len(enrolled) > residents:
+            raise ValueError(f"{len(enrolled)} people enrolled but residents = {residents}: "
+                             "enrol at most as many people as live here")
+        return enrolled
 
     @property
     def prefix(self) -> str:
@@ -316,6 +380,37 @@ class Site(_Model):
     def load_cameras(self) -> dict[str, "Camera"]:
         return {cam_id: self.load_camera(cam_id) for cam_id in self.camera_ids}
 
+    def load_residents(self) -> list["Resident"]:
+        """The enrolled residents with their appearance models, in file order (they
+        take track ids 1, 2, ...). A model file that is missing, unreadable or not an
+        appearance model is a :class:`SiteError` naming the file and the problem."""
+        from fusion_server.identity import AppearanceModel, Resident
+
+        residents = []
+        for i, spec in enumerate(self.enrolled):
+            path = self.resolve(spec.model)
+            where = f"site file {self.source}: field enrolled[{i}].model: model file {path}"
+            try:
+                raw = json.loads(path.read_text(encoding="utf-8"))
+            except FileNotFoundError:
+                raise SiteError(f"{where}: not found (make it with voxelwatch enrol)") from None
+            except IsADirectoryError:
+                raise SiteError(f"{where}: is a folder, expected a JSON file") from None
+            except OSError as exc:
+                raise SiteError(f"{where}: cannot read: {exc.strerror or exc}") from None
+            except UnicodeDecodeError:
+                raise SiteError(f"{where}: not UTF-8 text") from None
+            except json.JSONDecodeError as exc:
+                raise SiteError(f"{where}: not valid JSON: {exc.msg} at line {exc.lineno}") from None
+            if not isinstance(raw, dict):
+                raise SiteError(f"{where}: expected a JSON object, got {type(raw).__name__}")
+            try:
+                model = AppearanceModel.from_dict(raw, where=where)
+            except ValueError as exc:
+                raise SiteError(str(exc)) from None
+            residents.append(Resident(name=spec.name, model=model))
+        return residents
+
 
 def load_site(path: str | Path) -> Site:
     """Read and validate a site file; raise :class:`SiteError` on any problem."""
@@ -336,7 +431,7 @@ def load_site(path: str | Path) -> Site:
 def site_from_dict(raw: dict[str, Any], *, base_dir: Path, source: str = "<site>") -> Site:
     """Validate a site given as a dict (the parsed TOML)."""
     try:
-        return Site.model_validate({**raw, "base_dir": base_dir})
+        return Site.model_validate({**raw, "base_dir": base_dir, "source": source})
     except ValidationError as exc:
         err = exc.errors()[0]
         field = _field_name(err["loc"])
@@ -349,6 +444,8 @@ def site_to_toml(site: Site) -> str:
     data = site.model_dump(mode="json", exclude={"base_dir"})
     lines: list[str] = []
     for key, value in data.items():
+        if value == []:
+            continue  # an empty list of tables: left out, so that tables can be added below by hand
         if not isinstance(value, (dict, list)) or (isinstance(value, list) and not _is_table_list(value)):
             lines.append(f"{key} = {_toml_value(value)}")
     for key, value in data.items():

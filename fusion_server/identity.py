@@ -201,7 +201,9 @@ class AppearanceModel:
             height = d.get("height_m")
             height = float("nan") if height is None else float(height)
             return cls(hist=hist, frames=frames, height_m=height, height_frames=int(d.get("height_frames", 0)))
-        except (KeyError, TypeError, ValueError) as exc:
+        except KeyError as exc:
+            raise ValueError(f"{where}: missing field {exc.args[0]!r}") from None
+        except (TypeError, ValueError) as exc:
             raise ValueError(f"{where}: {exc}") from None
 
 
@@ -376,14 +378,28 @@ class IdentityKeeper:
     # ------------------------------------------------------------------ queries
 
     def name_of(self, label: int) -> str | None:
-        person = self._people.get(label)
+        """The enrolled name of the person under ``label`` (in view or lost), else None."""
+        person = self._person(label)
         return person.name if person is not None else None
 
     def model_of(self, label: int) -> AppearanceModel | None:
-        person = self._people.get(label)
+        """The model of the person under ``label`` (in view or lost), else None."""
+        person = self._person(label)
         return person.model if person is not None else None
 
+    def models(self) -> dict[int, AppearanceModel]:
+        """Every person's model by label, in view or lost (enrolled residents not yet
+        seen included), in label order."""
+        people = {**{label: lost.person for label, lost in self._lost.items()}, **self._people}
+        return {label: people[label].model for label in sorted(people)}
+
     # ------------------------------------------------------------------ internals
+
+    def _person(self, label: int) -> _Person | None:
+        person = self._people.get(label)
+        if person is None and label in self._lost:
+            person = self._lost[label].person
+        return person
 
     def _take_looks(self, looks: Mapping[str, Iterable[Appearance]], stamp_ns: int) -> None:
         p = self.p

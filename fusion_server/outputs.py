@@ -3,7 +3,8 @@
 Both are the run files of :mod:`common.runfiles`, which the evaluation
 reads too, so a live run can be scored like a replay:
 
-* ``tracks.csv``: one row per confirmed track per fused frame;
+* ``tracks.csv``: one row per confirmed track per fused frame (``person``: the
+  enrolled resident's name, empty for anyone else);
 * ``events.jsonl``: one ``Event.to_dict()`` object per line.
 
 Each frame's rows and each event go out in one ``write`` followed by a
@@ -42,6 +43,7 @@ class TrackRow(Protocol):
     y: float
     z_top: float
     posture: str
+    person: str | None  # the enrolled resident's name, None for anyone else
 
 
 class TracksWriter:
@@ -67,7 +69,7 @@ class TracksWriter:
         for t in tracks:
             x, y, z = float(t.x), float(t.y), float(t.z_top)
             if math.isfinite(x) and math.isfinite(y) and math.isfinite(z):
-                rows.append((frame, stamp_ns, int(t.id), x, y, z, t.posture))
+                rows.append((frame, stamp_ns, int(t.id), x, y, z, t.posture, getattr(t, "person", None)))
         buf = io.StringIO()
         n = write_track_rows(buf, rows)
         if n:

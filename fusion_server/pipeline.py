@@ -4,9 +4,10 @@ The whole algorithmic chain of the fusion server, shared line for line by the
 live server and offline replay through :class:`fusion_server.node.FusionNode`. Pure: no zenoh, no clock, no files (the carving
 lookup-table cache aside, which the carver owns).
 
-Each stage is built in one place: the carver and the event reasoner of a site
-by :func:`build_carver` and :func:`build_reasoner`, the tracker by
-:func:`build_tracker`. ``FusionPipeline.from_site`` and the benchmark
+Each stage is built in one place: the carver, the event reasoner and the
+identity keeper of a site by :func:`build_carver`, :func:`build_reasoner` and
+:func:`build_identity` (which reads the enrolled residents' model files, as
+``from_site`` reads the calibrations), the tracker by :func:`build_tracker`. ``FusionPipeline.from_site`` and the benchmark
 (``fusion_server.benchmark``) both build through them.
 """
 
@@ -14,7 +15,7 @@ from __future__ import annotations
 
 import dataclasses
 import itertools
-from collections.abc import Iterable, Mapping
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -130,9 +131,12 @@ class FusionPipeline:
         cache_dir: str | Path | None = None,
         seed: int = 0,
         min_cameras: int | None = None,
+        residents: Sequence[Resident] | None = None,
     ) -> "FusionPipeline":
         """The pipeline a site file describes (calibrations loaded unless given;
-        event timing from its ``[events]`` section)."""
+        event timing from its ``[events]`` section; who is who from its
+        ``[identity]`` section and the residents it enrols, unless ``residents``
+        is given: ``()`` recognises nobody, as an enrolment must)."""
         cameras = dict(cameras) if cameras is not None else site.load_cameras()
         return cls(
             carver=build_carver(site, cameras, cache_dir=cache_dir),
@@ -140,6 +144,7 @@ class FusionPipeline:
             reasoner=build_reasoner(site),
             rng=np.random.default_rng(seed),
             min_cameras=min_cameras,
+            identity=build_identity(site, cameras, residents=residents),
         )
 
     def step(self, masks: Mapping[str, np.ndarray], stamp_ns: int, frame: int,
@@ -298,6 +303,16 @@ def build_reasoner(site: Site) -> EventReasoner:
         falls=FallParams(long_lie_s=site.events.long_lie_s),
         inactivity=InactivityParams(inactivity_s=site.events.inactivity_s),
     )
+
+
+def build_identity(site: Site, cameras: Mapping[str, Camera], *,
+                   residents: Sequence[Resident] | None = None) -> IdentityKeeper:
+    """The identity keeper of the site's ``[identity]`` settings over ``cameras`` (camera
+    id -> full-resolution camera), recognising ``residents`` [None: the site's enrolled
+    residents, their model files read now (:class:`~common.site.SiteError` on a bad one)]."""
+    params = IdentityParams(reid_window_s=site.identity.reid_window_s, rate_hz=site.identity.rate_hz)
+    people = site.load_residents() if residents is None else list(residents)
+    return IdentityKeeper(cameras, params, residents=people)
 
 
 def build_tracker(rng: np.random.Generator) -> Tracker:

@@ -3,6 +3,14 @@
 One row a scenario, a total row from summed counts, and the same again with
 fewer cameras to show how accuracy degrades when cameras fail. Uses the same
 :func:`fusion_server.replay.replay` as ``voxelwatch replay``.
+
+With an enrolment (``voxelwatch enrol`` of one person of the house, e.g.
+person 1 from ``walk``: a person's build and clothes depend only on the seed
+and their id, so they look the same in every scenario), the suite's site
+enrols that person and every scenario also scores the name
+(:mod:`common.evaluation.residents`): frames in which someone else's track
+carries it (the target is zero) and the share of the person's own matched
+frames that do.
 """
 
 from __future__ import annotations
@@ -42,12 +50,17 @@ def run_suite(
     json_path: str | Path | None = None,
     jobs: int = 1,
     mask_scale: float | None = None,
+    enrolled: str | Path | None = None,
+    enrolled_person: int = 1,
     stream=sys.stdout,
 ) -> int:
     """Replay and score the scenarios; print one table per camera count. Returns 0.
 
     jobs: scenarios replayed at once, each in its own process.
     mask_scale: the masks' downscale factor (default: the synthetic site's).
+    enrolled: an enrolment file (``voxelwatch enrol``) of the house's person
+        ``enrolled_person``, made with the same seed; the site enrols it and the
+        scores gain ``resident``.
     """
     from common import synth
 
@@ -56,10 +69,18 @@ def run_suite(
     if quick and max_frames is None:
         max_frames = QUICK_FRAMES
     site = synth.default_site(out / "site")
-    if mask_scale is not None:
+    resident = None
+    if mask_scale is not None or enrolled is not None:
         raw = site.model_dump(mode="json", exclude={"base_dir"})
-        raw["carving"]["mask_scale"] = mask_scale
+        if mask_scale is not None:
+            raw["carving"]["mask_scale"] = mask_scale
+        if enrolled is not None:
+            name = _enrolled_name(Path(enrolled))
+            raw["enrolled"] = [{"name": name, "model": str(Path(enrolled).resolve())}]
+            raw["residents"] = max(int(raw["residents"]), 1)
+            resident = (str(int(enrolled_person)), name)
         site = synth_site_with(raw, out / "site")
+        site.load_residents()  # a bad enrolment file stops the suite before any replay
     plans = []
     for count in camera_counts:
         cams = cameras_for(count, site.camera_ids)
@@ -67,7 +88,7 @@ def run_suite(
             plans.append((count, cams, name))
     results: dict[tuple[int, str], dict] = {}
     site_path = site.base_dir / "site.toml"
-    tasks = [(str(site_path), str(out), count, cams, name, max_frames, seed) for count, cams, name in plans]
+    tasks = [(str(site_path), str(out), count, cams, name, max_frames, seed, resident) for count, cams, name in plans]
     if jobs <= 1:
         for task in tasks:
             results[(task[2], task[4])] = _report(_run_one(*task))
@@ -99,7 +120,21 @@ def synth_site_with(raw: dict, folder: Path):
     return load_site(write_site(site_from_dict(raw, base_dir=folder.resolve()), folder / "site.toml"))
 
 
-def _run_one(site_path: str, out: str, count: int, cams: list[str], name: str, max_frames: int | None, seed: int) -> dict:
+def _enrolled_name(path: Path) -> str:
+    """The name an enrolment file carries; ValueError naming the file when it has none."""
+    import json
+
+    try:
+        name = json.loads(path.read_text(encoding="utf-8")).get("name")
+    except (OSError, ValueError, AttributeError) as exc:
+        raise ValueError(f"enrolment file {path}: cannot read its name: {exc}") from None
+    if not isinstance(name, str) or not name.strip():
+        raise ValueError(f"enrolment file {path}: no name (write it with voxelwatch enrol)")
+    return name
+
+
+def _run_one(site_path: str, out: str, count: int, cams: list[str], name: str, max_frames: int | None, seed: int,
+             resident: tuple[str, str] | None = None) -> dict:
     """Replay and score one scenario with some cameras (runs in a worker process)."""
     from common import synth
     from common.site import load_site
@@ -115,7 +150,7 @@ def _run_one(site_path: str, out: str, count: int, cams: list[str], name: str, m
     t0 = time.perf_counter()
     summary = replay(site, run_dir, synthetic=name, cameras=cams, max_frames=n_frames, seed=seed, cache_dir=out_dir / "cache")
     return {"count": count, "name": name, "frames": summary.frames, "seconds": time.perf_counter() - t0,
-            "scores": evaluate(truth_dir, run_dir)}
+            "scores": evaluate(truth_dir, run_dir, resident=resident)}
 
 
 def _report(result: dict) -> dict:

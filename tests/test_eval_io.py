@@ -28,7 +28,7 @@ def test_tracks_round_trip_sorted(tmp_path) -> None:
         (2, 200, "a", 3.0, 4.0, 1.2, "sitting"),
     ]
     path = io.write_tracks(tmp_path / "run" / "tracks.csv", rows)
-    assert path.read_text().splitlines()[0] == "frame,stamp_ns,id,x,y,z_top,posture"
+    assert path.read_text().splitlines()[0] == "frame,stamp_ns,id,x,y,z_top,posture,person"
     t = io.read_tracks(path)
     assert list(t.rows()) == sorted(rows, key=lambda r: (r[0], r[2]))
     assert t.xy_m.shape == (3, 2) and t.frame.dtype == np.int64
@@ -40,6 +40,16 @@ def test_tracks_header_only_and_extra_columns(tmp_path) -> None:
     # columns in another order plus an extra one are accepted
     t = io.read_tracks(write(tmp_path / "b.csv", "id,posture,frame,stamp_ns,x,y,z_top,reliability\n7,sitting,3,30,1,2,1.1,0.9\n"))
     assert list(t.rows()) == [(3, 30, "7", 1.0, 2.0, 1.1, "sitting")]
+
+
+def test_tracks_without_a_person_column_read_as_nobody_named(tmp_path) -> None:
+    # ground truth and runs written before the person column
+    t = io.read_tracks(write(tmp_path / "old.csv", HEADER + "0,0,a,1,1,1.7,standing\n0,0,b,2,1,1.6,sitting\n"))
+    assert t.person.tolist() == ["", ""]
+    # the column anywhere, found by its header
+    t = io.read_tracks(write(tmp_path / "new.csv", "person,frame,stamp_ns,id,x,y,z_top,posture\n"
+                                                   "Ada,0,0,1,1,1,1.7,standing\n,0,0,2,2,1,1.6,sitting\n"))
+    assert t.person.tolist() == ["Ada", ""] and t.track_id.tolist() == ["1", "2"]
 
 
 @pytest.mark.parametrize(

@@ -114,5 +114,5 @@ def test_a_fresh_run_starts_both_files_anew(tmp_path):
         with RunOutputs(tmp_path, fresh=True) as out:
             out.write_frame(0, 0, [row])
             out.write_event({"id": "e1", "kind": "enter", "track": 1, "stamp_ns": 0, "frame": 0, "x": 1.0, "y": 2.0, "details": {}})
-    assert (tmp_path / "tracks.csv").read_text().splitlines()[1:] == ["0,0,1,1.0000,2.0000,1.7000,standing"]
+    assert (tmp_path / "tracks.csv").read_text().splitlines()[1:] == ["0,0,1,1.0000,2.0000,1.7000,standing,"]
     assert len((tmp_path / "events.jsonl").read_text().splitlines()) == 1

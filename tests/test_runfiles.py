@@ -17,15 +17,22 @@ from fusion_server.pipeline import TrackOutput
 def test_track_rows_by_hand() -> None:
     buf = text_io.StringIO()
     n = runfiles.write_track_rows(buf, [(3, 1_000_000_000, 7, 1.23456, -0.5, np.float64(1.7), "standing"),
-                                        (3, 1_000_000_000, "alice", 0.0, 2.0, 0.44444, "lying")])
-    assert n == 2
-    assert buf.getvalue() == "3,1000000000,7,1.2346,-0.5000,1.7000,standing\n3,1000000000,alice,0.0000,2.0000,0.4444,lying\n"
+                                        (3, 1_000_000_000, "alice", 0.0, 2.0, 0.44444, "lying"),
+                                        (4, 1_066_666_667, 1, 1.0, 1.0, 1.6, "sitting", "Ada Lovelace, née Byron"),
+                                        (4, 1_066_666_667, 2, 3.0, 1.0, 1.7, "standing", None)])
+    assert n == 4
+    # person last: empty for anyone not enrolled, quoted when the name holds a comma
+    assert buf.getvalue() == ("3,1000000000,7,1.2346,-0.5000,1.7000,standing,\n"
+                              "3,1000000000,alice,0.0000,2.0000,0.4444,lying,\n"
+                              '4,1066666667,1,1.0000,1.0000,1.6000,sitting,"Ada Lovelace, née Byron"\n'
+                              "4,1066666667,2,3.0000,1.0000,1.7000,standing,\n")
 
 
 def test_tracks_file_has_the_header_first(tmp_path) -> None:
     path = runfiles.write_tracks_file(tmp_path / "a" / runfiles.TRACKS_FILE, [(0, 5, 1, 1.0, 2.0, 1.5, "sitting")])
-    assert path.read_text(encoding="utf-8") == "frame,stamp_ns,id,x,y,z_top,posture\n0,5,1,1.0000,2.0000,1.5000,sitting\n"
+    assert path.read_text(encoding="utf-8") == "frame,stamp_ns,id,x,y,z_top,posture,person\n0,5,1,1.0000,2.0000,1.5000,sitting,\n"
     assert runfiles.TRACK_HEADER == ",".join(runfiles.TRACK_COLUMNS)
+    assert runfiles.TRACK_COLUMNS[-1] == "person" and "person" not in runfiles.REQUIRED_TRACK_COLUMNS
 
 
 def test_event_line_order_by_hand() -> None:
@@ -53,3 +60,23 @@ def test_live_and_evaluation_writers_write_the_same_bytes(tmp_path) -> None:
                     [Event(id="x", kind="fall", track=2, frame=4, stamp_ns=400, x=1.0, y=2.0, details={"direction": "left"})])
     for name in (runfiles.TRACKS_FILE, runfiles.EVENTS_FILE):
         assert (tmp_path / "live" / name).read_bytes() == (tmp_path / "eval" / name).read_bytes()
+
+
+def test_a_named_track_reaches_the_file_and_the_reader(tmp_path) -> None:
+    with RunOutputs(tmp_path / "live") as out:
+        out.write_frame(4, 400, [
+            TrackOutput(id=1, x=1.0, y=2.0, z_top=1.7, volume_m3=0.1, posture="standing", reliability=0.9,
+                        vx=0.0, vy=0.0, still=False, person="Ada"),
+            TrackOutput(id=2, x=3.0, y=2.0, z_top=1.6, volume_m3=0.1, posture="sitting", reliability=0.9,
+                        vx=0.0, vy=0.0, still=True),
+        ])
+    path = tmp_path / "live" / runfiles.TRACKS_FILE
+    assert path.read_text().splitlines() == ["frame,stamp_ns,id,x,y,z_top,posture,person",
+                                             "4,400,1,1.0000,2.0000,1.7000,standing,Ada",
+                                             "4,400,2,3.0000,2.0000,1.6000,sitting,"]
+    table = io.read_tracks(path)
+    assert table.person.tolist() == ["Ada", ""]
+    assert list(table.rows())[0] == (4, 400, "1", 1.0, 2.0, 1.7, "standing")  # the old row layout
+    back = io.read_tracks(io.write_tracks(tmp_path / "again.csv", table))
+    assert back.person.tolist() == ["Ada", ""] and list(back.named_rows())[0][-1] == "Ada"
+    assert table.take(np.array([1])).person.tolist() == [""]

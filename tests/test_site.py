@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import pytest
@@ -170,3 +171,133 @@ def test_pets_camera_takes_its_size_from_the_calibration(tmp_path, pets_calibrat
     cam = load_site(_write(tmp_path, text)).load_camera("v1")
     assert (cam.width, cam.height) == (768, 576)
     assert cam.center[2] > 1.0
+
+
+# ---------------------------------------------------------------- identity and enrolled residents
+
+
+def _model_file(path: Path, *, torso_frames: int = 40, height_m: float | None = 1.7, **changes) -> Path:
+    """An appearance model as ``voxelwatch enrol`` writes it."""
+    from fusion_server.identity import AppearanceModel
+
+    model = AppearanceModel()
+    model.hist[1, 2] = 1.0
+    model.frames[1] = torso_frames
+    model.height_m = float("nan") if height_m is None else height_m
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps({"name": "whoever", **model.to_dict(), **changes}))
+    return path
+
+
+ENROLLED = '\n[[enrolled]]\nname = "Ada"\nmodel = "residents/ada.json"\n'
+
+
+def test_identity_section_and_enrolled_residents_load(tmp_path):
+    site = load_site(_write(tmp_path, GOOD))
+    assert (site.identity.reid_window_s, site.identity.rate_hz) == (600.0, 3.0)  # the identity keeper's defaults
+    assert site.enrolled == [] and site.load_residents() == []
+    _model_file(tmp_path / "residents" / "ada.json", torso_frames=40)
+    _model_file(tmp_path / "bob.json", torso_frames=55, height_m=None)
+    text = GOOD + "\n[identity]\nreid_window_s = 120\nrate_hz = 5\n" + ENROLLED + \
+        '\n[[enrolled]]\nname = "Bob the Builder"\nmodel = "bob.json"\n'
+    site = load_site(_write(tmp_path, text))
+    assert (site.identity.reid_window_s, site.identity.rate_hz) == (120.0, 5.0)
+    residents = site.load_residents()
+    # the site's names, not the files': a file can be renamed in the site without enrolling again
+    assert [r.name for r in residents] == ["Ada", "Bob the Builder"]
+    assert residents[0].model.frames[1] == 40 and residents[0].model.height_m == 1.7
+    assert residents[1].model.frames[1] == 55 and residents[1].model.height_m != residents[1].model.height_m
+    again = load_site(write_site(site, tmp_path / "site.toml"))  # written back where it was: same paths
+    assert again.enrolled == site.enrolled and again.identity == site.identity
+
+
+@pytest.mark.parametrize(
+    ("extra", "field", "problem"),
+    [
+        ("[identity]\nrate_hz = 0\n", "identity.rate_hz", "greater than 0"),
+        ("[identity]\nrate_hz = 100\n", "identity.rate_hz", "less than or equal to 30"),
+        ("[identity]\nreid_window_s = -5\n", "identity.reid_window_s", "greater than 0"),
+        ("[identity]\nreid_window = 60\n", "identity.reid_window", "unknown field"),
+        ('[[enrolled]]\nname = ""\nmodel = "a.json"\n', "enrolled[0].name", "must not be empty"),
+        ('[[enrolled]]\nname = "   "\nmodel = "a.json"\n', "enrolled[0].name", "must not be empty"),
+        ('[[enrolled]]\nname = "' + "x" * 65 + '"\nmodel = "a.json"\n', "enrolled[0].name", "at most 64 characters, got 65"),
+        ('[[enrolled]]\nname = "Ada"\n', "enrolled[0].model", "required field is missing"),
+        ('[[enrolled]]\nname = "Ada"\nmodel = "a.json"\n[[enrolled]]\nname = "Ada"\nmodel = "b.json"\n',
+         "enrolled", "unique, repeated: ['Ada']"),
+        ('[[enrolled]]\nname = "A"\nmodel = "a.json"\n[[enrolled]]\nname = "B"\nmodel = "b.json"\n'
+         '[[enrolled]]\nname = "C"\nmodel = "c.json"\n', "enrolled", "3 people enrolled but residents = 2"),
+    ],
+)
+def test_bad_identity_or_enrolment_names_the_field(tmp_path, extra, field, problem):
+    path = _write(tmp_path, GOOD + "\n" + extra)
+    with pytest.raises(SiteError) as err:
+        load_site(path)
+    message = str(err.value)
+    assert str(path) in message and f"field {field}" in message and problem in message
+
+
+def test_exactly_64_characters_is_a_name(tmp_path):
+    site = load_site(_write(tmp_path, GOOD + '\n[[enrolled]]\nname = "' + "é" * 64 + '"\nmodel = "a.json"\n'))
+    assert len(site.enrolled[0].name) == 64
+
+
+@pytest.mark.parametrize(
+    ("content", "problem"),
+    [
+        (None, "not found (make it with voxelwatch enrol)"),
+        ("{not json", "not valid JSON"),
+        ("[1, 2]", "expected a JSON object, got list"),
+        (json.dumps({"name": "Ada"}), "missing field 'bands'"),
+        ("hist", "hist must be 3x"),
+        ("frames", "finite and non-negative"),
+    ],
+)
+def test_a_bad_model_file_names_the_file_and_the_problem(tmp_path, content, problem):
+    path = _write(tmp_path, GOOD + ENROLLED)
+    model = tmp_path / "residents" / "ada.json"
+    if content == "hist":
+        _model_file(model, hist=[[0.5, 0.5]])
+    elif content == "frames":
+        _model_file(model, frames=[1, -2, 3])
+    elif content is not None:
+        model.parent.mkdir(parents=True, exist_ok=True)
+        model.write_text(content)
+    site = load_site(path)  # the file is read when the residents are loaded
+    with pytest.raises(SiteError) as err:
+        site.load_residents()
+    message = str(err.value)
+    assert str(path) in message and "field enrolled[0].model" in message and str(model) in message
+    assert problem in message
+
+
+def test_the_pipeline_of_a_site_recognises_its_residents_with_its_identity_settings(tmp_path):
+    from fusion_server.pipeline import FusionPipeline
+    from tests.tinysite import write_site as write_tiny
+
+    path, cams = write_tiny(tmp_path)
+    _model_file(tmp_path / "residents" / "ada.json")
+    path.write_text(path.read_text().replace('name = "tiny"\n', 'name = "tiny"\nresidents = 1\n\n'
+                                              '[identity]\nreid_window_s = 90\nrate_hz = 7.5\n', 1) + ENROLLED)
+    pipeline = FusionPipeline.from_site(load_site(path), cameras=cams)
+    keeper = pipeline.identity
+    assert (keeper.p.reid_window_s, keeper.p.rate_hz) == (90.0, 7.5)
+    assert keeper.name_of(1) == "Ada" and keeper.models()[1].frames[1] == 40  # label 1 waits for Ada
+    assert FusionPipeline.from_site(load_site(path), cameras=cams, residents=()).identity.models() == {}
+    (tmp_path / "residents" / "ada.json").unlink()
+    with pytest.raises(SiteError, match="ada.json: not found"):
+        FusionPipeline.from_site(load_site(path), cameras=cams)
+
+
+def test_site_check_loads_the_enrolled_residents(tmp_path, capsys):
+    from common import cli
+    from tests.tinysite import write_site as write_tiny
+
+    path, _ = write_tiny(tmp_path)
+    path.write_text(path.read_text().replace('name = "tiny"\n', 'name = "tiny"\nresidents = 1\n', 1) + ENROLLED)
+    assert cli.main(["site", "check", str(path)]) == 2  # the model file is not there yet
+    assert "field enrolled[0].model" in capsys.readouterr().err
+    _model_file(tmp_path / "residents" / "ada.json", torso_frames=40, height_m=1.7)
+    assert cli.main(["site", "check", str(path)]) == 0
+    out = capsys.readouterr().out
+    assert "1 residents, 1 enrolled" in out
+    assert "enrolled Ada: frames learnt head 0, torso 40, legs 0; 1.70 m tall" in out

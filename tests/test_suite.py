@@ -87,3 +87,45 @@ def test_cameras_for_keeps_opposite_corners_last():
     assert cameras_for(2, cams) == ["cam1", "cam3"]
     with pytest.raises(ValueError, match="camera count"):
         cameras_for(6, cams)
+
+
+def test_the_suite_scores_an_enrolled_resident(tmp_path):
+    """With an enrolment (here a model of colours nobody in the house wears), the site of the
+    suite enrols it and every scenario scores who carries the name."""
+    from fusion_server.identity import AppearanceModel
+    from fusion_server.suite import run_suite
+
+    model = AppearanceModel()
+    model.hist[:, 0] = 1.0
+    model.frames[:] = 50
+    model.height_m = 1.0
+    enrolment = tmp_path / "nobody.json"
+    enrolment.write_text(json.dumps({"name": "Nobody", **model.to_dict()}))
+    import io
+
+    report, stream = tmp_path / "suite.json", io.StringIO()
+    run_suite(out_dir=tmp_path / "suite", scenarios=["two_pass"], max_frames=FRAMES, json_path=report,
+              enrolled=enrolment, enrolled_person=2, stream=stream)
+    table = stream.getvalue()
+    assert "false res" in table and "res named" in table
+    data = json.loads(report.read_text())["5cam"]
+    res = data["scenarios"]["two_pass"]["resident"]
+    assert (res["person"], res["name"]) == ("2", "Nobody")
+    assert res["false_named"] == 0 and res["named_rows"] == 0 and res["resident_named"] == 0
+    assert res["resident_matched"] > 0 and res["named_ratio"] == 0.0
+    assert data["total"]["resident"]["resident_matched"] == res["resident_matched"]
+    site = (tmp_path / "suite" / "site" / "site.toml").read_text()
+    assert "[[enrolled]]" in site and str(enrolment.resolve()) in site
+
+
+def test_a_bad_enrolment_stops_the_suite_before_any_replay(tmp_path):
+    from fusion_server.suite import run_suite
+
+    bad = tmp_path / "bad.json"
+    bad.write_text(json.dumps({"name": "Ada", "bands": ["head"]}))
+    with pytest.raises(ValueError, match="bad.json: bands must be"):
+        run_suite(out_dir=tmp_path / "suite", scenarios=["walk"], enrolled=bad)
+    with pytest.raises(ValueError, match="no name"):
+        bad.write_text("{}")
+        run_suite(out_dir=tmp_path / "suite", scenarios=["walk"], enrolled=bad)
+    assert not (tmp_path / "suite" / "run-5cam").exists()

@@ -27,7 +27,7 @@ import numpy as np
 from common import messages, runfiles
 from common.messages import Event
 from common.postures import POSTURES
-from common.runfiles import EVENTS_FILE, META_FILE, TRACK_COLUMNS, TRACKS_FILE
+from common.runfiles import EVENTS_FILE, META_FILE, REQUIRED_TRACK_COLUMNS, TRACKS_FILE
 
 SCORED_KINDS: tuple[str, ...] = messages.PERSON_EVENT_KINDS
 
@@ -41,7 +41,9 @@ class TrackTable:
     """All rows of one tracks file, as parallel arrays sorted by (frame, id).
 
     ``frame`` (N,) int64; ``stamp_ns`` (N,) int64; ``track_id`` (N,) str;
-    ``x``, ``y``, ``z_top`` (N,) float64, world frame, metres; ``posture`` (N,) str.
+    ``x``, ``y``, ``z_top`` (N,) float64, world frame, metres; ``posture`` (N,) str;
+    ``person`` (N,) str, the enrolled resident's name, empty for anyone else (None
+    given: all empty).
     """
 
     frame: np.ndarray
@@ -51,6 +53,11 @@ class TrackTable:
     y: np.ndarray
     z_top: np.ndarray
     posture: np.ndarray
+    person: np.ndarray | None = None
+
+    def __post_init__(self) -> None:
+        if self.person is None:
+            object.__setattr__(self, "person", np.full(self.frame.shape[0], "", dtype="<U1"))
 
     def __len__(self) -> int:
         return int(self.frame.shape[0])
@@ -73,8 +80,9 @@ class TrackTable:
 
     @classmethod
     def from_rows(cls, rows: Iterable[Sequence[Any]]) -> "TrackTable":
-        """Build from ``(frame, stamp_ns, id, x, y, z_top, posture)`` tuples; sorts by (frame, id)."""
-        rows = list(rows)
+        """Build from ``(frame, stamp_ns, id, x, y, z_top, posture[, person])`` tuples; sorts by
+        (frame, id)."""
+        rows = [tuple(r) if len(r) > 7 else (*r, "") for r in rows]
         if not rows:
             return cls.empty()
         cols = list(zip(*rows))
@@ -86,6 +94,7 @@ class TrackTable:
             y=np.asarray(cols[4], dtype=np.float64),
             z_top=np.asarray(cols[5], dtype=np.float64),
             posture=np.asarray([str(v) for v in cols[6]], dtype=str),
+            person=np.asarray(["" if v is None else str(v) for v in cols[7]], dtype=str),
         )
         return table.sorted()
 
@@ -108,6 +117,7 @@ class TrackTable:
         return self.take(self.sort_order())
 
     def rows(self) -> Iterable[tuple[int, int, str, float, float, float, str]]:
+        """``(frame, stamp_ns, id, x, y, z_top, posture)`` per row (see :meth:`named_rows`)."""
         for i in range(len(self)):
             yield (
                 int(self.frame[i]),
@@ -120,7 +130,13 @@ class TrackTable:
             )
 
 
-_FIELDS = ("frame", "stamp_ns", "track_id", "x", "y", "z_top", "posture")
+    def named_rows(self) -> Iterable[tuple[int, int, str, float, float, float, str, str]]:
+        """:meth:`rows` with each row's ``person`` at the end."""
+        for row, person in zip(self.rows(), self.person):
+            yield (*row, str(person))
+
+
+_FIELDS = ("frame", "stamp_ns", "track_id", "x", "y", "z_top", "posture", "person")
 
 
 @dataclass(frozen=True)
@@ -142,17 +158,19 @@ def read_tracks(path: str | Path) -> TrackTable:
     try:
         header = next(reader)
     except StopIteration:
-        raise EvalFormatError(f"tracks file {path}: empty, expected the header {','.join(TRACK_COLUMNS)}") from None
+        raise EvalFormatError(f"tracks file {path}: empty, expected the header {','.join(REQUIRED_TRACK_COLUMNS)}") from None
     header = [h.strip() for h in header]
-    missing = [c for c in TRACK_COLUMNS if c not in header]
+    missing = [c for c in REQUIRED_TRACK_COLUMNS if c not in header]
     if missing:
         raise EvalFormatError(
-            f"tracks file {path}, line 1: header lacks {missing}; expected {','.join(TRACK_COLUMNS)}, got {','.join(header)}"
+            f"tracks file {path}, line 1: header lacks {missing}; expected {','.join(REQUIRED_TRACK_COLUMNS)}"
+            f" (and optionally person), got {','.join(header)}"
         )
     dupes = sorted({h for h in header if header.count(h) > 1})
     if dupes:
         raise EvalFormatError(f"tracks file {path}, line 1: repeated columns {dupes}")
-    col = {name: header.index(name) for name in TRACK_COLUMNS}
+    col = {name: header.index(name) for name in REQUIRED_TRACK_COLUMNS}
+    person_col = header.index("person") if "person" in header else None
     rows: list[tuple] = []
     seen: dict[tuple[int, str], int] = {}
     for line_no, cells in enumerate(reader, start=2):
@@ -176,14 +194,15 @@ def read_tracks(path: str | Path) -> TrackTable:
         if key in seen:
             raise EvalFormatError(f"{where}, field id: track {track_id} appears twice in frame {frame} (first on line {seen[key]})")
         seen[key] = line_no
-        rows.append((frame, stamp_ns, track_id, x, y, z_top, posture))
+        person = cells[person_col].strip() if person_col is not None else ""
+        rows.append((frame, stamp_ns, track_id, x, y, z_top, posture, person))
     return TrackTable.from_rows(rows)
 
 
 def write_tracks(path: str | Path, tracks: TrackTable | Iterable[Sequence[Any]]) -> Path:
     """Write a tracks CSV (header first, rows sorted by frame then id); returns the path."""
     table = tracks if isinstance(tracks, TrackTable) else TrackTable.from_rows(tracks)
-    return runfiles.write_tracks_file(path, table.rows())
+    return runfiles.write_tracks_file(path, table.named_rows())
 
 
 # ---------------------------------------------------------------- events

@@ -37,6 +37,8 @@ import numpy as np
 from common.evaluation import io
 from common.evaluation.events import ALARM_KINDS, WINDOW_FRAMES, TrackLinks, f1_score, score_events
 from common.evaluation.posture import posture_scores
+from common.evaluation.residents import resident_scores
+from common.evaluation.residents import totals as resident_totals
 from common.evaluation.tracking import (
     CLEAR_RADIUS_M, PER_FRAME_RADIUS_M, band_summary, by_people_present, clear_mot, frame_span, per_frame_measures, ratio,
 )
@@ -55,6 +57,7 @@ def evaluate(
     position_gate_m: Mapping[str, float] | None = None,
     require_track: bool = False,
     alarm_kinds: Sequence[str] = ALARM_KINDS,
+    resident: tuple[str, str] | None = None,
 ) -> dict[str, Any]:
     """Score ``run_dir`` (tracks.csv, events.jsonl) against ``truth_dir`` (truth/ or flat).
 
@@ -62,8 +65,10 @@ def evaluate(
     ``run_dir``, ``frames`` {first, last, count}, ``fps``, ``fps_source``,
     ``duration_s``, ``tracking`` (CLEAR-MOT and identity), ``per_frame`` (MOTME,
     MOTV, MTPF, ATPF), ``events`` (None when the truth has no events file),
-    ``posture`` and ``notes``. Raises :class:`~common.evaluation.io.EvalFormatError`
-    naming the file, line and field of any bad input.
+    ``posture``, ``notes`` and, when ``resident`` gives ``(truth person id, enrolled
+    name)``, ``resident`` (:func:`~common.evaluation.residents.resident_scores`).
+    Raises :class:`~common.evaluation.io.EvalFormatError` naming the file, line and
+    field of any bad input.
     """
     if fps is not None and not (isinstance(fps, (int, float)) and math.isfinite(fps) and fps > 0):
         raise ValueError(f"fps must be a positive number, got {fps!r}")
@@ -114,6 +119,8 @@ def evaluate(
         "posture": posture_scores(truth, run, mot.pairs).summary(),
         "by_people": by_people_present(truth, run, mot.pairs, first, last),
         "notes": notes,
+        **({} if resident is None else
+           {"resident": resident_scores(truth, run, mot.pairs, person=resident[0], name=resident[1])}),
     }
 
 
@@ -190,6 +197,12 @@ def format_table(results: Mapping[str, Any]) -> str:
     labels = p["labels"]
     conf = p["confusion"]
     lines += text_table(["truth \\ run", *labels], [[lab, *row] for lab, row in zip(labels, conf) if any(row)] or [["-"] * (len(labels) + 1)])
+    res = results.get("resident")
+    if res is not None:
+        lines += ["", f"enrolled resident {res['name']} (truth person {res['person']}): "
+                      f"named on {fmt_pct(res['named_ratio'])} of their {res['resident_matched']} matched frames; "
+                      f"someone else named {res['false_named']} times, a named track matching nobody "
+                      f"{res['named_unmatched']} times"]
     for note in results.get("notes", []):
         lines.append(f"note: {note}")
     return "\n".join(lines)
@@ -250,6 +263,8 @@ def suite_totals(results: Iterable[Mapping[str, Any]]) -> dict[str, Any]:
         "posture": p,
         "by_people": {label: band_summary(bands[label]) for label in sorted(bands, key=_band_low)},
         "notes": [],
+        **({"resident": resident_totals([r["resident"] for r in results])}
+           if all(r.get("resident") is not None for r in results) else {}),
     }
 
 
@@ -276,15 +291,21 @@ def suite_table(rows: Mapping[str, Mapping[str, Any]] | Iterable[tuple[str, Mapp
     ``rows``: scenario name -> :func:`evaluate` result (a mapping or pairs).
     Columns: frames, GT, MOTA, MOTP, IDF1, IDSW, FRAG, FP, FN, MOTME, MTPF,
     ATPF, fall P and R, sit/stand F1 (sit_down + stand_up counts), enter/exit
-    F1 (enter + exit counts), strict posture accuracy, false alarms per hour.
+    F1 (enter + exit counts), strict posture accuracy, false alarms per hour; when
+    every result scores an enrolled resident, also the frames someone else was
+    named as the resident (``false res``) and the share of the resident's
+    matched frames that carry the name (``res named``).
     """
     items = list(rows.items()) if isinstance(rows, Mapping) else list(rows)
     if not items:
         return "(no scenarios)"
     header = ["scenario", "frames", "GT", "MOTA", "MOTP m", "IDF1", "IDSW", "FRAG", "FP", "FN", "MOTME m", "MTPF",
               "ATPF", "fall P", "fall R", "sit/stand F1", "enter/exit F1", "posture", "FA/h"]
-    body = [_suite_row(name, r) for name, r in items]
-    total = _suite_row("total", suite_totals(r for _, r in items))
+    with_resident = all(r.get("resident") is not None for _, r in items)
+    if with_resident:
+        header += ["false res", "res named"]
+    body = [_suite_row(name, r, with_resident) for name, r in items]
+    total = _suite_row("total", suite_totals(r for _, r in items), with_resident)
     return "\n".join(text_table(header, body + [total], rule_before_last=True))
 
 
@@ -378,13 +399,17 @@ def _kind_summary(c: Mapping[str, int]) -> dict[str, Any]:
     }
 
 
-def _suite_row(name: str, r: Mapping[str, Any]) -> list[Any]:
+def _suite_row(name: str, r: Mapping[str, Any], with_resident: bool = False) -> list[Any]:
     t, s, p, ev = r["tracking"], r["per_frame"], r["posture"], r.get("events")
     fall, fall_r, sit, door = event_cells(ev)
     fa = "-" if ev is None else fmt_num(ev["false_alarms_per_hour"], 2)
-    return [name, r["frames"]["count"], t["gt"], fmt_pct(t["mota"]), fmt_num(t["motp_m"], 3), fmt_pct(t["idf1"]),
-            t["id_switches"], t["fragmentations"], t["fp"], t["fn"], fmt_num(s["motme_m"], 3), fmt_num(s["mtpf"], 3),
-            fmt_num(s["atpf"], 3), fall, fall_r, sit, door, fmt_pct(p["strict_accuracy"]), fa]
+    row = [name, r["frames"]["count"], t["gt"], fmt_pct(t["mota"]), fmt_num(t["motp_m"], 3), fmt_pct(t["idf1"]),
+           t["id_switches"], t["fragmentations"], t["fp"], t["fn"], fmt_num(s["motme_m"], 3), fmt_num(s["mtpf"], 3),
+           fmt_num(s["atpf"], 3), fall, fall_r, sit, door, fmt_pct(p["strict_accuracy"]), fa]
+    if with_resident:
+        res = r["resident"]
+        row += [res["false_named"], fmt_pct(res["named_ratio"])]
+    return row
 
 
 def event_cells(ev: Mapping[str, Any] | None) -> list[str]:
