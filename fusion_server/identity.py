@@ -96,6 +96,13 @@ class IdentityParams:
     same_person: two lost people whose models lie closer than this are taken
         for one person lost twice (a track that broke up more than once): the
         runner-up does not make the best match ambiguous [0.2].
+    drift_level, drift_evidence: a standing body's views that lie further than
+        ``drift_level`` from its person's model add the excess up; once the sum
+        reaches ``drift_evidence`` the body no longer shows that person (the
+        tracker let it slide onto someone else): the person counts as lost and
+        the body is identified afresh [0.3, 1.0; a person's own views lie
+        0.08-0.33 from their model nine times in ten, another's 0.4-0.6]. A
+        mature model learns only views within ``agree`` of it.
     """
 
     rate_hz: float = 3.0
@@ -120,6 +127,8 @@ class IdentityParams:
     decide_s: float = 0.5
     decide_views: float = 3.0
     same_person: float = 0.2
+    drift_level: float = 0.3
+    drift_evidence: float = 1.0
 
     def __post_init__(self) -> None:
         for name in ("rate_hz", "body_radius_m", "learn_rate", "reid_window_s"):
@@ -132,7 +141,7 @@ class IdentityParams:
             if not 0 <= value <= 1:
                 raise ValueError(f"{name} must lie in [0, 1], got {getattr(self, name)!r}")
         for name in ("settle_s", "close_m", "near_s", "near_m", "height_tolerance_m", "swap_evidence", "decide_s",
-                     "decide_views", "same_person"):
+                     "decide_views", "same_person", "drift_level", "drift_evidence"):
             value = float(getattr(self, name))
             if not (math.isfinite(value) and value >= 0):
                 raise ValueError(f"{name} must be a finite non-negative number, got {getattr(self, name)!r}")
@@ -247,7 +256,8 @@ class _Body:
     close_to: set[int] = field(default_factory=set)  # targets this one came close to recently
     born_ns: int = 0
     confirmed_ns: int | None = None  # when the tracker first confirmed it
-    fresh_until_ns: int = 0  # a new label that may yet give way to a neighbour's (see _exchange)
+    fresh_until_ns: int = 0  # a new label that may yet give way to a neighbour's or a lost person's
+    drift: float = 0.0  # evidence that the body no longer shows its person
 
 
 @dataclass
@@ -315,8 +325,14 @@ class IdentityKeeper:
                 self._label_new(tid, body, stamp_ns)
             elif stamp_ns < body.fresh_until_ns and body.view is not None:
                 fresh = body.label
-                if self._exchange(body, self._recent_view(body), stamp_ns):
+                view = self._recent_view(body)
+                if self._exchange(body, view, stamp_ns):
                     del self._people[fresh]  # a label nobody needs any more
+                    body.fresh_until_ns = 0
+                elif (chosen := self._choose(tid, body, view, stamp_ns, loose=False)) is not None:
+                    log.info("body %d is person %d after all (was given %d)", tid, chosen, fresh)
+                    model = self._people.pop(fresh).model
+                    self._reclaim(body, chosen)
                     body.fresh_until_ns = 0
         self._check_swaps(live, stamp_ns)
         self._expire(stamp_ns)
@@ -338,10 +354,17 @@ class IdentityKeeper:
             view = body.view
             if view is None or view.empty:
                 continue
-            if stamp_ns < body.close_until_ns and person.model.mature(p.min_model_frames):
+            if person.model.mature(p.min_model_frames):
                 d = person.model.distance(view)
-                if d is None or d > p.agree:
+                if d is None:
                     continue
+                if not body.close_to:  # beside someone, a swap is the likelier story (see _check_swaps)
+                    body.drift = max(0.0, body.drift + d - p.drift_level)
+                if body.drift >= p.drift_evidence and person.name is None:
+                    self._unlabel(tid, body, stamp_ns)
+                    continue
+                if d > p.agree:
+                    continue  # a mature model learns only views that agree with it
             person.model.learn(view, p.learn_rate, standing[tid])
 
     def regions(self, estimates: Sequence, stamp_ns: int) -> dict[str, list[PersonRegion]]:
@@ -463,10 +486,26 @@ class IdentityKeeper:
             return
         if view is not None and self._exchange(body, view, stamp_ns):
             return
+        chosen = self._choose(tid, body, view, stamp_ns, loose=True)
+        if chosen is not None:
+            self._reclaim(body, chosen)
+            log.info("person %d is back (body %d at %.2f, %.2f)", chosen, tid, *body.xy)
+        else:
+            label = next(self._labels)
+            self._people[label] = _Person(label=label, model=AppearanceModel())
+            body.label = label
+            body.fresh_until_ns = stamp_ns + int(round(p.near_s * 1e9))
+        if view is not None:
+            self._people[body.label].model.learn(view, p.learn_rate, None)
+
+    def _choose(self, tid: int, body: _Body, view: View | None, stamp_ns: int, *, loose: bool) -> int | None:
+        """The lost person ``body`` is, or None. ``loose``: a person lost right there
+        is taken at the looser distance (and alone, without views)."""
+        p = self.p
         scored = []
         for label, lost in self._lost.items():
             d = lost.person.model.distance(view) if view is not None else None
-            scored.append((label, self._near(lost, body, stamp_ns), d))
+            scored.append((label, loose and self._near(lost, body, stamp_ns), d))
         chosen = None
         with_d = sorted((d, label, near) for label, near, d in scored if d is not None)
         if with_d:
@@ -484,19 +523,22 @@ class IdentityKeeper:
             if len(near_only) == 1:
                 chosen = near_only[0]
         if log.isEnabledFor(logging.DEBUG):
-            log.debug("body %d confirmed at (%.2f, %.2f) with %s views; lost people (label, near, distance): %s",
+            log.debug("body %d at (%.2f, %.2f) with %s views; lost people (label, near, distance): %s -> %s",
                       tid, *body.xy, "no" if view is None else "some",
-                      [(label, near, None if d is None else round(d, 3)) for label, near, d in scored])
-        if chosen is not None:
-            self._reclaim(body, chosen)
-            log.info("person %d is back (body %d at %.2f, %.2f)", chosen, tid, *body.xy)
-        else:
-            label = next(self._labels)
-            self._people[label] = _Person(label=label, model=AppearanceModel())
-            body.label = label
-            body.fresh_until_ns = stamp_ns + int(round(p.near_s * 1e9))
-        if view is not None:
-            self._people[body.label].model.learn(view, p.learn_rate, None)
+                      [(label, near, None if d is None else round(d, 3)) for label, near, d in scored], chosen)
+        return chosen
+
+    def _unlabel(self, tid: int, body: _Body, stamp_ns: int) -> None:
+        """The body no longer shows its person (the tracker let it slide onto someone
+        else): the person is lost, the body waits for its identity afresh."""
+        person = self._people.pop(body.label)
+        log.info("body %d no longer looks like person %d: identity open again", tid, body.label)
+        self._lost[body.label] = _Lost(person=person, xy=(math.nan, math.nan), lost_ns=stamp_ns, partner=None)
+        body.label = -tid
+        body.confirmed_ns = stamp_ns
+        body.views.clear()
+        body.drift = 0.0
+        body.fresh_until_ns = 0
 
     def _ask_partners(self, est) -> None:
         """A new body beside a body a lost person merged into: ask for the neighbour's views
