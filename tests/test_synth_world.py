@@ -13,6 +13,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pytest
 
@@ -20,7 +21,7 @@ from common.camera import Camera
 from common.site import load_site
 from common.synth.body import pose_body
 from common.synth.degrade import MaskFaults
-from common.synth.render import raycast_room
+from common.synth.render import CameraRenderer, raycast_room
 from common.synth.scenario import Scenario
 from common.synth.crowd import STEP_OUT_AWAY_S
 from common.synth.truth import derive_truth
@@ -73,6 +74,37 @@ def test_the_same_seed_writes_the_same_files(tmp_path):
     walk(cmp)
     assert not mismatched
     assert len(list((tmp_path / "a").glob("cam*/masks/*.png"))) == 30 * len(random_world(28).cameras)
+
+
+def test_mask_worlds_write_the_colour_of_the_people_beside_masks_left_as_they_were(tmp_path):
+    world = random_world(3)  # one person; cam5 is two frames late
+    n = 30
+    out = write_world(world, tmp_path / "w", frames=n)
+    sc = world.scenario
+    for cam_id in ("cam1", "cam5"):
+        # the masks are those of render_masks (written from the colour render's person ids)
+        expected = render_masks(world, cam_id, range(n))
+        for i in range(n):
+            got = cv2.imread(str(out.out_dir / cam_id / "masks" / f"{i:06d}.png"), cv2.IMREAD_GRAYSCALE)
+            np.testing.assert_array_equal(got, expected[i], err_msg=f"{cam_id} frame {i}")
+        cap = cv2.VideoCapture(str(out.out_dir / cam_id / "colour.avi"))
+        frames = []
+        while True:
+            ok, frame = cap.read()
+            if not ok:
+                break
+            frames.append(frame)
+        cap.release()
+        cam = world.cameras[cam_id].scaled(world.mask_scale)
+        assert len(frames) == n and frames[0].shape == (cam.height, cam.width, 3)
+        # the person is drawn where the true silhouette (no lag) is, the empty room elsewhere
+        renderer = CameraRenderer(cam, world.room, seed=world.seed, shadows=False)
+        for i in (0, n - 1):
+            person = render_masks(world, cam_id, [i], faults=False)[0] > 0
+            diff = np.abs(frames[i].astype(int) - renderer.background(sc.gain(i), (0, i)).astype(int)).sum(axis=2)
+            assert person.sum() > 50
+            assert np.median(diff[person]) > 30 and np.median(diff[~person]) < 10, (cam_id, i)
+    assert not (out.out_dir / "cam1" / "video.avi").exists()
 
 
 def test_worlds_span_the_rooms_rigs_and_people_asked_for():

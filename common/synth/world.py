@@ -7,6 +7,8 @@ as the synthetic house (site file, calibrations, per-camera media, truth), so
 
     DIR/site.toml, DIR/calib/<cam>.*      the room, its rig and calibrations
     DIR/<cam>/masks/000000.png ...        mask worlds: degraded true silhouettes
+    DIR/<cam>/colour.avi                  mask worlds: the people's colours at the mask size, MJPG,
+                                          one frame per mask (no shadows; for appearance only)
     DIR/<cam>/video.avi, background.avi   video worlds: rendered frames (segmented on replay)
     DIR/truth/tracks.csv, events.jsonl    ground truth
     DIR/truth/meta.json                   fps, frames, people, and ``world``: what the world holds
@@ -70,6 +72,7 @@ RIG_LABELS = {"high-corners": "high corners", "level-walls": "level walls", "rea
 _BAND_P = (0.2, 0.3, 0.3, 0.2)
 _RIG_P = {"high-corners": 0.4, "level-walls": 0.35, "real-lab": 0.125, "real-pets": 0.125}
 _OVERLAP_M = 0.3
+_COLOUR_STREAM = 2  # noise stream of the colour frames beside the masks (0, 1: video worlds' frames, backgrounds)
 _ATTEMPTS = 8
 ALIKE_P = 0.25
 """Share of worlds whose adults all wear the same clothes."""
@@ -256,7 +259,7 @@ def write_world(world: World, out_dir: str | Path, *, frames: int | None = None)
     else:
         bodies = [_bodies_at(sc, i) for i in range(n)]
         for cam_id in world.cameras:
-            _write_masks(world, cam_id, out / cam_id / "masks", bodies)
+            _write_masks(world, cam_id, out / cam_id / "masks", out / cam_id / "colour.avi", bodies)
     return WorldOutput(out_dir=out, site=site_path, truth_dir=truth_dir, n_frames=n, media=world.media)
 
 
@@ -272,15 +275,11 @@ def iter_masks(world: World, cam_id: str, frames, *, faults: bool = True, bodies
     sc = world.scenario
     renderer = CameraRenderer(world.cameras[cam_id].scaled(world.mask_scale), world.room, colour=False)
     f = world.faults.get(cam_id, MaskFaults()) if faults else MaskFaults()
-    seed = _cam_seed(world.seed, cam_id)
     posed = (lambda i: bodies[i]) if bodies is not None else (lambda i: _bodies_at(sc, i))
     for i in frames:
         i = int(i)
         labels = renderer.labels(posed(max(0, i - f.lag_frames)))
-        if faults:
-            yield degrade(labels, f, i, camera=renderer.camera, bodies=posed(i), light_m=world.room.light_m, seed=seed)
-        else:
-            yield np.where(labels > 0, np.uint8(255), np.uint8(0))
+        yield _mask(world, cam_id, renderer.camera, labels, f, i, posed(i), faults=faults)
 
 
 # ---------------------------------------------------------------------- helpers
@@ -345,6 +344,15 @@ def _bodies_at(sc: Scenario, i: int):
     return [pose_body(p.shape, st["q"][i], p.person_id) for p, st in zip(sc.people, states) if st["present"][i]]
 
 
+def _mask(world: World, cam_id: str, camera: Camera, labels: np.ndarray, f: MaskFaults, i: int, bodies: list, *,
+          faults: bool) -> np.ndarray:
+    """Mask ``i`` from the true person ids per pixel (of frame ``i - f.lag_frames``)."""
+    if faults:
+        return degrade(labels, f, i, camera=camera, bodies=bodies, light_m=world.room.light_m,
+                       seed=_cam_seed(world.seed, cam_id))
+    return np.where(labels > 0, np.uint8(255), np.uint8(0))
+
+
 def _cam_seed(seed: int, cam_id: str) -> int:
     return seed * 1000 + sum(cam_id.encode("utf-8"))
 
@@ -397,12 +405,28 @@ def _write_site(world: World, out: Path) -> Path:
     return path
 
 
-def _write_masks(world: World, cam_id: str, folder: Path, bodies: list) -> None:
+def _write_masks(world: World, cam_id: str, folder: Path, colour_path: Path, bodies: list) -> None:
+    """The masks of :func:`iter_masks` and the colour frames beside them: the true bodies (no lag, no
+    faults) at the mask size without shadows. One render gives both (its person ids are those of
+    ``CameraRenderer.labels``), so the colour costs the shading and the encoding only."""
     folder.mkdir(parents=True, exist_ok=True)
     for old in folder.glob("*.png"):
         old.unlink()
-    for i, mask in enumerate(iter_masks(world, cam_id, range(len(bodies)), bodies=bodies)):
-        cv2.imwrite(str(folder / f"{i:06d}.png"), mask)
+    sc = world.scenario
+    cam = world.cameras[cam_id].scaled(world.mask_scale)
+    renderer = CameraRenderer(cam, world.room, seed=world.seed, shadows=False)
+    f = world.faults.get(cam_id, MaskFaults())
+    recent: dict[int, np.ndarray] = {}  # person ids of the last frames, for a late camera
+    writer = open_video_writer(colour_path, "MJPG", WORLD_FPS, (cam.width, cam.height))
+    try:
+        for i, people in enumerate(bodies):
+            bgr, recent[i] = renderer.render(people, sc.gain(i), (_COLOUR_STREAM, i))
+            recent.pop(i - f.lag_frames - 1, None)
+            writer.write(bgr)
+            mask = _mask(world, cam_id, cam, recent[max(0, i - f.lag_frames)], f, i, people, faults=True)
+            cv2.imwrite(str(folder / f"{i:06d}.png"), mask)
+    finally:
+        writer.release()
 
 
 def _write_video(world: World, cam_id: str, cam: Camera, folder: Path, n: int) -> None:
