@@ -197,8 +197,8 @@ def groups_table(results: Sequence[dict], groups: dict[str, list[dict]] | None =
 
 # ---------------------------------------------------------------------- helpers
 
-_SCORE_HEADER = ["MOTA", "IDF1", "IDSW", "re-ID", "count", "posture", "fall P", "fall R", "false falls/h", "sit/stand F1",
-                 "enter/exit F1", "fused/s"]
+_SCORE_HEADER = ["MOTA", "IDF1", "IDSW", "re-ID", "count", "posture", "fall P", "fall R", "false falls/h",
+                 "sit/stand F1", "enter/exit F1", "fused/s"]
 
 
 def _score_cells(s: dict, frames: int, fuse_s: float) -> list[str]:
