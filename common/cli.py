@@ -206,7 +206,8 @@ def _synth_world(args: argparse.Namespace) -> int:
     room = s["room"]
     print(f"{world.name} ({s['seed_set']} seed): {room['shape']} room {room['size_m'][0]:.1f} x {room['size_m'][1]:.1f} m, "
           f"{s['cameras']} cameras ({s['rig_label']}{', ceiling fisheye' if s['fisheye'] else ''}), "
-          f"{s['people']} people ({', '.join(s['behaviours'])}), {out.n_frames} frames of {s['media']}")
+          f"{s['people']} people ({', '.join(s['behaviours'])}"
+          f"{'; every adult dressed alike' if s['dress'] == 'alike' else ''}), {out.n_frames} frames of {s['media']}")
     print(f"  site {out.site}\n  truth {out.truth_dir}")
     return 0
 

@@ -4,14 +4,18 @@
 each world (:mod:`common.synth.world`), replays it exactly as ``voxelwatch
 replay --input`` does, scores it as ``voxelwatch eval`` does, and prints:
 
-* what the worlds hold: rooms, rigs, cameras, people, behaviours, faults;
+* what the worlds hold: rooms, rigs, cameras, people, behaviours, dress, faults;
 * one row per world, and a total row from summed counts;
 * totals by the number of people present in a frame (tracking figures: a
   frame belongs to the band of its own truth count);
 * totals by rig kind (whole worlds): high corners, level walls, with and
-  without a ceiling fisheye (drawn rigs), the real rigs.
+  without a ceiling fisheye (drawn rigs), the real rigs;
+* totals by dress (whole worlds): everyone dressed alike or not.
 
-``fused/s`` is frame sets through the fusion pipeline (carving, detection,
+``IDSW`` counts identity switches (CLEAR-MOT); ``re-ID`` the truth re-entries
+(an exit and the person's return within 10 minutes) whose run track id after
+the return is the one before it, as same/re-entries
+(:mod:`common.evaluation.reentry`). ``fused/s`` is frame sets through the fusion pipeline (carving, detection,
 tracking, posture, events) per second of that stage's wall time, in a process
 that shares the machine with the suite's other jobs. The worlds' media are
 deleted once scored unless ``keep_media``.
@@ -28,7 +32,7 @@ from pathlib import Path
 from typing import Any
 
 from common.evaluation import evaluate, suite_totals, write_json
-from common.evaluation.report import event_cells, fmt_num, fmt_pct, people_table, text_table
+from common.evaluation.report import event_cells, fmt_num, fmt_pct, identity_cell, people_table, text_table
 
 
 def parse_seeds(text: str) -> list[int]:
@@ -89,12 +93,15 @@ def run_world_suite(
     print("\nby people present in the frame (tracking only; each frame in the band of its truth count):", file=stream)
     print("\n".join(people_table(total["by_people"])), file=stream)
     print("\nby rig (whole worlds):", file=stream)
-    print(groups_table(ordered), file=stream, flush=True)
+    print(groups_table(ordered), file=stream)
+    print("\nby dress (whole worlds; 'alike': every adult in the same clothes):", file=stream)
+    print(groups_table(ordered, dress_groups(ordered)), file=stream, flush=True)
     report = {
         "seeds": list(seeds), "seed_sets": sets,
         "worlds": [{k: r[k] for k in ("seed", "world", "frames", "fuse_s", "replay_s", "scores")} for r in ordered],
         "total": total,
         "groups": {label: suite_totals(r["scores"] for r in rs) for label, rs in rig_groups(ordered).items()},
+        "dress": {label: suite_totals(r["scores"] for r in rs) for label, rs in dress_groups(ordered).items()},
     }
     if json_path is not None:
         write_json(report, json_path)
@@ -116,6 +123,8 @@ def composition(results: Sequence[dict]) -> str:
     behaviours = Counter(b for w in worlds for b in w["behaviours"])
     faults = Counter(f.split()[0] for w in worlds for fs in w["faults"].values() for f in set(fs))
     media = Counter(w["media"] for w in worlds)
+    dress = Counter(w.get("dress", "distinct") for w in worlds)
+    stepping = [w.get("step_outs", 0) for w in worlds]
     frames = sum(r["frames"] for r in results)
     lines = [
         f"{n} worlds, {frames} frame sets ({frames / 15.0 / 60:.1f} min at 15 fps); media: {_counts(media)}",
@@ -127,6 +136,8 @@ def composition(results: Sequence[dict]) -> str:
         f"{sum(1 for w in worlds if w['children'])} worlds; mean people per frame "
         f"{sum(w['people_per_frame_mean'] * r['frames'] for w, r in zip(worlds, results)) / max(frames, 1):.2f}",
         f"behaviours (worlds with it): {_counts(behaviours)}",
+        f"dress: {_counts(dress)}; people stepping out and back: {sum(stepping)} in "
+        f"{sum(1 for k in stepping if k)} worlds",
         f"mask faults (worlds with a camera showing it): {_counts(faults)}",
     ]
     return "\n".join(lines)
@@ -165,10 +176,19 @@ def rig_groups(results: Sequence[dict]) -> dict[str, list[dict]]:
     return {label: rs for label, rs in groups.items() if rs}
 
 
-def groups_table(results: Sequence[dict]) -> str:
-    header = ["rig", "worlds", "frames", *_SCORE_HEADER]
+def dress_groups(results: Sequence[dict]) -> dict[str, list[dict]]:
+    """Worlds by dress: 'alike' and 'distinct' (groups without worlds left out)."""
+    groups: dict[str, list[dict]] = {"alike": [], "distinct": []}
+    for r in results:
+        groups[r["world"].get("dress", "distinct")].append(r)
+    return {label: rs for label, rs in groups.items() if rs}
+
+
+def groups_table(results: Sequence[dict], groups: dict[str, list[dict]] | None = None) -> str:
+    """One row per group of worlds (default: :func:`rig_groups`)."""
+    header = ["rig" if groups is None else "group", "worlds", "frames", *_SCORE_HEADER]
     rows = []
-    for label, rs in rig_groups(results).items():
+    for label, rs in (rig_groups(results) if groups is None else groups).items():
         frames = sum(r["frames"] for r in rs)
         rows.append([label, len(rs), frames, *_score_cells(suite_totals(r["scores"] for r in rs), frames,
                                                            sum(r["fuse_s"] for r in rs))])
@@ -177,8 +197,8 @@ def groups_table(results: Sequence[dict]) -> str:
 
 # ---------------------------------------------------------------------- helpers
 
-_SCORE_HEADER = ["MOTA", "IDF1", "count", "posture", "fall P", "fall R", "false falls/h", "sit/stand F1",
-                 "enter/exit F1", "fused/s"]
+_SCORE_HEADER = ["MOTA", "IDF1", "IDSW", "re-ID", "count", "posture", "fall P", "fall R", "false falls/h",
+                 "sit/stand F1", "enter/exit F1", "fused/s"]
 
 
 def _score_cells(s: dict, frames: int, fuse_s: float) -> list[str]:
@@ -189,7 +209,8 @@ def _score_cells(s: dict, frames: int, fuse_s: float) -> list[str]:
     fall_p, fall_r, ss, ee = event_cells(ev)
     hours = (s.get("duration_s") or 0.0) / 3600.0
     ff = fmt_num(ev["per_kind"].get("fall", {}).get("fp", 0) / hours, 1) if ev is not None and hours else "-"
-    return [fmt_pct(t["mota"]), fmt_pct(t["idf1"]), fmt_pct(exact / n if n else None), fmt_pct(p["strict_accuracy"]),
+    return [fmt_pct(t["mota"]), fmt_pct(t["idf1"]), t["id_switches"], identity_cell(s.get("identity")),
+            fmt_pct(exact / n if n else None), fmt_pct(p["strict_accuracy"]),
             fall_p, fall_r, ff, ss, ee, fmt_num(frames / fuse_s if fuse_s > 0 else None, 1)]
 
 

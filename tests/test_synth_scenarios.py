@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from common.synth.behaviour import (
-    FALL_S, SIT_DOWN_S, STAND_UP_S, Fall, PersonScript, Sit, Stand, Walk, compile_person,
+    FALL_S, SIT_DOWN_S, STAND_UP_S, Fall, Leave, PersonScript, Return, Sit, Stand, Walk, compile_person,
 )
 from common.synth.scenario import ScenarioSpec
 from common.synth.scenarios import DEFAULT_SCENARIO, get_scenario, list_scenarios, scenario_spec
@@ -138,6 +138,47 @@ def test_bad_scripts_are_rejected_with_the_reason():
         ScenarioSpec("x", "", 1.0, (PersonScript(1, (), start=(1, 1, 0)), PersonScript(1, (), start=(2, 2, 0))))
     with pytest.raises(ValueError, match="scenarios are"):
         scenario_spec("nope")
+
+
+def test_a_person_who_leaves_can_come_back_by_a_door_or_over_an_open_edge():
+    room = default_room()
+    rng = lambda: np.random.default_rng(3)  # noqa: E731
+    by_door = PersonScript(1, (Leave("front door", via=((2.0, 4.3),)), Return(6.0, "front door", to=((3.0, 3.0),)),
+                               Stand(2.0)), start=(3.0, 4.3, 180.0))
+    tl = compile_person(by_door, room, rng(), 40.0)
+    (a0, b0), (a1, b1) = tl.present
+    # gone for exactly the time away; back in the corridor beyond the door, then at the waypoint
+    assert a0 == 0.0 and a1 - b0 == pytest.approx(6.0)
+    q, _, _, present = tl.evaluate(np.array([b0 + 3.0, a1, b1 - 1.0]))
+    assert present.tolist() == [False, True, True]
+    assert np.allclose(q[1, :2], room.door("front door").outside_xy_m)
+    assert np.allclose(q[2, :2], (3.0, 3.0), atol=1e-6)
+    assert b1 == 40.0
+    # over an open edge: vanish at the last waypoint, appear at the first waypoint of the way back
+    edge = PersonScript(1, (Leave(None, via=((7.5, 1.0),)), Return(4.0, None, to=((7.5, 5.0), (6.0, 5.0)))),
+                        start=(5.0, 1.0, 0.0))
+    tl = compile_person(edge, room, rng(), 30.0)
+    (_, b0), (a1, _) = tl.present
+    q, _, _, _ = tl.evaluate(np.array([b0 - 1e-6, a1, 29.0]))
+    assert np.allclose(q[:, :2], [(7.5, 1.0), (7.5, 5.0), (6.0, 5.0)], atol=1e-3)
+    # the same draws as without the way back: the body is the same
+    alone = compile_person(PersonScript(1, (Leave(None, via=((7.5, 1.0),)),), start=(5.0, 1.0, 0.0)), room, rng(), 30.0)
+    assert alone.shape == tl.shape and len(alone.present) == 1
+    with pytest.raises(ValueError, match="Return must follow a Leave"):
+        compile_person(PersonScript(1, (Return(3.0, None, to=((1.0, 1.0),)),), start=(2.0, 2.0, 0.0)), room, rng(), 9.0)
+    with pytest.raises(ValueError, match="where to vanish"):
+        compile_person(PersonScript(1, (Leave(None),), start=(2.0, 2.0, 0.0)), room, rng(), 9.0)
+
+
+def test_clothes_replace_only_the_shirt_trousers_and_sleeves():
+    room = default_room()
+    plain = PersonScript(1, (Stand(1.0),), start=(2.0, 2.0, 0.0))
+    dressed = PersonScript(1, (Stand(1.0),), start=(2.0, 2.0, 0.0), clothes=((1, 2, 3), (4, 5, 6), False))
+    a = compile_person(plain, room, np.random.default_rng(8), 2.0).shape
+    b = compile_person(dressed, room, np.random.default_rng(8), 2.0).shape
+    assert (b.shirt_bgr, b.trousers_bgr, b.long_sleeves) == ((1, 2, 3), (4, 5, 6), False)
+    assert (a.height_m, a.width, a.skin_bgr, a.hair_bgr, a.shoes_bgr) == (b.height_m, b.width, b.skin_bgr, b.hair_bgr,
+                                                                          b.shoes_bgr)
 
 
 def test_time_stamps_and_time_of_day():

@@ -6,12 +6,14 @@ only ever run by ``voxelwatch eval --suite --world random`` for the README.
 
 from __future__ import annotations
 
+import dataclasses
 import filecmp
 import json
 import subprocess
 import sys
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pytest
 
@@ -19,9 +21,12 @@ from common.camera import Camera
 from common.site import load_site
 from common.synth.body import pose_body
 from common.synth.degrade import MaskFaults
-from common.synth.render import raycast_room
+from common.synth.render import CameraRenderer, raycast_room
+from common.synth.scenario import Scenario
+from common.synth.crowd import STEP_OUT_AWAY_S
+from common.synth.truth import derive_truth
 from common.synth.world import (
-    EVALUATION_SEEDS, TUNING_SEEDS, random_world, render_masks, seed_set, write_world,
+    ADULT_M, EVALUATION_SEEDS, TUNING_SEEDS, random_world, render_masks, seed_set, write_world,
 )
 
 SYNTHETIC_SEEDS = (2, 9, 10, 11, 24, 33)
@@ -71,6 +76,37 @@ def test_the_same_seed_writes_the_same_files(tmp_path):
     assert len(list((tmp_path / "a").glob("cam*/masks/*.png"))) == 30 * len(random_world(28).cameras)
 
 
+def test_mask_worlds_write_the_colour_of_the_people_beside_masks_left_as_they_were(tmp_path):
+    world = random_world(3)  # one person; cam5 is two frames late
+    n = 30
+    out = write_world(world, tmp_path / "w", frames=n)
+    sc = world.scenario
+    for cam_id in ("cam1", "cam5"):
+        # the masks are those of render_masks (written from the colour render's person ids)
+        expected = render_masks(world, cam_id, range(n))
+        for i in range(n):
+            got = cv2.imread(str(out.out_dir / cam_id / "masks" / f"{i:06d}.png"), cv2.IMREAD_GRAYSCALE)
+            np.testing.assert_array_equal(got, expected[i], err_msg=f"{cam_id} frame {i}")
+        cap = cv2.VideoCapture(str(out.out_dir / cam_id / "colour.avi"))
+        frames = []
+        while True:
+            ok, frame = cap.read()
+            if not ok:
+                break
+            frames.append(frame)
+        cap.release()
+        cam = world.cameras[cam_id].scaled(world.mask_scale)
+        assert len(frames) == n and frames[0].shape == (cam.height, cam.width, 3)
+        # the person is drawn where the true silhouette (no lag) is, the empty room elsewhere
+        renderer = CameraRenderer(cam, world.room, seed=world.seed, shadows=False)
+        for i in (0, n - 1):
+            person = render_masks(world, cam_id, [i], faults=False)[0] > 0
+            diff = np.abs(frames[i].astype(int) - renderer.background(sc.gain(i), (0, i)).astype(int)).sum(axis=2)
+            assert person.sum() > 50
+            assert np.median(diff[person]) > 30 and np.median(diff[~person]) < 10, (cam_id, i)
+    assert not (out.out_dir / "cam1" / "video.avi").exists()
+
+
 def test_worlds_span_the_rooms_rigs_and_people_asked_for():
     worlds = [random_world(s).summary() for s in range(40)]
     rigs = {w["rig"] for w in worlds}
@@ -91,6 +127,53 @@ def test_worlds_span_the_rooms_rigs_and_people_asked_for():
             "kneel", "bend", "enter", "leave"} <= behaviours
     assert {"1280x720", "320x240"} <= set().union(*(w["resolutions"] for w in worlds))
     assert any(w["children"] for w in worlds)
+
+
+def test_one_world_in_four_dresses_every_adult_alike_and_changes_nothing_else():
+    dress = [random_world(s).dress for s in range(60)]
+    assert set(dress) == {"alike", "distinct"} and 8 <= dress.count("alike") <= 24
+    world = random_world(29)  # level walls, seven people, one a child
+    assert world.summary()["dress"] == "alike"
+    shapes = {p.person_id: p.shape for p in world.scenario.people}
+    adults = [s for s in world.spec.people if s.height_m >= ADULT_M]
+    assert len(adults) >= 2 and len(adults) < len(world.spec.people)
+    assert len({(shapes[s.person_id].shirt_bgr, shapes[s.person_id].trousers_bgr, shapes[s.person_id].long_sleeves)
+                for s in adults}) == 1
+    assert len({shapes[s.person_id].skin_bgr for s in adults} | {shapes[s.person_id].hair_bgr for s in adults}) > 1
+    assert all(s.clothes is None for s in world.spec.people if s.height_m < ADULT_M)
+    # the same people, doing the same, as when dressed as they would be: only the clothes differ
+    plain = Scenario(dataclasses.replace(world.spec, people=tuple(dataclasses.replace(s, clothes=None)
+                                                                  for s in world.spec.people)), world.seed,
+                     room=world.room)
+    for a, b in zip(plain.states, world.scenario.states):
+        np.testing.assert_array_equal(a["q"], b["q"])
+    assert [p.shape.height_m for p in plain.people] == [shapes[s.person_id].height_m for s in world.spec.people]
+
+
+def test_people_step_out_through_a_door_and_come_back_after_a_pause():
+    world = random_world(4)
+    summary = world.summary()
+    assert summary["step_outs"] == 1 and "step_out" in summary["behaviours"] and world.room.doors
+    pid, = world.cast.step_outs
+    fps = world.scenario.fps
+    events = [e for e in derive_truth(world.scenario).events if e.track == pid and e.kind in ("enter", "exit")]
+    kinds = [e.kind for e in events]
+    k = kinds.index("exit")
+    assert kinds[k + 1] == "enter"
+    gap_s = (events[k + 1].frame - events[k].frame) / fps
+    # away 3-20 s, plus the walks between the volume's edge and the corridor
+    assert STEP_OUT_AWAY_S[0] < gap_s < STEP_OUT_AWAY_S[1] + 8.0
+    # back for long enough to be seen again
+    assert world.scenario.n_frames - events[k + 1].frame > 3 * fps
+    shares = [bool(random_world(s).cast.step_outs) for s in range(40)]
+    assert 6 <= sum(shares) <= 20
+
+
+def test_people_of_a_real_rig_step_out_over_an_open_edge_and_back(data_dir):
+    world = random_world(6, data_dir=data_dir)
+    assert world.rig == "real-lab" and not world.room.doors and world.cast.step_outs == (1,)
+    kinds = [e.kind for e in derive_truth(world.scenario).events if e.track == 1 and e.kind in ("enter", "exit")]
+    assert kinds[:2] == ["exit", "enter"]
 
 
 @pytest.mark.parametrize("seed", SYNTHETIC_SEEDS)

@@ -75,6 +75,11 @@ def test_totals_are_the_sums_of_the_worlds(suite):
     groups = report["groups"]
     assert sum(g["frames"]["count"] for label, g in groups.items() if label in ("high corners", "level walls")) == \
         total["frames"]["count"]
+    for key in ("reentries", "same_id"):
+        assert total["identity"][key] == sum(w["identity"][key] for w in worlds)
+    # world 11 dresses both its people alike
+    assert sum(g["frames"]["count"] for g in report["dress"].values()) == total["frames"]["count"]
+    assert report["dress"]["alike"]["frames"]["count"] == FRAMES
 
 
 def test_the_report_is_written_as_json(suite):

@@ -21,7 +21,8 @@ distances; IDF1 = 2 sum(IDTP) / (sum(GT) + sum(predictions)) (each scenario
 keeps its own identity assignment, as identities do not cross recordings);
 MTPF and ATPF per summed frame; event precision/recall/F1 from summed
 TP/FP/FN; posture accuracy from summed correct/scored pairs; false alarms per
-summed hour; fall delays pooled.
+summed hour; fall delays pooled; re-entry identity from summed re-entries and
+same ids (:mod:`~common.evaluation.reentry`).
 """
 
 from __future__ import annotations
@@ -37,6 +38,7 @@ import numpy as np
 from common.evaluation import io
 from common.evaluation.events import ALARM_KINDS, WINDOW_FRAMES, TrackLinks, f1_score, score_events
 from common.evaluation.posture import posture_scores
+from common.evaluation.reentry import reentry_identity
 from common.evaluation.residents import resident_scores
 from common.evaluation.residents import totals as resident_totals
 from common.evaluation.tracking import (
@@ -65,8 +67,9 @@ def evaluate(
     ``run_dir``, ``frames`` {first, last, count}, ``fps``, ``fps_source``,
     ``duration_s``, ``tracking`` (CLEAR-MOT and identity), ``per_frame`` (MOTME,
     MOTV, MTPF, ATPF), ``events`` (None when the truth has no events file),
-    ``posture``, ``notes`` and, when ``resident`` gives ``(truth person id, enrolled
-    name)``, ``resident`` (:func:`~common.evaluation.residents.resident_scores`).
+    ``posture``, ``identity`` (re-entries that keep their track id; None without truth
+    events or frame rate), ``notes`` and, when ``resident`` gives ``(truth person id,
+    enrolled name)``, ``resident`` (:func:`~common.evaluation.residents.resident_scores`).
     Raises :class:`~common.evaluation.io.EvalFormatError` naming the file, line and
     field of any bad input.
     """
@@ -106,6 +109,11 @@ def evaluate(
             truth_events, run_events, window_frames=window_frames, position_gate_m=position_gate_m, track_links=links
         )
         events = scores.summary(duration_s=duration_s, alarm_kinds=alarm_kinds)
+    identity = None
+    if truth_events is not None and fps_value is not None:
+        identity = reentry_identity(truth, run, mot.pairs, truth_events, fps_value).summary()
+    elif truth_events is not None:
+        notes.append("frame rate unknown: re-entry identity not scored")
     return {
         "truth_dir": str(truth_dir),
         "run_dir": str(run_dir),
@@ -117,6 +125,7 @@ def evaluate(
         "per_frame": per_frame.summary(),
         "events": events,
         "posture": posture_scores(truth, run, mot.pairs).summary(),
+        "identity": identity,
         "by_people": by_people_present(truth, run, mot.pairs, first, last),
         "notes": notes,
         **({} if resident is None else
@@ -192,6 +201,11 @@ def format_table(results: Mapping[str, Any]) -> str:
             f"false alarms ({'/'.join(ev['alarm_kinds'])}): {ev['false_alarms']}"
             f"  per hour {fmt_num(ev['false_alarms_per_hour'], 2)}"
         )
+    ident = results.get("identity")
+    if ident is not None:
+        lines += ["", f"identity across re-entries (exit and back within {ident['within_s']:.0f} s; run id of the last "
+                      f"{ident['before_s']:g} s matched before against the first {ident['after_s']:g} s matched after)",
+                  f"re-entries {ident['reentries']}  same id {ident['same_id']}  rate {fmt_pct(ident['rate'])}"]
     lines += ["", f"posture over {p['pairs']} matched pairs ({p['scored']} with a known truth posture)"]
     lines.append(f"accuracy strict {fmt_pct(p['strict_accuracy'])}  lenient (bending = standing) {fmt_pct(p['lenient_accuracy'])}")
     labels = p["labels"]
@@ -261,11 +275,19 @@ def suite_totals(results: Iterable[Mapping[str, Any]]) -> dict[str, Any]:
         "per_frame": s,
         "events": _sum_events([r["events"] for r in results if r.get("events") is not None], duration_s),
         "posture": p,
+        "identity": _sum_identity([r.get("identity") for r in results]),
         "by_people": {label: band_summary(bands[label]) for label in sorted(bands, key=_band_low)},
         "notes": [],
         **({"resident": resident_totals([r["resident"] for r in results])}
            if all(r.get("resident") is not None for r in results) else {}),
     }
+
+
+def identity_cell(ident: Mapping[str, Any] | None) -> str:
+    """Re-entries keeping their id, as 'same/re-entries', '-' when not scored or none."""
+    if not ident or not ident["reentries"]:
+        return "-"
+    return f"{ident['same_id']}/{ident['reentries']}"
 
 
 def people_table(bands: Mapping[str, Mapping[str, Any]]) -> list[str]:
@@ -388,6 +410,16 @@ def _sum_events(events: list[Mapping[str, Any]], duration_s: float | None) -> di
         "false_alarms_per_hour": None if not duration_s else n_false / (duration_s / 3600.0),
         "unscored_run_events": sum(e["unscored_run_events"] for e in events),
     }
+
+
+def _sum_identity(parts: Sequence[Mapping[str, Any] | None]) -> dict[str, Any] | None:
+    """Re-entry identity summed over recordings (None when none was scored)."""
+    parts = [p for p in parts if p is not None]
+    if not parts:
+        return None
+    n, k = sum(p["reentries"] for p in parts), sum(p["same_id"] for p in parts)
+    return {**{key: parts[0][key] for key in ("within_s", "before_s", "after_s")}, "reentries": n, "same_id": k,
+            "rate": ratio(k, n)}
 
 
 def _kind_summary(c: Mapping[str, int]) -> dict[str, Any]:

@@ -4,7 +4,8 @@ A person's script is a :class:`PersonScript`: where they start (or an
 :class:`Enter` step: they appear in the corridor beyond the door and walk
 in) and a list of steps: :class:`Walk`, :class:`Face`, :class:`Stand`,
 :class:`Dwell`, :class:`Sit`, :class:`Fall`, :class:`Bend`, :class:`Kneel`,
-:class:`Wait`, :class:`WaitUntil`, :class:`Leave`. :func:`compile_person`
+:class:`Wait`, :class:`WaitUntil`, :class:`Leave` (then, to come back
+after a while, :class:`Return`). :func:`compile_person`
 turns it into a :class:`Timeline` of segments (key-framed transitions,
 holds and walks) that evaluates any batch of times into poses, posture
 labels, a moving flag and presence, deterministically for a seed.
@@ -26,6 +27,7 @@ half-way from kneeling to standing.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass, field
 from typing import Union
@@ -155,14 +157,27 @@ class Enter:
 
 @dataclass(frozen=True)
 class Leave:
-    """Walk (via waypoints) out through ``door`` into the corridor and vanish."""
+    """Walk (via waypoints) out through ``door`` into the corridor and vanish; with ``door`` None,
+    vanish at the last waypoint (out over an open edge of the monitored volume)."""
 
-    door: str = "front door"
+    door: str | None = "front door"
     via: tuple[Point, ...] = ()
     speed_mps: float = 1.0
 
 
-Step = Union[Walk, Face, Stand, Dwell, Sit, Fall, Bend, Kneel, Wait, WaitUntil, Enter, Leave]
+@dataclass(frozen=True)
+class Return:
+    """After a :class:`Leave`: stay away ``away_s`` seconds, then come back as :class:`Enter` does
+    (appear beyond ``door``, walk in and through ``to``); with ``door`` None, appear at the first
+    waypoint of ``to`` (beyond an open edge) and walk through the rest."""
+
+    away_s: float
+    door: str | None = "front door"
+    to: tuple[Point, ...] = ()
+    speed_mps: float = 1.0
+
+
+Step = Union[Walk, Face, Stand, Dwell, Sit, Fall, Bend, Kneel, Wait, WaitUntil, Enter, Leave, Return]
 
 
 @dataclass(frozen=True)
@@ -177,6 +192,8 @@ class PersonScript:
     resident: lives here (more people present than residents makes a visit).
     height_m: fixed height, or None for a random one (1.5..1.95 m) from the seed.
     speed_jitter: vary the walking speed by +-5 % with the seed (off to keep people in step).
+    clothes: ``(shirt_bgr, trousers_bgr, long_sleeves)`` worn instead of the drawn ones (the
+        rest of the body is drawn from the seed as without it), or None.
     """
 
     person_id: int
@@ -186,6 +203,7 @@ class PersonScript:
     resident: bool = True
     height_m: float | None = None
     speed_jitter: bool = True
+    clothes: tuple[tuple[int, int, int], tuple[int, int, int], bool] | None = None
 
 
 # ---------------------------------------------------------------------- timeline
@@ -288,6 +306,10 @@ def compile_person(script: PersonScript, room: Room, rng: np.random.Generator, d
     if not isinstance(script.person_id, int) or not (1 <= script.person_id <= 255):
         raise ValueError(f"person_id must be an int in 1..255, got {script.person_id!r}")
     shape = BodyShape.random(rng, height_m=script.height_m)
+    if script.clothes is not None:
+        shirt, trousers, sleeves = script.clothes
+        shape = dataclasses.replace(shape, shirt_bgr=tuple(int(c) for c in shirt),
+                                    trousers_bgr=tuple(int(c) for c in trousers), long_sleeves=bool(sleeves))
     b = _Builder(room, shape, rng, script.person_id)
     if not script.speed_jitter:
         b.speed_factor = 1.0
@@ -306,9 +328,9 @@ def compile_person(script: PersonScript, room: Room, rng: np.random.Generator, d
             x, y, facing = script.start
         b.appear_standing(float(x), float(y), math.radians(facing), script.start_s)
     for step in steps:
-        b.step(step)
-        if b.gone:
+        if b.gone and not isinstance(step, Return):
             break
+        b.step(step)
     if not b.gone:
         b.hold_until(max(duration_s, b.t))
     return b.timeline(script.resident)
@@ -402,12 +424,40 @@ class _Builder:
             door = self.room.door(step.door)
             self.walk([door.inside_xy_m] + [self.room.point(p) for p in step.to], step.speed_mps)
         elif isinstance(step, Leave):
-            door = self.room.door(step.door)
-            self.walk([self.room.point(p) for p in step.via] + [door.inside_xy_m, door.outside_xy_m], step.speed_mps)
+            via = [self.room.point(p) for p in step.via]
+            if step.door is None:
+                if not via:
+                    raise ValueError("Leave without a door needs waypoints: where to vanish")
+                self.walk(via, step.speed_mps)
+            else:
+                door = self.room.door(step.door)
+                self.walk(via + [door.inside_xy_m, door.outside_xy_m], step.speed_mps)
             self.present.append((self.t_appear, self.t))
             self.gone = True
+        elif isinstance(step, Return):
+            self.come_back(step)
         else:
             raise ValueError(f"unknown step {step!r}")
+
+    def come_back(self, step: Return) -> None:
+        if not self.gone:
+            raise ValueError(f"person {self.person_id}: Return must follow a Leave")
+        if not step.away_s >= 0:
+            raise ValueError(f"Return.away_s must be >= 0, got {step.away_s}")
+        to = [self.room.point(p) for p in step.to]
+        t = self.t + float(step.away_s)
+        if step.door is None:
+            if not to:
+                raise ValueError("Return without a door needs waypoints: where to appear")
+            (x, y), rest = to[0], to[1:]
+            yaw = math.atan2(rest[0][1] - y, rest[0][0] - x) if rest else float(self.q[Q_YAW])
+            self.appear_standing(x, y, yaw, t)
+        else:
+            door = self.room.door(step.door)
+            self.appear_outside(door, t)
+            rest = [door.inside_xy_m] + to
+        self.gone = False
+        self.walk(rest, step.speed_mps)
 
     def hold_until(self, t_end: float) -> None:
         if t_end > self.t:

@@ -23,6 +23,12 @@ sit_side_by_side     2      sit on neighbouring seats
 help_fallen          2      one falls, the other kneels beside them, both get up
 ===================  =====  ====================================================
 
+On top of that, ``step_outs`` people (drawn from a generator of their own, so
+that a world without them is the same as before) *step out* after their main
+behaviour: they walk out through the nearest door (or, with ``open_edges``,
+over the nearest edge of the monitored volume), stay away 3-20 s, come back in
+through a door (or an edge) and go on as the others do.
+
 Group members are kept in step with :class:`~common.synth.behaviour.WaitUntil`
 on arrival times estimated generously from the planned paths.
 """
@@ -35,7 +41,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from common.synth.behaviour import (
-    Bend, Dwell, Enter, Face, Fall, Kneel, Leave, PersonScript, Sit, Stand, WaitUntil, Walk,
+    Bend, Dwell, Enter, Face, Fall, Kneel, Leave, PersonScript, Return, Sit, Stand, WaitUntil, Walk,
 )
 from common.synth.rooms import FloorPlan
 from common.synth.scene import Room
@@ -47,6 +53,9 @@ FALL_BEHAVIOURS = ("fall", "slow_fall", "help_fallen")
 _WEIGHTS = {"walk": 3.0, "enter": 1.2, "leave": 1.2, "sit": 2.0, "kneel": 0.7, "bend": 0.8, "dwell": 1.5,
             "fall": 0.9, "slow_fall": 0.4, "group_walk": 1.5, "hold_hands": 0.8, "cross": 1.0, "talk_cluster": 1.2,
             "hug": 0.7, "sit_side_by_side": 1.0, "help_fallen": 0.6}
+STEP_OUT_AWAY_S = (3.0, 20.0)
+"""How long a person who steps out stays away, seconds."""
+_EDGE_OUT_M = 1.0  # how far beyond an open edge people aim when they step out over it
 _SIZES = {"group_walk": (2, 3), "hold_hands": (2, 2), "cross": (2, 2), "talk_cluster": (3, 5), "hug": (2, 2),
           "sit_side_by_side": (2, 2), "help_fallen": (2, 2)}
 
@@ -76,18 +85,26 @@ class _Person:
 
 @dataclass(frozen=True)
 class Cast:
-    """The people of a world: their scripts, each person's behaviour and group (0: alone)."""
+    """The people of a world: their scripts, each person's behaviour and group (0: alone), and the
+    ids of the people who step out and come back."""
 
     scripts: tuple[PersonScript, ...]
     behaviours: tuple[str, ...]
     groups: tuple[int, ...]
+    step_outs: tuple[int, ...] = ()
 
 
 def random_people(rng: np.random.Generator, room: Room, plan: FloorPlan, count: int, duration_s: float, *,
-                  residents: int = 1, falls: bool = True) -> Cast:
-    """``count`` people (1..12) in ``room`` for ``duration_s`` seconds; ``falls``: fall behaviours allowed."""
+                  residents: int = 1, falls: bool = True, step_outs: int = 0,
+                  step_rng: np.random.Generator | None = None, open_edges: bool = False) -> Cast:
+    """``count`` people (1..12) in ``room`` for ``duration_s`` seconds; ``falls``: fall behaviours allowed.
+    ``step_outs``: how many people to try to make step out and come back (drawn with ``step_rng``;
+    fewer when nobody else has the time left); ``open_edges``: people may leave and come back over
+    the edges of the monitored volume (rooms without doors)."""
     if not 1 <= count <= 12:
         raise ValueError(f"count must lie in 1..12, got {count}")
+    if step_outs < 0 or (step_outs and step_rng is None):
+        raise ValueError(f"step_outs must be >= 0 and come with step_rng, got {step_outs}")
     people = [_Person(k + 1, _height(rng), k < residents, speed=float(rng.uniform(0.7, 1.3))) for k in range(count)]
     comp = _Composer(rng, room, plan, duration_s)
     behaviours = [""] * count
@@ -112,9 +129,16 @@ def random_people(rng: np.random.Generator, room: Room, plan: FloorPlan, count: 
             m.group = group_id if size > 1 else 0
         comp.do(b, members)
         n_falls += b in FALL_BEHAVIOURS
+    stepped: list[int] = []
+    if step_outs:
+        for k in step_rng.permutation(count):
+            if len(stepped) == step_outs:
+                break
+            if comp.step_out(people[int(k)], step_rng, open_edges=open_edges):
+                stepped.append(people[int(k)].pid)
     for p in people:
         comp.fill(p)
-    return Cast(tuple(p.script() for p in people), tuple(behaviours), tuple(groups))
+    return Cast(tuple(p.script() for p in people), tuple(behaviours), tuple(groups), tuple(sorted(stepped)))
 
 
 class _Composer:
@@ -237,6 +261,45 @@ class _Composer:
                 p.t += pause
             else:
                 self.wander(p, 1)
+
+    def step_out(self, p: _Person, rng: np.random.Generator, *, open_edges: bool = False) -> bool:
+        """Leave by the nearest door (or open edge), stay away 3-20 s, come back by a door (or edge)
+        drawn with ``rng``, when that fits before the end with 4 s to spare; False (nothing added)
+        otherwise."""
+        if p.gone or not math.isfinite(p.t) or not (self.room.doors or open_edges):
+            return False
+        if self.room.doors:
+            door = min(self.room.doors, key=lambda d: math.dist(d.inside_xy_m, p.xy))
+            via_out = tuple(self.plan.path(p.xy, door.inside_xy_m)[:-1])
+            t_out = self._walk_time(p.xy, [*via_out, door.inside_xy_m, door.outside_xy_m], p.speed)
+            back = self.room.doors[int(rng.integers(len(self.room.doors)))]
+            target = self.plan.random_point(rng, near=back.inside_xy_m, within_m=4.0)
+            to = tuple(self.plan.path(back.inside_xy_m, target))
+            t_in = self._walk_time(back.outside_xy_m, [back.inside_xy_m, *to], p.speed)
+            leave = Leave(door.name, via=via_out, speed_mps=p.speed)
+            come = lambda away: Return(away, back.name, to=to, speed_mps=p.speed)  # noqa: E731
+        else:
+            out = self._beyond_edge(p.xy)
+            via_out = tuple(self.plan.path(p.xy, out))
+            t_out = self._walk_time(p.xy, via_out, p.speed)
+            (x0, y0), (x1, y1) = self.room.volume_rect_m
+            edge_at = (float(rng.uniform(x0, x1)), float(rng.uniform(y0, y1)))
+            start = self._beyond_edge(edge_at)
+            if self.room.inside_volume(np.array([out, start])).any():
+                return False  # no free floor beyond the edges
+            target = self.plan.random_point(rng, near=edge_at, within_m=3.0)
+            to = (start, *self.plan.path(start, target))
+            t_in = self._walk_time(start, to[1:], p.speed)
+            leave = Leave(None, via=via_out, speed_mps=p.speed)
+            come = lambda away: Return(away, None, to=to, speed_mps=p.speed)  # noqa: E731
+        spare = self.duration_s - 4.0 - (p.t + t_out + t_in)
+        away = min(float(rng.uniform(*STEP_OUT_AWAY_S)), spare)
+        if away < STEP_OUT_AWAY_S[0]:
+            return False
+        p.steps += [leave, come(away)]
+        p.t += t_out + away + t_in
+        p.xy = tuple(to[-1])
+        return True
 
     def walk_to(self, p: _Person, target, *, speed: float | None = None) -> None:
         speed = p.speed if speed is None else speed
@@ -402,6 +465,18 @@ class _Composer:
             if min(p[0], p[1], w - p[0], d - p[1]) < 0.7:
                 return p
         return self.plan.random_point(self.rng)
+
+    def _beyond_edge(self, xy) -> tuple[float, float]:
+        """The free floor nearest to a point :data:`_EDGE_OUT_M` beyond the monitored volume's edge
+        nearest to ``xy`` (a room without doors whose people may leave over its edges)."""
+        (x0, y0), (x1, y1) = self.room.volume_rect_m
+        x, y = float(xy[0]), float(xy[1])
+        gaps = {"x0": x - x0, "x1": x1 - x, "y0": y - y0, "y1": y1 - y}
+        edge = min(gaps, key=gaps.get)
+        x, y = min(max(x, x0), x1), min(max(y, y0), y1)
+        aim = {"x0": (x0 - _EDGE_OUT_M, y), "x1": (x1 + _EDGE_OUT_M, y), "y0": (x, y0 - _EDGE_OUT_M),
+               "y1": (x, y1 + _EDGE_OUT_M)}[edge]
+        return self.plan.nearest_free(aim)
 
     def _free_or_near(self, xy) -> tuple[float, float]:
         xy = (float(xy[0]), float(xy[1]))

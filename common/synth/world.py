@@ -7,6 +7,8 @@ as the synthetic house (site file, calibrations, per-camera media, truth), so
 
     DIR/site.toml, DIR/calib/<cam>.*      the room, its rig and calibrations
     DIR/<cam>/masks/000000.png ...        mask worlds: degraded true silhouettes
+    DIR/<cam>/colour.avi                  mask worlds: the people's colours at the mask size, MJPG,
+                                          one frame per mask (no shadows; for appearance only)
     DIR/<cam>/video.avi, background.avi   video worlds: rendered frames (segmented on replay)
     DIR/truth/tracks.csv, events.jsonl    ground truth
     DIR/truth/meta.json                   fps, frames, people, and ``world``: what the world holds
@@ -21,12 +23,19 @@ those with up to six people render video that replay segments with the camera
 worker's own segmenter, as the house does.
 Video worlds also run on the camera workers (each camera's source is its video).
 
+Two draws come from generators of their own, so that they leave the rest of a
+world as it was: the dress (one world in four dresses every adult alike: the
+same shirt, sleeves and trousers; ``summary()['dress']`` 'alike' or 'distinct')
+and step-outs (in two of five worlds with doors or open edges, one or two
+people walk out and come back 3-20 s later, :mod:`common.synth.crowd`).
+
 Seeds: :data:`TUNING_SEEDS` are for changing the pipeline; :data:`EVALUATION_SEEDS`
 are only for reporting. Every table of figures on random worlds says which.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import os
@@ -40,7 +49,7 @@ import numpy as np
 
 from common.calibration import save_voxelwatch
 from common.camera import Camera
-from common.synth.body import pose_body
+from common.synth.body import SHIRT_COLOURS, TROUSER_COLOURS, pose_body
 from common.synth.crowd import Cast, random_people
 from common.synth.degrade import MaskFaults, degrade, random_faults
 from common.synth.house import open_video_writer
@@ -63,7 +72,14 @@ RIG_LABELS = {"high-corners": "high corners", "level-walls": "level walls", "rea
 _BAND_P = (0.2, 0.3, 0.3, 0.2)
 _RIG_P = {"high-corners": 0.4, "level-walls": 0.35, "real-lab": 0.125, "real-pets": 0.125}
 _OVERLAP_M = 0.3
+_COLOUR_STREAM = 2  # noise stream of the colour frames beside the masks (0, 1: video worlds' frames, backgrounds)
 _ATTEMPTS = 8
+ALIKE_P = 0.25
+"""Share of worlds whose adults all wear the same clothes."""
+STEP_OUT_P = 0.4
+"""Share of worlds with doors or open edges where people step out and come back."""
+ADULT_M = 1.45
+"""People this tall or taller are adults (the dress of an 'alike' world)."""
 
 
 def seed_set(seed: int) -> str:
@@ -84,7 +100,8 @@ def default_data_dir() -> Path:
 @dataclass(frozen=True)
 class World:
     """One randomised world (see the module text). ``rig``: a key of :data:`RIG_LABELS`;
-    ``media``: 'masks' or 'video'; ``faults``: per camera, mask worlds only."""
+    ``media``: 'masks' or 'video'; ``faults``: per camera, mask worlds only; ``dress``: 'alike'
+    (every adult wears the same clothes) or 'distinct'."""
 
     seed: int
     room: Room
@@ -98,6 +115,7 @@ class World:
     mask_scale: float
     faults: dict[str, MaskFaults]
     open_edges: bool
+    dress: str = "distinct"
 
     @property
     def name(self) -> str:
@@ -133,8 +151,10 @@ class World:
             "people": len(self.cast.scripts),
             "people_per_frame_max": int(truth_rows.max(initial=0)),
             "people_per_frame_mean": round(float(truth_rows.mean()) if truth_rows.size else 0.0, 3),
-            "children": sum(1 for s in self.cast.scripts if s.height_m is not None and s.height_m < 1.45),
-            "behaviours": sorted(set(self.cast.behaviours)),
+            "children": sum(1 for s in self.cast.scripts if s.height_m is not None and s.height_m < ADULT_M),
+            "behaviours": sorted(set(self.cast.behaviours) | ({"step_out"} if self.cast.step_outs else set())),
+            "step_outs": len(self.cast.step_outs),
+            "dress": self.dress,
             "media": self.media,
             "mask_scale": self.mask_scale,
             "faults": {cam: f.describe() for cam, f in self.faults.items() if f.describe()},
@@ -194,9 +214,18 @@ def random_world(seed: int, *, data_dir: str | Path | None = None) -> World:
     fault_rng = np.random.default_rng([seed, 17])
     n_frames = int(round(duration * WORLD_FPS))
     faults = random_faults(fault_rng, cameras, n_frames, WORLD_FPS) if media == "masks" else {}
-    cast, spec = _best_cast(seed, room, plan, count, duration, residents, start_hour)
+    step_rng = np.random.default_rng([seed, 29])
+    step_outs = 0
+    if (room.doors or open_edges) and step_rng.random() < STEP_OUT_P:
+        step_outs = 1 if count <= 2 else int(step_rng.integers(1, 3))
+    cast, spec = _best_cast(seed, room, plan, count, duration, residents, start_hour, step_outs=step_outs,
+                            open_edges=open_edges)
+    dress_rng = np.random.default_rng([seed, 23])
+    dress = "alike" if dress_rng.random() < ALIKE_P else "distinct"
+    if dress == "alike":
+        cast, spec = _dress_alike(dress_rng, cast, spec)
     return World(seed=seed, room=room, cameras=cameras, refs=refs, rig=rig, fisheye=fisheye, spec=spec, cast=cast,
-                 media=media, mask_scale=mask_scale, faults=faults, open_edges=open_edges)
+                 media=media, mask_scale=mask_scale, faults=faults, open_edges=open_edges, dress=dress)
 
 
 @dataclass(frozen=True)
@@ -230,7 +259,7 @@ def write_world(world: World, out_dir: str | Path, *, frames: int | None = None)
     else:
         bodies = [_bodies_at(sc, i) for i in range(n)]
         for cam_id in world.cameras:
-            _write_masks(world, cam_id, out / cam_id / "masks", bodies)
+            _write_masks(world, cam_id, out / cam_id / "masks", out / cam_id / "colour.avi", bodies)
     return WorldOutput(out_dir=out, site=site_path, truth_dir=truth_dir, n_frames=n, media=world.media)
 
 
@@ -246,24 +275,21 @@ def iter_masks(world: World, cam_id: str, frames, *, faults: bool = True, bodies
     sc = world.scenario
     renderer = CameraRenderer(world.cameras[cam_id].scaled(world.mask_scale), world.room, colour=False)
     f = world.faults.get(cam_id, MaskFaults()) if faults else MaskFaults()
-    seed = _cam_seed(world.seed, cam_id)
     posed = (lambda i: bodies[i]) if bodies is not None else (lambda i: _bodies_at(sc, i))
     for i in frames:
         i = int(i)
         labels = renderer.labels(posed(max(0, i - f.lag_frames)))
-        if faults:
-            yield degrade(labels, f, i, camera=renderer.camera, bodies=posed(i), light_m=world.room.light_m, seed=seed)
-        else:
-            yield np.where(labels > 0, np.uint8(255), np.uint8(0))
+        yield _mask(world, cam_id, renderer.camera, labels, f, i, posed(i), faults=faults)
 
 
 # ---------------------------------------------------------------------- helpers
 
 
 def _best_cast(seed: int, room: Room, plan: FloorPlan, count: int, duration: float, residents: int,
-               start_hour: int) -> tuple[Cast, ScenarioSpec]:
+               start_hour: int, *, step_outs: int = 0, open_edges: bool = False) -> tuple[Cast, ScenarioSpec]:
     """People for the world: of a few draws, the one where people who are not together walk through
-    each other least (pelvises closer than 0.3 m)."""
+    each other least (pelvises closer than 0.3 m). Step-outs are then added to that draw (the same
+    main behaviours; the people who step out go on differently once back)."""
     best = None
     for attempt in range(_ATTEMPTS):
         rng = np.random.default_rng([seed, 13, attempt])
@@ -276,10 +302,27 @@ def _best_cast(seed: int, room: Room, plan: FloorPlan, count: int, duration: flo
         )
         overlap = _overlap_frames(Scenario(spec, seed, room=room), cast)
         if best is None or overlap < best[0]:
-            best = (overlap, cast, spec)
+            best = (overlap, cast, spec, attempt)
         if overlap == 0:
             break
-    return best[1], best[2]
+    _, cast, spec, attempt = best
+    if step_outs:
+        cast = random_people(np.random.default_rng([seed, 13, attempt]), room, plan, count, duration,
+                             residents=min(residents, count), step_outs=step_outs,
+                             step_rng=np.random.default_rng([seed, 29, attempt]), open_edges=open_edges)
+        spec = dataclasses.replace(spec, people=cast.scripts)
+    return cast, spec
+
+
+def _dress_alike(rng: np.random.Generator, cast: Cast, spec: ScenarioSpec) -> tuple[Cast, ScenarioSpec]:
+    """The cast with every adult in one shirt (and sleeve length) and one pair of trousers drawn
+    from the body's tables; children keep their own clothes."""
+    shirt = SHIRT_COLOURS[int(rng.integers(len(SHIRT_COLOURS)))]
+    trousers = TROUSER_COLOURS[int(rng.integers(len(TROUSER_COLOURS)))]
+    clothes = (shirt, trousers, bool(rng.random() < 0.6))
+    scripts = tuple(dataclasses.replace(s, clothes=clothes) if s.height_m is None or s.height_m >= ADULT_M else s
+                    for s in cast.scripts)
+    return dataclasses.replace(cast, scripts=scripts), dataclasses.replace(spec, people=scripts)
 
 
 def _overlap_frames(sc: Scenario, cast: Cast) -> int:
@@ -299,6 +342,15 @@ def _overlap_frames(sc: Scenario, cast: Cast) -> int:
 def _bodies_at(sc: Scenario, i: int):
     states = sc.states
     return [pose_body(p.shape, st["q"][i], p.person_id) for p, st in zip(sc.people, states) if st["present"][i]]
+
+
+def _mask(world: World, cam_id: str, camera: Camera, labels: np.ndarray, f: MaskFaults, i: int, bodies: list, *,
+          faults: bool) -> np.ndarray:
+    """Mask ``i`` from the true person ids per pixel (of frame ``i - f.lag_frames``)."""
+    if faults:
+        return degrade(labels, f, i, camera=camera, bodies=bodies, light_m=world.room.light_m,
+                       seed=_cam_seed(world.seed, cam_id))
+    return np.where(labels > 0, np.uint8(255), np.uint8(0))
 
 
 def _cam_seed(seed: int, cam_id: str) -> int:
@@ -353,12 +405,28 @@ def _write_site(world: World, out: Path) -> Path:
     return path
 
 
-def _write_masks(world: World, cam_id: str, folder: Path, bodies: list) -> None:
+def _write_masks(world: World, cam_id: str, folder: Path, colour_path: Path, bodies: list) -> None:
+    """The masks of :func:`iter_masks` and the colour frames beside them: the true bodies (no lag, no
+    faults) at the mask size without shadows. One render gives both (its person ids are those of
+    ``CameraRenderer.labels``), so the colour costs the shading and the encoding only."""
     folder.mkdir(parents=True, exist_ok=True)
     for old in folder.glob("*.png"):
         old.unlink()
-    for i, mask in enumerate(iter_masks(world, cam_id, range(len(bodies)), bodies=bodies)):
-        cv2.imwrite(str(folder / f"{i:06d}.png"), mask)
+    sc = world.scenario
+    cam = world.cameras[cam_id].scaled(world.mask_scale)
+    renderer = CameraRenderer(cam, world.room, seed=world.seed, shadows=False)
+    f = world.faults.get(cam_id, MaskFaults())
+    recent: dict[int, np.ndarray] = {}  # person ids of the last frames, for a late camera
+    writer = open_video_writer(colour_path, "MJPG", WORLD_FPS, (cam.width, cam.height))
+    try:
+        for i, people in enumerate(bodies):
+            bgr, recent[i] = renderer.render(people, sc.gain(i), (_COLOUR_STREAM, i))
+            recent.pop(i - f.lag_frames - 1, None)
+            writer.write(bgr)
+            mask = _mask(world, cam_id, cam, recent[max(0, i - f.lag_frames)], f, i, people, faults=True)
+            cv2.imwrite(str(folder / f"{i:06d}.png"), mask)
+    finally:
+        writer.release()
 
 
 def _write_video(world: World, cam_id: str, cam: Camera, folder: Path, n: int) -> None:
