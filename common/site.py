@@ -85,7 +85,7 @@ from common import keys
 
 if TYPE_CHECKING:
     from common.camera import Camera
-    from fusion_server.identity import Resident
+    from common.appearance import Resident
 
 NAME_PATTERN = r"^[A-Za-z0-9_-]+$"
 
@@ -384,7 +384,7 @@ class Site(_Model):
         """The enrolled residents with their appearance models, in file order (they
         take track ids 1, 2, ...). A model file that is missing, unreadable or not an
         appearance model is a :class:`SiteError` naming the file and the problem."""
-        from fusion_server.identity import AppearanceModel, Resident
+        from common.appearance import AppearanceModel, Resident
 
         residents = []
         for i, spec in enumerate(self.enrolled):

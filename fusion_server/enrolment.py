@@ -2,7 +2,7 @@
 
 The clip is replayed through the site's own pipeline, recognising nobody;
 the identity keeper then holds a model (colour histograms by body band and
-the standing height, :class:`~fusion_server.identity.AppearanceModel`) for
+the standing height, :class:`~common.appearance.AppearanceModel`) for
 every person it saw. The enrolment is the model of the person seen the most,
 by the frames their torso was learnt from, and only when
 
@@ -28,7 +28,7 @@ from pathlib import Path
 
 from common import appearance
 from common.site import Site, check_person_name
-from fusion_server.identity import AppearanceModel
+from common.appearance import AppearanceModel
 
 MIN_TORSO_FRAMES = 30
 """Fewest frames the enrolled person's torso must be learnt from (10 s of a person in view

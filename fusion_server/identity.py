@@ -45,10 +45,11 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from common import appearance
+from common.appearance import AppearanceModel, Resident, View
 from common.camera import Camera
 from common.messages import Appearance, PersonRegion
 
-__all__ = ["AppearanceModel", "IdentityKeeper", "IdentityParams", "Resident"]
+__all__ = ["IdentityKeeper", "IdentityParams"]
 
 log = logging.getLogger("voxelwatch.identity")
 
@@ -148,93 +149,6 @@ class IdentityParams:
         for name in ("min_pixels", "min_model_frames"):
             if int(getattr(self, name)) < 0:
                 raise ValueError(f"{name} must be a non-negative int, got {getattr(self, name)!r}")
-
-
-@dataclass
-class AppearanceModel:
-    """A person's long-term appearance: per band a normalised colour histogram and
-    the number of frames it has learnt; the standing height (metres, NaN unknown)."""
-
-    hist: np.ndarray = field(default_factory=lambda: np.zeros((_N_BANDS, appearance.N_BINS)))
-    frames: np.ndarray = field(default_factory=lambda: np.zeros(_N_BANDS))
-    height_m: float = float("nan")
-    height_frames: int = 0
-
-    def learn(self, view: "View", learn_rate: float, height_m: float | None) -> None:
-        """Take one frame's views (bands without views are left as they are)."""
-        for k in range(_N_BANDS):
-            if view.weight[k] <= 0:
-                continue
-            self.frames[k] += 1
-            rate = max(learn_rate, 1.0 / self.frames[k])
-            self.hist[k] += rate * (view.hist[k] - self.hist[k])
-        if height_m is not None and math.isfinite(height_m):
-            self.height_frames += 1
-            rate = max(learn_rate, 1.0 / self.height_frames)
-            self.height_m = height_m if not math.isfinite(self.height_m) else self.height_m + rate * (height_m - self.height_m)
-
-    def mature(self, min_frames: int) -> bool:
-        return bool(self.frames[1] >= min_frames or self.frames.sum() >= 2 * min_frames)
-
-    def distance(self, view: "View") -> float | None:
-        """Mean Hellinger distance over the bands both hold, weighted by the view's
-        weights; None when they share no band."""
-        total = weight = 0.0
-        for k in range(_N_BANDS):
-            if view.weight[k] <= 0 or self.frames[k] <= 0:
-                continue
-            w = view.weight[k] * min(1.0, self.frames[k] / 3.0)
-            total += w * appearance.hellinger(self.hist[k], view.hist[k])
-            weight += w
-        return total / weight if weight > 0 else None
-
-    def as_view(self) -> "View":
-        return View(hist=self.hist.copy(), weight=np.minimum(self.frames, 10.0) / 10.0)
-
-    def to_dict(self) -> dict:
-        return {"bands": list(appearance.BANDS), "hist": np.round(self.hist, 5).tolist(),
-                "frames": self.frames.tolist(), "height_m": None if not math.isfinite(self.height_m) else self.height_m,
-                "height_frames": self.height_frames}
-
-    @classmethod
-    def from_dict(cls, d: Mapping, *, where: str = "appearance model") -> "AppearanceModel":
-        try:
-            if list(d["bands"]) != list(appearance.BANDS):
-                raise ValueError(f"bands must be {list(appearance.BANDS)}, got {d['bands']!r}")
-            hist = np.asarray(d["hist"], dtype=np.float64)
-            frames = np.asarray(d["frames"], dtype=np.float64)
-            if hist.shape != (_N_BANDS, appearance.N_BINS) or frames.shape != (_N_BANDS,):
-                raise ValueError(f"hist must be {_N_BANDS}x{appearance.N_BINS} and frames {_N_BANDS} numbers")
-            if not (np.all(np.isfinite(hist)) and np.all(hist >= 0) and np.all(frames >= 0)):
-                raise ValueError("hist and frames must be finite and non-negative")
-            height = d.get("height_m")
-            height = float("nan") if height is None else float(height)
-            return cls(hist=hist, frames=frames, height_m=height, height_frames=int(d.get("height_frames", 0)))
-        except KeyError as exc:
-            raise ValueError(f"{where}: missing field {exc.args[0]!r}") from None
-        except (TypeError, ValueError) as exc:
-            raise ValueError(f"{where}: {exc}") from None
-
-
-@dataclass
-class View:
-    """One frame's views of a body: per band a normalised histogram and a weight in [0, 1]
-    (0: no clean view of that band)."""
-
-    hist: np.ndarray
-    weight: np.ndarray
-
-    @property
-    def empty(self) -> bool:
-        return not bool(np.any(self.weight > 0))
-
-
-@dataclass(frozen=True)
-class Resident:
-    """A person enrolled in the site: their name and appearance model."""
-
-    name: str
-    model: AppearanceModel
 
 
 @dataclass

@@ -22,7 +22,7 @@ from common.evaluation import evaluate, read_events, read_tracks
 from common.site import load_site, site_from_dict, write_site
 from fusion_server.enrolment import EnrolmentError, choose_model
 from fusion_server.event_store import EventStore, parse_history_selector
-from fusion_server.identity import AppearanceModel
+from common.appearance import AppearanceModel
 
 ENROL_FRAMES = 60
 """4 s of ``walk``: person 1 confirmed within a few frames, then asked for their colours every frame."""

@@ -20,7 +20,8 @@ import pytest
 from camera_worker.looks import describe
 from common import appearance
 from common.camera import Camera, look_at
-from fusion_server.identity import AppearanceModel, IdentityKeeper, IdentityParams, Resident
+from common.appearance import AppearanceModel, Resident
+from fusion_server.identity import IdentityKeeper, IdentityParams
 
 FPS = 15.0
 W, H = 320, 240

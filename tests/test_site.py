@@ -178,7 +178,7 @@ def test_pets_camera_takes_its_size_from_the_calibration(tmp_path, pets_calibrat
 
 def _model_file(path: Path, *, torso_frames: int = 40, height_m: float | None = 1.7, **changes) -> Path:
     """An appearance model as ``voxelwatch enrol`` writes it."""
-    from fusion_server.identity import AppearanceModel
+    from common.appearance import AppearanceModel
 
     model = AppearanceModel()
     model.hist[1, 2] = 1.0

@@ -92,7 +92,7 @@ def test_cameras_for_keeps_opposite_corners_last():
 def test_the_suite_scores_an_enrolled_resident(tmp_path):
     """With an enrolment (here a model of colours nobody in the house wears), the site of the
     suite enrols it and every scenario scores who carries the name."""
-    from fusion_server.identity import AppearanceModel
+    from common.appearance import AppearanceModel
     from fusion_server.suite import run_suite
 
     model = AppearanceModel()
