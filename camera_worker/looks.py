@@ -19,14 +19,18 @@ from common.messages import Appearance, LookRequest, PersonRegion
 __all__ = ["LookAnswerer", "describe"]
 
 
-def describe(people: Sequence[PersonRegion], image: np.ndarray, mask: np.ndarray) -> list[Appearance]:
-    """The descriptors of ``people`` in ``image`` (capture resolution, BGR) under ``mask``
-    (the frame's foreground mask, at capture resolution or downscaled from it)."""
+def describe(people: Sequence[PersonRegion], image: np.ndarray, mask: np.ndarray, *,
+             scale: float = 1.0) -> list[Appearance]:
+    """The descriptors of ``people`` in ``image`` (BGR) under ``mask`` (the frame's
+    foreground mask, at the image's resolution or downscaled from it). ``scale``: the
+    image's size over the capture's, in which the people's boxes are given (a recording
+    kept at a reduced size)."""
     if not people:
         return []
     if image.ndim == 2:
         image = np.repeat(image[:, :, None], 3, axis=2)
-    measured = appearance.describe_people(image, mask, [(p.depth_m, p.boxes) for p in people])
+    boxes = [p.boxes if scale == 1.0 else [tuple(int(round(v * scale)) for v in b) for b in p.boxes] for p in people]
+    measured = appearance.describe_people(image, mask, [(p.depth_m, b) for p, b in zip(people, boxes)])
     return [
         Appearance(track=p.track, hist=b"".join(appearance.quantise(h) for h in hist),
                    pixels=[int(v) for v in pixels], visible=[float(round(v, 3)) for v in visible])
@@ -52,9 +56,11 @@ class LookAnswerer:
         """A new request replaces one not yet answered (same people, newer boxes)."""
         self._request = request
 
-    def answer(self, image: np.ndarray | None, mask: np.ndarray, stamp_ns: int) -> list[Appearance]:
+    def answer(self, image: np.ndarray | None, mask: np.ndarray, stamp_ns: int, *,
+               scale: float = 1.0) -> list[Appearance]:
         """The descriptors for the pending request on this frame (captured at
-        ``stamp_ns``; ``image`` None when the frame's colours are unknown), or []
+        ``stamp_ns``; ``image`` None when the frame's colours are unknown; ``scale`` as
+        for :func:`describe`), or []
         when nothing is pending or the request is too old. Kept in ``last``."""
         req, self._request = self._request, None
         self.last = []
@@ -64,5 +70,5 @@ class LookAnswerer:
             self.expired += 1
             return self.last
         self.answered += 1
-        self.last = describe(req.people, image, mask)
+        self.last = describe(req.people, image, mask, scale=scale)
         return self.last

@@ -64,22 +64,26 @@ class _MaskFolder:
     """Recorded masks: one image per frame, sorted by name; the colour frames beside
     them when there are any."""
 
-    def __init__(self, folder: Path, fps: float, colour: FrameSource | None = None) -> None:
+    def __init__(self, folder: Path, fps: float, colour: FrameSource | None = None, capture_width: int = 0) -> None:
         self.files = sorted(p for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
         if not self.files:
             raise SourceError(f"mask folder {folder}: no mask images ({', '.join(IMAGE_SUFFIXES)})")
         self.fps = fps
         self.index = 0
         self.colour = colour
+        self.capture_width = capture_width  # the camera's full width: colour frames may be smaller
         if colour is not None:
             colour.open()
 
-    def read_colour(self) -> np.ndarray | None:
-        """The colour frame of the mask last read, or None (none recorded, or ended)."""
+    def read_colour(self) -> tuple[np.ndarray | None, float]:
+        """The colour frame of the mask last read, or None (none recorded, or ended), and
+        its width over the camera's."""
         if self.colour is None:
-            return None
+            return None, 1.0
         frame = self.colour.read()
-        return None if frame is None else frame.image
+        if frame is None:
+            return None, 1.0
+        return frame.image, (frame.image.shape[1] / self.capture_width if self.capture_width else 1.0)
 
     def read(self) -> tuple[int, np.ndarray] | None:
         if self.index >= len(self.files):
@@ -217,7 +221,7 @@ def _open_inputs(site, cam_ids, input_dir, synthetic, seed, background_frames) -
             if (folder / "masks").is_dir():
                 colour = folder / "colour.avi"
                 source = open_source(str(colour), cam_id=cam, fps=spec.fps) if colour.is_file() else None
-                inputs[cam] = _MaskFolder(folder / "masks", spec.fps, source)
+                inputs[cam] = _MaskFolder(folder / "masks", spec.fps, source, site.load_camera(cam).width)
                 continue
             video = _find_video(folder, "video")
             background = _find_video(folder, "background")
@@ -251,7 +255,8 @@ def _next_masks(inputs: dict, holds: dict, images: dict | None = None, asked: di
             indices.append(index)
             stamps.append(int(round(index * 1e9 / item.fps)))
             if asked is not None:
-                asked[cam].answer(item.read_colour(), mask, stamps[-1])
+                colour, scale = item.read_colour()
+                asked[cam].answer(colour, mask, stamps[-1], scale=scale)
             continue
         frame = item.read_frame()
         if frame is None:
