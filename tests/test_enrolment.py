@@ -107,6 +107,7 @@ def test_enrol_writes_the_model_of_the_person_in_the_clip(enrolled, capsys):
     assert [r.name for r in residents] == ["Ada"]
 
 
+@pytest.mark.slow
 def test_enrol_refuses_a_clip_with_two_people_and_one_with_nobody(house, cache, tmp_path, capsys):
     out = tmp_path / "ada.json"
     assert _enrol(house, cache, "two_pass", ENROL_FRAMES, out) == 2
@@ -136,6 +137,7 @@ def test_the_resident_is_named_on_their_track_and_nobody_else_is(enrolled, cache
     assert res["named_ratio"] >= 0.9  # named from the frame the track is reported
 
 
+@pytest.mark.slow
 def test_an_event_about_the_resident_carries_the_name_into_the_history(enrolled, cache, tmp_path):
     from fusion_server.replay import replay
 
