@@ -390,16 +390,10 @@ class Site(_Model):
         for i, spec in enumerate(self.enrolled):
             path = self.resolve(spec.model)
             where = f"site file {self.source}: field enrolled[{i}].model: model file {path}"
+            text = _read_text(path, where, missing="not found (make it with voxelwatch enrol)",
+                              folder="is a folder, expected a JSON file")
             try:
-                raw = json.loads(path.read_text(encoding="utf-8"))
-            except FileNotFoundError:
-                raise SiteError(f"{where}: not found (make it with voxelwatch enrol)") from None
-            except IsADirectoryError:
-                raise SiteError(f"{where}: is a folder, expected a JSON file") from None
-            except OSError as exc:
-                raise SiteError(f"{where}: cannot read: {exc.strerror or exc}") from None
-            except UnicodeDecodeError:
-                raise SiteError(f"{where}: not UTF-8 text") from None
+                raw = json.loads(text)
             except json.JSONDecodeError as exc:
                 raise SiteError(f"{where}: not valid JSON: {exc.msg} at line {exc.lineno}") from None
             if not isinstance(raw, dict):
@@ -412,17 +406,26 @@ class Site(_Model):
         return residents
 
 
+def _read_text(path: Path, where: str, *, missing: str = "not found", folder: str | None = None) -> str:
+    """The UTF-8 text of ``path``; a SiteError starting with ``where`` when it cannot be read."""
+    try:
+        return path.read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise SiteError(f"{where}: {missing}") from None
+    except OSError as exc:
+        if isinstance(exc, IsADirectoryError) and folder is not None:
+            raise SiteError(f"{where}: {folder}") from None
+        raise SiteError(f"{where}: cannot read: {exc.strerror or exc}") from None
+    except UnicodeDecodeError:
+        raise SiteError(f"{where}: not UTF-8 text") from None
+
+
 def load_site(path: str | Path) -> Site:
     """Read and validate a site file; raise :class:`SiteError` on any problem."""
     path = Path(path)
+    text = _read_text(path, f"site file {path}")
     try:
-        raw = tomllib.loads(path.read_text(encoding="utf-8"))
-    except FileNotFoundError:
-        raise SiteError(f"site file {path}: not found") from None
-    except OSError as exc:
-        raise SiteError(f"site file {path}: cannot read: {exc.strerror or exc}") from None
-    except UnicodeDecodeError:
-        raise SiteError(f"site file {path}: not UTF-8 text") from None
+        raw = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
         raise SiteError(f"site file {path}: not valid TOML: {exc}") from None
     return site_from_dict(raw, base_dir=path.resolve().parent, source=str(path))

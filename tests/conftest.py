@@ -32,3 +32,14 @@ def pets_calibration(data_dir: Path) -> Path:
     if not path.is_dir():
         pytest.skip(f"{path} is absent")
     return path
+
+
+@pytest.fixture(scope="module")
+def house(tmp_path_factory):
+    """(site, site file, carving-table cache dir) of the synthetic house, for tests that run it
+    as processes (modules with a house of their own override this one)."""
+    from common import synth
+
+    root = tmp_path_factory.mktemp("house")
+    site = synth.default_site(root / "site")
+    return site, site.base_dir / "site.toml", root / "cache"

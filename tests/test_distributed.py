@@ -70,14 +70,6 @@ FALL_EARLY_FRAMES = 30
 # --------------------------------------------------------------------------- the house, its truth, comparisons
 
 
-@pytest.fixture(scope="module")
-def house(tmp_path_factory):
-    """(site, site file, carving-table cache dir) of the synthetic house."""
-    root = tmp_path_factory.mktemp("house")
-    site = synth.default_site(root / "site")
-    return site, site.base_dir / "site.toml", root / "cache"
-
-
 def write_truth(name: str, n_frames: int, folder: Path) -> dict[int, list[tuple[float, float]]]:
     """Write the scenario's truth into ``folder``; return frame -> true floor positions."""
     synth.write_truth(synth.get_scenario(name, 0), folder, n_frames=n_frames)

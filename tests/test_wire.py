@@ -35,7 +35,7 @@ zenoh = pytest.importorskip("zenoh")
 from procs import Listener, Proc, Router, start_camera, start_fusion, stop_all, wait_for  # noqa: E402
 
 from camera_worker.worker import looks_bytes  # noqa: E402
-from common import appearance, keys, maskcodec, messages, synth  # noqa: E402
+from common import appearance, keys, maskcodec, messages  # noqa: E402
 from common.messages import MaskFrame  # noqa: E402
 
 SCENARIO = "two_pass"
@@ -47,14 +47,6 @@ SMALL_BOUND = 4096
 """Largest payload, bytes, of any message but a MaskFrame."""
 BUDGET_B = 1024
 """Most descriptor bytes per person per second per camera."""
-
-
-@pytest.fixture(scope="module")
-def house(tmp_path_factory):
-    """(site, site file, carving-table cache dir) of the synthetic house."""
-    root = tmp_path_factory.mktemp("house")
-    site = synth.default_site(root / "site")
-    return site, site.base_dir / "site.toml", root / "cache"
 
 
 @dataclass

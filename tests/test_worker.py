@@ -79,7 +79,9 @@ def test_build_mask_frame_round_trips_through_the_wire():
     assert np.array_equal(maskcodec.decode_mask(back.data, back.codec, back.width, back.height), mask)
 
 
-def test_step_segments_and_wraps_one_frame():
+def _learnt_room_with_person():
+    """A segmenter that learnt a noisy room, and the room with a green person at rows
+    30..90, columns 60..80."""
     rng = np.random.default_rng(0)
     room = np.clip(rng.normal(120, 30, (H, W, 3)), 0, 255).astype(np.uint8)
     seg = ForegroundSegmenter(min_area_px=20, mask_scale=0.5)
@@ -87,6 +89,11 @@ def test_step_segments_and_wraps_one_frame():
         seg.learn(room)
     person = room.copy()
     person[30:90, 60:80] = (30, 200, 40)
+    return seg, person
+
+
+def test_step_segments_and_wraps_one_frame():
+    seg, person = _learnt_room_with_person()
     msg, mask, stats = step(seg, Frame(4, 99, person), cam="cam1", seq=4)
     assert (msg.width, msg.height, msg.src_width, msg.src_height) == (W // 2, H // 2, W, H)
     assert msg.seq == 4 and msg.stamp_ns == 99 and msg.fg_fraction == stats.fg_fraction
@@ -101,13 +108,7 @@ def _person_request(stamp_ns: int, track: int = 3, cam: str = "cam1") -> LookReq
 
 
 def test_step_answers_a_pending_look_request_once_and_only_in_time():
-    rng = np.random.default_rng(0)
-    room = np.clip(rng.normal(120, 30, (H, W, 3)), 0, 255).astype(np.uint8)
-    seg = ForegroundSegmenter(min_area_px=20, mask_scale=0.5)
-    for _ in range(10):
-        seg.learn(room)
-    person = room.copy()
-    person[30:90, 60:80] = (30, 200, 40)
+    seg, person = _learnt_room_with_person()
     answerer = LookAnswerer()
     msg, _, _ = step(seg, Frame(4, 99, person), cam="cam1", seq=4, answerer=answerer)
     assert msg.looks == [] and not answerer.pending                     # nothing asked: nothing sent
