@@ -189,8 +189,10 @@ class FusionPipeline:
         see; negative for a target not yet confirmed). What the posture estimators
         and the event reasoner keep of a body follows it when its label changes."""
         labels = self.identity.assign(bodies, looks, stamp_ns)
+        # A body whose identity opened again (label back to negative) leaves its person's
+        # state behind: that person is gone from here, as far as events go.
         renames = {self._labels.get(tid, -tid): label for tid, label in labels.items()
-                   if self._labels.get(tid, -tid) != label}
+                   if self._labels.get(tid, -tid) != label and label > 0}
         if renames:
             self._postures = _rekey(self._postures, renames)
             self.reasoner.rename(renames)
