@@ -141,7 +141,8 @@ def test_a_standing_box_is_tracked_frame_by_frame_and_written_to_the_files(rig, 
     assert tracked[-1].tracks[0].posture == "standing" and tracked[-1].tracks[0].z_top > 1.4
     r.outputs.close()
     rows = (tmp_path / "out" / "tracks.csv").read_text().splitlines()
-    assert rows[0] == "frame,stamp_ns,id,x,y,z_top,posture"
+    assert rows[0] == "frame,stamp_ns,id,x,y,z_top,posture,person"
+    assert all(row.endswith(",") for row in rows[1:])  # nobody enrolled: no name
     assert len(rows) - 1 == sum(len(f.tracks) for f in r.tracks)
     assert r.node.c.frames_fused == len(r.tracks)
 
