@@ -39,7 +39,7 @@ import itertools
 import logging
 import math
 from collections import deque
-from collections.abc import Callable, Iterable, Mapping, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -219,7 +219,6 @@ class IdentityKeeper:
         stays negative while the body waits for its identity (see
         ``IdentityParams.decide_s``): such a body is not reported yet.
         """
-        p = self.p
         live = {int(e.id): e for e in estimates}
         for tid in [t for t in self._bodies if t not in live]:
             self._forget(tid, live, stamp_ns)
@@ -245,7 +244,7 @@ class IdentityKeeper:
                     body.fresh_until_ns = 0
                 elif (chosen := self._choose(tid, body, view, stamp_ns, loose=False)) is not None:
                     log.info("body %d is person %d after all (was given %d)", tid, chosen, fresh)
-                    model = self._people.pop(fresh).model
+                    del self._people[fresh]  # a label nobody needs any more
                     self._reclaim(body, chosen)
                     body.fresh_until_ns = 0
         self._check_swaps(live, stamp_ns)

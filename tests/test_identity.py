@@ -215,7 +215,6 @@ def test_someone_who_leaves_and_comes_back_gets_their_label_and_a_newcomer_does_
 
 
 def test_a_resident_is_recognised_and_a_stranger_in_other_clothes_is_not():
-    model = AppearanceModel()
     run = Run()
     for f in range(40):  # enrolment: the resident alone
         run.step([Person(2.0, 2.0, 1.7, BLUE_BEIGE)], {1: 0})
