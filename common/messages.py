@@ -149,7 +149,10 @@ class MaskFrame(_Message):
     ``stamp_ns`` is the capture time, ``fg_fraction`` the share of
     foreground pixels. ``looks``: the colour descriptors of the people the
     fusion server last asked about (:class:`LookRequest`), measured on this
-    frame; empty when nobody was asked about.
+    frame; empty when nobody was asked about. ``depth``: a depth camera's
+    range at the mask's foreground pixels (``maskcodec.decode_depth(depth,
+    mask)``: uint16 millimetres from the camera centre along each pixel's
+    ray, 0 where nothing was measured); empty for other cameras.
     """
 
     TYPE: ClassVar[str] = "mask"
@@ -166,6 +169,7 @@ class MaskFrame(_Message):
     data: bytes
     fg_fraction: Fraction
     looks: list[Appearance] = Field(default_factory=list, max_length=MAX_TRACKS)
+    depth: bytes = b""
 
     @model_validator(mode="after")
     def _consistent(self) -> MaskFrame:
@@ -179,6 +183,11 @@ class MaskFrame(_Message):
         if not lo <= len(self.data) <= hi:
             raise ValueError(f"data of {len(self.data)} bytes is implausible for a {self.codec} "
                              f"{self.width}x{self.height} mask (expected {lo}..{hi})")
+        if self.depth:
+            lo, hi = maskcodec.depth_size_bounds(self.width, self.height)
+            if not lo <= len(self.depth) <= hi:
+                raise ValueError(f"depth of {len(self.depth)} bytes is implausible for a "
+                                 f"{self.width}x{self.height} mask (expected {lo}..{hi})")
         return self
 
 

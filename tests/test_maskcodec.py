@@ -342,3 +342,41 @@ def test_sample_room_mask_grows_with_people():
     _, _, stats, _ = cv2.connectedComponentsWithStats(one)
     body = stats[1:][np.argmax(stats[1:, cv2.CC_STAT_AREA])]
     assert 150 <= body[cv2.CC_STAT_HEIGHT] <= 210 and 40 <= body[cv2.CC_STAT_WIDTH] <= 90
+
+
+# ---------------------------------------------------------------------- foreground depth
+
+
+def test_depth_round_trip_keeps_foreground_values_exactly():
+    rng = np.random.default_rng(5)
+    mask = np.zeros((48, 64), np.uint8)
+    mask[10:40, 20:35] = 255
+    depth = rng.integers(0, 65536, size=mask.shape, dtype=np.uint16)  # any value, wrap-around deltas
+    depth[12, 22] = 0  # a missing measurement stays missing
+    out = mc.decode_depth(mc.encode_depth(depth, mask), mask)
+    assert out.dtype == np.uint16
+    np.testing.assert_array_equal(out[mask > 0], depth[mask > 0])
+    assert not out[mask == 0].any()
+
+
+def test_depth_of_a_smooth_person_compresses_well():
+    mask = np.zeros((240, 320), np.uint8)
+    mask[60:220, 140:180] = 255
+    yy, xx = np.mgrid[0:240, 0:320]
+    depth = (3000 + 2 * (xx - 160) ** 2 // 40 + yy // 8).astype(np.uint16)
+    data = mc.encode_depth(depth, mask)
+    assert len(data) < 0.25 * 2 * np.count_nonzero(mask)
+
+
+def test_depth_decode_refuses_a_payload_for_another_mask():
+    mask = np.zeros((20, 20), np.uint8)
+    mask[5:10, 5:10] = 255
+    data = mc.encode_depth(np.full((20, 20), 1500, np.uint16), mask)
+    other = mask.copy()
+    other[0, 0] = 255
+    with pytest.raises(mc.MaskCodecError, match="26 foreground pixels"):
+        mc.decode_depth(data, other)
+    with pytest.raises(mc.MaskCodecError, match="not a valid zlib stream"):
+        mc.decode_depth(b"\x00" * 12, mask)
+    with pytest.raises(mc.MaskCodecError, match="uint16"):
+        mc.encode_depth(np.zeros((20, 20), np.float32), mask)

@@ -125,7 +125,8 @@ def check_wire(samples: list[tuple[str, bytes]], prefix: str, n_cameras: int) ->
                 assert keys.camera_of(key, prefix) == msg.cam
             continue
         assert keys.camera_of(key, prefix) == msg.cam
-        assert set(found) <= {"data", "looks[].hist"} and found.count("data") == 1, found
+        assert set(found) <= {"data", "looks[].hist", "depth"} and found.count("data") == 1, found
+        assert msg.depth == b"", "colour cameras ship no depth"
         mask = maskcodec.decode_mask(msg.data, msg.codec, msg.width, msg.height)
         assert mask.shape == (msg.height, msg.width) and mask.dtype == np.uint8
         assert set(np.unique(mask).tolist()) <= {0, 255}
