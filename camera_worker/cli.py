@@ -32,6 +32,7 @@ sources (--source, or the camera's 'source' in the site file):
   0                       a camera index (V4L2);  /dev/video0  a camera device
   rtsp://host/stream      a stream URL (rtsp, http, https, udp, tcp, rtp, srt, rtmp)
   synthetic[:scenario]    the synthetic house, this camera's view (--seed)
+  world:SEED              this camera's view of the randomised world SEED
   Live sources that drop are reopened with back-off (0.5 s doubling to 30 s);
   the worker stays up and reports itself degraded meanwhile.
 
@@ -180,7 +181,7 @@ def _configure(args: argparse.Namespace):
 
 def _from_site(site, spec: str) -> str:
     """A source spec from the site file, a relative path made absolute against the file's folder."""
-    if not spec or spec.isdigit() or spec.startswith(("synthetic", "/dev/")) or "://" in spec:
+    if not spec or spec.isdigit() or spec.startswith(("synthetic", "world:", "/dev/")) or "://" in spec:
         return spec
     return str(site.resolve(spec))
 

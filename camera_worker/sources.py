@@ -21,6 +21,7 @@ Spec strings (command line, site file), see :func:`open_source`::
     /dev/video0               camera device
     rtsp://host/stream        stream URL (rtsp, rtsps, http, https, udp, tcp, rtp, srt, rtmp)
     synthetic[:scenario]      the synthetic house (common.synth), this camera's view
+    world:SEED                this camera's view of the randomised world of SEED (common.synth.world)
 
 Every failure is a :class:`SourceError` whose message names the source and
 the problem (``video file /x/y.avi: not found``).
@@ -272,7 +273,8 @@ class CaptureSource(FrameSource):
 
 
 class SyntheticSource(FrameSource):
-    """One camera of the synthetic house (``common.synth``); recorded stamps, true masks.
+    """One camera of the synthetic house (``common.synth``) or of a randomised world
+    (``world``: its seed); recorded stamps, true masks.
 
     ``background=True`` yields the clip of the empty room recorded before the
     scenario (``background_frame(i)``), for learning. ``n_frames`` caps either.
@@ -281,13 +283,14 @@ class SyntheticSource(FrameSource):
     live = False
 
     def __init__(self, cam_id: str, *, scenario: str | None = None, seed: int = 0, start_ns: int = 0,
-                 background: bool = False, n_frames: int | None = None) -> None:
+                 background: bool = False, n_frames: int | None = None, world: int | None = None) -> None:
         self.cam_id = cam_id
         self.scenario = scenario
         self.seed = int(seed)
+        self.world = None if world is None else int(world)
         self.start_ns = int(start_ns)
         self.background = bool(background)
-        label = f"synthetic:{scenario}" if scenario else "synthetic"
+        label = f"world:{world}" if world is not None else f"synthetic:{scenario}" if scenario else "synthetic"
         self.name = f"{label} camera {cam_id}" + (" (empty room)" if background else "")
         self._n_frames = n_frames
         self._camera = None
@@ -299,8 +302,12 @@ class SyntheticSource(FrameSource):
         except ImportError as exc:
             raise SourceError(f"{self.name}: the synthetic house is not available ({exc})") from None
         try:
-            camera = SyntheticCamera(self.scenario, self.cam_id, self.seed) if self.scenario \
-                else SyntheticCamera(cam_id=self.cam_id, seed=self.seed)
+            if self.world is not None:
+                camera = _world_camera(self.world, self.cam_id)
+            elif self.scenario:
+                camera = SyntheticCamera(self.scenario, self.cam_id, self.seed)
+            else:
+                camera = SyntheticCamera(cam_id=self.cam_id, seed=self.seed)
         except (KeyError, ValueError) as exc:
             raise SourceError(f"{self.name}: {exc}") from None
         self._camera = camera
@@ -336,6 +343,18 @@ class SyntheticSource(FrameSource):
         return frame
 
 
+def _world_camera(seed: int, cam_id: str):
+    """The renderer of camera ``cam_id`` of the randomised world ``seed``, as its video worlds render."""
+    from common.synth.source import BACKGROUND_S, SyntheticCamera
+    from common.synth.world import random_world
+
+    world = random_world(seed)
+    if cam_id not in world.cameras:
+        raise ValueError(f"world {seed} has no camera {cam_id!r}; its cameras are {', '.join(world.cameras)}")
+    return SyntheticCamera(world.scenario, cam_id, world.seed, camera=world.cameras[cam_id],
+                           background_s=BACKGROUND_S)
+
+
 def describe_source(spec: int | str | Path) -> str:
     """How messages name a source spec: ``camera 0``, ``stream rtsp://...``, ``video file /x.avi``."""
     if isinstance(spec, int):
@@ -347,7 +366,7 @@ def describe_source(spec: int | str | Path) -> str:
         return f"camera {text}"
     if _URL_RE.match(text):
         return f"stream {_redact(text)}"
-    if text == "synthetic" or text.startswith("synthetic:"):
+    if text == "synthetic" or text.startswith(("synthetic:", "world:")):
         return text
     path = Path(text)
     if path.is_dir():
@@ -387,6 +406,12 @@ def open_source(
     if text == "synthetic" or text.startswith("synthetic:"):
         scenario = text.partition(":")[2] or None
         return SyntheticSource(cam_id, scenario=scenario, seed=seed, start_ns=start_ns, background=background,
+                               n_frames=n_frames)
+    if text.startswith("world:"):
+        seed_text = text.partition(":")[2]
+        if not seed_text.isdigit():
+            raise SourceError(f"{text}: a world source is 'world:SEED' with a non-negative integer seed")
+        return SyntheticSource(cam_id, world=int(seed_text), start_ns=start_ns, background=background,
                                n_frames=n_frames)
     match = _URL_RE.match(text)
     if match:

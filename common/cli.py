@@ -394,8 +394,10 @@ def _site_near(folder: Path):
 def _register_demo(sub) -> None:
     p = sub.add_parser("demo", help="the synthetic house as a distributed system on this machine (the default job)")
     p.add_argument("--scenario", default=None, help="scenario name (default: the demo scenario); voxelwatch synth --list shows them")
+    p.add_argument("--world", choices=["random"], default=None,
+                   help="instead of the house, the randomised world of --seed (its room, rig and people)")
     p.add_argument("--out", type=Path, default=Path("voxelwatch-demo"), help="output folder (default ./voxelwatch-demo)")
-    p.add_argument("--seed", type=int, default=0, help="random seed of the scenario")
+    p.add_argument("--seed", type=int, default=0, help="random seed of the scenario or the world")
     p.add_argument("--frames", type=int, default=None, help="run only the first N frames")
     p.add_argument("--port", type=int, default=None, help="loopback port of the demo's zenoh router (default: a free one)")
     p.set_defaults(handler=_demo)
@@ -404,7 +406,10 @@ def _register_demo(sub) -> None:
 def _demo(args: argparse.Namespace) -> int:
     from common.demo import run_demo
 
-    return run_demo(scenario=args.scenario, out_dir=args.out, seed=args.seed, frames=args.frames, port=args.port)
+    if args.world and args.scenario:
+        print("voxelwatch demo: give --scenario or --world, not both", file=sys.stderr)
+        return 2
+    return run_demo(scenario=args.scenario, world=args.world, out_dir=args.out, seed=args.seed, frames=args.frames, port=args.port)
 
 
 def _register_bench(sub) -> None:

@@ -48,33 +48,58 @@ class _Live:
 def run_demo(
     *,
     scenario: str | None = None,
+    world: str | None = None,
     out_dir: str | Path = "voxelwatch-demo",
     seed: int = 0,
     frames: int | None = None,
     port: int | None = None,
     stream: TextIO = sys.stdout,
 ) -> int:
-    """Run the scenario end to end; returns the process exit code."""
+    """Run the scenario (or ``world="random"``: the randomised world of ``seed``, each worker
+    rendering its own camera of it) end to end; returns the process exit code."""
     import zenoh
 
     from common import keys, messages, synth
 
-    name = scenario or synth.DEFAULT_SCENARIO
-    spec = synth.scenario_spec(name)  # unknown names stop here with the list
     out = Path(out_dir).resolve()
     run_dir = out / "run"
     for stale in (TRACKS_FILE, EVENTS_FILE, "events.sqlite"):
         (run_dir / stale).unlink(missing_ok=True)
     run_dir.mkdir(parents=True, exist_ok=True)
-    site = synth.default_site(out / "site")
+    if world is None:
+        name = scenario or synth.DEFAULT_SCENARIO
+        spec = synth.scenario_spec(name)  # unknown names stop here with the list
+        site = synth.default_site(out / "site")
+        sc = synth.get_scenario(name, seed, utc_offset_hours=site.utc_offset_hours)
+        n_frames = sc.n_frames if frames is None else min(frames, sc.n_frames)
+        synth.write_truth(sc, out / "truth", n_frames=n_frames)
+        source = f"synthetic:{name}"
+        title = f"scenario {name!r} ({spec.description})"
+    else:
+        if world != "random":
+            raise ValueError(f"world must be 'random', got {world!r}")
+        if scenario is not None:
+            raise ValueError("give a scenario or a world, not both")
+        from common.site import load_site
+        from common.synth.world import random_world, write_world_site
+
+        made = random_world(seed)
+        sc = made.scenario
+        n_frames = sc.n_frames if frames is None else min(frames, sc.n_frames)
+        written = write_world_site(made, out / "site", frames=n_frames)
+        (out / "truth").mkdir(exist_ok=True)
+        for item in written.truth_dir.iterdir():
+            item.replace(out / "truth" / item.name)
+        written.truth_dir.rmdir()
+        site = load_site(written.site)
+        source = f"world:{seed}"
+        summary = made.summary()
+        title = f"random world {seed} ({summary['people']} people, {summary['rig_label']} rig)"
     site_path = site.base_dir / "site.toml"
-    sc = synth.get_scenario(name, seed, utc_offset_hours=site.utc_offset_hours)
-    n_frames = sc.n_frames if frames is None else min(frames, sc.n_frames)
-    synth.write_truth(sc, out / "truth", n_frames=n_frames)
     endpoint = f"tcp/127.0.0.1:{port or free_port()}"
     conf = zenoh_config(mode="router", listen=[endpoint])
 
-    print(f"voxelwatch demo: scenario {name!r} ({spec.description}), {n_frames / sc.fps:.0f} s, "
+    print(f"voxelwatch demo: {title}, {n_frames / sc.fps:.0f} s, "
           f"{len(site.camera_ids)} cameras, zenoh router {endpoint}", file=stream, flush=True)
     live = _Live()
     t_launch = time.monotonic()
@@ -98,8 +123,8 @@ def run_demo(
             start_ns = time.time_ns() + int(START_DELAY_S * 1e9)
             for cam in site.camera_ids:
                 procs[cam] = _spawn(
-                    ["voxelwatch-camera", "--site", str(site_path), "--camera", cam, "--source", f"synthetic:{name}",
-                     "--background", f"synthetic:{name}", "--background-frames", str(BACKGROUND_FRAMES),
+                    ["voxelwatch-camera", "--site", str(site_path), "--camera", cam, "--source", source,
+                     "--background", source, "--background-frames", str(BACKGROUND_FRAMES),
                      "--seed", str(seed), "--start-ns", str(start_ns), "--max-frames", str(n_frames), "-q", *zenoh_args],
                     logs / f"{cam}.log",
                 )
