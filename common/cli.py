@@ -342,6 +342,9 @@ def _register_eval(sub) -> None:
                         "who carries its name")
     p.add_argument("--enrolled-person", type=int, default=1, metavar="ID",
                    help="with --enrolled: the house's person the file enrols (default 1)")
+    p.add_argument("--set", action="append", default=[], metavar="SECTION.KEY=VALUE", dest="settings",
+                   help="with --suite: change a site setting for every replay (repeatable), "
+                        "e.g. --set carving.fusion=graphcut")
     p.add_argument("--seed", type=int, default=0)
     p.set_defaults(handler=_eval)
 
@@ -355,7 +358,7 @@ def _eval(args: argparse.Namespace) -> int:
         if args.seeds is None:
             raise ValueError("--world random needs --seeds, e.g. --seeds 0-19 to tune or --seeds 1000-1049 to report")
         run_world_suite(seeds=parse_seeds(args.seeds), out_dir=args.out, jobs=args.jobs, frames=args.frames,
-                        json_path=args.json, keep_media=args.keep_media)
+                        json_path=args.json, keep_media=args.keep_media, settings=args.settings)
         return 0
     if args.suite:
         from fusion_server.suite import run_suite
@@ -364,7 +367,7 @@ def _eval(args: argparse.Namespace) -> int:
             out_dir=args.out, scenarios=args.scenarios.split(",") if args.scenarios else None, quick=args.quick,
             camera_counts=[int(c) for c in args.cameras.split(",")], max_frames=args.frames, seed=args.seed,
             json_path=args.json, jobs=args.jobs, mask_scale=args.mask_scale, enrolled=args.enrolled,
-            enrolled_person=args.enrolled_person,
+            enrolled_person=args.enrolled_person, settings=args.settings,
         )
     if args.truth is None or args.run is None:
         raise ValueError("give --truth and --run, or --suite")

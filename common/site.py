@@ -76,6 +76,7 @@ from __future__ import annotations
 import json
 import math
 import tomllib
+from collections.abc import Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Literal
 
@@ -440,6 +441,27 @@ def site_from_dict(raw: dict[str, Any], *, base_dir: Path, source: str = "<site>
         field = _field_name(err["loc"])
         more = f" (and {exc.error_count() - 1} more problems)" if exc.error_count() > 1 else ""
         raise SiteError(f"site file {source}: field {field}: {_problem(err)}{more}") from None
+
+
+def with_settings(site: Site, settings: Sequence[str]) -> Site:
+    """``site`` with ``SECTION.KEY=VALUE`` settings changed (VALUE read as a TOML value, else as
+    text), validated like the file: :class:`SiteError` naming the setting otherwise. For comparing
+    options on the same sites (``voxelwatch eval --suite --set carving.fusion=graphcut``)."""
+    data = site.model_dump(mode="json", exclude={"base_dir", "source"})
+    for item in settings:
+        name, sep, text = str(item).partition("=")
+        section, dot, key = name.strip().partition(".")
+        if not sep or not dot or not section or not key:
+            raise SiteError(f"setting {item!r}: expected SECTION.KEY=VALUE, e.g. carving.fusion=graphcut")
+        if not isinstance(data.get(section), dict):
+            tables = ", ".join(k for k, v in data.items() if isinstance(v, dict))
+            raise SiteError(f"setting {item!r}: no section [{section}] (sections: {tables})")
+        try:
+            value = tomllib.loads(f"v = {text.strip()}")["v"]
+        except tomllib.TOMLDecodeError:
+            value = text.strip()
+        data[section][key.strip()] = value
+    return site_from_dict(data, base_dir=site.base_dir, source=f"{site.source} with {', '.join(settings)}")
 
 
 def site_to_toml(site: Site) -> str:

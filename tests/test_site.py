@@ -301,3 +301,20 @@ def test_site_check_loads_the_enrolled_residents(tmp_path, capsys):
     out = capsys.readouterr().out
     assert "1 residents, 1 enrolled" in out
     assert "enrolled Ada: frames learnt head 0, torso 40, legs 0; 1.70 m tall" in out
+
+
+def test_settings_change_a_site_and_are_validated_like_the_file(tmp_path):
+    from common.site import with_settings
+    from common.synth import default_site
+
+    site = default_site(tmp_path / "site")
+    changed = with_settings(site, ["carving.min_ratio=0.5", "carving.min_cameras = 3"])
+    assert changed.carving.min_ratio == 0.5 and changed.carving.min_cameras == 3
+    assert site.carving.min_ratio != 0.5  # the site itself is unchanged
+    assert changed.base_dir == site.base_dir and changed.camera_ids == site.camera_ids
+    with pytest.raises(SiteError, match=r"carving\.min_ratio"):
+        with_settings(site, ["carving.min_ratio=2"])
+    with pytest.raises(SiteError, match="no section \\[carve\\]"):
+        with_settings(site, ["carve.min_ratio=0.5"])
+    with pytest.raises(SiteError, match="SECTION.KEY=VALUE"):
+        with_settings(site, ["min_ratio=0.5"])
