@@ -42,6 +42,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--min-cameras", type=int, default=None, help="fewest cameras a frame set needs to be fused (default: the carving vote's min_cameras)")
     p.add_argument("--exit-after-idle", type=float, default=None, metavar="SECONDS", help="stop when no mask has arrived for this long (for replays and tests)")
     p.add_argument("--max-clock-skew-ms", type=float, default=None, metavar="MS", help="mark a camera skewed when its stamps run this far from the server's clock (default 250)")
+    p.add_argument("--free-timeline", action="store_true", help="let the frame-set timeline follow the cameras' stamps instead of this host's clock (recordings played faster than real time, e.g. workers run with --fast)")
     p.add_argument("-v", "--verbose", action="store_true", help="log debug messages")
     return p
 
@@ -72,7 +73,8 @@ def settings_from_args(args: argparse.Namespace) -> "FusionSettings":
             site=site, prefix=prefix, store_path=Path(store), out_dir=args.out, mode=args.mode,
             listen=tuple(args.listen) if args.listen is not None else None,
             connect=tuple(args.connect) if args.connect is not None else None,
-            cache_dir=args.cache_dir, min_cameras=args.min_cameras, exit_after_idle_s=args.exit_after_idle, **extra,
+            cache_dir=args.cache_dir, min_cameras=args.min_cameras, exit_after_idle_s=args.exit_after_idle,
+            free_timeline=bool(args.free_timeline), **extra,
         )
     except ValueError as exc:
         text = str(exc)
