@@ -170,6 +170,35 @@ class VideoFileSource(FrameSource):
         self._index += 1
         return frame
 
+    @property
+    def n_frames(self) -> int | None:
+        """Frames in the file as its container states them (None when it does not)."""
+        if self._cap is None:
+            return None
+        n = self._cap.get(cv2.CAP_PROP_FRAME_COUNT)
+        return int(n) if n and np.isfinite(n) and n > 0 else None
+
+    def seek(self, index: int) -> None:
+        """Make frame ``index`` the next one read (past the end: the next read ends the file).
+
+        Tries the container's own seek, and checks where it landed; otherwise (or
+        when it cannot go back) reopens the file and skips frames without converting them."""
+        if self._cap is None:
+            raise SourceError(f"{self.name}: seek before open")
+        index = max(0, int(index))
+        if index == self._index:
+            return
+        if self._cap.set(cv2.CAP_PROP_POS_FRAMES, index) and int(self._cap.get(cv2.CAP_PROP_POS_FRAMES)) == index:
+            self._index = index
+            return
+        if index < self._index:
+            self._cap.release()
+            self._cap = cv2.VideoCapture(str(self.path))
+            self._index = 0
+        while self._index < index and self._cap.grab():
+            self._index += 1
+        self._index = index
+
     def close(self) -> None:
         if self._cap is not None:
             self._cap.release()
@@ -203,6 +232,10 @@ class ImageFolderSource(FrameSource):
     @property
     def n_frames(self) -> int:
         return len(self._files)
+
+    def seek(self, index: int) -> None:
+        """Make image ``index`` the next one read."""
+        self._index = max(0, int(index))
 
     def read(self) -> Frame | None:
         if self._index >= len(self._files):
