@@ -105,14 +105,13 @@ def main(argv: Sequence[str] | None = None) -> int:
                         format="%(asctime)s %(levelname)s %(name)s: %(message)s", stream=sys.stderr)
     _quiet_opencv()
     try:
-        settings, conf = _configure(args)
+        settings, conf, connect = _configure(args)
     except ValueError as exc:   # SiteError, TransportError and bad values carry their own clear message
         print(f"voxelwatch-camera: {exc}", file=sys.stderr)
         return 2
 
-    import zenoh
-
     from camera_worker.worker import run
+    from common.transport import TransportError, open_session, warn_if_alone
 
     stop = threading.Event()
 
@@ -122,11 +121,16 @@ def main(argv: Sequence[str] | None = None) -> int:
 
     signal.signal(signal.SIGINT, _on_signal)
     signal.signal(signal.SIGTERM, _on_signal)
+    who = f"camera {settings.cam}"
     try:
-        session = zenoh.open(conf)
-    except Exception as exc:  # noqa: BLE001 - zenoh reports bad endpoints and busy ports as ZError
+        session = open_session(conf, stop, who=who, endpoints=connect, log=log)
+    except TransportError as exc:
         print(f"voxelwatch-camera: cannot open the zenoh session: {exc}", file=sys.stderr)
         return 2
+    if session is None:
+        log.info("%s: stopped before zenoh could be reached", who)
+        return 0
+    warn_if_alone(session, stop, who=who, endpoints=connect, log=log)
     try:
         return run(session, settings, stop=stop)
     finally:
@@ -134,7 +138,8 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 def _configure(args: argparse.Namespace):
-    """``(WorkerSettings, zenoh.Config)`` from the arguments and the site file; ValueError on any problem."""
+    """``(WorkerSettings, a zenoh config factory, the endpoints it connects to)`` from the arguments
+    and the site file; ValueError on any problem."""
     from common.site import load_site
     from common.transport import zenoh_config
     from camera_worker.worker import WorkerSettings
@@ -169,14 +174,19 @@ def _configure(args: argparse.Namespace):
                        detect_shadows=not args.no_shadows),
         max_frames=args.max_frames,
         stats_period_s=args.stats_period,
-        expected_size=tuple(spec.resolution),
+        expected_size=tuple(spec.resolution) if spec.resolution else None,
     )
     # build the segmenter once here so that a bad value stops start-up with its name
     from camera_worker.segmentation import ForegroundSegmenter
 
     ForegroundSegmenter(**{k: v for k, v in settings.segmenter.items() if v is not None})
-    conf = zenoh_config(site.zenoh, mode=args.mode, listen=args.listen, connect=args.connect)
-    return settings, conf
+    def conf():
+        return zenoh_config(site.zenoh, mode=args.mode, listen=args.listen, connect=args.connect,
+                            connect_timeout_ms=1000)
+
+    conf()  # a bad endpoint stops start-up here, with its name
+    connect = list(args.connect if args.connect is not None else site.zenoh.connect)
+    return settings, conf, connect
 
 
 def _from_site(site, spec: str) -> str:

@@ -103,9 +103,15 @@ def _register_site(sub) -> None:
 def _site_check(args: argparse.Namespace) -> int:
     from common.site import load_site
 
+    from common.transport import zenoh_config
+    from fusion_server.node import FusionSettings
+
     site = load_site(args.path)
     cameras = site.load_cameras()
     residents = site.load_residents()
+    # what the processes check when they start, without starting them
+    zenoh_config(site.zenoh)
+    FusionSettings(site=site, prefix=site.prefix)
     print(f"site {site.name}: prefix {site.prefix}, volume {list(site.volume.min_m)} .. {list(site.volume.max_m)} m")
     for cam_id, cam in cameras.items():
         x, y, z = cam.center
@@ -142,14 +148,24 @@ def _router(args: argparse.Namespace) -> int:
     import zenoh
 
     from common.site import ZenohSettings
-    from common.transport import zenoh_config
+    from common.transport import short_error, zenoh_config
 
     listen = args.listen or ["tcp/0.0.0.0:7447"]
-    conf = zenoh_config(ZenohSettings(multicast_scouting=bool(args.multicast_scouting)), mode="router", listen=listen)
+    try:
+        conf = zenoh_config(ZenohSettings(multicast_scouting=bool(args.multicast_scouting)), mode="router",
+                            listen=listen)
+    except ValueError as exc:
+        print(f"voxelwatch router: {exc}", file=sys.stderr)
+        return 2
     stop = threading.Event()
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
     signal.signal(signal.SIGINT, lambda *_: stop.set())
-    with zenoh.open(conf):
+    try:
+        session = zenoh.open(conf)
+    except Exception as exc:  # noqa: BLE001 - zenoh reports a busy port as ZError
+        print(f"voxelwatch router: cannot listen on {', '.join(listen)}: {short_error(exc)}", file=sys.stderr)
+        return 1
+    with session:
         print(f"voxelwatch router listening on {', '.join(listen)}", flush=True)
         stop.wait()
     return 0

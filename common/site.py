@@ -242,6 +242,15 @@ class ZenohSettings(_Model):
                 keys.validate_chunk(chunk, "zenoh prefix")
         return prefix
 
+    @field_validator("listen", "connect")
+    @classmethod
+    def _endpoints_ok(cls, endpoints: list[str], info) -> list[str]:
+        from common.transport import check_endpoint  # the transport's own rule, checked at load
+
+        for endpoint in endpoints:
+            check_endpoint(endpoint, listen=info.field_name == "listen")
+        return endpoints
+
 
 class CameraSpec(_Model):
     """One camera of the home."""

@@ -1,14 +1,25 @@
-"""Zenoh session configuration from the site's ``[zenoh]`` section.
+"""Zenoh session configuration from the site's ``[zenoh]`` section, and opening a session.
 
 The only module besides the process adapters that imports zenoh. Shared
 memory is off unless asked for (bursts were lost with it on), multicast
 scouting is off unless asked for (sites without multicast, tests).
+
+Endpoints are checked before zenoh sees them (:func:`check_endpoint`): a
+mistyped one stops start-up with one line naming it. :func:`open_session`
+opens a session the way every long-running process should: a router that
+is not there yet (unreachable, down, or a name that does not resolve) is
+one warning line, then retried with back-off while the process still stops
+within a second or so of SIGINT/SIGTERM; a port that cannot be listened on
+is one clear error.
 """
 
 from __future__ import annotations
 
 import json
-from collections.abc import Sequence
+import logging
+import re
+import threading
+from collections.abc import Callable, Sequence
 
 import zenoh
 
@@ -16,7 +27,41 @@ from common.site import ZenohSettings
 
 
 class TransportError(ValueError):
-    """A zenoh setting that zenoh refused; the message names the setting."""
+    """A zenoh setting that zenoh refused, or an endpoint that cannot be used; the message names it."""
+
+
+PROTOCOLS = ("tcp", "udp", "tls", "quic", "ws", "unixsock-stream", "unixpipe", "serial", "vsock")
+"""Link protocols an endpoint may name (``protocol/address``)."""
+_HOST_PORT = ("tcp", "udp", "tls", "quic", "ws")
+
+
+def check_endpoint(endpoint: object, *, listen: bool = False) -> str:
+    """``endpoint`` unchanged when zenoh could use it, else ValueError naming the problem.
+
+    ``protocol/address[?config][#metadata]``; for tcp, udp, tls, quic and ws
+    the address is ``host:port`` or ``[ipv6]:port`` with a port in 1..65535
+    (0 too when listening: any free port). Whether the host exists is not
+    checked here: a name that does not resolve yet is retried like an
+    unreachable router.
+    """
+    if not isinstance(endpoint, str) or "/" not in endpoint:
+        raise ValueError(f"endpoint {_short_repr(endpoint)} is not protocol/address (e.g. tcp/10.0.0.2:7447)")
+    proto, _, rest = endpoint.partition("/")
+    if proto not in PROTOCOLS:
+        raise ValueError(f"endpoint {_short_repr(endpoint)}: unknown protocol {_short_repr(proto)} "
+                         f"(known: {', '.join(PROTOCOLS)})")
+    address = re.split(r"[?#]", rest, maxsplit=1)[0]
+    if not address:
+        raise ValueError(f"endpoint {_short_repr(endpoint)} has no address")
+    if proto in _HOST_PORT:
+        m = re.fullmatch(r"(\[[0-9A-Fa-f:.%\w]+\]|[^\s:/\[\]]+):([0-9]{1,5})", address)
+        if m is None:
+            raise ValueError(f"endpoint {_short_repr(endpoint)}: the address must be host:port "
+                             f"(e.g. {proto}/10.0.0.2:7447)")
+        port, lowest = int(m.group(2)), 0 if listen else 1
+        if not lowest <= port <= 65535:
+            raise ValueError(f"endpoint {_short_repr(endpoint)}: port {port} is not in {lowest}..65535")
+    return endpoint
 
 
 def zenoh_config(
@@ -25,8 +70,13 @@ def zenoh_config(
     mode: str | None = None,
     listen: Sequence[str] | None = None,
     connect: Sequence[str] | None = None,
+    connect_timeout_ms: int = -1,
 ) -> zenoh.Config:
-    """A ``zenoh.Config`` from the site settings, with command-line overrides."""
+    """A ``zenoh.Config`` from the site settings, with command-line overrides.
+
+    connect_timeout_ms: how long a client's ``zenoh.open`` waits for its router
+    (-1: for ever; :func:`open_session` uses a short one and retries). A
+    malformed endpoint raises TransportError naming it."""
     settings = settings or ZenohSettings()
     values = {
         "mode": mode or settings.mode,
@@ -35,9 +85,85 @@ def zenoh_config(
         "scouting/multicast/enabled": settings.multicast_scouting,
         "transport/shared_memory/enabled": settings.shared_memory,
     }
+    for key, is_listen in (("listen/endpoints", True), ("connect/endpoints", False)):
+        for endpoint in values[key]:
+            try:
+                check_endpoint(endpoint, listen=is_listen)
+            except ValueError as exc:
+                raise TransportError(f"zenoh setting {key} = {_short_repr(values[key])}: {exc}") from None
     if values["mode"] == "client":
-        values["connect/timeout_ms"] = -1  # a client waits for its router instead of failing
+        values["connect/timeout_ms"] = int(connect_timeout_ms)  # -1: a client waits for its router
     return _config(values)
+
+
+def open_session(make_config: Callable[[], zenoh.Config], stop: threading.Event, *, who: str,
+                 endpoints: Sequence[str] = (), log: logging.Logger | None = None, backoff_s: float = 0.5,
+                 max_backoff_s: float = 30.0) -> zenoh.Session | None:
+    """Open a zenoh session, retrying with back-off while nothing answers; None once ``stop`` is set.
+
+    make_config: a fresh config per attempt (a client's should give up after a
+    second or so: ``zenoh_config(..., connect_timeout_ms=1000)``, so that a
+    signal is handled between attempts). who: the process, for the log lines.
+    endpoints: where it connects, for the log lines. The first failure is one
+    warning; while the router stays away, one line every ``max_backoff_s``.
+    TransportError when an endpoint cannot be listened on (a port in use, an
+    address not of this host): retrying would not help.
+    """
+    log = log or logging.getLogger("voxelwatch")
+    where = ", ".join(endpoints) if endpoints else "the configured endpoints"
+    delay, failures = backoff_s, 0
+    while not stop.is_set():
+        try:
+            session = zenoh.open(make_config())
+        except Exception as exc:  # noqa: BLE001 - zenoh reports every failure as ZError
+            text = short_error(exc)
+            if "listener" in text.lower() or "address already in use" in text.lower():
+                raise TransportError(f"cannot listen: {text}") from None
+            failures += 1
+            if failures == 1:
+                log.warning("%s: cannot reach zenoh at %s (%s); retrying with back-off up to %.0f s",
+                            who, where, text, max_backoff_s)
+            elif delay >= max_backoff_s:
+                log.info("%s: still cannot reach zenoh at %s after %d attempts; retrying", who, where, failures)
+            if stop.wait(delay):
+                break
+            delay = min(2 * delay, max_backoff_s)
+            continue
+        if failures:
+            log.info("%s: zenoh reached at %s after %d failed attempts", who, where, failures)
+        return session
+    return None
+
+
+def warn_if_alone(session: zenoh.Session, stop: threading.Event, *, who: str, endpoints: Sequence[str],
+                  log: logging.Logger | None = None, after_s: float = 3.0) -> threading.Thread | None:
+    """A peer connecting to ``endpoints`` opens even when nothing answers there (zenoh keeps
+    trying in the background): log one warning if, ``after_s`` later, no peer or router is
+    connected. Returns the watching thread (a daemon), or None without endpoints."""
+    if not endpoints:
+        return None
+    log = log or logging.getLogger("voxelwatch")
+
+    def watch() -> None:
+        if stop.wait(after_s):
+            return
+        try:
+            alone = not list(session.info.peers_zid()) and not list(session.info.routers_zid())
+        except Exception:  # noqa: BLE001 - the session closed meanwhile
+            return
+        if alone:
+            log.warning("%s: nothing answers at %s yet (zenoh keeps trying in the background)",
+                        who, ", ".join(endpoints))
+
+    thread = threading.Thread(target=watch, name="zenoh-watch", daemon=True)
+    thread.start()
+    return thread
+
+
+def short_error(exc: BaseException, limit: int = 300) -> str:
+    """A zenoh error's text without the source locations it carries, at most ``limit`` characters."""
+    text = re.sub(r"\s+at /\S+?\.rs:\d+\.?", "", str(exc)).strip()
+    return text if len(text) <= limit else text[: limit - 3] + "..."
 
 
 def private_config() -> zenoh.Config:
@@ -54,6 +180,11 @@ def free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         return s.getsockname()[1]
+
+
+def _short_repr(value: object, limit: int = 80) -> str:
+    text = repr(value)
+    return text if len(text) <= limit else text[: limit - 3] + "..."
 
 
 def _config(values: dict[str, object]) -> zenoh.Config:

@@ -21,6 +21,9 @@ history, also after a crash or restart. The database runs in WAL mode with
   oldest first.
 
 Parameters whose name starts with ``_`` are zenoh's own and are ignored.
+Times beyond the year 2262 (the largest 64-bit nanosecond stamp) are refused
+like any other bad value; error texts quote at most a few dozen characters of
+what was asked, however long the query.
 """
 
 from __future__ import annotations
@@ -42,6 +45,8 @@ DEFAULT_LIMIT = 1000
 MAX_LIMIT = 100_000
 FORMATS = ("json", "msgpack")
 SELECTOR_PARAMETERS = ("since", "until", "kind", "format", "limit")
+MAX_STAMP_NS = 2**63 - 1
+"""The largest stamp the store (a 64-bit integer column) can hold or compare."""
 
 _SCHEMA = """
 CREATE TABLE IF NOT EXISTS events (
@@ -231,7 +236,7 @@ def parse_history_selector(
     unknown = sorted(k for k in items if k not in SELECTOR_PARAMETERS)
     if unknown:
         raise ValueError(
-            f"history selector: unknown parameter(s) {', '.join(map(repr, unknown))} "
+            f"history selector: unknown parameter(s) {_quote_list(unknown)} "
             f"(known: {', '.join(SELECTOR_PARAMETERS)})"
         )
     since = _time_param(items, "since", utc_offset_h)
@@ -247,15 +252,15 @@ def parse_history_selector(
             raise ValueError("history selector: kind is empty")
         bad = [k for k in kinds if k not in known]
         if bad:
-            raise ValueError(f"history selector: unknown kind(s) {', '.join(map(repr, bad))} (known: {', '.join(sorted(known))})")
+            raise ValueError(f"history selector: unknown kind(s) {_quote_list(bad)} (known: {', '.join(sorted(known))})")
     fmt = str(items.get("format", "json")).strip().lower()
     if fmt not in FORMATS:
-        raise ValueError(f"history selector: format {items['format']!r} is not one of {', '.join(FORMATS)}")
+        raise ValueError(f"history selector: format {_quote(items['format'])} is not one of {', '.join(FORMATS)}")
     limit = DEFAULT_LIMIT
     if "limit" in items:
         raw = str(items["limit"]).strip()
         if not raw.isdigit() or not 1 <= int(raw) <= MAX_LIMIT:
-            raise ValueError(f"history selector: limit {items['limit']!r} must be an integer in 1..{MAX_LIMIT}")
+            raise ValueError(f"history selector: limit {_quote(items['limit'])} must be an integer in 1..{MAX_LIMIT}")
         limit = int(raw)
     return HistoryFilter(since_ns=since, until_ns=until, kinds=kinds, format=fmt, limit=limit)
 
@@ -269,22 +274,26 @@ def parse_time_ns(text: str | int, *, utc_offset_h: float = 0.0) -> int:
         raise ValueError(f"not a time: {text!r}")
     if isinstance(text, int):
         if text < 0:
-            raise ValueError(f"time {text} is negative")
+            raise ValueError(f"time {_quote(text)} is negative")
+        if text > MAX_STAMP_NS:
+            raise ValueError(f"time {_quote(text)} is beyond the largest stamp ({MAX_STAMP_NS} ns)")
         return text
     s = str(text).strip()
     if re.fullmatch(r"[0-9]+", s):
-        return int(s)
+        return parse_time_ns(int(s)) if len(s) <= 30 else parse_time_ns(MAX_STAMP_NS + 1)
     try:
         dt = datetime.fromisoformat(s)
     except ValueError:
-        raise ValueError(f"{s!r} is neither integer nanoseconds nor an ISO-8601 time") from None
+        raise ValueError(f"{_quote(s)} is neither integer nanoseconds nor an ISO-8601 time") from None
     if dt.tzinfo is None:
         if not (isinstance(utc_offset_h, (int, float)) and math.isfinite(utc_offset_h)):
             raise ValueError(f"utc_offset_h must be a finite number, got {utc_offset_h!r}")
         dt = dt.replace(tzinfo=timezone(timedelta(hours=utc_offset_h)))
     micros = (dt - datetime(1970, 1, 1, tzinfo=timezone.utc)) // timedelta(microseconds=1)
     if micros < 0:
-        raise ValueError(f"time {s!r} is before 1970")
+        raise ValueError(f"time {_quote(s)} is before 1970")
+    if micros * 1000 > MAX_STAMP_NS:
+        raise ValueError(f"time {_quote(s)} is beyond the largest stamp (the year 2262)")
     return micros * 1000
 
 
@@ -298,6 +307,17 @@ def _row(event: Event | Mapping[str, Any]) -> tuple:
     except (TypeError, ValueError) as exc:
         raise ValueError(f"event {rec.id!r}: details are not plain JSON values: {exc}") from None
     return (rec.id, rec.kind, rec.track, rec.stamp_ns, rec.frame, rec.x, rec.y, details)
+
+
+def _quote(value: Any, limit: int = 40) -> str:
+    """``repr(value)``, cut to about ``limit`` characters: an error never echoes a huge query."""
+    text = repr(value)
+    return text if len(text) <= limit else f"{text[:limit]}... ({len(text)} characters)"
+
+
+def _quote_list(values: list, most: int = 5) -> str:
+    shown = ", ".join(_quote(v) for v in values[:most])
+    return shown if len(values) <= most else f"{shown} and {len(values) - most} more"
 
 
 def _int(value: Any, name: str) -> int:
@@ -321,11 +341,11 @@ def _selector_items(parameters: Any) -> dict[str, Any]:
             key, sep, value = part.partition("=")
             key = key.strip()
             if not key:
-                raise ValueError(f"history selector: parameter {part!r} has no name")
+                raise ValueError(f"history selector: parameter {_quote(part)} has no name")
             if not sep:
-                raise ValueError(f"history selector: parameter {key!r} has no value (write {key}=...)")
+                raise ValueError(f"history selector: parameter {_quote(key)} has no value (write name=value)")
             if key in items:
-                raise ValueError(f"history selector: parameter {key!r} is given twice")
+                raise ValueError(f"history selector: parameter {_quote(key)} is given twice")
             items[key] = value.strip()
     return {k: v for k, v in items.items() if not k.startswith("_")}
 

@@ -157,6 +157,9 @@ class FusionSettings:
         n_cams = len(self.site.cameras)
         if self.min_cameras is not None and (isinstance(self.min_cameras, bool) or not 1 <= self.min_cameras <= n_cams):
             raise ValueError(f"min_cameras must be an int in 1..{n_cams} (the site's cameras), got {self.min_cameras!r}")
+        if self.min_cameras is None and self.site.carving.min_cameras > n_cams:
+            raise ValueError(f"site file {self.site.source}: field carving.min_cameras: {self.site.carving.min_cameras} "
+                             f"exceeds the site's {n_cams} cameras: nothing could ever be carved")
         if self.exit_after_idle_s is not None and not (math.isfinite(self.exit_after_idle_s) and self.exit_after_idle_s > 0):
             raise ValueError(f"exit_after_idle_s must be a positive number of seconds, got {self.exit_after_idle_s!r}")
         for name in ("status_period_s", "max_clock_skew_ms", "stale_s", "log_every_s"):

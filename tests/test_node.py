@@ -420,12 +420,31 @@ def test_history_replies_each_event_on_its_own_key_filtered_and_in_either_format
     ("kind=flal", "kind"),
     ("since=yesterday", "since"),
     ("format=xml", "format"),
+    ("since=99999999999999999999999", "since.*beyond the largest stamp"),
+    ("until=9223372036854775808", "until.*beyond the largest stamp"),
+    ("since=" + "9" * 5000, "since.*beyond the largest stamp"),
+    ("until=9999-12-31T23:59:59Z", "until.*year 2262"),
+    ("limit=99999999999999999999999", "limit"),
+    ("kind=" + "x" * 10_000, "kind"),
+    ("kind=" + ",".join(f"k{i}" for i in range(2000)), "kind"),
+    ("x" * 10_000 + "=1", "unknown parameter"),
+    ("format=" + "y" * 10_000, "format"),
 ])
 def test_a_bad_history_selector_is_refused_with_the_reason(tmp_path, parameters, words):
+    """Every bad query gets a short reason: never an overflow deep in the store, never an echo of the query."""
     with EventStore(tmp_path / "events.sqlite") as store:
         _stored(store)
-        with pytest.raises(ValueError, match=words):
+        with pytest.raises(ValueError, match=words) as refused:
             history_replies(store, keys.history_key(PREFIX), keys.history_key(PREFIX), parameters)
+        assert len(str(refused.value)) < 400
+
+
+def test_the_largest_stamp_is_still_a_query(tmp_path):
+    with EventStore(tmp_path / "events.sqlite") as store:
+        _stored(store)
+        assert history_replies(store, keys.history_key(PREFIX), keys.history_key(PREFIX),
+                               f"since=0;until={2**63 - 1}")
+        assert history_replies(store, keys.history_key(PREFIX), keys.history_key(PREFIX), f"since={2**63 - 1}") == []
 
 
 # --------------------------------------------------------------------------- the server's timeline

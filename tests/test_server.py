@@ -312,6 +312,11 @@ def test_events_are_stored_published_and_answered_after_a_restart(site, tmp_path
     assert none == [] and len(errors) == 1 and "since" in errors[0]
     none, errors = net.history("kind=teleport")
     assert none == [] and "teleport" in errors[0]
+    # every query gets an answer, however large its numbers or long its text
+    for parameters, words in (("since=99999999999999999999999", "since"), ("until=99999999999999999999999", "until"),
+                              ("limit=99999999999999999999999", "limit"), ("kind=" + "x" * 10_000, "kind")):
+        none, errors = net.history(parameters)
+        assert none == [] and len(errors) == 1 and words in errors[0] and len(errors[0]) < 400, (parameters, errors)
     assert server.stop() == 0
     token.undeclare()
 
@@ -350,3 +355,41 @@ def test_a_bad_site_file_stops_with_exit_code_2_and_one_message(site, tmp_path):
     result = subprocess.run([sys.executable, "-m", "fusion_server.cli", "--site", str(missing)], cwd=ROOT,
                             capture_output=True, text=True, timeout=60)
     assert result.returncode == 2 and "not found" in result.stderr and len(result.stderr.strip().splitlines()) == 1
+
+
+# --------------------------------------------------------------------------- clean failure
+
+
+@pytest.mark.parametrize("endpoint, sig", [("free port", "SIGTERM"), ("tcp/router.invalid:7447", "SIGINT")])
+def test_a_server_whose_router_is_unreachable_says_so_once_and_stops_on_a_signal(site, tmp_path, endpoint, sig):
+    """Client mode, nothing listening at the router's address (or a name that does not resolve): one
+    warning line, retries with back-off, and a clean exit within 2 s of SIGTERM or SIGINT."""
+    import signal
+
+    site_file, _ = site
+    if endpoint == "free port":
+        endpoint = f"tcp/127.0.0.1:{_free_port()}"
+    argv = [sys.executable, "-m", "fusion_server.cli", "--site", str(site_file), "--mode", "client",
+            "--connect", endpoint, "--store", str(tmp_path / "events.sqlite"),
+            "--cache-dir", str(site_file.parent / "cache")]
+    server = Proc("fusion", argv, tmp_path / "server.log")
+    wait_for(lambda: "cannot reach zenoh" in server.output(), 30.0, "the unreachable router in the log")
+    time.sleep(2.0)  # a few retries
+    assert server.alive()
+    asked = time.monotonic()
+    code = server.stop(timeout_s=10.0, sig=getattr(signal, sig))
+    took = time.monotonic() - asked
+    out = server.output()
+    assert code == 0 and took < 2.0, (code, took, out)
+    assert out.count("cannot reach zenoh") == 1 and endpoint in out and "Traceback" not in out, out
+    assert "stopped before zenoh could be reached" in out
+
+
+def test_a_malformed_endpoint_stops_start_up_with_one_line(site, tmp_path):
+    site_file, _ = site
+    for endpoint in ("tpc/127.0.0.1:7447", "tcp/127.0.0.1"):
+        result = subprocess.run([sys.executable, "-m", "fusion_server.cli", "--site", str(site_file), "--mode", "client",
+                                 "--connect", endpoint, "--store", str(tmp_path / "events.sqlite")], cwd=ROOT,
+                                capture_output=True, text=True, timeout=60)
+        lines = [line for line in result.stderr.splitlines() if line.strip()]
+        assert result.returncode == 2 and len(lines) == 1 and endpoint in lines[0], result.stderr

@@ -318,3 +318,25 @@ def test_settings_change_a_site_and_are_validated_like_the_file(tmp_path):
         with_settings(site, ["carve.min_ratio=0.5"])
     with pytest.raises(SiteError, match="SECTION.KEY=VALUE"):
         with_settings(site, ["min_ratio=0.5"])
+
+
+def test_site_check_refuses_what_the_processes_would_refuse(tmp_path, capsys):
+    """More carving cameras than the site has, or a mistyped endpoint: ``site check`` says so in one
+    line naming the field, as the fusion server and the workers would at start."""
+    import re
+
+    from common import cli
+    from tests.tinysite import write_site as write_tiny
+
+    path, _ = write_tiny(tmp_path)
+    text = path.read_text()
+    path.write_text(re.sub(r"min_cameras = \d+", "min_cameras = 9", text))
+    assert cli.main(["site", "check", str(path)]) == 2
+    err = capsys.readouterr().err
+    assert "carving.min_cameras: 9 exceeds the site's 3 cameras" in err and len(err.strip().splitlines()) == 1
+    path.write_text(text.replace('name = "tiny"\n', 'name = "tiny"\n[zenoh]\nconnect = ["tpc/10.0.0.2:7447"]\n', 1))
+    assert cli.main(["site", "check", str(path)]) == 2
+    err = capsys.readouterr().err
+    assert "zenoh.connect" in err and "'tpc'" in err and len(err.strip().splitlines()) == 1
+    path.write_text(text)
+    assert cli.main(["site", "check", str(path)]) == 0

@@ -450,3 +450,25 @@ def test_a_worker_restarted_after_the_shared_start_joins_at_the_frame_for_now(tm
         if i >= BOX_FROM + 3:
             mask = maskcodec.decode_mask(m.data, m.codec, m.width, m.height)
             assert np.count_nonzero(mask[30:100, 10 + 2 * i:34 + 2 * i]) >= 0.8 * 70 * 24, m.seq
+
+
+def test_a_worker_whose_router_is_unreachable_says_so_once_and_stops_on_sigint(tmp_path):
+    _write_clips(tmp_path)
+    site = _write_site(tmp_path)
+    endpoint = f"tcp/127.0.0.1:{_free_port()}"
+    proc = subprocess.Popen([sys.executable, "-m", "camera_worker.cli", "--site", str(site), "--camera", "cam1",
+                             "--mode", "client", "--connect", endpoint], stdout=subprocess.PIPE,
+                            stderr=subprocess.STDOUT, text=True, cwd=ROOT, env={**os.environ, "PYTHONUNBUFFERED": "1"})
+    try:
+        time.sleep(4.0)
+        assert proc.poll() is None
+        asked = time.monotonic()
+        proc.send_signal(signal.SIGINT)
+        out, _ = proc.communicate(timeout=10)
+        took = time.monotonic() - asked
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    assert proc.returncode == 0 and took < 2.0, (proc.returncode, took, out)
+    assert out.count("cannot reach zenoh") == 1 and endpoint in out and "Traceback" not in out, out
