@@ -25,9 +25,12 @@ What the node does:
 * **fusing** (:meth:`~FusionNode.tick`, one ready set per call): the tracks of
   the frame as one :class:`~common.messages.TrackFrame` (non-finite tracks left
   out), each event first added to the event store (committed; an event whose
-  id is already stored is neither published nor written again), then queued
-  for ``<p>/events/<kind>/<track>`` as JSON text and written to
-  ``events.jsonl`` when files are kept. A frame set the pipeline fails on is
+  id is already stored is neither published nor written again; one the
+  store cannot write is still published -- an alarm must go out -- logged,
+  counted as ``events_not_stored`` in the status and kept in the store's
+  fallback file, ``events_pending`` until merged), then queued for
+  ``<p>/events/<kind>/<track>`` as JSON text and written to ``events.jsonl``
+  when files are kept. A frame set the pipeline fails on is
   counted and logged; the next one is fused as usual.
 * **holds**: per camera, :class:`~common.messages.HoldRegions` whenever the
   boxes change (by more than ``hold_slack_px`` on some side, or in number) and
@@ -571,7 +574,7 @@ class FusionNode:
                 if not self.store.add(rec):
                     log.debug("event %s is already stored: not published again", rec.id)
                     return
-            except ValueError as exc:
+            except ValueError as exc:  # EventNotStored: in the store's fallback file if it could be written
                 self.c.events_not_stored += 1
                 log.error("event %s could not be stored (publishing it anyway): %s", rec.id, exc)
         self.c.events += 1
@@ -667,7 +670,8 @@ class FusionNode:
                 refused=h.refused,
             ))
         return Status(stamp_ns=int(now_ns), cameras=cams, frame_sets=self.c.frames_fused,
-                      frame_sets_dropped=self.c.frame_sets_dropped)
+                      frame_sets_dropped=self.c.frame_sets_dropped, events_not_stored=self.c.events_not_stored,
+                      events_pending=self.store.pending if self.store is not None else 0)
 
     def _queue_status(self, now_ns: int, mono: float) -> None:
         try:
@@ -678,7 +682,7 @@ class FusionNode:
     def summary(self, now_ns: int, mono: float) -> str:
         """One line of what the node has done, for the log at exit."""
         c = self.c
-        parts = [f"{c.frames_fused} frames fused", f"{c.events} events",
+        parts = [f"{c.frames_fused} frames fused", f"{c.events} events", f"{c.events_not_stored} not stored",
                  f"{c.frame_sets_dropped} frame sets dropped (slow)", f"{c.frame_sets_too_few} with too few cameras",
                  f"{c.inbox_dropped} masks dropped on arrival", f"{c.unknown_camera} from unknown cameras",
                  f"{c.pipeline_errors} fusion errors", f"{c.queries} history queries"]

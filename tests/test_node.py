@@ -567,3 +567,34 @@ def test_a_hostile_sequence_jump_is_not_millions_of_drops(rig):
         r.put("c1", encode(mask_frame(r.cams["c1"], 10**15 + seq, r.clock.ns, r.masks["c1"])))
         r.clock.advance(PERIOD_NS / 1e9)
     assert r.cam_status()["c1"].dropped <= 12
+
+
+# --------------------------------------------------------------------------- a store that cannot write
+
+
+def test_an_event_the_store_cannot_write_is_published_counted_and_merged_later(rig, tmp_path):
+    import sqlite3
+
+    r = rig(store=False)
+    store = r.store = r.node.store = EventStore(tmp_path / "locked.sqlite", timeout_s=0.1)
+    alive = keys.alive_camera_key(PREFIX, "c3")
+    r.node.on_liveliness(alive, True, r.clock.ns)
+    r.frames(range(10))
+    other = sqlite3.connect(str(tmp_path / "locked.sqlite"), timeout=0.1, isolation_level=None)
+    other.execute("BEGIN EXCLUSIVE")  # another process holds the write lock
+    r.node.on_liveliness(alive, False, r.clock.ns)
+    r.take(r.node.report(r.clock.ns, r.clock.mono))
+    assert r.kinds() == ["camera_lost"]  # published all the same
+    st = r.status[-1]
+    assert st.events_not_stored == 1 and st.events_pending == 1
+    assert store.fallback_path.exists() and store.query() == []
+    other.execute("COMMIT")
+    other.close()
+    r.node.on_liveliness(alive, True, r.clock.ns)
+    r.frames(range(10, 15))
+    r.take(r.node.report(r.clock.ns, r.clock.mono))
+    assert r.kinds() == ["camera_lost", "camera_back"]
+    st = r.status[-1]
+    assert st.events_not_stored == 1 and st.events_pending == 0
+    assert [e.kind for e in store.query()] == ["camera_lost", "camera_back"]
+    assert not store.fallback_path.exists()
