@@ -357,6 +357,46 @@ def test_a_bad_site_file_stops_with_exit_code_2_and_one_message(site, tmp_path):
     assert result.returncode == 2 and "not found" in result.stderr and len(result.stderr.strip().splitlines()) == 1
 
 
+# --------------------------------------------------------------------------- the server's timeline
+
+
+def test_future_masks_and_a_camera_a_minute_fast_never_stop_the_live_server(site, tmp_path, net, start_server):
+    """Over zenoh, to the real process: c3 starts first with a clock 60 s fast, then every camera sends one
+    valid mask stamped an hour ahead; the server tracks on with c1 and c2, says c3 is skewed, and takes c3 back
+    once its clock is right."""
+    site_file, cams = site
+    server = start_server("--store", str(tmp_path / "events.sqlite"))
+    minute, hour = 60 * 10**9, 3600 * 10**9
+    net.publish_box({"c3": cams["c3"]}, range(5), offsets_ns={"c3": minute})  # started first
+    net.publish_box(cams, range(5, 40), offsets_ns={"c3": minute})
+
+    def forged(seq: int) -> None:
+        if seq == 45:
+            for cid, cam in cams.items():
+                net.put_mask(cid, encode(mask_frame(cam, 10_000, time.time_ns() + hour, box_mask(cam, *BOX_XY))))
+
+    net.publish_box(cams, range(40, 70), offsets_ns={"c3": minute}, between=forged)
+    status = wait_for(lambda: (st := net.latest_status()) and st.frame_sets >= 50 and st, 10.0, "frame sets fused")
+    by_cam = {c.cam: c for c in status.cameras}
+    assert by_cam["c3"].state == "skewed" and by_cam["c3"].refused >= 60, by_cam["c3"]
+    assert by_cam["c3"].clock_offset_ms == pytest.approx(60_000, abs=500)
+    assert by_cam["c1"].state == by_cam["c2"].state == "ok", by_cam
+    assert by_cam["c1"].refused == by_cam["c2"].refused == 1 and by_cam["c1"].late == 1
+    with net.lock:
+        frames = list(net.tracks)
+    assert len(frames) >= 55 and all(f.cameras == ["c1", "c2"] for f in frames)
+    assert all(abs(f.stamp_ns - time.time_ns()) < 30 * 10**9 for f in frames)  # never an hour ahead
+    assert sum(1 for f in frames[-20:] if f.tracks and _near_box(f, 0.3)) >= 15
+    net.publish_box(cams, range(70, 110))  # c3's clock is set right
+    wait_for(lambda: {c.cam: c.state for c in net.latest_status().cameras} == {"c1": "ok", "c2": "ok", "c3": "ok"},
+             10.0, "every camera ok")
+    with net.lock:
+        assert net.tracks[-1].cameras == ["c1", "c2", "c3"] and _near_box(net.tracks[-1])
+        skews = sorted(e.details["camera"] for e in net.events if e.kind == "clock_skew")
+    assert skews == ["c1", "c2", "c3"]
+    assert server.stop() == 0 and "Traceback" not in server.output()
+
+
 # --------------------------------------------------------------------------- clean failure
 
 
