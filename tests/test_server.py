@@ -397,6 +397,76 @@ def test_future_masks_and_a_camera_a_minute_fast_never_stop_the_live_server(site
     assert server.stop() == 0 and "Traceback" not in server.output()
 
 
+def _write_box_videos(folder: Path, cam: Camera, n: int) -> tuple[Path, Path]:
+    """(background clip, clip of the box standing still) as ``cam`` sees the room, MJPG at the site rate."""
+    import cv2
+
+    rng = np.random.default_rng(5)
+    room = np.clip(120 + 50 * cv2.resize(rng.normal(0, 1, (H // 8, W // 8, 3)).astype(np.float32), (W, H)),
+                   0, 255).astype(np.uint8)
+    person = room.copy()
+    person[box_mask(cam, *BOX_XY) > 0] = (40, 40, 200)
+    paths = folder / f"{cam.id}-bg.avi", folder / f"{cam.id}-clip.avi"
+    for path, image, frames in ((paths[0], room, 30), (paths[1], person, n)):
+        writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), FPS, (W, H))
+        for _ in range(frames):
+            writer.write(image)
+        writer.release()
+    return paths
+
+
+@pytest.mark.slow
+def test_a_recorded_file_worker_restarted_mid_run_joins_the_shared_clock(site, tmp_path, net, start_server):
+    """A real worker plays c3's recording with the shared start while the test plays c1 and c2 on the same
+    lattice; SIGKILLed and started again with the same start, it publishes the frames for now (never frame 0
+    again): no replayed masks, no clock_skew, c3 ok, and sets with all three cameras again."""
+    site_file, cams = site
+    server = start_server("--store", str(tmp_path / "events.sqlite"))
+    bg, clip = _write_box_videos(tmp_path, cams["c3"], n=int(20 * FPS))
+    start_ns = time.time_ns() + 2_500_000_000
+    server_listen = server.argv[server.argv.index("--listen") + 1]
+
+    def worker() -> Proc:
+        return Proc("camera-c3", [sys.executable, "-m", "camera_worker.cli", "--site", str(site_file), "--camera", "c3",
+                                  "--source", str(clip), "--background", str(bg), "--start-ns", str(start_ns),
+                                  "--connect", net.endpoint, "--connect", server_listen,
+                                  "--listen", f"tcp/127.0.0.1:{_free_port()}"], tmp_path / f"c3-{time.monotonic_ns()}.log")
+
+    first = worker()
+    masks = {cid: box_mask(cam, *BOX_XY) for cid, cam in cams.items()}
+    restarted: list[Proc] = []
+    seq = 0
+    try:
+        while time.time_ns() < start_ns + int(9e9):
+            stamp = start_ns + int(round(seq * 1e9 / FPS))
+            if stamp > time.time_ns():
+                time.sleep((stamp - time.time_ns()) / 1e9)
+            if stamp >= start_ns:
+                for cid in ("c1", "c2"):
+                    net.put_mask(cid, encode(mask_frame(cams[cid], seq, stamp, masks[cid])))
+            if seq == int(3.5 * FPS):  # mid-run: the worker dies and is started again at once
+                first.kill()
+                restarted.append(worker())
+            seq += 1
+        status = net.latest_status()
+        with net.lock:
+            frames = list(net.tracks)
+            kinds = [e.kind for e in net.events]
+    finally:
+        first.kill()
+        for proc in restarted:
+            proc.stop()
+    again = restarted[0].output()
+    assert "joining it at frame" in again, again
+    c3 = {c.cam: c for c in status.cameras}["c3"]
+    assert c3.state == "ok" and c3.refused == 0 and c3.late <= 5, (c3, again)
+    assert "clock_skew" not in kinds
+    with_c3 = [f for f in frames if "c3" in f.cameras]
+    assert with_c3 and with_c3[-1].frame > int(6 * FPS), [(f.frame, f.cameras) for f in frames[-5:]]
+    assert sum(1 for f in frames[-30:] if f.cameras == ["c1", "c2", "c3"]) >= 25
+    assert _near_box(frames[-1], 0.3)
+
+
 # --------------------------------------------------------------------------- clean failure
 
 
