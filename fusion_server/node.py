@@ -57,9 +57,11 @@ What the node does:
   ``max_clock_skew_ms`` the camera is ``skewed`` in the status; the mark
   clears once the median is back under 80 % of the threshold. A camera
   turning skewed emits a ``clock_skew`` event (at most one a minute per
-  camera). Apart from that, a mask whose ``stamp_ns - receive time`` runs
-  more than ``max_clock_skew_ms`` ahead of the other live cameras' newest
-  masks is left out of the frame sets (counted ``late``, logged): one camera
+  camera). A camera whose clock lags is left out by the synchroniser (its
+  masks are stale). With ``free_timeline``, where the server's clock is not
+  the reference, a mask whose ``stamp_ns - receive time`` runs more than
+  ``max_clock_skew_ms`` ahead of the other live cameras' newest masks is
+  left out of the frame sets instead (counted ``late``, logged): one camera
   with a fast clock would otherwise push the synchroniser ahead and make
   every other camera's masks look stale.
 * **status** every ``status_period_s`` (:meth:`~FusionNode.status`).
@@ -373,7 +375,9 @@ class FusionNode:
             self._check_skew(health, recv_ns, mono)
             return
         self._check_skew(health, recv_ns, mono)
-        lead_ms = self._lead_ms(health, mono)
+        # with the server's clock as the reference a fast camera was refused above; comparing with
+        # the other cameras would make a camera whose clock lags push the right ones out
+        lead_ms = self._lead_ms(health, mono) if self.s.free_timeline else None
         if lead_ms is not None and lead_ms > self.s.max_clock_skew_ms:
             health.ahead += 1
             self.rlog.warn(f"camera {cam}", "ahead", f"mask {msg.seq} is stamped {lead_ms:.0f} ms ahead of the "

@@ -514,6 +514,27 @@ def test_a_camera_a_minute_fast_started_first_is_refused_and_the_others_track(ri
     assert r.cam_status()["c3"].state == "ok" and r.tracks[-1].cameras == ["c1", "c2", "c3"]
 
 
+def test_with_a_free_timeline_a_camera_ahead_of_the_others_is_still_left_out(rig):
+    r = rig(free_timeline=True)
+    r.frames(range(60), offsets_ns={"c3": 1_000_000_000})
+    cams = r.cam_status()
+    assert cams["c3"].late >= 55 and cams["c3"].refused == 0 and cams["c3"].state == "skewed"
+    assert sum(1 for f in r.tracks if f.cameras == ["c1", "c2"]) >= 55
+
+
+def test_a_camera_a_minute_slow_started_first_is_late_and_the_others_track(rig):
+    r = rig()
+    slow = {"c3": -60 * 10**9}
+    r.put("c3", encode(mask_frame(r.cams["c3"], 0, r.clock.ns + slow["c3"], r.masks["c3"])))
+    r.clock.advance(PERIOD_NS / 1e9)
+    r.frames(range(1, 60), offsets_ns=slow)
+    cams = r.cam_status()
+    assert cams["c3"].state == "skewed" and cams["c3"].late >= 58 and cams["c3"].refused == 0
+    assert cams["c1"].state == cams["c2"].state == "ok" and cams["c1"].late == cams["c2"].late == 0
+    assert len(r.tracks) >= 57 and all(f.cameras == ["c1", "c2"] for f in r.tracks)
+    assert [e.details["camera"] for _, e in r.events if e.kind == "clock_skew"] == ["c3"]
+
+
 def test_replayed_masks_and_repeated_numbers_are_refused_and_counted(rig):
     r = rig()
     sent = []
