@@ -316,8 +316,10 @@ class SyntheticSource(FrameSource):
     live = False
 
     def __init__(self, cam_id: str, *, scenario: str | None = None, seed: int = 0, start_ns: int = 0,
-                 background: bool = False, n_frames: int | None = None, world: int | None = None) -> None:
+                 background: bool = False, n_frames: int | None = None, world: int | None = None,
+                 fps: float | None = None) -> None:
         self.cam_id = cam_id
+        self._fps_override = _check_fps(fps)
         self.scenario = scenario
         self.seed = int(seed)
         self.world = None if world is None else int(world)
@@ -344,7 +346,7 @@ class SyntheticSource(FrameSource):
         except (KeyError, ValueError) as exc:
             raise SourceError(f"{self.name}: {exc}") from None
         self._camera = camera
-        self.fps = float(camera.fps)
+        self.fps = self._fps_override or float(camera.fps)  # faster: the same frames, played sooner
         self._index = 0
 
     @property
@@ -439,13 +441,13 @@ def open_source(
     if text == "synthetic" or text.startswith("synthetic:"):
         scenario = text.partition(":")[2] or None
         return SyntheticSource(cam_id, scenario=scenario, seed=seed, start_ns=start_ns, background=background,
-                               n_frames=n_frames)
+                               n_frames=n_frames, fps=fps)
     if text.startswith("world:"):
         seed_text = text.partition(":")[2]
         if not seed_text.isdigit():
             raise SourceError(f"{text}: a world source is 'world:SEED' with a non-negative integer seed")
         return SyntheticSource(cam_id, world=int(seed_text), start_ns=start_ns, background=background,
-                               n_frames=n_frames)
+                               n_frames=n_frames, fps=fps)
     match = _URL_RE.match(text)
     if match:
         if match.group(1).lower() not in URL_SCHEMES:

@@ -433,7 +433,13 @@ def _demo(args: argparse.Namespace) -> int:
 
 def _register_bench(sub) -> None:
     p = sub.add_parser("bench", help="measure every stage's speed and size on this machine")
-    p.add_argument("--sections", default=None, help="comma-separated subset of: codec, worker, render, carving, tracking, pipeline, latency")
+    p.add_argument("--sections", default=None, help="comma-separated subset of: codec, worker, render, carving, tracking, pipeline, looks, latency; "
+                   "and soak (never by default: the demo system for --soak-minutes with processes killed and restarted)")
+    p.add_argument("--soak-minutes", type=float, default=30.0, help="soak: how long (default 30)")
+    p.add_argument("--soak-speed", type=float, default=4.0, help="soak: times real time (default 4)")
+    p.add_argument("--soak-kill-every", type=float, default=180.0, metavar="SECONDS",
+                   help="soak: kill and restart a camera worker this often (default 180); the fusion server once, half-way")
+    p.add_argument("--soak-out", type=Path, default=Path("voxelwatch-soak"), help="soak: output folder (default ./voxelwatch-soak)")
     p.add_argument("--quick", action="store_true", help="fewer frames and configurations (a minute or two)")
     p.add_argument("--json", type=Path, default=None, help="also write the figures as JSON here")
     p.set_defaults(handler=_bench)
@@ -442,8 +448,21 @@ def _register_bench(sub) -> None:
 def _bench(args: argparse.Namespace) -> int:
     from fusion_server.benchmark import SECTIONS, run_bench
 
-    sections = args.sections.split(",") if args.sections else SECTIONS
-    run_bench(sections=sections, quick=args.quick, json_path=args.json)
+    sections = [s.strip() for s in args.sections.split(",")] if args.sections else list(SECTIONS)
+    unknown = sorted(set(sections) - set(SECTIONS) - {"soak"})
+    if unknown:
+        raise ValueError(f"unknown bench sections {unknown}; sections are {[*SECTIONS, 'soak']}")
+    soak = None
+    if "soak" in sections:
+        from common.soak import run_soak
+
+        sections.remove("soak")
+        soak = run_soak(minutes=args.soak_minutes, speed=args.soak_speed, kill_every_s=args.soak_kill_every,
+                        out_dir=args.soak_out)
+    figures = run_bench(sections=sections, quick=args.quick, json_path=None if soak else args.json) if sections else {}
+    if soak is not None and args.json is not None:
+        args.json.parent.mkdir(parents=True, exist_ok=True)
+        args.json.write_text(json.dumps({**figures, "soak": soak}, indent=2, default=str) + "\n")
     return 0
 
 
