@@ -47,7 +47,8 @@ What the node does:
   A mask stamped no later than the camera's newest mask taken (a replay, or a
   worker replaying a recording from its start) is refused as ``replayed``, one
   repeating the newest mask's sequence number as ``repeated`` (both in
-  ``dropped`` and ``refused``; the camera reads ``degraded`` meanwhile).
+  ``dropped`` and ``refused``; the camera reads ``degraded`` meanwhile,
+  except for a second delivery of its newest mask itself).
   Refused masks never become a camera's newest. A sequence gap counts at most
   the frame periods between the two stamps as lost. With ``free_timeline``
   (recordings played faster than real time) the server's clock is not
@@ -437,6 +438,8 @@ class FusionNode:
             return False
         if health.newest_stamp_ns is not None and msg.stamp_ns <= health.newest_stamp_ns:
             health.replayed += 1
+            if (msg.seq, msg.stamp_ns) == (health.last_seq, health.newest_stamp_ns):
+                return False  # the newest mask delivered twice (two network paths): harmless
             health.last_bad_mono = mono
             self.rlog.warn(f"camera {cam}", "replayed", f"mask {msg.seq} is stamped {msg.stamp_ns} ns, not after "
                            f"the camera's newest mask ({health.newest_stamp_ns} ns): refused as a replay", mono)

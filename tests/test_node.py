@@ -547,7 +547,9 @@ def test_replayed_masks_and_repeated_numbers_are_refused_and_counted(rig):
         r.take(r.node.tick(r.clock.ns, r.clock.mono))
         r.clock.advance(PERIOD_NS / 1e9)
     fused = r.node.c.frames_fused
-    for payload in sent:  # every mask of c1 sent again
+    r.put("c1", sent[-1])  # the newest delivered twice: counted, harmless
+    assert r.cam_status()["c1"].state == "ok" and r.cam_status()["c1"].refused == 1
+    for payload in sent[:-1]:  # every older mask of c1 sent again
         r.put("c1", payload)
     # c1's newest number again, stamped now
     r.put("c1", encode(mask_frame(r.cams["c1"], 19, r.clock.ns, r.masks["c1"])))
