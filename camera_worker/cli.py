@@ -111,7 +111,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 2
 
     from camera_worker.worker import run
-    from common.transport import TransportError, open_session, warn_if_alone
+    from common.transport import TransportError, open_session, watch_links
 
     stop = threading.Event()
 
@@ -130,7 +130,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     if session is None:
         log.info("%s: stopped before zenoh could be reached", who)
         return 0
-    warn_if_alone(session, stop, who=who, endpoints=connect, log=log)
+    watch_links(session, stop, who=who, endpoints=connect, log=log)
     try:
         return run(session, settings, stop=stop)
     finally:

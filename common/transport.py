@@ -10,7 +10,8 @@ opens a session the way every long-running process should: a router that
 is not there yet (unreachable, down, or a name that does not resolve) is
 one warning line, then retried with back-off while the process still stops
 within a second or so of SIGINT/SIGTERM; a port that cannot be listened on
-is one clear error.
+is one clear error. :func:`watch_links` says, once each way, when an open
+session loses its last zenoh link and when it has one again.
 """
 
 from __future__ import annotations
@@ -135,27 +136,42 @@ def open_session(make_config: Callable[[], zenoh.Config], stop: threading.Event,
     return None
 
 
-def warn_if_alone(session: zenoh.Session, stop: threading.Event, *, who: str, endpoints: Sequence[str],
-                  log: logging.Logger | None = None, after_s: float = 3.0) -> threading.Thread | None:
-    """A peer connecting to ``endpoints`` opens even when nothing answers there (zenoh keeps
-    trying in the background): log one warning if, ``after_s`` later, no peer or router is
-    connected. Returns the watching thread (a daemon), or None without endpoints."""
+def watch_links(session: zenoh.Session, stop: threading.Event, *, who: str, endpoints: Sequence[str],
+                log: logging.Logger | None = None, after_s: float = 3.0, period_s: float = 2.0) -> threading.Thread | None:
+    """Say when a session that connects to ``endpoints`` has no zenoh link, in one line each way.
+
+    A peer opens even when nothing answers at its endpoints, and a client whose
+    router goes away later goes on quietly while zenoh reconnects in the
+    background: ``after_s`` after opening, then every ``period_s``, this checks
+    for a connected peer or router and logs a warning when there is none (once
+    until it changes) and an info line when a link is back. Returns the watching
+    thread (a daemon, ending with ``stop``), or None without endpoints."""
     if not endpoints:
         return None
     log = log or logging.getLogger("voxelwatch")
+    where = ", ".join(endpoints)
+
+    def linked() -> bool | None:
+        try:
+            return bool(list(session.info.peers_zid())) or bool(list(session.info.routers_zid()))
+        except Exception:  # noqa: BLE001 - the session is closing
+            return None
 
     def watch() -> None:
-        if stop.wait(after_s):
-            return
-        try:
-            alone = not list(session.info.peers_zid()) and not list(session.info.routers_zid())
-        except Exception:  # noqa: BLE001 - the session closed meanwhile
-            return
-        if alone:
-            log.warning("%s: nothing answers at %s yet (zenoh keeps trying in the background)",
-                        who, ", ".join(endpoints))
+        was = True  # open_session returned: a client had its router then
+        wait = after_s
+        while not stop.wait(wait):
+            wait = period_s
+            now = linked()
+            if now is None:
+                return
+            if was and not now:
+                log.warning("%s: no zenoh link to %s (zenoh keeps trying in the background)", who, where)
+            elif now and not was:
+                log.info("%s: zenoh link to %s is back", who, where)
+            was = now
 
-    thread = threading.Thread(target=watch, name="zenoh-watch", daemon=True)
+    thread = threading.Thread(target=watch, name="zenoh-links", daemon=True)
     thread.start()
     return thread
 

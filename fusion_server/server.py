@@ -68,7 +68,7 @@ def run_forever(settings: FusionSettings) -> int:
     be listened on), 2 when the calibrations, zenoh settings, event store or
     output folder are unusable (the reason is logged).
     """
-    from common.transport import TransportError, open_session, warn_if_alone, zenoh_config
+    from common.transport import TransportError, open_session, watch_links, zenoh_config
 
     z = settings.site.zenoh
     connect = list(settings.connect if settings.connect is not None else z.connect)
@@ -97,7 +97,7 @@ def run_forever(settings: FusionSettings) -> int:
         if session is None:
             log.info("fusion: stopped before zenoh could be reached")
             return 0
-        warn_if_alone(session, stop, who="fusion", endpoints=connect, log=log)
+        watch_links(session, stop, who="fusion", endpoints=connect, log=log)
         try:
             return run(session, settings, stop, pipeline)
         finally:

@@ -14,7 +14,7 @@ import pytest
 import zenoh
 
 from common.site import ZenohSettings
-from common.transport import TransportError, check_endpoint, open_session, private_config, zenoh_config
+from common.transport import TransportError, check_endpoint, open_session, private_config, watch_links, zenoh_config
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -118,3 +118,41 @@ def test_router_on_a_busy_port_is_one_clear_line() -> None:
     lines = [line for line in result.stderr.splitlines() if line.strip()]
     assert result.returncode == 1 and len(lines) == 1, result.stderr
     assert f"tcp/127.0.0.1:{port}" in lines[0] and "Address already in use" in lines[0] and ".rs:" not in lines[0]
+
+
+def _messages(caplog, text: str) -> list[str]:
+    return [r.getMessage() for r in caplog.records if text in r.getMessage()]
+
+
+def test_a_session_that_loses_its_router_says_so_once_and_when_it_is_back(caplog) -> None:
+    import logging
+
+    caplog.set_level(logging.INFO)
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        port = probe.getsockname()[1]
+    endpoint = f"tcp/127.0.0.1:{port}"
+    router = zenoh.open(zenoh_config(mode="router", listen=[endpoint]))
+    stop = threading.Event()
+    client = open_session(lambda: zenoh_config(mode="client", connect=[endpoint], connect_timeout_ms=1000), stop,
+                          who="test", endpoints=[endpoint])
+    try:
+        watch_links(client, stop, who="test", endpoints=[endpoint], after_s=0.2, period_s=0.2)
+        time.sleep(1.0)
+        assert _messages(caplog, "no zenoh link") == []
+        router.close()
+        deadline = time.monotonic() + 10
+        while not _messages(caplog, "no zenoh link") and time.monotonic() < deadline:
+            time.sleep(0.1)
+        time.sleep(1.0)
+        assert _messages(caplog, "no zenoh link") == [f"test: no zenoh link to {endpoint} "
+                                                      "(zenoh keeps trying in the background)"]
+        router = zenoh.open(zenoh_config(mode="router", listen=[endpoint]))
+        deadline = time.monotonic() + 20
+        while not _messages(caplog, "is back") and time.monotonic() < deadline:
+            time.sleep(0.1)
+        assert _messages(caplog, "is back") == [f"test: zenoh link to {endpoint} is back"]
+    finally:
+        stop.set()
+        client.close()
+        router.close()
