@@ -90,6 +90,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="listen on this endpoint, e.g. tcp/0.0.0.0:7448 (repeatable; replaces the site's)")
     g.add_argument("--connect", action="append", metavar="ENDPOINT",
                    help="connect to this endpoint, e.g. tcp/10.0.0.2:7447 (repeatable; replaces the site's)")
+    g.add_argument("--tls-cert", metavar="PEM",
+                   help="this host's certificate (default: <camera id>.pem in the site's [zenoh.tls] certs folder)")
+    g.add_argument("--tls-key", metavar="PEM", help="this host's private key (default: <camera id>-key.pem beside it)")
 
     g = p.add_argument_group("logging")
     g.add_argument("--stats-period", type=float, default=10.0, metavar="S",
@@ -136,7 +139,7 @@ def main(argv: Sequence[str] | None = None) -> int:
 def _configure(args: argparse.Namespace):
     """``(WorkerSettings, zenoh.Config)`` from the arguments and the site file; ValueError on any problem."""
     from common.site import load_site
-    from common.transport import zenoh_config
+    from common.transport import site_config
     from camera_worker.worker import WorkerSettings
 
     site = load_site(args.site)
@@ -175,7 +178,8 @@ def _configure(args: argparse.Namespace):
     from camera_worker.segmentation import ForegroundSegmenter
 
     ForegroundSegmenter(**{k: v for k, v in settings.segmenter.items() if v is not None})
-    conf = zenoh_config(site.zenoh, mode=args.mode, listen=args.listen, connect=args.connect)
+    conf = site_config(site, host=spec.id, mode=args.mode, listen=args.listen, connect=args.connect,
+                       tls_cert=args.tls_cert, tls_key=args.tls_key)
     return settings, conf
 
 

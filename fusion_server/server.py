@@ -65,12 +65,13 @@ def run_forever(settings: FusionSettings) -> int:
     session cannot be opened, 2 when the calibrations, zenoh settings, event
     store or output folder are unusable (the reason is logged).
     """
-    from common.transport import zenoh_config
+    from common.certs import FUSION
+    from common.transport import site_config
 
     try:
+        conf = site_config(settings.site, host=FUSION, mode=settings.mode, listen=settings.listen,
+                           connect=settings.connect, tls_cert=settings.tls_cert, tls_key=settings.tls_key)
         pipeline = settings.build_pipeline()
-        conf = zenoh_config(settings.site.zenoh, mode=settings.mode, listen=settings.listen,
-                            connect=settings.connect)
     except ValueError as exc:
         log.error("%s", exc)
         return 2
