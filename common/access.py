@@ -53,7 +53,9 @@ def site_acl(prefix: str, cameras: Sequence[str], *, readers: Sequence[str] | No
             allow(f"camera {cam} declares its token", "ingress", ["liveliness_token"], [keys.alive_camera_key(p, cam)]),
             allow(f"camera {cam} subscribes to its holds and looks", "ingress", ["declare_subscriber"], own),
             allow(f"camera {cam} receives its holds and looks", "egress", ["put", "delete"], own),
-            allow(f"camera {cam} hears who reads its masks", "egress", ["declare_subscriber"], [keys.mask_key(p, cam)]),
+            # the fusion server subscribes to <p>/cam/*/mask: a declaration is allowed when a rule's key
+            # includes its whole key expression, and a camera's publisher sends only once it hears of one
+            allow(f"camera {cam} hears who reads masks", "egress", ["declare_subscriber"], [keys.mask_wildcard(p)]),
         ]
         subjects.append({"id": f"camera {cam}", "cert_common_names": [common_name("camera", cam)]})
         policies.append({"id": f"camera {cam}", "rules": ids, "subjects": [f"camera {cam}"]})
