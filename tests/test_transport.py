@@ -49,3 +49,94 @@ def test_a_refused_value_names_the_setting(kwargs: dict, name: str) -> None:
     with pytest.raises(TransportError, match=f"zenoh setting {name} = "):
         zenoh_config(**kwargs)
     assert issubclass(TransportError, ValueError)
+
+
+# ---------------------------------------------------------------- zenoh's own settings and TLS from the site
+
+
+def _site(tmp_path, zenoh_text: str):
+    from common.site import load_site
+    from tests.tinysite import write_site
+
+    site_file, _ = write_site(tmp_path)
+    with site_file.open("a") as f:
+        f.write("\n" + zenoh_text)
+    return load_site(site_file)
+
+
+def test_config_file_first_site_fields_over_it_settings_last(tmp_path) -> None:
+    (tmp_path / "zenoh.json5").write_text('{ mode: "router", transport: { link: { tx: { lease: 12000 } } },'
+                                          ' queries_default_timeout: 7000 }')
+    site = _site(tmp_path, '[zenoh]\nmode = "client"\nconfig = "zenoh.json5"\n'
+                           '[zenoh.settings]\n"transport/link/tx/lease" = 15000\n'
+                           '[zenoh.settings.transport.link.tx]\nkeep_alive = 3\n')
+    from common.transport import site_config
+
+    conf = site_config(site, host=None)
+    assert json.loads(conf.get_json("mode")) == "client"  # the site's field over the file
+    assert json.loads(conf.get_json("queries_default_timeout")) == 7000  # the file's own setting kept
+    assert json.loads(conf.get_json("transport/link/tx/lease")) == 15000  # settings last
+    assert json.loads(conf.get_json("transport/link/tx/keep_alive")) == 3  # nested tables too
+
+
+def test_a_setting_zenoh_refuses_and_a_missing_config_file_are_named(tmp_path) -> None:
+    from common.transport import site_config
+
+    with pytest.raises(TransportError, match="transport/link/tx/no_such_key"):
+        site_config(_site(tmp_path, '[zenoh]\nsettings = {"transport/link/tx/no_such_key" = 1}\n'), host=None)
+    (tmp_path / "b").mkdir()
+    with pytest.raises(TransportError, match="config.*nowhere.json5.*not found"):
+        site_config(_site(tmp_path / "b", '[zenoh]\nconfig = "nowhere.json5"\n'), host=None)
+
+
+def test_tls_picks_this_hosts_certificate_by_name_and_the_router_gets_the_access_control(tmp_path) -> None:
+    from common.certs import make_site_certs
+    from common.transport import site_config
+
+    site = _site(tmp_path, '[zenoh]\nmode = "client"\nconnect = ["tls/localhost:7447"]\n'
+                           '[zenoh.tls]\nca = "certs/ca.pem"\ncerts = "certs"\n')
+    make_site_certs(tmp_path / "certs", site=site.name, cameras=site.camera_ids)
+    conf = site_config(site, host="c2")
+    tls = json.loads(conf.get_json("transport/link/tls"))
+    assert tls["root_ca_certificate"] == str(tmp_path / "certs" / "ca.pem")
+    assert tls["enable_mtls"] is True
+    assert tls["connect_certificate"] == str(tmp_path / "certs" / "c2.pem")
+    assert tls["connect_private_key"] == str(tmp_path / "certs" / "c2-key.pem")
+    assert json.loads(conf.get_json("access_control/enabled")) is False  # a client enforces nothing
+    router = site_config(site, host="router", mode="router", listen=["tls/localhost:7447"], connect=[])
+    acl = json.loads(router.get_json("access_control"))
+    assert acl["enabled"] is True and acl["default_permission"] == "deny"
+    assert json.loads(router.get_json("transport/link/tls/listen_certificate")) == str(tmp_path / "certs" / "router.pem")
+    given = site_config(site, host="c2", tls_cert=tmp_path / "certs" / "c1.pem", tls_key=tmp_path / "certs" / "c1-key.pem")
+    assert json.loads(given.get_json("transport/link/tls/connect_certificate")) == str(tmp_path / "certs" / "c1.pem")
+    with pytest.raises(TransportError, match="this host's certificate: .*c9.pem not found.*voxelwatch certs"):
+        site_config(site, host="c9")
+    with pytest.raises(TransportError, match="both --tls-cert and --tls-key"):
+        site_config(site, host="c2", tls_cert=tmp_path / "certs" / "c1.pem")
+
+
+def test_tls_options_without_a_tls_section_are_refused(tmp_path) -> None:
+    from common.transport import site_config
+
+    with pytest.raises(TransportError, match=r"\[zenoh.tls\]"):
+        site_config(_site(tmp_path, '[zenoh]\nmode = "client"\n'), host="c1", tls_cert="a.pem", tls_key="b.pem")
+
+
+@pytest.mark.parametrize("zenoh_text, warnings", [
+    ('[zenoh]\nmode = "client"\nconnect = ["tcp/fusion.local:7447"]\n', ["plain TCP"]),
+    ('[zenoh]\nmode = "client"\nconnect = ["tls/fusion.local:7447"]\n[zenoh.tls]\nca = "certs/ca.pem"\n', []),
+    ('[zenoh]\nmode = "client"\nconnect = ["tcp/fusion.local:7447"]\n[zenoh.tls]\nca = "certs/ca.pem"\n',
+     ["without TLS: tcp/fusion.local:7447"]),
+    ('[zenoh]\nmode = "peer"\nlisten = ["tls/0.0.0.0:7447"]\n[zenoh.tls]\nca = "certs/ca.pem"\n', ["peer mode"]),
+])
+def test_site_check_warns_about_plain_transport(tmp_path, capsys, zenoh_text, warnings) -> None:
+    from common.certs import make_site_certs
+    from common.cli import main
+
+    site = _site(tmp_path, zenoh_text)
+    make_site_certs(tmp_path / "certs", site=site.name, cameras=site.camera_ids)
+    assert main(["site", "check", str(site.base_dir / "site.toml")]) == 0
+    lines = [line for line in capsys.readouterr().out.splitlines() if "WARNING" in line]
+    assert len(lines) == len(warnings), lines
+    for line, warning in zip(lines, warnings):
+        assert warning in line
