@@ -314,8 +314,9 @@ def test_router_unit_command_routes_between_clients_configured_from_client_json5
     """The router unit's command, listening on loopback instead of every
     interface, with two client sessions from client.json5 pointed at it."""
     values = _unit(UNITS / "voxelwatch-router.service")
-    argv = _exec_argv(values["ExecStart"][0], ENV, "")
+    argv = _exec_argv(values["ExecStart"][0], {**ENV, "VOXELWATCH_SITE": str(SITE)}, "")
     assert Path(argv[0]).name == "voxelwatch" and argv[1] == "router"
+    assert argv[argv.index("--site") + 1] == str(SITE)  # TLS and access control come from the site file
     listen_at = argv.index("--listen") + 1
     assert argv[listen_at] == "tcp/0.0.0.0:7447"
     endpoint = f"tcp/127.0.0.1:{_free_port()}"
