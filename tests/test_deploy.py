@@ -538,7 +538,7 @@ def test_compose_commands_are_accepted_by_the_real_parsers(site):
         argv = service["command"]
         assert argv and argv[0] in scripts, f"{name}: {argv}"
         if argv[0] == "voxelwatch":
-            assert argv[1:] == ["router", "--listen", "tcp/0.0.0.0:7447"]
+            assert argv[1:] == ["router", "--site", "/etc/voxelwatch/site.toml", "--listen", "tcp/0.0.0.0:7447"]
             continue
         args = _parse(argv[0], argv[1:])
         assert str(args.site) == "/etc/voxelwatch/site.toml"

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import pytest
 import zenoh
@@ -140,3 +141,29 @@ def test_site_check_warns_about_plain_transport(tmp_path, capsys, zenoh_text, wa
     assert len(lines) == len(warnings), lines
     for line, warning in zip(lines, warnings):
         assert warning in line
+
+
+def test_camera_and_fusion_commands_take_their_certificate_from_the_site_or_the_command_line(tmp_path) -> None:
+    from camera_worker import cli as camera_cli
+    from common.certs import make_site_certs
+    from fusion_server import cli as fusion_cli
+
+    site = _site(tmp_path, '[zenoh]\nmode = "client"\nconnect = ["tls/localhost:7447"]\n'
+                           '[zenoh.tls]\nca = "certs/ca.pem"\ncerts = "certs"\n')
+    certs = tmp_path / "certs"
+    make_site_certs(certs, site=site.name, cameras=site.camera_ids)
+    site_file = str(site.base_dir / "site.toml")
+    text = Path(site_file).read_text()
+    Path(site_file).write_text(text.replace('fps = 30.0\n', 'fps = 30.0\nresolution = [160, 120]\n'))  # the worker needs it
+
+    def camera_cert(*extra: str) -> str:
+        args = camera_cli.build_parser().parse_args(["--site", site_file, "--camera", "c3", "--source", "synthetic:demo", *extra])
+        _, conf = camera_cli._configure(args)
+        return json.loads(conf.get_json("transport/link/tls/connect_certificate"))
+
+    assert camera_cert() == str(certs / "c3.pem")
+    assert camera_cert("--tls-cert", str(certs / "c1.pem"), "--tls-key", str(certs / "c1-key.pem")) == str(certs / "c1.pem")
+    args = fusion_cli.build_parser().parse_args(["--site", site_file, "--tls-cert", str(certs / "fusion.pem"),
+                                                 "--tls-key", str(certs / "fusion-key.pem")])
+    settings = fusion_cli.settings_from_args(args)
+    assert (settings.tls_cert, settings.tls_key) == (certs / "fusion.pem", certs / "fusion-key.pem")
