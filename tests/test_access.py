@@ -240,6 +240,13 @@ def test_a_reader_subscribes_and_queries_but_publishes_nothing(secured, hosts):
     for key in (keys.hold_key(p, "c1"), keys.look_key(p, "c1")):
         refused(reader, key, cam1, fusion, "a reader sending a camera holds")
     refused(reader, keys.mask_key(p, "c1"), fusion, cam1, "a reader forging a mask")
+    tablet.watch_tokens(f"{p}/alive/**")
+    reader.session.liveliness().declare_token(keys.alive_camera_key(p, "c3"))
+    time.sleep(0.5)
+    fusion.session.liveliness().declare_token(keys.alive_fusion_key(p))
+    wait_for(lambda: keys.alive_fusion_key(p) in tablet.tokens, 10, "the fusion server's token at a reader")
+    time.sleep(0.3)
+    assert keys.alive_camera_key(p, "c3") not in tablet.tokens, "a reader declared a camera's token"
     assert reader.keys_heard() <= {keys.hold_key(p, "c1"), keys.mask_key(p, "c1")}
     assert not [k for k, v in reader.heard if v != b"forged"], "a reader heard masks or holds"
 
@@ -289,3 +296,22 @@ def test_a_plain_zenoh_session_from_deploy_reader_json5_reads_an_event(secured, 
         pub.undeclare()
         sub.undeclare()
     assert os.path.isfile("certs/reader.pem")
+
+
+# ---------------------------------------------------------------- peer mode
+
+
+def test_peers_of_a_secured_site_authenticate_each_other_without_a_router(secured, tmp_path):
+    """Peer mode: the fusion host listens over TLS, a camera connects to it with its certificate.
+    (No router: nothing enforces the access control; voxelwatch site check warns.)"""
+    site, _ = secured
+    peer_site = site.model_copy(update={"zenoh": site.zenoh.model_copy(update={"mode": "peer", "connect": []})})
+    endpoint = f"tls/localhost:{free_port()}"
+    heard: list[str] = []
+    with zenoh.open(site_config(peer_site, host="fusion", listen=[endpoint])) as fusion, \
+            zenoh.open(site_config(peer_site, host="c1", connect=[endpoint])) as cam:
+        sub = fusion.declare_subscriber(keys.mask_wildcard(site.prefix), lambda s: heard.append(str(s.key_expr)))
+        settle()
+        cam.put(keys.mask_key(site.prefix, "c1"), b"mask")
+        wait_for(lambda: heard, 10, "a mask between two peers over TLS")
+        sub.undeclare()
