@@ -15,7 +15,12 @@ and what it forwards to each host (``egress``), so both flows are listed:
 | reader        | subscribes tracks, events, status; queries the history;      | tracks, events, status, history replies   |
 |               | liveliness of ``<p>/alive/**`` (who is up)                   |                                           |
 
-Readers publish nothing: the site has no acknowledgement key.
+Each host also hears of the subscribers and queryables it sends to (a
+publisher sends only once it knows of a subscriber). zenoh allows a message
+when a rule's key expression includes the message's whole key expression, so
+the fusion server's ``<p>/cam/*/mask`` subscription reaches a camera through
+a rule on ``<p>/cam/*/mask``. Readers publish nothing: the site has no
+acknowledgement key.
 """
 
 from __future__ import annotations
