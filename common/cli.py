@@ -250,6 +250,9 @@ def _certs(args: argparse.Namespace) -> int:
     print(f"keep {made.ca_key.name} off the network (it makes certificates); copy to each host only its own files:")
     for line in where_to_copy(made):
         print(f"  {line}")
+    unlisted = [r for r in readers if tls is not None and r not in tls.readers]
+    if unlisted:
+        print(f"the router lets only the site's readers read: add {', '.join(unlisted)} to [zenoh.tls] readers")
     if tls is None:
         print("then add to the site file:\n  [zenoh.tls]\n  ca = \"certs/ca.pem\"\n  certs = \"certs\"\n"
               "and make every endpoint tls/ (e.g. connect = [\"tls/fusion.local:7447\"])")

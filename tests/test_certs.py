@@ -108,8 +108,19 @@ def test_certs_command_writes_into_the_site_folder_names_the_endpoint_hosts_and_
     folder = site_file.parent / "certs"
     assert "new authority" in out and "camera host c1: ca.pem, c1.pem, c1-key.pem" in out
     assert "reader tablet" in out and "keep ca-key.pem off the network" in out
+    assert "[zenoh.tls]" in out  # the site has no TLS section yet: what to add
     assert "fusion.local" in _sans(folder / "router.pem") and "fusion.local" in _sans(folder / "fusion.pem")
     assert "cam1.local" in _sans(folder / "c1.pem") and "cam1.local" not in _sans(folder / "c2.pem")
     assert (folder / "tablet.pem").is_file() and not (folder / "reader.pem").exists()
     assert cli_main(["certs", "--site", str(site_file)]) == 2  # the authority exists
     assert "already exists" in capsys.readouterr().err
+
+
+def test_certs_command_says_when_a_reader_is_not_among_the_sites_readers(tmp_path, capsys):
+    site_file, _ = write_site(tmp_path)
+    with site_file.open("a") as f:
+        f.write('\n[zenoh]\nmode = "client"\n[zenoh.tls]\nca = "keys/ca.pem"\ncerts = "keys"\nreaders = ["reader"]\n')
+    assert cli_main(["certs", "--site", str(site_file), "--reader", "reader", "--reader", "phone"]) == 0
+    out = capsys.readouterr().out
+    assert (site_file.parent / "keys" / "phone.pem").is_file()  # the site's certs folder
+    assert "add phone to [zenoh.tls] readers" in out and "then add to the site file" not in out

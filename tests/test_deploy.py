@@ -474,7 +474,7 @@ def test_units_run_together_router_fusion_and_two_cameras(tmp_path):
         procs["fusion"].terminate()
         assert procs["fusion"].wait(timeout=60) == 0, _logs(tmp_path)
         rows = (tmp_path / "out" / "tracks.csv").read_text().splitlines()
-        assert rows[0] == "frame,stamp_ns,id,x,y,z_top,posture"
+        assert rows[0] == "frame,stamp_ns,id,x,y,z_top,posture,person"
     finally:
         for proc in procs.values():
             if proc.poll() is None:

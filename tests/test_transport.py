@@ -167,3 +167,14 @@ def test_camera_and_fusion_commands_take_their_certificate_from_the_site_or_the_
                                                  "--tls-key", str(certs / "fusion-key.pem")])
     settings = fusion_cli.settings_from_args(args)
     assert (settings.tls_cert, settings.tls_key) == (certs / "fusion.pem", certs / "fusion-key.pem")
+
+
+def test_router_of_a_secured_site_without_its_certificate_stops_with_the_path(tmp_path, capsys) -> None:
+    from common.cli import main
+
+    site = _site(tmp_path, '[zenoh]\nmode = "client"\n[zenoh.tls]\nca = "certs/ca.pem"\ncerts = "certs"\n')
+    assert main(["router", "--site", str(site.base_dir / "site.toml"), "--listen", "tls/localhost:1"]) == 2
+    err = capsys.readouterr().err
+    assert "voxelwatch router: [zenoh.tls] ca:" in err and str(tmp_path / "certs" / "ca.pem") in err
+    assert main(["router", "--tls-cert", "a.pem", "--tls-key", "b.pem"]) == 2
+    assert "need --site" in capsys.readouterr().err
