@@ -99,8 +99,9 @@ def make_site_certs(
 
     ``names`` maps a host (``router``, ``fusion``, a camera id, a reader name, or ``*`` for
     every host) to extra DNS names or IP addresses for its certificate. An existing
-    authority is never replaced unless ``force``; with ``reuse_ca`` it signs the new host
-    certificates instead. ``now`` (UTC) is the start of validity (for tests).
+    authority is never replaced unless ``force``; with ``reuse_ca`` it signs certificates for
+    the hosts that have none in ``folder`` yet (the others keep theirs). ``now`` (UTC) is the
+    start of validity (for tests).
     """
     from cryptography import x509
     from cryptography.hazmat.primitives import hashes, serialization
@@ -154,6 +155,8 @@ def make_site_certs(
 
     made = []
     for host, cn in hosts.items():
+        if reuse_ca and cert_path(out, host).exists() and key_path(out, host).exists():
+            continue  # a host that already has its files keeps them
         alt = _unique([*LOCAL_NAMES, *extra.get("*", []), *extra.get(host, [])])
         key = ec.generate_private_key(ec.SECP256R1())
         cert = (

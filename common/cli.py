@@ -222,7 +222,8 @@ def _register_certs(sub) -> None:
                         "names of the site's endpoints go to the router and fusion certificates by themselves")
     p.add_argument("--days", type=int, default=3650, help="validity in days (default 3650)")
     p.add_argument("--force", action="store_true", help="replace an existing authority (every host then needs its new files)")
-    p.add_argument("--reuse-ca", action="store_true", help="sign new host certificates with the existing authority")
+    p.add_argument("--reuse-ca", action="store_true",
+                   help="keep the existing authority and sign certificates for the hosts that have none yet")
     p.set_defaults(handler=_certs)
 
 
@@ -245,8 +246,8 @@ def _certs(args: argparse.Namespace) -> int:
         names.setdefault(host.strip(), []).extend(n.strip() for n in text.split(",") if n.strip())
     made = make_site_certs(out, site=site.name, cameras=site.camera_ids, readers=readers, names=names,
                            force=args.force, reuse_ca=args.reuse_ca, days=args.days)
-    print(f"site {site.name}: {'signed with the existing authority' if made.ca_reused else 'new authority'} "
-          f"{made.ca}; {len(made.hosts)} host certificates in {made.folder} (keys mode 0600)")
+    print(f"site {site.name}: {'the existing authority' if made.ca_reused else 'new authority'} "
+          f"{made.ca}; {len(made.hosts)} new host certificates in {made.folder} (keys mode 0600)")
     print(f"keep {made.ca_key.name} off the network (it makes certificates); copy to each host only its own files:")
     for line in where_to_copy(made):
         print(f"  {line}")

@@ -70,8 +70,11 @@ def test_an_existing_authority_is_kept_unless_forced_and_can_sign_new_hosts(tmp_
     with pytest.raises(CertError, match="already exists.*--reuse-ca.*--force"):
         make_site_certs(tmp_path, site="flat", cameras=["cam1"])
     assert first.ca.read_bytes() == ca_before
+    cam1_before = (tmp_path / "cam1.pem").read_bytes()
     again = make_site_certs(tmp_path, site="flat", cameras=["cam1", "cam2"], readers=["tablet"], reuse_ca=True)
     assert first.ca.read_bytes() == ca_before and again.ca_reused
+    assert [h.host for h in again.hosts] == ["cam2", "tablet"]  # only the new hosts
+    assert (tmp_path / "cam1.pem").read_bytes() == cam1_before
     ca = x509.load_pem_x509_certificate(ca_before)
     assert x509.load_pem_x509_certificate((tmp_path / "cam2.pem").read_bytes()).issuer == ca.subject
     forced = make_site_certs(tmp_path, site="flat", cameras=["cam1"], force=True)
