@@ -178,3 +178,13 @@ def test_router_of_a_secured_site_without_its_certificate_stops_with_the_path(tm
     assert "voxelwatch router: [zenoh.tls] ca:" in err and str(tmp_path / "certs" / "ca.pem") in err
     assert main(["router", "--tls-cert", "a.pem", "--tls-key", "b.pem"]) == 2
     assert "need --site" in capsys.readouterr().err
+
+
+def test_a_site_with_tls_and_zenoh_settings_is_written_and_read_back_unchanged(tmp_path) -> None:
+    from common.site import load_site, write_site
+
+    site = _site(tmp_path, '[zenoh]\nmode = "client"\nconnect = ["tls/fusion.local:7447"]\n'
+                           '[zenoh.settings]\n"transport/link/tx/lease" = 15000\n'
+                           '[zenoh.tls]\nca = "certs/ca.pem"\nreaders = ["reader", "tablet"]\naccess_control = false\n')
+    again = load_site(write_site(site, tmp_path / "copy" / "site.toml"))
+    assert again.zenoh == site.zenoh
