@@ -90,6 +90,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="listen on this endpoint, e.g. tcp/0.0.0.0:7448 (repeatable; replaces the site's)")
     g.add_argument("--connect", action="append", metavar="ENDPOINT",
                    help="connect to this endpoint, e.g. tcp/10.0.0.2:7447 (repeatable; replaces the site's)")
+    g.add_argument("--tls-cert", metavar="PEM",
+                   help="this host's certificate (default: <camera id>.pem in the site's [zenoh.tls] certs folder)")
+    g.add_argument("--tls-key", metavar="PEM", help="this host's private key (default: <camera id>-key.pem beside it)")
 
     g = p.add_argument_group("logging")
     g.add_argument("--stats-period", type=float, default=10.0, metavar="S",
@@ -141,7 +144,7 @@ def _configure(args: argparse.Namespace):
     """``(WorkerSettings, a zenoh config factory, the endpoints it connects to)`` from the arguments
     and the site file; ValueError on any problem."""
     from common.site import load_site
-    from common.transport import zenoh_config
+    from common.transport import site_config
     from camera_worker.worker import WorkerSettings
 
     site = load_site(args.site)
@@ -181,10 +184,10 @@ def _configure(args: argparse.Namespace):
 
     ForegroundSegmenter(**{k: v for k, v in settings.segmenter.items() if v is not None})
     def conf():
-        return zenoh_config(site.zenoh, mode=args.mode, listen=args.listen, connect=args.connect,
-                            connect_timeout_ms=1000)
+        return site_config(site, host=spec.id, mode=args.mode, listen=args.listen, connect=args.connect,
+                           tls_cert=args.tls_cert, tls_key=args.tls_key, connect_timeout_ms=1000)
 
-    conf()  # a bad endpoint stops start-up here, with its name
+    conf()  # a bad endpoint or a missing certificate stops start-up here, with its name
     connect = list(args.connect if args.connect is not None else site.zenoh.connect)
     return settings, conf, connect
 

@@ -31,6 +31,8 @@ examples:
   voxelwatch bench                            speed and size of every stage on this machine
   voxelwatch site check deploy/site.toml      validate a site file and its calibrations
   voxelwatch router --listen tcp/0.0.0.0:7447  a zenoh router for client-mode hosts
+  voxelwatch certs --site deploy/site.toml    the site's authority and one TLS certificate per host
+  voxelwatch router --site deploy/site.toml   the router with the site's TLS and access control
   voxelwatch camera --help                    the camera worker (same as voxelwatch-camera)
   voxelwatch fusion --help                    the fusion server (same as voxelwatch-fusion)
 """
@@ -102,16 +104,12 @@ def _register_site(sub) -> None:
 
 def _site_check(args: argparse.Namespace) -> int:
     from common.site import load_site
-
-    from common.transport import zenoh_config
     from fusion_server.node import FusionSettings
 
-    site = load_site(args.path)
+    site = load_site(args.path)  # endpoints are checked here, as the processes check them
     cameras = site.load_cameras()
     residents = site.load_residents()
-    # what the processes check when they start, without starting them
-    zenoh_config(site.zenoh)
-    FusionSettings(site=site, prefix=site.prefix)
+    FusionSettings(site=site, prefix=site.prefix)  # what the fusion server refuses at start (min_cameras ...)
     print(f"site {site.name}: prefix {site.prefix}, volume {list(site.volume.min_m)} .. {list(site.volume.max_m)} m")
     for cam_id, cam in cameras.items():
         x, y, z = cam.center
@@ -122,7 +120,33 @@ def _site_check(args: argparse.Namespace) -> int:
           f"colours asked {site.identity.rate_hz:g} times a second; {site.residents} residents, {len(residents)} enrolled")
     for spec, resident in zip(site.enrolled, residents):
         print(f"  enrolled {resident.name}: {_model_summary(resident.model)} ({site.resolve(spec.model)})")
+    for line in _network_lines(site):
+        print(f"  {line}")
     return 0
+
+
+def _network_lines(site) -> list[str]:
+    """What the site's [zenoh] section means for security, with warnings for plain transport."""
+    from common.transport import plain_endpoints
+
+    z = site.zenoh
+    plain = plain_endpoints(z)
+    if z.tls is None:
+        return [f"zenoh: {z.mode} mode, {', '.join([*z.listen, *z.connect]) or 'no endpoints'}",
+                "WARNING: zenoh runs over plain TCP: anyone on the network can read tracks and events and publish "
+                "fake ones. Make certificates with 'voxelwatch certs' and add a [zenoh.tls] section "
+                "(README: Securing a home)."]
+    acl = "the router lets each host do only its part" if z.tls.access_control else "no access control"
+    lines = [f"zenoh: {z.mode} mode over TLS with mutual authentication (authority {site.resolve(z.tls.ca)}); {acl}; "
+             f"readers {', '.join(z.tls.readers)}"]
+    if plain:
+        lines.append(f"WARNING: endpoints without TLS: {', '.join(plain)}: use tls/HOST:PORT")
+    if z.mode == "peer":
+        lines.append("WARNING: peer mode: only a router enforces the access control; use mode = \"client\" "
+                     "and voxelwatch router --site on the fusion host")
+    if not site.resolve(z.tls.ca).is_file():
+        lines.append(f"WARNING: the authority {site.resolve(z.tls.ca)} is missing")
+    return lines
 
 
 def _model_summary(model) -> str:
@@ -136,7 +160,13 @@ def _model_summary(model) -> str:
 
 def _register_router(sub) -> None:
     p = sub.add_parser("router", help="run a zenoh router (for client-mode hosts)")
-    p.add_argument("--listen", action="append", default=None, help="endpoint to listen on (repeatable), default tcp/0.0.0.0:7447")
+    p.add_argument("--site", type=Path, default=None,
+                   help="the site TOML file: its [zenoh] settings, TLS and access control (default: plain TCP, no site)")
+    p.add_argument("--listen", action="append", default=None,
+                   help="endpoint to listen on (repeatable), default tcp/0.0.0.0:7447, or tls/0.0.0.0:7447 for a "
+                        "site with [zenoh.tls]")
+    p.add_argument("--tls-cert", type=Path, default=None, help="the router's certificate (default: router.pem in the site's certs folder)")
+    p.add_argument("--tls-key", type=Path, default=None, help="the router's private key (default: router-key.pem beside it)")
     p.add_argument("--multicast-scouting", action="store_true", help="answer multicast scouting")
     p.set_defaults(handler=_router)
 
@@ -147,28 +177,100 @@ def _router(args: argparse.Namespace) -> int:
 
     import zenoh
 
-    from common.site import ZenohSettings
-    from common.transport import short_error, zenoh_config
+    from common.certs import ROUTER
+    from common.site import ZenohSettings, load_site
+    from common.transport import short_error, site_config, zenoh_config
 
-    listen = args.listen or ["tcp/0.0.0.0:7447"]
-    try:
-        conf = zenoh_config(ZenohSettings(multicast_scouting=bool(args.multicast_scouting)), mode="router",
-                            listen=listen)
-    except ValueError as exc:
-        print(f"voxelwatch router: {exc}", file=sys.stderr)
-        return 2
+    if args.site is not None:
+        site = load_site(args.site)
+        if args.multicast_scouting:
+            site = site.model_copy(update={"zenoh": site.zenoh.model_copy(update={"multicast_scouting": True})})
+        secure = site.zenoh.tls is not None
+        listen = args.listen or [f"{'tls' if secure else 'tcp'}/0.0.0.0:7447"]
+        conf = site_config(site, host=ROUTER, mode="router", listen=listen, connect=[],
+                           tls_cert=args.tls_cert, tls_key=args.tls_key)
+        how = ("TLS, access control for " + ", ".join(site.camera_ids) if secure and site.zenoh.tls.access_control
+               else "TLS, no access control" if secure else "plain TCP: no authentication, no access control")
+    else:
+        if args.tls_cert or args.tls_key:
+            raise ValueError("--tls-cert/--tls-key need --site (its [zenoh.tls] section names the authority)")
+        listen = args.listen or ["tcp/0.0.0.0:7447"]
+        conf = zenoh_config(ZenohSettings(multicast_scouting=bool(args.multicast_scouting)), mode="router", listen=listen)
+        how = "plain TCP: no authentication, no access control"
     stop = threading.Event()
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
     signal.signal(signal.SIGINT, lambda *_: stop.set())
     try:
         session = zenoh.open(conf)
-    except Exception as exc:  # noqa: BLE001 - zenoh reports a busy port as ZError
+    except Exception as exc:  # noqa: BLE001 - zenoh reports a busy port or a bad certificate as ZError
         print(f"voxelwatch router: cannot listen on {', '.join(listen)}: {short_error(exc)}", file=sys.stderr)
         return 1
     with session:
-        print(f"voxelwatch router listening on {', '.join(listen)}", flush=True)
+        print(f"voxelwatch router listening on {', '.join(listen)} ({how})", flush=True)
         stop.wait()
     return 0
+
+
+def _register_certs(sub) -> None:
+    p = sub.add_parser("certs", help="make the site's certificate authority and one certificate per host (TLS)")
+    p.add_argument("--site", type=Path, required=True, help="the site TOML file (its name, cameras and readers)")
+    p.add_argument("--out", type=Path, default=None,
+                   help="folder to write into (default: the site's [zenoh.tls] certs folder, else certs/ beside the site file)")
+    p.add_argument("--reader", action="append", default=None, metavar="NAME",
+                   help="a reader's certificate (repeatable; default: the site's [zenoh.tls] readers, or 'reader')")
+    p.add_argument("--name", action="append", default=[], metavar="HOST=NAME[,NAME]",
+                   help="extra DNS names or addresses for a host's certificate (host: router, fusion, a camera id, a "
+                        "reader, or * for all), e.g. --name router=fusion.local --name cam1=192.168.1.21; the host "
+                        "names of the site's endpoints go to the router and fusion certificates by themselves")
+    p.add_argument("--days", type=int, default=3650, help="validity in days (default 3650)")
+    p.add_argument("--force", action="store_true", help="replace an existing authority (every host then needs its new files)")
+    p.add_argument("--reuse-ca", action="store_true",
+                   help="keep the existing authority and sign certificates for the hosts that have none yet")
+    p.set_defaults(handler=_certs)
+
+
+def _certs(args: argparse.Namespace) -> int:
+    from common.certs import FUSION, ROUTER, make_site_certs, where_to_copy
+    from common.site import load_site
+
+    site = load_site(args.site)
+    tls = site.zenoh.tls
+    out = args.out if args.out is not None else site.resolve(tls.certs or ".") if tls else site.base_dir / "certs"
+    readers = args.reader if args.reader is not None else (tls.readers if tls else ["reader"])
+    names: dict[str, list[str]] = {}
+    for host in _endpoint_hosts([*site.zenoh.connect, *site.zenoh.listen]):
+        for role in (ROUTER, FUSION):
+            names.setdefault(role, []).append(host)
+    for item in args.name:
+        host, sep, text = item.partition("=")
+        if not sep or not host or not text:
+            raise ValueError(f"--name {item!r}: expected HOST=NAME[,NAME], e.g. router=fusion.local")
+        names.setdefault(host.strip(), []).extend(n.strip() for n in text.split(",") if n.strip())
+    made = make_site_certs(out, site=site.name, cameras=site.camera_ids, readers=readers, names=names,
+                           force=args.force, reuse_ca=args.reuse_ca, days=args.days)
+    print(f"site {site.name}: {'the existing authority' if made.ca_reused else 'new authority'} "
+          f"{made.ca}; {len(made.hosts)} new host certificates in {made.folder} (keys mode 0600)")
+    print(f"keep {made.ca_key.name} off the network (it makes certificates); copy to each host only its own files:")
+    for line in where_to_copy(made):
+        print(f"  {line}")
+    unlisted = [r for r in readers if tls is not None and r not in tls.readers]
+    if unlisted:
+        print(f"the router lets only the site's readers read: add {', '.join(unlisted)} to [zenoh.tls] readers")
+    if tls is None:
+        print("then add to the site file:\n  [zenoh.tls]\n  ca = \"certs/ca.pem\"\n  certs = \"certs\"\n"
+              "and make every endpoint tls/ (e.g. connect = [\"tls/fusion.local:7447\"])")
+    return 0
+
+
+def _endpoint_hosts(endpoints) -> list[str]:
+    """Host names in zenoh endpoints (``tls/fusion.local:7447`` -> ``fusion.local``), wildcards left out."""
+    hosts = []
+    for endpoint in endpoints:
+        _, _, address = endpoint.partition("/")
+        host = address.split("#")[0].rsplit(":", 1)[0].strip("[]")
+        if host and host not in ("0.0.0.0", "::", "localhost", "127.0.0.1") and host not in hosts:
+            hosts.append(host)
+    return hosts
 
 
 def _register_synth(sub) -> None:
@@ -419,6 +521,8 @@ def _register_demo(sub) -> None:
     p.add_argument("--seed", type=int, default=0, help="random seed of the scenario or the world")
     p.add_argument("--frames", type=int, default=None, help="run only the first N frames")
     p.add_argument("--port", type=int, default=None, help="loopback port of the demo's zenoh router (default: a free one)")
+    p.add_argument("--secure", action="store_true",
+                   help="TLS with mutual authentication and the site's access control (certificates made in OUT/certs)")
     p.set_defaults(handler=_demo)
 
 
@@ -428,7 +532,8 @@ def _demo(args: argparse.Namespace) -> int:
     if args.world and args.scenario:
         print("voxelwatch demo: give --scenario or --world, not both", file=sys.stderr)
         return 2
-    return run_demo(scenario=args.scenario, world=args.world, out_dir=args.out, seed=args.seed, frames=args.frames, port=args.port)
+    return run_demo(scenario=args.scenario, world=args.world, out_dir=args.out, seed=args.seed, frames=args.frames, port=args.port,
+                    secure=args.secure)
 
 
 def _register_bench(sub) -> None:
@@ -469,5 +574,6 @@ def _bench(args: argparse.Namespace) -> int:
 _SUBCOMMANDS: list[Callable] = [
     _register_demo,
     _register_bench,
-    _register_synth, _register_replay, _register_enrol, _register_eval, _register_site, _register_router, _register_passthrough,
+    _register_synth, _register_replay, _register_enrol, _register_eval, _register_site, _register_router, _register_certs,
+    _register_passthrough,
 ]

@@ -41,6 +41,16 @@ Schema (all lengths in metres, world frame Z up, floor at Z = 0)::
     connect = []
     multicast_scouting = false
     shared_memory = false
+    config = ""                  # a zenoh JSON5 file applied first (zenoh's own settings)
+    [zenoh.settings]             # zenoh's own settings applied last, by path or as tables
+    "transport/link/tx/lease" = 10000
+
+    [zenoh.tls]                  # TLS with mutual authentication (voxelwatch certs makes the files)
+    ca = "certs/ca.pem"          # the site's certificate authority
+    certs = "certs"              # folder with this host's <host>.pem and <host>-key.pem
+                                 # (host: router, fusion, the camera id; --tls-cert/--tls-key override)
+    readers = ["reader"]         # reader certificates (reader-<name>) allowed to read
+    access_control = true        # the router lets each host do only its part (common/access.py)
 
     [[cameras]]
     id = "cam1"
@@ -224,6 +234,24 @@ def check_person_name(name: str) -> str:
     return name
 
 
+class TlsSettings(_Model):
+    """TLS with mutual authentication: every host shows a certificate of the site's authority."""
+
+    ca: str = Field(min_length=1)
+    certs: str = ""
+    readers: list[str] = Field(default_factory=lambda: ["reader"])
+    access_control: bool = True
+
+    @field_validator("readers")
+    @classmethod
+    def _readers_ok(cls, readers: list[str]) -> list[str]:
+        for name in readers:
+            keys.validate_chunk(name, "reader name")
+        if len(set(readers)) != len(readers):
+            raise ValueError(f"reader names must be unique, got {readers}")
+        return readers
+
+
 class ZenohSettings(_Model):
     """How this process joins the zenoh network."""
 
@@ -233,6 +261,11 @@ class ZenohSettings(_Model):
     connect: list[str] = Field(default_factory=list)
     multicast_scouting: bool = False
     shared_memory: bool = False
+    config: str = ""
+    """A zenoh JSON5 configuration file (relative to the site file), applied before everything else."""
+    settings: dict[str, Any] = Field(default_factory=dict)
+    """zenoh's own settings, ``"path/to/key" = value`` or nested tables, applied after everything else."""
+    tls: TlsSettings | None = None
 
     @field_validator("prefix")
     @classmethod
@@ -514,6 +547,8 @@ def _toml_value(value: Any) -> str:
         return f'"{escaped}"'
     if isinstance(value, (list, tuple)):
         return "[" + ", ".join(_toml_value(v) for v in value) + "]"
+    if isinstance(value, dict):  # an inline table ([zenoh] settings and tls)
+        return "{" + ", ".join(f"{_toml_value(str(k))} = {_toml_value(v)}" for k, v in value.items() if v is not None) + "}"
     raise TypeError(f"cannot write {type(value).__name__} to TOML")
 
 

@@ -124,6 +124,8 @@ class FusionSettings:
     SQLite event store (the live server needs one; the offline replay stores
     nothing). out_dir: where tracks.csv/events.jsonl go (None: no files).
     mode/listen/connect: zenoh overrides of the site (None: the site's).
+    tls_cert/tls_key: this host's certificate and key (None: ``fusion.pem`` and
+    ``fusion-key.pem`` in the site's ``[zenoh.tls] certs`` folder).
     cache_dir: carving lookup-table cache (None: the carver's default).
     min_cameras: fewest cameras a frame set needs (None: the
     site's carving vote). exit_after_idle_s: stop after this long without
@@ -141,6 +143,8 @@ class FusionSettings:
     mode: str | None = None
     listen: tuple[str, ...] | None = None
     connect: tuple[str, ...] | None = None
+    tls_cert: Path | None = None
+    tls_key: Path | None = None
     cache_dir: Path | None = None
     min_cameras: int | None = None
     exit_after_idle_s: float | None = None

@@ -68,14 +68,16 @@ def run_forever(settings: FusionSettings) -> int:
     be listened on), 2 when the calibrations, zenoh settings, event store or
     output folder are unusable (the reason is logged).
     """
-    from common.transport import TransportError, open_session, watch_links, zenoh_config
+    from common.certs import FUSION
+    from common.transport import TransportError, open_session, site_config, watch_links
 
     z = settings.site.zenoh
     connect = list(settings.connect if settings.connect is not None else z.connect)
 
     def make_config():
-        return zenoh_config(z, mode=settings.mode, listen=settings.listen, connect=settings.connect,
-                            connect_timeout_ms=1000)
+        return site_config(settings.site, host=FUSION, mode=settings.mode, listen=settings.listen,
+                           connect=settings.connect, tls_cert=settings.tls_cert, tls_key=settings.tls_key,
+                           connect_timeout_ms=1000)
 
     try:
         make_config()
