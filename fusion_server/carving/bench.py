@@ -105,6 +105,22 @@ class MaskRenderer:
         return out
 
 
+    def render_depth(self, bodies: Sequence[Cylinder | Box], camera_ids: Sequence[str] | None = None) -> dict[str, np.ndarray]:
+        """camera id -> (H, W) uint16 range images of a depth camera: millimetres from the
+        camera centre to where the pixel's ray enters the nearest body, 0 where it meets none
+        (the pixel rays are unit vectors, so the ray parameter is the range)."""
+        out = {}
+        for cid in self.cameras if camera_ids is None else camera_ids:
+            cam = self.cameras[cid]
+            rays = self._rays[cid]
+            body = np.full(rays.shape[0], np.inf)
+            for b in bodies:
+                np.minimum(body, _ray_enter(cam.center, rays, b), out=body)
+            mm = np.where(np.isfinite(body), np.clip(np.rint(body * 1000.0), 1, 65535), 0)
+            out[cid] = mm.reshape(cam.height, cam.width).astype(np.uint16)
+        return out
+
+
 def random_people(n: int, rng: np.random.Generator, *, volume_min_m=(0.0, 0.0, 0.0), volume_max_m=(8.0, 6.0, 2.5),
                   margin_m: float = 0.6) -> list[Cylinder]:
     """``n`` standing people (cylinders of radius 0.2-0.3 m, 1.5-1.9 m tall) at random places

@@ -30,9 +30,11 @@ from common.camera import Camera
 from fusion_server.carving.distance import (
     DistanceImages, distance_images, mask_pixels, needed_votes, observations, tally, vote,
 )
-from fusion_server.carving.freespace import apply_verdicts, check_depth, depth_verdicts, footprint_depth
+from fusion_server.carving.freespace import (
+    apply_verdicts, check_depth, depth_verdicts, footprint_depth, footprint_level,
+)
 from fusion_server.carving.graphcut import graphcut_labels
-from fusion_server.carving.lut import HIDDEN, CacheReport, load_or_compute_lut
+from fusion_server.carving.lut import HIDDEN, RADIUS_UNITS_PER_PX, CacheReport, load_or_compute_lut
 from fusion_server.carving.occlusion import Occluder
 from fusion_server.carving.octree import OctreeLayout, descend, level_ijk, octree_layout
 from fusion_server.grid import CarveResult, VoxelGrid, floor_maps
@@ -213,7 +215,7 @@ class Carver:
 
     def depth_stage(self, masks: Mapping[str, np.ndarray],
                     depths: Mapping[str, np.ndarray] | None) -> dict[str, np.ndarray]:
-        """Stage 2b: camera id -> (H, W) uint16 footprint range images
+        """Stage 2b: camera id -> (K, H, W) uint16 footprint range images
         (:func:`.freespace.footprint_depth`) of the depth cameras present in ``masks``;
         empty without depths or with ``free_space`` off."""
         if not depths or not self.free_space:
@@ -263,9 +265,12 @@ class Carver:
             for cid, footprint in footprints.items():
                 p = dists.camera_ids.index(cid)
                 col = self.camera_ids.index(cid)
-                h, w = footprint.shape
-                px = mask_pixels(pixel[:, col], self.lut_sizes[cid], (w, h))
-                measured_m = np.where(px >= 0, footprint.ravel()[np.maximum(px, 0)], 0) * 1e-3
+                n_sizes, h, w = footprint.shape
+                lut_w, lut_h = self.lut_sizes[cid]
+                px = mask_pixels(pixel[:, col], (lut_w, lut_h), (w, h))
+                radius_px = radius[:, col] * (max(w / lut_w, h / lut_h) / RADIUS_UNITS_PER_PX)
+                flat = footprint_level(radius_px) * (h * w) + np.maximum(px, 0)
+                measured_m = np.where(px >= 0, footprint.ravel()[flat], 0) * 1e-3
                 range_m = np.linalg.norm(centres - self.camera_centres_m[cid], axis=1)
                 apply_verdicts(hit[:, p], seen[:, p], depth_verdicts(range_m, measured_m, self.grid.voxel_m))
         return tally(hit, seen)

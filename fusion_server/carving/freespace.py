@@ -9,10 +9,13 @@ behind it and carves the phantom away.
 
 Made robust for a real time-of-flight sensor:
 
-* ``D`` is the *nearest* measurement in the pixel's 3 x 3 neighbourhood. Pixels on
-  a silhouette's edge mix the person with the wall behind and read too far; the
-  minimum over the footprint can only move ``D`` nearer, which makes free
-  space rarer, never a real voxel free.
+* ``D`` is the *nearest* measurement in the voxel's footprint: the smallest
+  square of ``FOOTPRINT_HALF_WIDTHS_PX`` about its projected centre that holds
+  its enclosing circle. Pixels on a silhouette's edge mix the person with the
+  wall behind and read too far, and a voxel at the edge of a person's
+  silhouette may project its centre just beside it; the minimum over the
+  footprint can only move ``D`` nearer, which makes free space rarer, never a
+  real voxel free.
 * The tolerance grows with the voxel (its centre lies up to half a diagonal
   from the surface it holds) and with range (ToF noise grows with distance):
   ``tol = sqrt(3)/2 voxel + NOISE_SIGMAS (DEPTH_NOISE_M + DEPTH_NOISE_PER_M D)``.
@@ -32,7 +35,7 @@ import numpy as np
 
 __all__ = [
     "BEHIND", "BODY_DEPTH_M", "DEPTH_NOISE_M", "DEPTH_NOISE_PER_M", "FREE", "NOISE_SIGMAS", "NO_MEASUREMENT",
-    "SURFACE", "apply_verdicts", "check_depth", "depth_tolerance_m", "depth_verdicts", "footprint_depth",
+    "FOOTPRINT_HALF_WIDTHS_PX", "SURFACE", "apply_verdicts", "footprint_level", "check_depth", "depth_tolerance_m", "depth_verdicts", "footprint_depth",
 ]
 
 DEPTH_NOISE_M = 0.01
@@ -42,6 +45,10 @@ DEPTH_NOISE_PER_M = 0.01
 NOISE_SIGMAS = 3.0
 BODY_DEPTH_M = 0.6
 """How far behind its measured front a body can still hold voxels (a person's depth along a ray)."""
+
+FOOTPRINT_HALF_WIDTHS_PX = (1, 2, 4, 8, 16, 32)
+"""Half-widths of the square footprints, pixels; a voxel uses the smallest holding its
+enclosing circle (the largest when none does)."""
 
 NO_MEASUREMENT, FREE, SURFACE, BEHIND = 0, 1, 2, 3
 _NONE = np.uint16(65535)
@@ -58,12 +65,29 @@ def check_depth(cid: str, depth_mm, mask_shape: tuple[int, int]) -> np.ndarray:
 
 
 def footprint_depth(depth_mm: np.ndarray) -> np.ndarray:
-    """(H, W) uint16 range, millimetres, 0 = no measurement -> (H, W) uint16: the nearest
-    measurement in each pixel's 3 x 3 neighbourhood, 0 where it holds none."""
+    """(H, W) uint16 range, millimetres, 0 = no measurement -> (K, H, W) uint16: for each
+    half-width ``FOOTPRINT_HALF_WIDTHS_PX[k]``, the nearest measurement in the square of that
+    half-width about each pixel, 0 where it holds none."""
     d = np.where(depth_mm == 0, _NONE, depth_mm).astype(np.uint16)
-    d = cv2.erode(d, np.ones((3, 3), np.uint8), borderType=cv2.BORDER_CONSTANT, borderValue=int(_NONE))
-    d[d == _NONE] = 0
-    return d
+    out = np.empty((len(FOOTPRINT_HALF_WIDTHS_PX),) + d.shape, dtype=np.uint16)
+    done = 0
+    for k, half in enumerate(FOOTPRINT_HALF_WIDTHS_PX):
+        # Grow the previous level's minimum: min over a (2a+1) square then a (2b+1) one is
+        # the min over a (2(a+b)+1) square.
+        grow = half - done
+        kernel = np.ones((2 * grow + 1, 2 * grow + 1), np.uint8)
+        d = cv2.erode(d, kernel, borderType=cv2.BORDER_CONSTANT, borderValue=int(_NONE))
+        done = half
+        out[k] = d
+    out[out == _NONE] = 0
+    return out
+
+
+def footprint_level(radius_px: np.ndarray) -> np.ndarray:
+    """(M,) float enclosing radii, pixels -> (M,) int index into ``FOOTPRINT_HALF_WIDTHS_PX``
+    of the smallest square holding each circle (the last when none does)."""
+    k = np.searchsorted(np.asarray(FOOTPRINT_HALF_WIDTHS_PX, dtype=np.float64), np.ceil(radius_px))
+    return np.minimum(k, len(FOOTPRINT_HALF_WIDTHS_PX) - 1)
 
 
 def depth_tolerance_m(measured_m: np.ndarray, voxel_m: float) -> np.ndarray:
