@@ -229,27 +229,32 @@ class Carver:
             out[cid] = footprint_depth(check_depth(cid, depth, np.shape(masks[cid])))
         return out
 
-    def fusion_stage(self, ijk: np.ndarray, dists: DistanceImages,
-                     footprints: Mapping[str, np.ndarray]) -> np.ndarray:
+    def fusion_stage(self, ijk: np.ndarray, dists: DistanceImages, footprints: Mapping[str, np.ndarray], *,
+                     fusion: str | None = None, smoothing: float | None = None) -> np.ndarray:
         """Stage 3: the finest voxels the carve keeps, (N, 3) int32, given the voted voxels
         ``ijk`` (N0, 3) and the depth cameras' ``footprints`` (:meth:`depth_stage`).
 
         With the vote and no depth images, ``ijk`` itself. Otherwise the voted voxels (and,
         for the graph cut, their neighbours) are counted again at the finest level with the
         depth cameras' verdicts, then kept by the vote or labelled by the graph cut.
+        ``fusion`` and ``smoothing`` override the carver's own (for benchmarks).
         """
-        if ijk.shape[0] == 0 or (self.fusion == "vote" and not footprints):
+        fusion = self.fusion if fusion is None else fusion
+        smoothing = self.smoothing if smoothing is None else smoothing
+        if fusion not in FUSIONS:
+            raise ValueError(f"fusion must be one of {FUSIONS}, got {fusion!r}")
+        if ijk.shape[0] == 0 or (fusion == "vote" and not footprints):
             return ijk
         shape = self.layout.dims[-1]
         linear = np.ravel_multi_index(ijk.T.astype(np.int64), shape)
-        if self.fusion == "vote":
+        if fusion == "vote":
             found, seeing = self.finest_counts(linear, dists, footprints)
             keep = found >= needed_votes(len(dists.columns), self.min_cameras, self.min_ratio)[seeing]
             return ijk[keep]
         region = _dilate(linear, shape, _REGION_DILATION)
         found, seeing = self.finest_counts(region, dists, footprints)
         labels = graphcut_labels(region, found, seeing, shape, n_cameras=len(dists.columns),
-                                 min_cameras=self.min_cameras, min_ratio=self.min_ratio, smoothing=self.smoothing)
+                                 min_cameras=self.min_cameras, min_ratio=self.min_ratio, smoothing=smoothing)
         return level_ijk(region[labels], shape)
 
     def finest_counts(self, linear: np.ndarray, dists: DistanceImages,
