@@ -299,17 +299,18 @@ class Carver:
 
 def _dilate(linear: np.ndarray, shape: tuple[int, int, int], steps: int) -> np.ndarray:
     """(M,) linear indices grown by ``steps`` 6-neighbour steps within ``shape``: sorted, unique."""
-    nx, ny, nz = shape
-    out = np.unique(linear)
+    occupied = np.zeros(shape, dtype=bool)
+    occupied.ravel()[linear] = True
     for _ in range(steps):
-        i, rest = np.divmod(out, ny * nz)
-        j, k = np.divmod(rest, nz)
-        grown = [out]
-        for coord, size, step in ((i, nx, ny * nz), (j, ny, nz), (k, nz, 1)):
-            grown.append(out[coord + 1 < size] + step)
-            grown.append(out[coord > 0] - step)
-        out = np.unique(np.concatenate(grown))
-    return out
+        grown = occupied.copy()
+        grown[1:] |= occupied[:-1]
+        grown[:-1] |= occupied[1:]
+        grown[:, 1:] |= occupied[:, :-1]
+        grown[:, :-1] |= occupied[:, 1:]
+        grown[:, :, 1:] |= occupied[:, :, :-1]
+        grown[:, :, :-1] |= occupied[:, :, 1:]
+        occupied = grown
+    return np.flatnonzero(occupied)
 
 
 def _make_grid(volume_min_m, volume_max_m, grid, voxel_m: float) -> VoxelGrid:
