@@ -24,7 +24,12 @@ only voxels within 0.03 of the threshold.
 
 Energies are integers in units of ``1 / ENERGY_SCALE`` (max-flow needs integer
 capacities); a data term never rounds to zero, so ties cannot arise from it.
-The minimum cut is found with ``scipy.sparse.csgraph.maximum_flow``.
+Most voxels are far from the threshold and are fixed before the cut (see
+:func:`_reduced_cut`); the minimum cut of the rest is found with
+``scipy.sparse.csgraph.maximum_flow``. (PyMaxflow's Boykov-Kolmogorov solver
+cuts the same graphs in about half the time, 4 against 9 ms a frame set on a
+five-person tuning world, but it is GPL-licensed and the whole fusion stage
+would gain only a quarter.)
 """
 
 from __future__ import annotations
@@ -38,7 +43,7 @@ from fusion_server.carving.distance import needed_votes
 __all__ = ["ENERGY_SCALE", "benefits", "graphcut_labels", "labelling_energy", "neighbour_pairs", "potts_cut"]
 
 ENERGY_SCALE = 1000
-_FIXING_ROUNDS = 4
+_FIXING_ROUNDS = 6
 
 
 def benefits(found: np.ndarray, seeing: np.ndarray, *, n_cameras: int, min_cameras: int,
@@ -67,8 +72,8 @@ def neighbour_pairs(linear: np.ndarray, shape: tuple[int, int, int]) -> tuple[np
     """
     linear = np.asarray(linear, dtype=np.int64)
     nx, ny, nz = shape
-    where = np.full(nx * ny * nz, -1, dtype=np.int64)  # grid -> position in the region
-    where[linear] = np.arange(linear.size)
+    where = np.full(nx * ny * nz, -1, dtype=np.int32)  # grid -> position in the region
+    where[linear] = np.arange(linear.size, dtype=np.int32)
     i, rest = np.divmod(linear, ny * nz)
     j, k = np.divmod(rest, nz)
     outside = np.zeros(linear.size, dtype=np.int64)
@@ -81,7 +86,7 @@ def neighbour_pairs(linear: np.ndarray, shape: tuple[int, int, int]) -> tuple[np
             if sign == 1:
                 keep = dst >= 0
                 pairs.append(np.stack([src[keep], dst[keep]], axis=1))
-    return np.concatenate(pairs), outside
+    return np.concatenate(pairs).astype(np.int64), outside
 
 
 def potts_cut(unary: np.ndarray, pairs: np.ndarray, pair_cost: int) -> np.ndarray:
@@ -160,9 +165,19 @@ def _reduced_cut(unary: np.ndarray, pairs: np.ndarray, pair_cost: int) -> np.nda
     a, b = pairs[:, 0], pairs[:, 1]
     label = np.zeros(m, dtype=np.int64)  # 0 open, 1 fixed occupied, -1 fixed empty
     open_ = np.ones(m, dtype=bool)
-    for _ in range(_FIXING_ROUNDS):
-        pull, degree = _pull(label, open_, a, b, m)
+    for _ in range(_FIXING_ROUNDS + 1):
+        # only pairs with an open end still matter; each round looks at fewer
+        open_a, open_b = open_[a], open_[b]
+        keep = open_a | open_b
+        a, b, open_a, open_b = a[keep], b[keep], open_a[keep], open_b[keep]
+        both = open_a & open_b
+        only_a, only_b = open_a & ~open_b, open_b & ~open_a
+        pull = (np.bincount(a[only_a], weights=label[b[only_a]], minlength=m)
+                + np.bincount(b[only_b], weights=label[a[only_b]], minlength=m)).astype(np.int64)
         net = unary + pair_cost * pull
+        if _ == _FIXING_ROUNDS:
+            break
+        degree = np.bincount(a[both], minlength=m) + np.bincount(b[both], minlength=m)
         fix = open_ & (np.abs(net) > pair_cost * degree)
         if not fix.any():
             break
@@ -170,21 +185,11 @@ def _reduced_cut(unary: np.ndarray, pairs: np.ndarray, pair_cost: int) -> np.nda
         open_ &= ~fix
     out = label > 0
     if open_.any():
-        pull, _ = _pull(label, open_, a, b, m)
         both = open_[a] & open_[b]
         position = np.cumsum(open_) - 1
         sub = np.stack([position[a[both]], position[b[both]]], axis=1)
-        out[open_] = potts_cut((unary + pair_cost * pull)[open_], sub, pair_cost)
+        out[open_] = potts_cut(net[open_], sub, pair_cost)
     return out
-
-
-def _pull(label, open_, a, b, m):
-    """Per voxel: the sum of its fixed neighbours' labels (+1 / -1), and its open neighbours."""
-    both = open_[a] & open_[b]
-    one = ~both
-    pull = np.bincount(a[one], weights=label[b[one]], minlength=m) + np.bincount(b[one], weights=label[a[one]], minlength=m)
-    degree = np.bincount(a[both], minlength=m) + np.bincount(b[both], minlength=m)
-    return pull.astype(np.int64), degree
 
 
 def labelling_energy(labels: np.ndarray, unary: np.ndarray, pairs: np.ndarray, pair_cost: int) -> np.ndarray:
