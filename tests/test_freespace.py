@@ -169,3 +169,20 @@ def test_depth_of_a_camera_without_a_mask_is_refused(scene):
     without = {cid: m for cid, m in masks.items() if cid != "north"}
     with pytest.raises(ValueError, match="no mask"):
         carver.carve(without, 0, depths=depths)
+
+
+def test_pipeline_passes_depth_images_to_the_carver(tmp_path):
+    from common.site import load_site
+    from fusion_server.pipeline import FusionPipeline
+    from tests.tinysite import BOX_XY, box_mask, write_site
+
+    site_path, cams = write_site(tmp_path)
+    pipeline = FusionPipeline.from_site(load_site(site_path), cameras=cams, cache_dir=tmp_path / "lut")
+    masks = {cid: box_mask(cam, *BOX_XY) for cid, cam in cams.items()}
+    # c1 measures a surface 1.5 m behind the box: the box is free space to it, and two of
+    # three cameras are below min_ratio 0.75
+    cam = cams["c1"]
+    box_range_m = float(np.linalg.norm(np.array([*BOX_XY, 0.85]) - cam.center))
+    far = np.where(masks["c1"] > 0, int((box_range_m + 1.5) * 1000), 0).astype(np.uint16)
+    assert len(pipeline.step(masks, 0, 0).carve.ijk) > 0
+    assert len(pipeline.step(masks, 33_000_000, 1, depths={"c1": far}).carve.ijk) == 0
