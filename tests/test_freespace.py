@@ -16,8 +16,11 @@ import numpy as np
 import pytest
 
 from common.camera import Camera, look_at
+from common.site import load_site
 from fusion_server.carving import Carver
 from fusion_server.carving.bench import Cylinder, MaskRenderer, body_voxels
+from fusion_server.pipeline import FusionPipeline
+from tinysite import BOX_XY, box_mask, write_site
 from fusion_server.carving.freespace import (
     BEHIND, BODY_DEPTH_M, FREE, NO_MEASUREMENT, SURFACE, apply_verdicts, depth_tolerance_m, depth_verdicts,
     footprint_depth, footprint_level,
@@ -172,10 +175,6 @@ def test_depth_of_a_camera_without_a_mask_is_refused(scene):
 
 
 def test_pipeline_passes_depth_images_to_the_carver(tmp_path):
-    from common.site import load_site
-    from fusion_server.pipeline import FusionPipeline
-    from tests.tinysite import BOX_XY, box_mask, write_site
-
     site_path, cams = write_site(tmp_path)
     pipeline = FusionPipeline.from_site(load_site(site_path), cameras=cams, cache_dir=tmp_path / "lut")
     masks = {cid: box_mask(cam, *BOX_XY) for cid, cam in cams.items()}
