@@ -23,8 +23,9 @@ Schema (all lengths in metres, world frame Z up, floor at Z = 0)::
     mask_scale = 1.0             # workers downscale masks by this factor
     fusion = "vote"              # vote | graphcut: keep the voxels that pass the vote, or
                                  # label them by a graph cut with a Potts smoothness prior
-    smoothing = 0.01             # the graph cut's lambda (0..1): 6 lambda removes an isolated
-                                 # voxel within 3 lambda of min_ratio, fills such a hole
+    smoothing = 0.01             # the graph cut's Potts lambda (0..1): an isolated voxel goes, and a
+                                 # one-voxel hole fills, when 6 lambda exceeds its margin (one camera
+                                 # short of the vote or just enough: 1 / cameras seeing)
     free_space = true            # depth cameras carve the space in front of what they measure
 
     [events]

@@ -25,11 +25,12 @@ def _all_labellings(m: int) -> np.ndarray:
 
 
 def test_benefits_by_hand():
-    # 5 cameras, min_ratio 0.75, min_cameras 2: 2 (h - 0.75) in thousandths, sign from the vote
-    found = np.array([5, 4, 3, 1, 3, 2])
-    seeing = np.array([5, 5, 5, 5, 4, 2])
-    assert benefits(found, seeing, n_cameras=5, min_cameras=2, min_ratio=0.75).tolist() == [
-        500, 100, -300, -1100, 1, 500]  # 3/4 sits on the threshold: kept by the vote, the least benefit
+    # min_ratio 0.75, min_cameras 2: 2 (found - need + 1/2) / seeing in thousandths;
+    # need is 4 of 5, 3 of 4, 2 of 2, 6 of 8
+    found = np.array([5, 4, 3, 1, 3, 2, 2, 6, 5, 8])
+    seeing = np.array([5, 5, 5, 5, 4, 4, 2, 8, 8, 8])
+    assert benefits(found, seeing, n_cameras=8, min_cameras=2, min_ratio=0.75).tolist() == [
+        600, 200, -200, -1000, 250, -250, 500, 125, -125, 625]
 
 
 def test_neighbour_pairs_by_hand():
@@ -82,10 +83,9 @@ def test_graphcut_labels_equal_brute_force_with_fixed_voxels(seed):
 
     all_pairs, _ = neighbour_pairs(np.arange(18), shape)
     need = needed_votes(n_cams, min_cameras, min_ratio)
-    h = found / seeing
-    size = np.maximum(1, np.rint(2 * np.abs(h - min_ratio) * ENERGY_SCALE))
+    margin = 2 * (found - need[seeing].astype(int) + 0.5) / seeing
     unary = np.zeros(18, dtype=np.int64)
-    unary[region] = np.where(found >= need[seeing], size, -size)
+    unary[region] = np.rint(margin * ENERGY_SCALE).astype(np.int64)
     free = np.zeros(18, dtype=bool)
     free[region[found >= min_cameras]] = True
     free_idx = np.flatnonzero(free)
@@ -132,20 +132,20 @@ def test_lambda_zero_is_the_hard_vote():
 # ---------------------------------------------------------------------- what lambda does
 
 
-def _block(found_centre: int, found_around: int):
-    """A 5x5x5 region seen by 5 cameras: the centre voxel ``found_centre`` of them find, every
-    other voxel ``found_around``."""
+def _block(found_centre: int, found_around: int, *, seeing: int = 5):
+    """A 5x5x5 region ``seeing`` cameras see: the centre voxel ``found_centre`` of them find,
+    every other voxel ``found_around``."""
     shape = (5, 5, 5)
     region = np.arange(125)
     found = np.full(125, found_around)
     centre = np.ravel_multi_index((2, 2, 2), shape)
     found[centre] = found_centre
-    return region, found, np.full(125, 5), shape, centre
+    return region, found, np.full(125, seeing), shape, centre
 
 
-@pytest.mark.parametrize(("smoothing", "kept"), [(0.0, True), (0.016, True), (0.017, False)])
+@pytest.mark.parametrize(("smoothing", "kept"), [(0.0, True), (0.033, True), (0.034, False)])
 def test_a_speck_goes_when_six_lambda_exceeds_its_margin(smoothing, kept):
-    # 4 of 5 cameras: margin 2 (0.8 - 0.75) = 0.1; around it 2 of 5 (below the vote)
+    # 4 of 5 cameras, the vote's need: margin 2 (4 - 4 + 1/2) / 5 = 0.2; around it 2 of 5
     region, found, seeing, shape, centre = _block(4, 2)
     labels = graphcut_labels(region, found, seeing, shape, n_cameras=5, min_cameras=2, min_ratio=0.75,
                              smoothing=smoothing)
@@ -153,11 +153,12 @@ def test_a_speck_goes_when_six_lambda_exceeds_its_margin(smoothing, kept):
     assert labels.sum() == int(kept)
 
 
-@pytest.mark.parametrize(("smoothing", "filled"), [(0.0, False), (0.049, False), (0.051, True)])
+@pytest.mark.parametrize(("smoothing", "filled"), [(0.0, False), (0.020, False), (0.021, True)])
 def test_a_one_voxel_hole_fills_when_six_lambda_exceeds_its_margin(smoothing, filled):
-    # 3 of 5 cameras: margin 2 (0.75 - 0.6) = 0.3, inside voxels all 5 cameras find
-    region, found, seeing, shape, centre = _block(3, 5)
-    labels = graphcut_labels(region, found, seeing, shape, n_cameras=5, min_cameras=2, min_ratio=0.75,
+    # 5 of 8 cameras, one short of the need of 6: margin 2 (5 - 6 + 1/2) / 8 = -0.125;
+    # the voxels around it all 8 cameras find
+    region, found, seeing, shape, centre = _block(5, 8, seeing=8)
+    labels = graphcut_labels(region, found, seeing, shape, n_cameras=8, min_cameras=2, min_ratio=0.75,
                              smoothing=smoothing)
     assert labels[centre] == filled
     assert labels.sum() == 124 + int(filled)
@@ -203,7 +204,8 @@ def test_carver_graph_cut_removes_noise_and_keeps_the_bodies(rig_and_masks, tmp_
     rig, masks = rig_and_masks
     cache = tmp_path_factory.mktemp("lut")
     vote = Carver(cameras=rig, voxel_sizes_m=(0.4, 0.2, 0.1), cache_dir=cache, **VOLUME)
-    cut = Carver(cameras=rig, voxel_sizes_m=(0.4, 0.2, 0.1), cache_dir=cache, fusion="graphcut", smoothing=0.1,
+    # 6 lambda = 0.9 outweighs even a speck all five cameras find (margin 2 (5 - 4 + 1/2) / 5 = 0.6)
+    cut = Carver(cameras=rig, voxel_sizes_m=(0.4, 0.2, 0.1), cache_dir=cache, fusion="graphcut", smoothing=0.15,
                  **VOLUME)
     inside = body_voxels(vote, BODIES)
     near = body_voxels(vote, [Cylinder(b.x_m, b.y_m, b.radius_m + 0.3, b.height_m + 0.3) for b in BODIES])

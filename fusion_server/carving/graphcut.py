@@ -5,22 +5,32 @@ minimises
 
     E(f) = sum_v D_v(f_v) + lambda * sum_{v ~ w} [f_v != f_w]
 
-over 6-neighbour pairs. The data term is the paper's, centred on the site's
-``min_ratio`` instead of 1/2: only the difference ``D_v(1) - D_v(0)`` matters,
-and it is ``2 (min_ratio - h(v))``, twice the margin of the visibility ratio
-``h(v) = found / seeing`` over the threshold (the paper's ``(1 - h) - h`` when
-``min_ratio = 1/2``, so ``lambda`` keeps the paper's scale). Its sign comes from
-the hard vote (:func:`fusion_server.carving.distance.needed_votes`), so with
-``lambda = 0`` the cut labels every voxel exactly as the vote does; the
-``min_cameras`` rule stays hard: a voxel fewer cameras find is fixed empty.
+over 6-neighbour pairs. The data term is the paper's, centred on the vote's
+threshold instead of 1/2: only the difference ``D_v(1) - D_v(0)`` matters, and
+it is ``2 (c(v) - h(v))`` with the visibility ratio ``h(v) = found / seeing``
+(the paper's ``(1 - h) - h`` when ``c = 1/2``, so ``lambda`` keeps the paper's
+scale). The centre ``c = (need - 1/2) / seeing`` lies halfway between the last
+count the vote rejects and the first it keeps (``need``:
+:func:`fusion_server.carving.distance.needed_votes`, which holds ``min_ratio``
+and ``min_cameras``), so
+
+* with ``lambda = 0`` the cut labels every voxel exactly as the vote does;
+* a voxel one camera short of the vote and one with just enough are equally
+  uncertain: with ``min_ratio = 0.75`` and four cameras seeing, 3 of 4 finding
+  it is ``+0.25`` and 2 of 4 ``-0.25``. Centring on ``min_ratio`` itself would
+  make 3 of 4 (and 6 of 8) a tie that any neighbour decides, whatever ``lambda``;
+* the ``min_cameras`` rule stays hard: a voxel fewer cameras find is fixed empty.
 
 A voxel outside the region is fixed empty too, so a region voxel pays
 ``lambda`` for each in-grid 6-neighbour outside the region when occupied; the
 volume's faces cost nothing. What ``lambda`` does, by the arithmetic: an
 isolated occupied voxel is removed when ``6 lambda`` exceeds its
-``2 (h - min_ratio)``; a one-voxel hole inside occupied voxels is filled when
-``6 lambda`` exceeds ``2 (min_ratio - h)``. The paper's ``lambda = 0.01`` moves
-only voxels within 0.03 of the threshold.
+``2 (h - c)``; a one-voxel hole inside occupied voxels is filled when
+``6 lambda`` exceeds ``2 (c - h)``. The smallest margins are one camera's:
+``1 / seeing`` (0.125 with eight cameras seeing, 0.25 with four), so the
+paper's ``lambda = 0.01`` (``6 lambda = 0.06``) changes nothing with up to
+sixteen cameras; a voxel on a flat face (one empty neighbour, five
+occupied) flips only when ``4 lambda`` exceeds its margin.
 
 Energies are integers in units of ``1 / ENERGY_SCALE`` (max-flow needs integer
 capacities); a data term never rounds to zero, so ties cannot arise from it.
@@ -49,18 +59,19 @@ _FIXING_ROUNDS = 6
 def benefits(found: np.ndarray, seeing: np.ndarray, *, n_cameras: int, min_cameras: int,
              min_ratio: float) -> np.ndarray:
     """(M,) int64 energy saved by labelling each voxel occupied rather than empty,
-    ``2 (h - min_ratio)`` in units of ``1 / ENERGY_SCALE``, at least 1 in magnitude, positive
-    exactly where the hard vote keeps the voxel.
+    ``2 (found - need + 1/2) / seeing`` in units of ``1 / ENERGY_SCALE`` (``need`` from
+    :func:`needed_votes`), at least 1 in magnitude, positive exactly where the hard vote
+    keeps the voxel.
 
     found, seeing: (M,) int camera counts (:func:`fusion_server.carving.distance.tally`).
     n_cameras: the largest possible ``seeing`` (cameras present).
     """
     found = np.asarray(found, dtype=np.int64)
     seeing = np.asarray(seeing, dtype=np.int64)
-    passes = found >= needed_votes(n_cameras, min_cameras, min_ratio)[seeing]
-    h = found / np.maximum(seeing, 1)
-    size = np.maximum(1, np.rint(2.0 * np.abs(h - min_ratio) * ENERGY_SCALE)).astype(np.int64)
-    return np.where(passes, size, -size)
+    need = needed_votes(n_cameras, min_cameras, min_ratio)[seeing].astype(np.int64)
+    margin = 2.0 * (found - need + 0.5) / np.maximum(seeing, 1)
+    size = np.maximum(1, np.rint(np.abs(margin) * ENERGY_SCALE)).astype(np.int64)
+    return np.where(found >= need, size, -size)
 
 
 def neighbour_pairs(linear: np.ndarray, shape: tuple[int, int, int]) -> tuple[np.ndarray, np.ndarray]:
