@@ -7,9 +7,10 @@ minimises
 
 over 6-neighbour pairs. The data term is the paper's, centred on the vote's
 threshold instead of 1/2: only the difference ``D_v(1) - D_v(0)`` matters, and
-it is ``2 (c(v) - h(v))`` with the visibility ratio ``h(v) = found / seeing``
-(the paper's ``(1 - h) - h`` when ``c = 1/2``, so ``lambda`` keeps the paper's
-scale). The centre ``c = (need - 1/2) / seeing`` lies halfway between the last
+it is ``2 (c(v) - h(v))`` with the visibility ratio ``h(v) = found / seeing``.
+With ``c = 1/2`` that is ``(1 - h) - h``, the paper's eq. 4 with occupied
+costing ``1 - h`` (as printed, eq. 4 swaps the two labels), so ``lambda`` keeps
+the paper's scale. The centre ``c = (need - 1/2) / seeing`` lies halfway between the last
 count the vote rejects and the first it keeps (``need``:
 :func:`fusion_server.carving.distance.needed_votes`, which holds ``min_ratio``
 and ``min_cameras``), so
