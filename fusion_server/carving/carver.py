@@ -173,7 +173,7 @@ class Carver:
         stamp_ns: the frame set's capture time.
         depths: camera id -> (H, W) uint16 range in millimetres at its mask's size (distance
             from the camera centre along the pixel's ray, 0 = none), for depth cameras;
-            any subset of the cameras in ``masks``.
+            any subset of the cameras in ``masks`` (others are ignored).
         """
         dists = self.distance_stage(masks)
         ijk = self.octree_stage(dists)
@@ -216,8 +216,9 @@ class Carver:
     def depth_stage(self, masks: Mapping[str, np.ndarray],
                     depths: Mapping[str, np.ndarray] | None) -> dict[str, np.ndarray]:
         """Stage 2b: camera id -> (K, H, W) uint16 footprint range images
-        (:func:`.freespace.footprint_depth`) of the depth cameras present in ``masks``;
-        empty without depths or with ``free_space`` off."""
+        (:func:`.freespace.footprint_depth`) of the depth cameras present in ``masks``
+        (the depth of a camera without a mask is ignored); empty without depths or with
+        ``free_space`` off. Unknown ids, other dtypes and other shapes raise ValueError."""
         if not depths or not self.free_space:
             return {}
         out = {}
@@ -225,7 +226,7 @@ class Carver:
             if cid not in self.camera_centres_m:
                 raise ValueError(f"depths[{cid!r}]: unknown camera (known: {sorted(self.camera_ids)})")
             if cid not in masks:
-                raise ValueError(f"depths[{cid!r}]: the camera has no mask in this frame set")
+                continue  # the camera is absent from the frame set: it does not vote at all
             out[cid] = footprint_depth(check_depth(cid, depth, np.shape(masks[cid])))
         return out
 
