@@ -81,6 +81,10 @@ def test_written_site_reads_back_equal(tmp_path):
         ('resolution = [644, 486]', 'resolution = [644]', "cameras[0].resolution", ""),
         ('units = "mm"', 'units = "inch"', "cameras[0].units", "'m', 'cm' or 'mm'"),
         ("min_cameras = 3", "min_cameras = 0", "carving.min_cameras", "greater than or equal to 1"),
+        ("min_cameras = 3", 'min_cameras = 3\nfusion = "cut"', "carving.fusion", "'vote' or 'graphcut'"),
+        ("min_cameras = 3", "min_cameras = 3\nsmoothing = -0.1", "carving.smoothing", "greater than or equal to 0"),
+        ("min_cameras = 3", "min_cameras = 3\nsmoothing = 2.0", "carving.smoothing", "less than or equal to 1"),
+        ("min_cameras = 3", 'min_cameras = 3\nfree_space = "yes"', "carving.free_space", "boolean"),
         ("voxel_sizes_m = [0.4, 0.2, 0.1, 0.05]", "voxel_sizes_m = [0.4, 0.1]", "carving.voxel_sizes_m", "halve"),
         ("max_m = [6.0, 4.0, 2.5]", "max_m = [6.0, -4.0, 2.5]", "volume", "must exceed"),
         ('id = "hall"', 'id = "ceiling"', "cameras", "unique"),
@@ -99,6 +103,16 @@ def test_bad_field_names_file_field_and_problem(tmp_path, old, new, field, probl
     assert str(path) in message
     assert f"field {field}" in message
     assert problem in message
+
+
+def test_carving_fusion_options_default_to_the_vote_and_read_back(tmp_path):
+    site = load_site(_write(tmp_path, GOOD))
+    assert (site.carving.fusion, site.carving.smoothing, site.carving.free_space) == ("vote", 0.01, True)
+    text = GOOD.replace("min_cameras = 3", 'min_cameras = 3\nfusion = "graphcut"\nsmoothing = 0.05\nfree_space = false')
+    site = load_site(_write(tmp_path, text))
+    assert (site.carving.fusion, site.carving.smoothing, site.carving.free_space) == ("graphcut", 0.05, False)
+    again = load_site(write_site(site, tmp_path / "copy" / "site.toml"))
+    assert again.carving == site.carving
 
 
 def test_events_section_is_optional_and_sets_the_alarm_durations(tmp_path):
