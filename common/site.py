@@ -23,7 +23,7 @@ Schema (all lengths in metres, world frame Z up, floor at Z = 0)::
     mask_scale = 1.0             # workers downscale masks by this factor
     fusion = "vote"              # vote | graphcut: keep the voxels that pass the vote, or
                                  # label them by a graph cut with a Potts smoothness prior
-    smoothing = 0.01             # the graph cut's Potts lambda (0..1): an isolated voxel goes, and a
+    smoothing = 0.1              # the graph cut's Potts lambda (0..1): an isolated voxel goes, and a
                                  # one-voxel hole fills, when 6 lambda exceeds its margin (one camera
                                  # short of the vote or just enough: 1 / cameras seeing)
     free_space = true            # depth cameras carve the space in front of what they measure
@@ -177,7 +177,7 @@ class Carving(_Model):
     min_ratio: float = Field(default=0.75, gt=0.0, le=1.0)
     mask_scale: float = Field(default=1.0, ge=0.125, le=1.0)
     fusion: Literal["vote", "graphcut"] = "vote"
-    smoothing: float = Field(default=0.01, ge=0.0, le=1.0)
+    smoothing: float = Field(default=0.1, ge=0.0, le=1.0)
     free_space: bool = Field(default=True, strict=True)
 
     @field_validator("voxel_sizes_m")

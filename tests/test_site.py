@@ -107,7 +107,7 @@ def test_bad_field_names_file_field_and_problem(tmp_path, old, new, field, probl
 
 def test_carving_fusion_options_default_to_the_vote_and_read_back(tmp_path):
     site = load_site(_write(tmp_path, GOOD))
-    assert (site.carving.fusion, site.carving.smoothing, site.carving.free_space) == ("vote", 0.01, True)
+    assert (site.carving.fusion, site.carving.smoothing, site.carving.free_space) == ("vote", 0.1, True)
     text = GOOD.replace("min_cameras = 3", 'min_cameras = 3\nfusion = "graphcut"\nsmoothing = 0.05\nfree_space = false')
     site = load_site(_write(tmp_path, text))
     assert (site.carving.fusion, site.carving.smoothing, site.carving.free_space) == ("graphcut", 0.05, False)

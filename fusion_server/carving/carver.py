@@ -67,7 +67,7 @@ class Carver:
         a camera does not vote on a voxel it sees only through one of them.
       fusion: ``"vote"`` keeps the finest voxels that pass the vote; ``"graphcut"`` labels
         the voted voxels and their 6-neighbours by the graph cut of :mod:`.graphcut`.
-      smoothing: the graph cut's Potts weight lambda (seed paper 002: 0.01), >= 0.
+      smoothing: the graph cut's Potts weight lambda (0.1: see the README; the paper's 0.01 is for a data term of another scale), >= 0.
       free_space: depth images given to :meth:`carve` carve the space in front of the
         measured surfaces (:mod:`.freespace`); False ignores them.
 
@@ -93,7 +93,7 @@ class Carver:
         cache_dir: str | os.PathLike | None = DEFAULT_CACHE_DIR,
         occluders: Sequence[Occluder] = (),
         fusion: str = "vote",
-        smoothing: float = 0.01,
+        smoothing: float = 0.1,
         free_space: bool = True,
     ) -> None:
         if not isinstance(cameras, Mapping) or not cameras:
