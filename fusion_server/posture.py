@@ -433,10 +433,9 @@ def viterbi_aged_log_transitions(dt_s: float, min_duration_s: float) -> np.ndarr
     """
     if not (math.isfinite(min_duration_s) and min_duration_s >= 0):
         raise ValueError(f"min_duration_s must be a finite number >= 0, got {min_duration_s}")
-    base = viterbi_log_transitions(dt_s)
-    if min_duration_s == 0:
-        return base
-    return _aged_ms(int(round(dt_s * 1000.0)), int(round(min_duration_s * 1000.0))).copy()
+    if not (math.isfinite(dt_s) and dt_s >= 0):
+        raise ValueError(f"dt_s must be a finite number >= 0, got {dt_s}")
+    return _aged_log_transitions(dt_s, min_duration_s).copy()
 
 
 def classify(features: PostureFeatures, standing_height_m: float, model: PostureModel | None = None) -> str:
@@ -736,7 +735,7 @@ class PostureEstimator:
             self._decoder.push(lik)
         else:
             dt_s = max(stamp_ns - self._pending_last_ns, 0) * 1e-9
-            self._decoder.push(lik, viterbi_aged_log_transitions(dt_s, self.min_duration_ns * 1e-9))
+            self._decoder.push(lik, _aged_log_transitions(dt_s, self.min_duration_ns * 1e-9))
         self._pending_last_ns = stamp_ns
         self._pending.append((stamp_ns, prob))
         keep = sum(1 for t, _ in self._pending if t > stamp_ns - self.viterbi_lag_ns)
@@ -841,6 +840,13 @@ def _log_viterbi_prior(ages: int) -> np.ndarray:
     prior = np.full((len(DECODED_STATES), ages), -np.inf)
     prior[:, ages - 1] = -math.log(len(DECODED_STATES))
     return prior.reshape(-1)
+
+
+def _aged_log_transitions(dt_s: float, min_duration_s: float) -> np.ndarray:
+    """The cached (read-only) matrix of :func:`viterbi_aged_log_transitions`."""
+    dt_ms = int(round(dt_s * 1000.0))
+    min_ms = int(round(min_duration_s * 1000.0))
+    return _log_transitions_ms(dt_ms) if min_ms == 0 else _aged_ms(dt_ms, min_ms)
 
 
 @lru_cache(maxsize=256)

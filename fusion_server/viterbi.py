@@ -146,15 +146,13 @@ class FixedLagViterbi:
     def _decode(self) -> np.ndarray:
         if not self._lik:
             return np.zeros(0, dtype=np.int64)
-        lik = np.stack(self._lik)
-        if self._anchor is None:
-            init = self.log_init
-            trans = np.stack(self._trans[1:]) if len(self._lik) > 1 else np.zeros((0, self.n_states, self.n_states))
-            return viterbi(init, trans, lik)[0]
-        # Conditioned on the last committed state: one more step from it into the window.
-        init = self._trans[0][self._anchor]
-        trans = np.stack(self._trans[1:]) if len(self._lik) > 1 else np.zeros((0, self.n_states, self.n_states))
-        return viterbi(init, trans, lik)[0]
+        # Before the first commit, from the prior; then conditioned on the last
+        # committed state: one more step from it into the window.
+        delta = self.log_init + self._lik[0] if self._anchor is None else self._trans[0][self._anchor] + self._lik[0]
+        back = np.zeros((len(self._lik), self.n_states), dtype=np.int64)
+        for t in range(1, len(self._lik)):
+            delta, back[t] = _step(delta, self._trans[t], self._lik[t])
+        return _backtrack(back, int(np.argmax(delta)))
 
 
 # --------------------------------------------------------------------------- helpers
@@ -186,7 +184,7 @@ def _step(delta: np.ndarray, trans: np.ndarray, lik: np.ndarray) -> tuple[np.nda
     """One recursion step: (S,) scores, (S, S) transitions, (S,) likelihoods -> new scores, best predecessors."""
     cand = delta[:, None] + trans  # [previous, next]
     best = np.argmax(cand, axis=0)  # first maximum: the lowest index wins ties
-    return cand[best, np.arange(len(lik))] + lik, best
+    return np.take_along_axis(cand, best[None, :], axis=0)[0] + lik, best
 
 
 def _backtrack(back: np.ndarray, last: int) -> np.ndarray:
