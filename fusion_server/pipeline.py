@@ -98,6 +98,8 @@ class FusionPipeline:
       decisions, viterbi_lag_s: how each track's posture is decided, frame by
         frame or by fixed-lag Viterbi decoding
         (:class:`~fusion_server.posture.PostureEstimator`).
+
+    posture_settings: the keyword arguments every track's posture estimator is made with.
     """
 
     def __init__(
@@ -124,8 +126,8 @@ class FusionPipeline:
         self.camera_ids: tuple[str, ...] = carver.camera_ids
         self.explainer = BlobExplainer(self.cameras)
         self.identity = identity if identity is not None else IdentityKeeper(self.cameras)
-        self._posture_kwargs = dict(voxel_m=carver.grid.voxel_m, decisions=decisions, viterbi_lag_s=viterbi_lag_s)
-        PostureEstimator(**self._posture_kwargs)  # validate once, up front
+        self.posture_settings = dict(voxel_m=carver.grid.voxel_m, decisions=decisions, viterbi_lag_s=viterbi_lag_s)
+        PostureEstimator(**self.posture_settings)  # validate once, up front
         self._postures: dict[int, PostureEstimator] = {}
         self._labels: dict[int, int] = {}  # target id -> label, as of the last frame
 
@@ -277,7 +279,7 @@ class FusionPipeline:
         for est in estimates:
             estimator = self._postures.get(est.id)
             if estimator is None:
-                estimator = self._postures[est.id] = PostureEstimator(**self._posture_kwargs)
+                estimator = self._postures[est.id] = PostureEstimator(**self.posture_settings)
             reading = estimator.update(stamp_ns, est.height_profile, speed_mps=float(np.hypot(est.vx, est.vy)))
             if reading is not None:
                 readings[est.id] = reading
