@@ -104,7 +104,7 @@ def _events_of(postures: list[str]) -> list[str]:
     return [e.kind for e in out if e.kind in ("sit_down", "stand_up")]
 
 
-def test_flickering_likelihoods_raise_sit_and_stand_frame_by_frame_but_not_on_the_viterbi_path():
+def test_flickering_likelihoods_raise_a_sit_down_frame_by_frame_but_nothing_on_the_viterbi_path():
     lik = _flickering_log_likelihoods()
     frame_wise = [POSTURES[STATE_POSTURE[int(k)]] for k in np.argmax(lik, axis=1)]
     # The first three frames of sitting follow 4 s of standing: a sit_down that
