@@ -204,6 +204,17 @@ class EventSettings(_Model):
     inactivity_s: float = Field(default=1800.0, ge=30.0, le=86400.0, allow_inf_nan=False)
     """Keeping still this long, outside bed, is ``inactivity``. Not below 30 s:
     stillness is judged over the last 30 s of positions."""
+    decisions: Literal["frame", "viterbi"] = "frame"
+    """How postures, and the sit, stand and fall events read from them, are
+    decided: ``frame``, on each frame as it comes (a filter over the frames so
+    far, and a minimum duration for any change); ``viterbi``, on the best
+    sequence of postures over a short window of frames (standing, sitting,
+    bending, lying, or out of view), ``viterbi_lag_s`` after the frame,
+    never taken back."""
+    viterbi_lag_s: float = Field(default=0.6, ge=0.0, le=1.0, allow_inf_nan=False)
+    """With ``decisions = "viterbi"``: how long after a frame its posture is
+    decided, seconds. Not above 1 s, so that a fall is still raised within
+    1.5 s of the body reaching the floor."""
 
 
 class IdentitySettings(_Model):

@@ -95,6 +95,11 @@ class FusionPipeline:
       hold_radius_m: half-width of the floor square around a still person
         whose projection a camera must not learn.
       min_cameras: fewest cameras a frame set needs to be fused.
+      decisions, viterbi_lag_s: how each track's posture is decided, frame by
+        frame or by fixed-lag Viterbi decoding
+        (:class:`~fusion_server.posture.PostureEstimator`).
+
+    posture_settings: the keyword arguments every track's posture estimator is made with.
     """
 
     def __init__(
@@ -107,6 +112,8 @@ class FusionPipeline:
         hold_radius_m: float = 0.45,
         min_cameras: int | None = None,
         identity: IdentityKeeper | None = None,
+        decisions: str = "frame",
+        viterbi_lag_s: float = 0.6,
     ) -> None:
         if hold_radius_m <= 0:
             raise ValueError(f"hold_radius_m must be positive, got {hold_radius_m}")
@@ -119,6 +126,8 @@ class FusionPipeline:
         self.camera_ids: tuple[str, ...] = carver.camera_ids
         self.explainer = BlobExplainer(self.cameras)
         self.identity = identity if identity is not None else IdentityKeeper(self.cameras)
+        self.posture_settings = dict(voxel_m=carver.grid.voxel_m, decisions=decisions, viterbi_lag_s=viterbi_lag_s)
+        PostureEstimator(**self.posture_settings)  # validate once, up front
         self._postures: dict[int, PostureEstimator] = {}
         self._labels: dict[int, int] = {}  # target id -> label, as of the last frame
 
@@ -136,7 +145,8 @@ class FusionPipeline:
         """The pipeline a site file describes (calibrations loaded unless given;
         event timing from its ``[events]`` section; who is who from its
         ``[identity]`` section and the residents it enrols, unless ``residents``
-        is given: ``()`` recognises nobody, as an enrolment must)."""
+        is given: ``()`` recognises nobody, as an enrolment must; posture
+        decisions from ``[events]``)."""
         cameras = dict(cameras) if cameras is not None else site.load_cameras()
         return cls(
             carver=build_carver(site, cameras, cache_dir=cache_dir),
@@ -145,6 +155,8 @@ class FusionPipeline:
             rng=np.random.default_rng(seed),
             min_cameras=min_cameras,
             identity=build_identity(site, cameras, residents=residents),
+            decisions=site.events.decisions,
+            viterbi_lag_s=site.events.viterbi_lag_s,
         )
 
     def step(self, masks: Mapping[str, np.ndarray], stamp_ns: int, frame: int,
@@ -270,7 +282,7 @@ class FusionPipeline:
         for est in estimates:
             estimator = self._postures.get(est.id)
             if estimator is None:
-                estimator = self._postures[est.id] = PostureEstimator(voxel_m=self.carver.grid.voxel_m)
+                estimator = self._postures[est.id] = PostureEstimator(**self.posture_settings)
             reading = estimator.update(stamp_ns, est.height_profile, speed_mps=float(np.hypot(est.vx, est.vy)))
             if reading is not None:
                 readings[est.id] = reading

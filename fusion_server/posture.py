@@ -28,6 +28,12 @@ Pipeline per track (:class:`PostureEstimator`):
    likelihoods summed under a belief over the person's standing height
    that is learnt beside it, summed per reported posture, and a minimum
    duration for any change keep the reported posture from flickering.
+   Or, with ``decisions="viterbi"``, the seed's Viterbi recursion itself
+   (:mod:`fusion_server.viterbi`): the same per-frame likelihoods, plus an
+   ``outside`` state for frames without a body, decoded by a fixed-lag
+   decoder under the transition rates of :data:`VITERBI_RATES_HZ`; the
+   reported posture is the best path's state ``viterbi_lag_s`` back, final
+   once reported (:func:`viterbi_log_transitions`).
 
 Postures: ``standing``, ``sitting``, ``bending`` and ``lying``. Kneeling
 reads ``bending`` (the project's ground truth labels it so; the seed paper:
@@ -43,11 +49,14 @@ from __future__ import annotations
 import math
 from collections import deque
 from dataclasses import dataclass, field
+from functools import lru_cache
 from typing import Iterable, Protocol, Sequence
 
 import numpy as np
+import scipy.linalg
 
 from common.postures import BODY_POSTURES
+from fusion_server.viterbi import FixedLagViterbi
 
 POSTURES: tuple[str, ...] = BODY_POSTURES
 """Reported posture labels (every posture but ``unknown``), in the order of :attr:`PostureReading.probabilities`."""
@@ -81,6 +90,65 @@ _UPRIGHT = np.array([POSTURES[p] == "standing" for p in STATE_POSTURE])
 
 _TELLS_HEIGHT = np.array([POSTURES[p] in ("standing", "sitting") for p in STATE_POSTURE])
 """(len(STATES),) bool: the standing and seated states, whose shapes tell a standing height."""
+
+DECISIONS: tuple[str, ...] = ("frame", "viterbi")
+"""How :class:`PostureEstimator` decides the reported posture: ``frame``, the
+forward filter's most probable posture held for a minimum duration, decided
+on each frame as it comes; ``viterbi``, the best state path of a fixed-lag
+Viterbi decoder, decided a bounded delay later and never taken back."""
+
+DECODED_STATES: tuple[str, ...] = STATES + ("outside",)
+"""States of the Viterbi decoder: :data:`STATES` and ``outside`` (no body seen:
+the track's person is not, or no longer, in view)."""
+
+OUTSIDE = len(STATES)
+"""Index of ``outside`` in :data:`DECODED_STATES`."""
+
+VITERBI_RATES_HZ: dict[tuple[str, str], float] = {
+    ("standing", "sitting"): 0.1,
+    ("standing", "bending"): 0.1,
+    ("standing", "lying"): 0.05,
+    ("standing", "outside"): 0.1,
+    ("sitting", "standing"): 0.1,
+    ("sitting", "bending"): 0.05,
+    ("sitting", "lying"): 0.05,
+    ("sitting", "outside"): 0.02,
+    ("bending", "standing"): 0.5,
+    ("bending", "sitting"): 0.2,
+    ("bending", "lying"): 0.1,
+    ("bending", "outside"): 0.02,
+    ("lying", "standing"): 0.02,
+    ("lying", "sitting"): 0.05,
+    ("lying", "bending"): 0.05,
+    ("lying", "outside"): 0.02,
+    ("outside", "standing"): 0.5,
+    ("outside", "sitting"): 0.02,
+    ("outside", "bending"): 0.02,
+    ("outside", "lying"): 0.02,
+}
+"""Rates of posture changes for the Viterbi decoder, per second, ``(from, to)``.
+
+They follow the spells people keep: standing and sitting last tens of
+seconds to hours (about 0.3 changes a second out of standing, well under
+that out of sitting); bending and kneeling are brief (2 s or so), so most
+often back to standing; lying on the floor or a bed lasts long, and one gets
+up from it mostly through sitting or kneeling; someone who appears comes in
+walking (standing) far more often than in any other posture, and someone
+who vanishes from view mostly walked out. Falls and lying down are rare but
+must never be priced out: at 15 fps a change of 0.05/s costs
+``-log(0.05 / 15) = 5.7`` nats, which a body on the floor repays in one or
+two frames. Changes between the shapes of one posture (sitting and sitting
+with the legs not carved, standing with and without hidden legs, kneeling
+and bending, lying on the floor or raised) cost :data:`VITERBI_SHAPE_RATE_HZ`:
+they follow what the cameras see, not what the person does."""
+
+VITERBI_SHAPE_RATE_HZ = 1.0
+"""Rate of changes between the shapes (states) of one posture, per second."""
+
+VITERBI_AGES = 6
+"""Age steps of a posture before it may change (see
+:func:`viterbi_aged_log_transitions`): at 15 fps and the default minimum
+duration of 0.4 s, one a frame."""
 
 FEATURE_NAMES: tuple[str, ...] = (
     "centre_rel",
@@ -334,6 +402,42 @@ def posture_log_likelihoods(vector: np.ndarray, model: PostureModel | None = Non
     return -(cost * model.weight).sum(axis=-1)
 
 
+def viterbi_log_transitions(dt_s: float) -> np.ndarray:
+    """(S, S) float64 log transition matrix over :data:`DECODED_STATES` for one
+    step of ``dt_s`` seconds, ``[from, to]``.
+
+    The changes of :data:`VITERBI_RATES_HZ` (each split evenly over the
+    destination posture's shapes) and :data:`VITERBI_SHAPE_RATE_HZ` form a
+    continuous-time chain; a step is its matrix exponential, so a frame set
+    that comes late (a dropped frame) allows proportionally more change.
+    """
+    if not (math.isfinite(dt_s) and dt_s >= 0):
+        raise ValueError(f"dt_s must be a finite number >= 0, got {dt_s}")
+    return _log_transitions_ms(int(round(dt_s * 1000.0))).copy()
+
+
+def viterbi_aged_log_transitions(dt_s: float, min_duration_s: float) -> np.ndarray:
+    """(S * A, S * A) float64 log transition matrix over the decoder's aged
+    states, ``[from, to]``: state ``s`` of :data:`DECODED_STATES` at age ``a``
+    is index ``s * A + a``, with ``A =`` :data:`VITERBI_AGES` (1 when
+    ``min_duration_s`` is 0).
+
+    A posture lasts at least ``min_duration_s``: on entering a posture its
+    age is 0, and each step of ``dt_s`` ages it by ``A * dt_s /
+    min_duration_s`` on average (the whole part always, one more with the
+    fraction's probability) up to ``A - 1``, settled; only a settled posture
+    may change into another (changes between the shapes of one posture keep
+    its age). The changes a young posture may not make stay in it. ``outside``
+    is always settled: the frames without a body say when it begins and ends.
+    Between postures and shapes, :func:`viterbi_log_transitions`.
+    """
+    if not (math.isfinite(min_duration_s) and min_duration_s >= 0):
+        raise ValueError(f"min_duration_s must be a finite number >= 0, got {min_duration_s}")
+    if not (math.isfinite(dt_s) and dt_s >= 0):
+        raise ValueError(f"dt_s must be a finite number >= 0, got {dt_s}")
+    return _aged_log_transitions(dt_s, min_duration_s).copy()
+
+
 def classify(features: PostureFeatures, standing_height_m: float, model: PostureModel | None = None) -> str:
     """Single-frame posture, no smoothing: the most likely of :data:`POSTURES`."""
     ll = posture_log_likelihoods(feature_vector(features, standing_height_m), model)
@@ -436,7 +540,8 @@ class PostureEstimator:
     evidence_weight: scale on the per-frame log-likelihoods (the features are
         correlated, so their naive sum is over-confident).
     min_duration_s: a new posture must lead the filter this long before it is
-        reported.
+        reported; with ``decisions="viterbi"``, the shortest spell of a posture
+        on the decoded path.
     walking_speed_mps, walking_log_odds: a person whose floor speed is at
         least this walks, and walking is done upright: the upright states
         (standing, and standing with the legs hidden) gain this much
@@ -444,6 +549,13 @@ class PostureEstimator:
         (0.8-1.4 m/s, children too) and well over the jitter of a still
         person's estimate.
     model: the :class:`PostureModel` (default :func:`default_model`).
+    decisions: one of :data:`DECISIONS`. ``frame`` reports the forward
+        filter's posture after ``min_duration_s``; ``viterbi`` reports the
+        fixed-lag Viterbi path's posture ``viterbi_lag_s`` back (the reading
+        of a frame then tells the posture of the frame ``viterbi_lag_s``
+        older, and nothing before the first one is committed: no reading).
+    viterbi_lag_s: how far back the Viterbi decision is taken, seconds, in
+        [0, 1]; frames older than this are final.
     """
 
     def __init__(
@@ -465,7 +577,13 @@ class PostureEstimator:
         walking_speed_mps: float = 0.5,
         walking_log_odds: float = 4.0,
         model: PostureModel | None = None,
+        decisions: str = "frame",
+        viterbi_lag_s: float = 0.6,
     ) -> None:
+        if decisions not in DECISIONS:
+            raise ValueError(f"decisions must be one of {', '.join(DECISIONS)}, got {decisions!r}")
+        if not (isinstance(viterbi_lag_s, (int, float)) and 0 <= viterbi_lag_s <= MAX_VITERBI_LAG_S):
+            raise ValueError(f"viterbi_lag_s must lie in [0, {MAX_VITERBI_LAG_S}], got {viterbi_lag_s!r}")
         if not voxel_m > 0:
             raise ValueError(f"voxel_m must be positive, got {voxel_m}")
         lo, hi = (float(v) for v in height_limits_m)
@@ -522,6 +640,13 @@ class PostureEstimator:
         self._candidate: int | None = None
         self._candidate_ns = 0
         self._last: PostureReading | None = None
+        self.decisions = decisions
+        self.viterbi_lag_ns = int(round(float(viterbi_lag_s) * 1e9))
+        self._decoder: FixedLagViterbi | None = None
+        # per frame not yet committed: (stamp_ns, per-posture filtered probabilities)
+        self._pending: deque[tuple[int, np.ndarray]] = deque()
+        self._pending_last_ns: int | None = None
+        self._committed: tuple[int, np.ndarray] | None = None  # newest committed body state, its probabilities
 
     @property
     def standing_height_m(self) -> float:
@@ -548,6 +673,11 @@ class PostureEstimator:
             raise ValueError(f"stamp_ns {stamp_ns} is older than the previous frame {self._last_stamp_ns}")
         raw = profile_features(height_profile, self.voxel_m)
         if raw is None:
+            if self.decisions == "viterbi" and self._decoder is not None:
+                # no body seen: the person is outside for the decoder
+                lik = np.full(len(DECODED_STATES), -np.inf)
+                lik[OUTSIDE] = 0.0
+                self._decode(stamp_ns, lik, None)
             return self._last
         dt_s = 0.0 if self._last_stamp_ns is None else (stamp_ns - self._last_stamp_ns) * 1e-9
         self._last_stamp_ns = stamp_ns
@@ -571,7 +701,16 @@ class PostureEstimator:
         telling = float(state_prob[_TELLS_HEIGHT].sum())
         self._learn_height(np.log(np.maximum(like[:, _TELLS_HEIGHT].sum(axis=1), 1e-300)), telling, dt_s)
         prob = np.bincount(STATE_POSTURE, weights=state_prob, minlength=len(POSTURES))
-        self._debounce(int(np.argmax(prob)), stamp_ns)
+        if self.decisions == "viterbi":
+            # a body is seen: not outside
+            lik = np.append(np.log(np.maximum(self.height_posterior @ like, 1e-300)) + top, -np.inf)
+            decided = self._decode(stamp_ns, lik, prob)
+            if decided is None:
+                return self._last  # nothing committed yet
+            state, prob = decided
+        else:
+            self._debounce(int(np.argmax(prob)), stamp_ns)
+            state = int(np.argmax(state_prob))
         self._last = PostureReading(
             posture=POSTURES[self._reported],
             since_ns=self._since_ns,
@@ -580,9 +719,36 @@ class PostureEstimator:
             smoothed=smoothed,
             standing_height_m=self.standing_height_m,
             stamp_ns=stamp_ns,
-            state=STATES[int(np.argmax(state_prob))],
+            state=STATES[state],
         )
         return self._last
+
+    def _decode(self, stamp_ns: int, lik: np.ndarray, prob: np.ndarray | None) -> tuple[int, np.ndarray] | None:
+        """Push one frame's (S,) log-likelihoods over :data:`DECODED_STATES` into
+        the fixed-lag decoder and commit every frame older than the lag. Returns
+        the newest committed body state and that frame's filtered posture
+        probabilities, or None while nothing with a body has been committed."""
+        ages = VITERBI_AGES if self.min_duration_ns > 0 else 1
+        lik = np.repeat(lik, ages)
+        if self._decoder is None:
+            self._decoder = FixedLagViterbi(_log_viterbi_prior(ages))
+            self._decoder.push(lik)
+        else:
+            dt_s = max(stamp_ns - self._pending_last_ns, 0) * 1e-9
+            self._decoder.push(lik, _aged_log_transitions(dt_s, self.min_duration_ns * 1e-9))
+        self._pending_last_ns = stamp_ns
+        self._pending.append((stamp_ns, prob))
+        keep = sum(1 for t, _ in self._pending if t > stamp_ns - self.viterbi_lag_ns)
+        for aged in self._decoder.commit(keep):
+            state = aged // ages
+            t, p = self._pending.popleft()
+            if state == OUTSIDE or p is None:
+                continue  # keeps the posture last committed with a body
+            posture = STATE_POSTURE[state]
+            if self._reported != posture:
+                self._reported, self._since_ns = posture, t
+            self._committed = (state, p)
+        return self._committed
 
     def _learn_height(self, evidence: np.ndarray, weight: float, dt_s: float) -> None:
         """Update the height belief with one frame's (H,) log evidence, counted
@@ -642,6 +808,70 @@ class PostureBank:
 
 
 # --------------------------------------------------------------------------- helpers
+
+MAX_VITERBI_LAG_S = 1.0
+"""Longest Viterbi decision delay, seconds. A fall is confirmed after a second
+low on the floor (:mod:`fusion_server.events.falls`); a lying state committed
+within a second of the body reaching the floor keeps the alarm within
+1.5 s of it (the FIR smoothing adds a few frames)."""
+
+
+@lru_cache(maxsize=256)
+def _log_transitions_ms(dt_ms: int) -> np.ndarray:
+    names = [POSTURES[p] for p in STATE_POSTURE] + ["outside"]
+    n = len(names)
+    rate = np.zeros((n, n))
+    for i, a in enumerate(names):
+        for j, b in enumerate(names):
+            if i == j:
+                continue
+            if a == b:
+                rate[i, j] = VITERBI_SHAPE_RATE_HZ
+            else:
+                rate[i, j] = VITERBI_RATES_HZ.get((a, b), 0.0) / names.count(b)
+    np.fill_diagonal(rate, -rate.sum(axis=1))
+    step = scipy.linalg.expm(rate * (dt_ms * 1e-3))
+    return np.log(np.clip(step, 1e-300, 1.0))
+
+
+def _log_viterbi_prior(ages: int) -> np.ndarray:
+    """(S * ages,) log prior of a track's first frame: any state alike (a track
+    may begin with someone already seated, or lying), settled."""
+    prior = np.full((len(DECODED_STATES), ages), -np.inf)
+    prior[:, ages - 1] = -math.log(len(DECODED_STATES))
+    return prior.reshape(-1)
+
+
+def _aged_log_transitions(dt_s: float, min_duration_s: float) -> np.ndarray:
+    """The cached (read-only) matrix of :func:`viterbi_aged_log_transitions`."""
+    dt_ms = int(round(dt_s * 1000.0))
+    min_ms = int(round(min_duration_s * 1000.0))
+    return _log_transitions_ms(dt_ms) if min_ms == 0 else _aged_ms(dt_ms, min_ms)
+
+
+@lru_cache(maxsize=256)
+def _aged_ms(dt_ms: int, min_ms: int) -> np.ndarray:
+    n, m = len(DECODED_STATES), VITERBI_AGES
+    step = np.exp(_log_transitions_ms(dt_ms))
+    group = [STATE_POSTURE[i] for i in range(len(STATES))] + [-1]  # -1: outside
+    x = m * dt_ms / min_ms
+    whole, frac = int(math.floor(x)), x - math.floor(x)
+    trans = np.zeros((n, m, n, m))
+    for d in range(n):
+        for a in range(m):
+            settled = a == m - 1 or group[d] == -1
+            for e in range(n):
+                if group[e] == group[d]:
+                    for k, w in ((whole, 1.0 - frac), (whole + 1, frac)):
+                        if w > 0:
+                            trans[d, a, e, m - 1 if group[e] == -1 else min(a + k, m - 1)] += step[d, e] * w
+                elif settled:
+                    trans[d, a, e, m - 1 if group[e] == -1 else 0] += step[d, e]
+    trans = trans.reshape(n * m, n * m)
+    trans /= trans.sum(axis=1, keepdims=True)
+    with np.errstate(divide="ignore"):
+        return np.log(trans)
+
 
 _FIELDS = (
     "top_m",

@@ -259,6 +259,15 @@ def test_site_event_settings_reach_the_reasoner(house):
     assert (reasoner.falls.params.long_lie_s, reasoner.inactivity.params.inactivity_s) == (90.0, 600.0)
 
 
+def test_site_posture_decisions_reach_the_estimators(house):
+    cameras, make_site, root = house
+    default = FusionPipeline.from_site(make_site(), cameras=cameras, cache_dir=root / "cache")
+    assert (default.posture_settings["decisions"], default.posture_settings["viterbi_lag_s"]) == ("frame", 0.6)
+    tuned = FusionPipeline.from_site(make_site(decisions="viterbi", viterbi_lag_s=0.8), cameras=cameras,
+                                     cache_dir=root / "cache")
+    assert (tuned.posture_settings["decisions"], tuned.posture_settings["viterbi_lag_s"]) == ("viterbi", 0.8)
+
+
 def test_inactivity_of_a_seated_person_after_the_sites_inactivity_s(house):
     """Worked out by hand from the script: the person walks to the sofa, sits down (the
     truth's sit_down frame, half-way down) and sits still to the end, on the sofa, which

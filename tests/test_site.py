@@ -124,6 +124,9 @@ def test_events_section_is_optional_and_sets_the_alarm_durations(tmp_path):
     assert "[events]" in site_to_toml(site)
     again = load_site(write_site(site, tmp_path / "copy" / "site.toml"))
     assert again.events == site.events
+    assert (site.events.decisions, site.events.viterbi_lag_s) == ("frame", 0.6)
+    site = load_site(_write(tmp_path, GOOD + '\n[events]\ndecisions = "viterbi"\nviterbi_lag_s = 0.8\n'))
+    assert (site.events.decisions, site.events.viterbi_lag_s) == ("viterbi", 0.8)
 
 
 @pytest.mark.parametrize(
@@ -137,6 +140,9 @@ def test_events_section_is_optional_and_sets_the_alarm_durations(tmp_path):
         ("inactivity_s = inf", "events.inactivity_s", "finite number"),
         ('inactivity_s = "half an hour"', "events.inactivity_s", "valid number"),
         ("inactivity_min = 30", "events.inactivity_min", "unknown field"),
+        ('decisions = "hmm"', "events.decisions", "'frame' or 'viterbi'"),
+        ("viterbi_lag_s = 1.5", "events.viterbi_lag_s", "less than or equal to 1"),
+        ("viterbi_lag_s = -0.1", "events.viterbi_lag_s", "greater than or equal to 0"),
     ],
 )
 def test_bad_event_setting_names_the_field(tmp_path, line, field, problem):
