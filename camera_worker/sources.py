@@ -55,6 +55,7 @@ __all__ = [
 ]
 
 IMAGE_SUFFIXES = frozenset({".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".ppm", ".pgm", ".pnm", ".webp"})
+_DEEP_SUFFIXES = frozenset({".png", ".tif", ".tiff", ".pgm"})   # can hold 16-bit images
 URL_SCHEMES = ("rtsp", "rtsps", "http", "https", "udp", "tcp", "rtp", "srt", "rtmp")
 STREAM_TIMEOUT_MS = 5000
 """Open and read time-out given to FFmpeg for stream URLs."""
@@ -70,7 +71,9 @@ class SourceError(RuntimeError):
 class Frame:
     """One captured frame.
 
-    ``image``: ``(H, W, 3) uint8`` BGR. ``index``: 0-based position in a
+    ``image``: ``(H, W, 3) uint8`` BGR, or ``(H, W) uint16`` as a thermal or range camera
+    records it (16-bit single-channel images of a folder, the synthetic house's
+    thermal and range cameras), never converted. ``index``: 0-based position in a
     recording, or count of frames captured by a live source. ``stamp_ns``:
     capture time, nanoseconds. ``truth``: ``(H, W) uint8`` 0/255 true
     silhouette mask when the source knows it (synthetic house), else None.
@@ -207,7 +210,17 @@ class ImageFolderSource(FrameSource):
         if self._index >= len(self._files):
             return None
         path = self._files[self._index]
-        image = cv2.imread(str(path), cv2.IMREAD_COLOR)
+        if path.suffix.lower() in _DEEP_SUFFIXES:
+            # 16-bit single-channel images (thermal, range) reach the segmenter as they are
+            image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+            if image is not None and image.dtype == np.uint8:
+                image = _bgr(image)
+            elif image is not None and not (image.dtype == np.uint16 and image.ndim == 2):
+                raise SourceError(f"{self.name}: image {path.name} is {image.dtype} with "
+                                  f"{1 if image.ndim == 2 else image.shape[2]} channels; only 8-bit images and "
+                                  "16-bit single-channel ones (thermal, range) are read")
+        else:
+            image = cv2.imread(str(path), cv2.IMREAD_COLOR)
         if image is None:
             raise SourceError(f"{self.name}: cannot decode image {path.name}")
         frame = Frame(self._index, recorded_stamp_ns(self.start_ns, self._index, self.fps), image)
