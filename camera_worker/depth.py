@@ -5,14 +5,16 @@ A range camera (time of flight, a PMD sensor) measures each pixel's range,
 empty room's range per pixel; a person is a surface nearer than it. What this
 module adds to that:
 
-* **Missing values.** The background clip (:meth:`DepthSegmenter.learn`) is
+* **Missing values.** A missing reading is never foreground by itself; one
+  next to a nearer reading is taken as part of it
+  (``fill_missing``: dark hair and black clothes drop out of a time-of-flight
+  image). The background clip (:meth:`DepthSegmenter.learn`) is
   kept, up to ``clip_frames`` frames, and each pixel's background is the
   median of its valid readings, its spread the median absolute deviation
   (robust to the flying pixels at depth edges). A pixel that gave a value in
   fewer than ``min_valid_fraction`` of them (beyond the camera's range, a
   black or glass surface) has no background: any reading there is something
-  nearer than the room and is foreground. A missing reading is never
-  foreground.
+  nearer than the room and is foreground.
 * **Range-dependent noise.** A pixel is foreground where it is nearer than its
   background by more than ``max(min_step_mm, noise_sigmas * spread)``, the
   spread at least ``floor_mm + floor_per_m_mm * range_m`` (noise grows with range).
@@ -48,6 +50,8 @@ from camera_worker.segmentation import (
 
 __all__ = ["DepthSegmenter"]
 
+_GAP_KERNEL = cv2.getStructuringElement(cv2.MORPH_RECT, (3, 3))
+
 
 class DepthSegmenter:
     """Nearer-than-the-room foreground of a range camera, with its range, and hold regions.
@@ -75,6 +79,7 @@ class DepthSegmenter:
         close_px: int = 7,
         min_area_px: int = 400,
         fill_holes: bool = True,
+        fill_missing: bool = True,
     ) -> None:
         if isinstance(window_frames, bool) or not isinstance(window_frames, int) or window_frames < 1:
             raise ValueError(f"window_frames must be an int >= 1, got {window_frames!r}")
@@ -107,6 +112,7 @@ class DepthSegmenter:
         self.clip_frames = clip_frames
         self.mask_scale = float(mask_scale)
         self.fill_holes = bool(fill_holes)
+        self.fill_missing = bool(fill_missing)
         self._cleanup_px = (int(open_px), int(close_px), int(min_area_px))
         self.reset()
 
@@ -184,6 +190,11 @@ class DepthSegmenter:
         if learn and not first:
             self._learn(r, raw, boxes, rate, thr)
         fg_raw = raw.astype(np.uint8) * np.uint8(255)
+        if self.fill_missing:
+            # a gap beside a nearer surface is most likely that surface (dark hair, black clothes)
+            gaps = cv2.dilate(fg_raw, _GAP_KERNEL)
+            gaps[valid] = 0
+            fg_raw |= gaps
         open_k, close_k, min_area = self._cleanup_sizes()
         mask, components = cleanup_mask(fg_raw, open_kernel=open_k, close_kernel=close_k,
                                         min_area_px=min_area, fill=self.fill_holes)
