@@ -93,6 +93,27 @@ def test_image_folder_in_natural_order(tmp_path):
     assert all(f.image.shape == (8, 8, 3) for f in frames)
 
 
+def test_image_folder_hands_sixteen_bit_images_over_unconverted(tmp_path):
+    """Thermal (centi-kelvin) and range (millimetre) frames keep every bit; an 8-bit image beside
+    them still becomes BGR; a 16-bit colour image is refused by name."""
+    ramp = (np.arange(12 * 16, dtype=np.uint16).reshape(12, 16) * 311 + 29415).astype(np.uint16)
+    cv2.imwrite(str(tmp_path / "000000.png"), ramp)
+    cv2.imwrite(str(tmp_path / "000001.tiff"), ramp[::-1].copy())
+    cv2.imwrite(str(tmp_path / "000002.png"), np.full((12, 16), 9, np.uint8))
+    with ImageFolderSource(tmp_path, fps=9.0) as src:
+        a, b, c = src.read(), src.read(), src.read()
+    assert a.image.dtype == np.uint16 and np.array_equal(a.image, ramp)
+    assert np.array_equal(b.image, ramp[::-1])
+    assert c.image.shape == (12, 16, 3) and c.image.dtype == np.uint8
+    (tmp_path / "000003.png").unlink(missing_ok=True)
+    cv2.imwrite(str(tmp_path / "000003.png"), np.zeros((12, 16, 3), np.uint16))
+    with ImageFolderSource(tmp_path, fps=9.0) as src:
+        for _ in range(3):
+            src.read()
+        with pytest.raises(SourceError, match="000003.png.*uint16 with 3 channels"):
+            src.read()
+
+
 def test_image_folder_failures(tmp_path):
     with pytest.raises(SourceError, match="holds no images"):
         ImageFolderSource(tmp_path).open()
