@@ -72,7 +72,7 @@ import statistics
 from collections import Counter, deque
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Mapping
 
 from common import keys, maskcodec, messages
 from common.camera import Camera
@@ -401,14 +401,16 @@ class FusionNode:
         (they arrive with its mask); they join that mask's frame set."""
         self._looks[(cam, int(stamp_ns))] = list(looks)
 
-    def fuse(self, fs: FrameSet, now_ns: int, mono: float) -> FusedFrame:
+    def fuse(self, fs: FrameSet, now_ns: int, mono: float, *,
+             depths: Mapping[str, Any] | None = None) -> FusedFrame:
         """Fuse one frame set: tracks, events (stored, written, queued), holds and look
-        requests. Errors of the pipeline propagate (:meth:`tick` counts them; the offline
-        replay stops on them)."""
+        requests. ``depths``: depth cameras' foreground range, camera id -> ``(h, w) uint16``
+        millimetres at the mask's size, passed to the pipeline. Errors of the pipeline
+        propagate (:meth:`tick` counts them; the offline replay stops on them)."""
         frame = _frame_of(fs)
         looks = {cam: self._looks[(cam, stamp)] for cam, stamp in fs.stamps_ns.items() if (cam, stamp) in self._looks}
         self._looks = {k: v for k, v in self._looks.items() if k[1] > max(fs.stamps_ns.values(), default=fs.stamp_ns)}
-        fused = self.pipeline.step(fs.payloads, fs.stamp_ns, frame, looks)
+        fused = self.pipeline.step(fs.payloads, fs.stamp_ns, frame, looks, depths=depths)
         self.c.frames_fused += 1
         self.last_frame = int(fused.frame)
         self.last_stamp = (int(fused.stamp_ns), int(now_ns))

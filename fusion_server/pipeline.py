@@ -148,13 +148,17 @@ class FusionPipeline:
         )
 
     def step(self, masks: Mapping[str, np.ndarray], stamp_ns: int, frame: int,
-             looks: Mapping[str, Iterable[Appearance]] | None = None) -> FusedFrame:
+             looks: Mapping[str, Iterable[Appearance]] | None = None, *,
+             depths: Mapping[str, np.ndarray] | None = None) -> FusedFrame:
         """Fuse one frame set.
 
         masks: camera id -> (H, W) uint8 mask, 0 background, 255 foreground,
             at full or downscaled resolution; absent cameras do not vote.
         stamp_ns: the frame set's capture time. frame: its frame number.
         looks: camera id -> the colour descriptors that came with its mask.
+        depths: depth cameras' foreground range, camera id -> (H, W) uint16
+            millimetres of range at the mask's size, 0 = none (accepted; the
+            carving does not use it yet).
         """
         carve = self.carver.carve(masks, stamp_ns)
         blobs = self.detect_people(carve, masks)
