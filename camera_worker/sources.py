@@ -289,13 +289,16 @@ class SyntheticSource(FrameSource):
 
     ``background=True`` yields the clip of the empty room recorded before the
     scenario (``background_frame(i)``), for learning. ``n_frames`` caps either.
+    ``modality``: the camera's kind (``colour``, ``infrared``, ``thermal``, ``depth``);
+    thermal and depth frames are ``(H, W) uint16``.
     """
 
     live = False
 
     def __init__(self, cam_id: str, *, scenario: str | None = None, seed: int = 0, start_ns: int = 0,
-                 background: bool = False, n_frames: int | None = None) -> None:
+                 background: bool = False, n_frames: int | None = None, modality: str = "colour") -> None:
         self.cam_id = cam_id
+        self.modality = modality
         self.scenario = scenario
         self.seed = int(seed)
         self.start_ns = int(start_ns)
@@ -312,8 +315,8 @@ class SyntheticSource(FrameSource):
         except ImportError as exc:
             raise SourceError(f"{self.name}: the synthetic house is not available ({exc})") from None
         try:
-            camera = SyntheticCamera(self.scenario, self.cam_id, self.seed) if self.scenario \
-                else SyntheticCamera(cam_id=self.cam_id, seed=self.seed)
+            camera = SyntheticCamera(self.scenario, self.cam_id, self.seed, modality=self.modality) if self.scenario \
+                else SyntheticCamera(cam_id=self.cam_id, seed=self.seed, modality=self.modality)
         except (KeyError, ValueError) as exc:
             raise SourceError(f"{self.name}: {exc}") from None
         self._camera = camera
@@ -380,6 +383,7 @@ def open_source(
     n_frames: int | None = None,
     default_fps: float = 15.0,
     clock: Callable[[], int] = time.time_ns,
+    modality: str = "colour",
 ) -> FrameSource:
     """Build (not open) the source a spec string names; see the module docstring for the forms.
 
@@ -387,7 +391,8 @@ def open_source(
     when given. ``background=True`` asks for the empty room of the synthetic
     house; other specs are the clip itself. ``fps`` overrides a recording's
     own rate; ``default_fps`` (the site's camera fps) applies to image
-    folders and to files that state no rate. Raises SourceError for an
+    folders and to files that state no rate. ``modality`` (the site camera's) makes
+    the synthetic house render that kind of camera. Raises SourceError for an
     empty or unknown spec.
     """
     if isinstance(spec, int):
@@ -400,7 +405,7 @@ def open_source(
     if text == "synthetic" or text.startswith("synthetic:"):
         scenario = text.partition(":")[2] or None
         return SyntheticSource(cam_id, scenario=scenario, seed=seed, start_ns=start_ns, background=background,
-                               n_frames=n_frames)
+                               n_frames=n_frames, modality=modality)
     match = _URL_RE.match(text)
     if match:
         if match.group(1).lower() not in URL_SCHEMES:

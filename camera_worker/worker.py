@@ -282,7 +282,8 @@ def run(session: Any, settings: WorkerSettings, *, stop: threading.Event | None 
     start_ns = settings.start_ns if settings.start_ns is not None else time.time_ns()
     try:
         source = open_source(settings.source, cam_id=settings.cam, start_ns=start_ns, fps=settings.fps,
-                             seed=settings.seed, base_dir=settings.base_dir, default_fps=settings.default_fps)
+                             seed=settings.seed, base_dir=settings.base_dir, default_fps=settings.default_fps,
+                             modality=settings.modality)
     except (SourceError, ValueError, TypeError) as exc:
         log.error("camera %s: %s", settings.cam, exc)
         return 1
@@ -548,7 +549,8 @@ def _learn_background(segmenter: Segmenter, settings: WorkerSettings, start_ns: 
     """Learn every frame of the background clip (until ``stop``); returns the number of frames learned."""
     bg = open_source(settings.background, cam_id=settings.cam, start_ns=start_ns, fps=settings.fps,
                      seed=settings.seed, base_dir=settings.base_dir, background=True,
-                     n_frames=settings.background_frames, default_fps=settings.default_fps)
+                     n_frames=settings.background_frames, default_fps=settings.default_fps,
+                     modality=settings.modality)
     if bg.live:
         raise SourceError(f"background {bg.name}: must be a recording (file, folder or synthetic), not live")
     try:

@@ -220,11 +220,13 @@ def _open_inputs(site, cam_ids, input_dir, synthetic, seed, background_frames) -
             seg_args = dict(mask_scale=site.carving.mask_scale, default_fps=spec.fps)
             if synthetic is not None:
                 start_ns = _scenario_start_ns(synthetic, seed, site.utc_offset_hours)
-                source = open_source(f"synthetic:{synthetic}", cam_id=cam, seed=seed, start_ns=start_ns)
+                source = open_source(f"synthetic:{synthetic}", cam_id=cam, seed=seed, start_ns=start_ns,
+                                     modality=spec.modality)
                 background = open_source(
-                    f"synthetic:{synthetic}", cam_id=cam, seed=seed, background=True, n_frames=background_frames
+                    f"synthetic:{synthetic}", cam_id=cam, seed=seed, background=True, n_frames=background_frames,
+                    modality=spec.modality,
                 )
-                inputs[cam] = _SegmentedCamera(source, background, **seg_args)
+                inputs[cam] = _SegmentedCamera(source, background, modality=spec.modality, **seg_args)
                 continue
             folder = Path(input_dir) / cam
             if not folder.is_dir():

@@ -330,3 +330,25 @@ def test_synthetic_source_names_an_unknown_scenario_or_camera():
         open_source("synthetic:nowhere", cam_id="cam1").open()
     with pytest.raises(SourceError, match="cam9"):
         open_source("synthetic", cam_id="cam9").open()
+
+
+@pytest.mark.parametrize("modality", ["thermal", "depth"])
+def test_synthetic_source_serves_a_thermal_or_depth_camera_its_segmenter_reads(modality):
+    """The house's cam2 as a thermal or range camera: 16-bit frames, the true masks beside them,
+    and the worker's own segmenter for that modality finds the person in them."""
+    from camera_worker.segmenters import segmenter_for
+
+    seg = segmenter_for(modality, mask_scale=0.5, window_frames=500)
+    with open_source("synthetic:walk", cam_id="cam2", modality=modality, background=True, n_frames=30) as bg:
+        while (frame := bg.read()) is not None:
+            assert frame.image.dtype == np.uint16 and frame.image.ndim == 2
+            seg.learn(frame.image)
+    ious = []
+    with open_source("synthetic:walk", cam_id="cam2", modality=modality, n_frames=120) as src:
+        while (frame := src.read()) is not None:
+            mask, _ = seg.apply(frame.image)
+            truth = cv2.resize(frame.truth, (mask.shape[1], mask.shape[0]), interpolation=cv2.INTER_NEAREST) > 0
+            if frame.index % 10 == 0 and truth.sum() > 200:
+                m = mask > 0
+                ious.append((m & truth).sum() / (m | truth).sum())
+    assert len(ious) >= 5 and np.mean(ious) > 0.6
