@@ -15,6 +15,10 @@ module adds to that:
   fewer than ``min_valid_fraction`` of them (beyond the camera's range, a
   black or glass surface) has no background: any reading there is something
   nearer than the room and is foreground.
+* **Flying pixels.** At a depth edge a time-of-flight pixel may read a
+  mixture of the near and the far surface, nearer than the background but on
+  no surface: a reading with no 8-neighbour within ``max(flying_mm, 3 *
+  spread)`` of it is not foreground (``reject_flying``).
 * **Range-dependent noise.** A pixel is foreground where it is nearer than its
   background by more than ``max(min_step_mm, noise_sigmas * spread)``, the
   spread at least ``floor_mm + floor_per_m_mm * range_m`` (noise grows with range).
@@ -80,6 +84,8 @@ class DepthSegmenter:
         min_area_px: int = 400,
         fill_holes: bool = True,
         fill_missing: bool = True,
+        reject_flying: bool = True,
+        flying_mm: float = 150.0,
     ) -> None:
         if isinstance(window_frames, bool) or not isinstance(window_frames, int) or window_frames < 1:
             raise ValueError(f"window_frames must be an int >= 1, got {window_frames!r}")
@@ -90,7 +96,7 @@ class DepthSegmenter:
         for name, value, lo, hi in (("min_step_mm", min_step_mm, 1.0, 2000.0), ("noise_sigmas", noise_sigmas, 0.0, 20.0),
                                     ("floor_mm", floor_mm, 0.0, 500.0), ("floor_per_m_mm", floor_per_m_mm, 0.0, 500.0),
                                     ("min_valid_fraction", min_valid_fraction, 0.0, 1.0), ("far_rate", far_rate, 0.0, 1.0),
-                                    ("fg_rate_factor", fg_rate_factor, 0.0, 1.0)):
+                                    ("fg_rate_factor", fg_rate_factor, 0.0, 1.0), ("flying_mm", flying_mm, 1.0, 2000.0)):
             if not lo <= value <= hi:
                 raise ValueError(f"{name} must lie in {lo:g}..{hi:g}, got {value!r}")
         if isinstance(clip_frames, bool) or not isinstance(clip_frames, int) or not 1 <= clip_frames <= 1000:
@@ -113,6 +119,8 @@ class DepthSegmenter:
         self.mask_scale = float(mask_scale)
         self.fill_holes = bool(fill_holes)
         self.fill_missing = bool(fill_missing)
+        self.reject_flying = bool(reject_flying)
+        self.flying_mm = float(flying_mm)
         self._cleanup_px = (int(open_px), int(close_px), int(min_area_px))
         self.reset()
 
@@ -184,6 +192,8 @@ class DepthSegmenter:
         thr = np.maximum(np.float32(self.min_step_mm), np.float32(self.noise_sigmas) * np.maximum(
             self._sigma, np.float32(self.floor_mm) + np.float32(self.floor_per_m_mm * 1e-3) * self._bg))
         raw = valid & (~known | (r < self._bg - thr))
+        if self.reject_flying:
+            raw &= _has_close_neighbour(r, np.maximum(np.float32(self.flying_mm), 3.0 * self._sigma))
         if first:
             raw[:] = False
         self._frames += 1
@@ -275,3 +285,20 @@ class DepthSegmenter:
             self._cleanup = (_kernel(open_px, self.mask_scale), _kernel(close_px, scale),
                              int(math.ceil(min_area_px * scale * scale)))
         return self._cleanup
+
+
+def _has_close_neighbour(r: np.ndarray, tol_mm: np.ndarray) -> np.ndarray:
+    """(h, w) bool: some 8-neighbour of the pixel reads within ``tol_mm`` of it. A reading on a
+    surface has such neighbours; a flying pixel (a mixture of the near and the far surface at a
+    depth edge) has none."""
+    h, w = r.shape
+    pad = np.pad(r, 1, mode="constant", constant_values=0.0)
+    best = np.full((h, w), np.inf, np.float32)
+    for dy in (0, 1, 2):
+        for dx in (0, 1, 2):
+            if dy == 1 and dx == 1:
+                continue
+            nb = pad[dy:dy + h, dx:dx + w]
+            diff = np.where(nb > 0, np.abs(nb - r), np.float32(np.inf))
+            np.minimum(best, diff, out=best)
+    return best <= tol_mm

@@ -128,7 +128,7 @@ def test_shipped_range_is_the_true_range_within_noise(renderers):
     mask, _ = seg.apply(r.range_mm([person], (0, 1), model=model))
     depth = decode_depth(encode_depth(seg.depth_mm, mask), mask)
     shipped = depth > 0
-    assert shipped.sum() > 300
+    assert shipped.sum() > 200
     # away from the silhouette's edge (where pixels fly between the person and the room)
     import cv2
 
@@ -168,6 +168,27 @@ def test_a_held_still_person_is_kept_and_one_who_left_the_clip_is_forgotten(rend
         seg.learn(r.range_mm([person], (1, i)))
     fractions = [seg.apply(r.range_mm([], (0, i)))[1].fg_fraction for i in range(30)]
     assert fractions[0] == 0.0 and max(fractions) == 0.0
+
+
+def test_flying_pixels_at_a_depth_edge_ship_no_range():
+    """A wall at 4 m, a person at 2.5 m, and at the person's right edge a column of readings
+    that mix the two (2.8-3.75 m, each on neither surface nor near its neighbours): nearer than the wall, yet no range is
+    shipped for them; the person's own readings are."""
+    wall = np.full((120, 160), 4000, np.uint16)
+    seg = DepthSegmenter()
+    for _ in range(10):
+        seg.learn(wall)
+    scene = wall.copy()
+    scene[30:90, 60:80] = 2500
+    scene[30:90, 80] = np.resize(np.array([2800, 3300, 3750], np.uint16), 60)
+    seg.apply(scene)
+    assert np.all(seg.depth_mm[30:90, 80] == 0)
+    assert np.all(seg.depth_mm[31:89, 61:79] == 2500)
+    keep = DepthSegmenter(reject_flying=False)
+    for _ in range(10):
+        keep.learn(wall)
+    keep.apply(scene)
+    assert np.all(keep.depth_mm[30:90, 80] > 0)
 
 
 def test_bad_frames_and_settings_are_named():
