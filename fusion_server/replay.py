@@ -249,7 +249,7 @@ def _open_inputs(site, cam_ids, input_dir, synthetic, seed, background_frames) -
             background = _find_video(folder, "background")
             source = open_source(str(video or folder), cam_id=cam, fps=None if video else spec.fps)
             back = open_source(str(background), cam_id=cam) if background else None
-            inputs[cam] = _SegmentedCamera(source, back, **seg_args)
+            inputs[cam] = _SegmentedCamera(source, back, modality=spec.modality, **seg_args)
     except BaseException:
         for item in inputs.values():
             item.close()
