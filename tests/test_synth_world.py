@@ -418,3 +418,18 @@ def test_a_mixed_world_writes_sixteen_bit_frames_and_replay_segments_them(tmp_pa
         assert np.array_equal(d[d > 0], small[d > 0])   # the camera's own readings
         shipped += int(np.count_nonzero(d))
     assert shipped > 0 or not any(world.scenario.states[0]["present"][:n])
+
+
+def test_synth_command_writes_a_mixed_rig_and_says_which_camera_is_which(tmp_path, capsys):
+    from common.cli import main
+
+    assert main(["synth", "--world", "random", "--seed", "3", "--sensors", "mixed", "--frames", "3",
+                 "--out", str(tmp_path / "w")]) == 0
+    out = capsys.readouterr().out
+    world = random_world(3, sensors="mixed")
+    for cam, modality in world.modalities.items():
+        assert f"{cam} {modality}:" in out
+        assert load_site(tmp_path / "w" / "site.toml").camera(cam).modality == modality
+    meta = json.loads((tmp_path / "w" / "truth" / "meta.json").read_text())
+    assert meta["world"]["sensors"]["modalities"] == world.modalities
+    assert main(["synth", "--scenario", "walk", "--sensors", "mixed", "--out", str(tmp_path / "h")]) != 0
