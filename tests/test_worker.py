@@ -452,3 +452,28 @@ def test_worker_process_plays_the_synthetic_house(tmp_path, listener):
     assert all(m.fg_fraction > 0.002 for m in masks)              # the person is in every mask
     assert "learned the background from 45 frames" in err
     assert "frames are 640x480 but the site file says 160x120" in err
+
+
+def test_worker_process_of_a_depth_camera_sends_the_range_with_its_masks(tmp_path, listener):
+    """The site's camera is a range camera: the synthetic house renders it as one, the worker
+    segments it with the range segmenter and every mask with a person carries its range."""
+    pytest.importorskip("common.synth.source")
+    site = _write_site(tmp_path)
+    site.write_text(site.read_text().replace('source = "clip.avi"', 'modality = "depth"\nsource = "clip.avi"'))
+    proc = _start(site, listener, "--source", "synthetic:walk", "--background", "synthetic:walk", "--fast",
+                  "--max-frames", "30", "--start-ns", "0")
+    out, err = proc.communicate(timeout=60)
+    assert proc.returncode == 0, err
+    masks = listener.masks()
+    assert len(masks) >= 20
+    ranged = 0
+    for m in masks:
+        mask = maskcodec.decode_mask(m.data, m.codec, m.width, m.height)
+        if m.depth:
+            depth = maskcodec.decode_depth(m.depth, mask)
+            assert np.all(mask[depth > 0] > 0)
+            # the walker is 2-7 m from the camera (a reading at an edge may fly a little beyond)
+            v = depth[depth > 0]
+            assert np.percentile(v, 1) > 1500 and v.max() < 8000, (v.min(), v.max())
+            ranged += 1
+    assert ranged >= 20

@@ -217,6 +217,8 @@ def range_frame_mm(range_m: np.ndarray, reflectance: np.ndarray, cos: np.ndarray
     near = cv2.erode(np.where(valid, r, np.float32(1e6)), None)
     far = cv2.dilate(np.where(valid, r, np.float32(0.0)), None)
     edge = (far - near) > model.edge_m
+    # a surface beyond the range returns too little light to pull a mixture farther than that
+    far = np.minimum(far, np.float32(model.max_range_m))
     if edge.any():
         # reuse the uniform draw: pixels not dropped for darkness have u spread over 0..1
         w = u[edge]
