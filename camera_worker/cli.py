@@ -32,6 +32,7 @@ sources (--source, or the camera's 'source' in the site file):
   0                       a camera index (V4L2);  /dev/video0  a camera device
   rtsp://host/stream      a stream URL (rtsp, http, https, udp, tcp, rtp, srt, rtmp)
   synthetic[:scenario]    the synthetic house, this camera's view (--seed)
+  world:SEED              this camera's view of the randomised world SEED
   Live sources that drop are reopened with back-off (0.5 s doubling to 30 s);
   the worker stays up and reports itself degraded meanwhile.
 
@@ -89,6 +90,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="listen on this endpoint, e.g. tcp/0.0.0.0:7448 (repeatable; replaces the site's)")
     g.add_argument("--connect", action="append", metavar="ENDPOINT",
                    help="connect to this endpoint, e.g. tcp/10.0.0.2:7447 (repeatable; replaces the site's)")
+    g.add_argument("--tls-cert", metavar="PEM",
+                   help="this host's certificate (default: <camera id>.pem in the site's [zenoh.tls] certs folder)")
+    g.add_argument("--tls-key", metavar="PEM", help="this host's private key (default: <camera id>-key.pem beside it)")
 
     g = p.add_argument_group("logging")
     g.add_argument("--stats-period", type=float, default=10.0, metavar="S",
@@ -104,14 +108,13 @@ def main(argv: Sequence[str] | None = None) -> int:
                         format="%(asctime)s %(levelname)s %(name)s: %(message)s", stream=sys.stderr)
     _quiet_opencv()
     try:
-        settings, conf = _configure(args)
+        settings, conf, connect = _configure(args)
     except ValueError as exc:   # SiteError, TransportError and bad values carry their own clear message
         print(f"voxelwatch-camera: {exc}", file=sys.stderr)
         return 2
 
-    import zenoh
-
     from camera_worker.worker import run
+    from common.transport import TransportError, open_session, watch_links
 
     stop = threading.Event()
 
@@ -121,11 +124,16 @@ def main(argv: Sequence[str] | None = None) -> int:
 
     signal.signal(signal.SIGINT, _on_signal)
     signal.signal(signal.SIGTERM, _on_signal)
+    who = f"camera {settings.cam}"
     try:
-        session = zenoh.open(conf)
-    except Exception as exc:  # noqa: BLE001 - zenoh reports bad endpoints and busy ports as ZError
+        session = open_session(conf, stop, who=who, endpoints=connect, log=log)
+    except TransportError as exc:
         print(f"voxelwatch-camera: cannot open the zenoh session: {exc}", file=sys.stderr)
         return 2
+    if session is None:
+        log.info("%s: stopped before zenoh could be reached", who)
+        return 0
+    watch_links(session, stop, who=who, endpoints=connect, log=log)
     try:
         return run(session, settings, stop=stop)
     finally:
@@ -133,9 +141,10 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 def _configure(args: argparse.Namespace):
-    """``(WorkerSettings, zenoh.Config)`` from the arguments and the site file; ValueError on any problem."""
+    """``(WorkerSettings, a zenoh config factory, the endpoints it connects to)`` from the arguments
+    and the site file; ValueError on any problem."""
     from common.site import load_site
-    from common.transport import zenoh_config
+    from common.transport import site_config
     from camera_worker.worker import WorkerSettings
 
     site = load_site(args.site)
@@ -168,20 +177,25 @@ def _configure(args: argparse.Namespace):
                        detect_shadows=not args.no_shadows),
         max_frames=args.max_frames,
         stats_period_s=args.stats_period,
-        expected_size=tuple(spec.resolution),
+        expected_size=tuple(spec.resolution) if spec.resolution else None,
         modality=spec.modality,
     )
     # build the segmenter once here so that a bad value stops start-up with its name
     from camera_worker.segmenters import segmenter_for
 
     segmenter_for(settings.modality, **settings.segmenter)
-    conf = zenoh_config(site.zenoh, mode=args.mode, listen=args.listen, connect=args.connect)
-    return settings, conf
+    def conf():
+        return site_config(site, host=spec.id, mode=args.mode, listen=args.listen, connect=args.connect,
+                           tls_cert=args.tls_cert, tls_key=args.tls_key, connect_timeout_ms=1000)
+
+    conf()  # a bad endpoint or a missing certificate stops start-up here, with its name
+    connect = list(args.connect if args.connect is not None else site.zenoh.connect)
+    return settings, conf, connect
 
 
 def _from_site(site, spec: str) -> str:
     """A source spec from the site file, a relative path made absolute against the file's folder."""
-    if not spec or spec.isdigit() or spec.startswith(("synthetic", "/dev/")) or "://" in spec:
+    if not spec or spec.isdigit() or spec.startswith(("synthetic", "world:", "/dev/")) or "://" in spec:
         return spec
     return str(site.resolve(spec))
 

@@ -21,6 +21,7 @@ Spec strings (command line, site file), see :func:`open_source`::
     /dev/video0               camera device
     rtsp://host/stream        stream URL (rtsp, rtsps, http, https, udp, tcp, rtp, srt, rtmp)
     synthetic[:scenario]      the synthetic house (common.synth), this camera's view
+    world:SEED                this camera's view of the randomised world of SEED (common.synth.world)
 
 Every failure is a :class:`SourceError` whose message names the source and
 the problem (``video file /x/y.avi: not found``).
@@ -172,6 +173,35 @@ class VideoFileSource(FrameSource):
         self._index += 1
         return frame
 
+    @property
+    def n_frames(self) -> int | None:
+        """Frames in the file as its container states them (None when it does not)."""
+        if self._cap is None:
+            return None
+        n = self._cap.get(cv2.CAP_PROP_FRAME_COUNT)
+        return int(n) if n and np.isfinite(n) and n > 0 else None
+
+    def seek(self, index: int) -> None:
+        """Make frame ``index`` the next one read (past the end: the next read ends the file).
+
+        Tries the container's own seek, and checks where it landed; otherwise (or
+        when it cannot go back) reopens the file and skips frames without converting them."""
+        if self._cap is None:
+            raise SourceError(f"{self.name}: seek before open")
+        index = max(0, int(index))
+        if index == self._index:
+            return
+        if self._cap.set(cv2.CAP_PROP_POS_FRAMES, index) and int(self._cap.get(cv2.CAP_PROP_POS_FRAMES)) == index:
+            self._index = index
+            return
+        if index < self._index:
+            self._cap.release()
+            self._cap = cv2.VideoCapture(str(self.path))
+            self._index = 0
+        while self._index < index and self._cap.grab():
+            self._index += 1
+        self._index = index
+
     def close(self) -> None:
         if self._cap is not None:
             self._cap.release()
@@ -205,6 +235,10 @@ class ImageFolderSource(FrameSource):
     @property
     def n_frames(self) -> int:
         return len(self._files)
+
+    def seek(self, index: int) -> None:
+        """Make image ``index`` the next one read."""
+        self._index = max(0, int(index))
 
     def read(self) -> Frame | None:
         if self._index >= len(self._files):
@@ -285,7 +319,8 @@ class CaptureSource(FrameSource):
 
 
 class SyntheticSource(FrameSource):
-    """One camera of the synthetic house (``common.synth``); recorded stamps, true masks.
+    """One camera of the synthetic house (``common.synth``) or of a randomised world
+    (``world``: its seed); recorded stamps, true masks.
 
     ``background=True`` yields the clip of the empty room recorded before the
     scenario (``background_frame(i)``), for learning. ``n_frames`` caps either.
@@ -296,14 +331,17 @@ class SyntheticSource(FrameSource):
     live = False
 
     def __init__(self, cam_id: str, *, scenario: str | None = None, seed: int = 0, start_ns: int = 0,
-                 background: bool = False, n_frames: int | None = None, modality: str = "colour") -> None:
+                 background: bool = False, n_frames: int | None = None, world: int | None = None,
+                 fps: float | None = None, modality: str = "colour") -> None:
         self.cam_id = cam_id
         self.modality = modality
+        self._fps_override = _check_fps(fps)
         self.scenario = scenario
         self.seed = int(seed)
+        self.world = None if world is None else int(world)
         self.start_ns = int(start_ns)
         self.background = bool(background)
-        label = f"synthetic:{scenario}" if scenario else "synthetic"
+        label = f"world:{world}" if world is not None else f"synthetic:{scenario}" if scenario else "synthetic"
         self.name = f"{label} camera {cam_id}" + (" (empty room)" if background else "")
         self._n_frames = n_frames
         self._camera = None
@@ -315,12 +353,16 @@ class SyntheticSource(FrameSource):
         except ImportError as exc:
             raise SourceError(f"{self.name}: the synthetic house is not available ({exc})") from None
         try:
-            camera = SyntheticCamera(self.scenario, self.cam_id, self.seed, modality=self.modality) if self.scenario \
-                else SyntheticCamera(cam_id=self.cam_id, seed=self.seed, modality=self.modality)
+            if self.world is not None:
+                camera = _world_camera(self.world, self.cam_id, self.modality)
+            elif self.scenario:
+                camera = SyntheticCamera(self.scenario, self.cam_id, self.seed, modality=self.modality)
+            else:
+                camera = SyntheticCamera(cam_id=self.cam_id, seed=self.seed, modality=self.modality)
         except (KeyError, ValueError) as exc:
             raise SourceError(f"{self.name}: {exc}") from None
         self._camera = camera
-        self.fps = float(camera.fps)
+        self.fps = self._fps_override or float(camera.fps)  # faster: the same frames, played sooner
         self._index = 0
 
     @property
@@ -352,6 +394,19 @@ class SyntheticSource(FrameSource):
         return frame
 
 
+def _world_camera(seed: int, cam_id: str, modality: str = "colour"):
+    """The renderer of camera ``cam_id`` of the randomised world ``seed``, as its video worlds render
+    (a thermal or depth camera as a mixed rig's frames are written)."""
+    from common.synth.source import BACKGROUND_S, SyntheticCamera
+    from common.synth.world import random_world
+
+    world = random_world(seed)
+    if cam_id not in world.cameras:
+        raise ValueError(f"world {seed} has no camera {cam_id!r}; its cameras are {', '.join(world.cameras)}")
+    return SyntheticCamera(world.scenario, cam_id, world.seed, camera=world.cameras[cam_id],
+                           background_s=BACKGROUND_S, modality=modality)
+
+
 def describe_source(spec: int | str | Path) -> str:
     """How messages name a source spec: ``camera 0``, ``stream rtsp://...``, ``video file /x.avi``."""
     if isinstance(spec, int):
@@ -363,7 +418,7 @@ def describe_source(spec: int | str | Path) -> str:
         return f"camera {text}"
     if _URL_RE.match(text):
         return f"stream {_redact(text)}"
-    if text == "synthetic" or text.startswith("synthetic:"):
+    if text == "synthetic" or text.startswith(("synthetic:", "world:")):
         return text
     path = Path(text)
     if path.is_dir():
@@ -405,7 +460,13 @@ def open_source(
     if text == "synthetic" or text.startswith("synthetic:"):
         scenario = text.partition(":")[2] or None
         return SyntheticSource(cam_id, scenario=scenario, seed=seed, start_ns=start_ns, background=background,
-                               n_frames=n_frames, modality=modality)
+                               n_frames=n_frames, fps=fps, modality=modality)
+    if text.startswith("world:"):
+        seed_text = text.partition(":")[2]
+        if not seed_text.isdigit():
+            raise SourceError(f"{text}: a world source is 'world:SEED' with a non-negative integer seed")
+        return SyntheticSource(cam_id, world=int(seed_text), start_ns=start_ns, background=background,
+                               n_frames=n_frames, fps=fps, modality=modality)
     match = _URL_RE.match(text)
     if match:
         if match.group(1).lower() not in URL_SCHEMES:

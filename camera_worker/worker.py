@@ -149,7 +149,9 @@ class WorkerCounters:
     """What a worker has done since it started; ``state`` is ``ok``, ``degraded`` or ``stopped``.
 
     ``dropped``: frames captured but never segmented (newest-wins buffer
-    overwrote them). ``looks_answered``/``looks_expired``: look requests
+    overwrote them, or a paced recording fell behind the host clock).
+    ``skipped``: frames of a recording passed over to join a shared start
+    that was already past when the worker started. ``looks_answered``/``looks_expired``: look requests
     answered on a frame, or found older than their time to live;
     ``looks_rejected``: look messages dropped (broken, or for another camera).
     ``stage_s``: total seconds per stage; ``timed``: frames timed.
@@ -157,6 +159,7 @@ class WorkerCounters:
 
     read: int = 0
     dropped: int = 0
+    skipped: int = 0
     published: int = 0
     publish_errors: int = 0
     holds_accepted: int = 0
@@ -446,20 +449,39 @@ class _Loop:
 
     def _catch_up(self, frame: Frame) -> Frame | None:
         """On the host clock, a worker that fell behind drops the frames it is late
-        for (counted) instead of publishing ever older ones."""
+        for (counted) instead of publishing ever older ones. A worker started (or
+        restarted) after the shared start joins the shared lattice at the frame for
+        now instead of playing the recording from its first frame (``skipped``)."""
         period_ns = 1e9 / (self.source.fps or 15.0)
         behind = int((time.time_ns() - frame.stamp_ns) / period_ns)
-        if behind < 2:
+        if behind < 2 or getattr(self.source, "seek", None) is None:
             return frame
-        seek = getattr(self.source, "seek", None)
-        if seek is None:
-            return frame  # a file must be decoded in order anyway: publish late rather than decode twice
-        seek(frame.index + behind)
-        self.c.dropped += behind
-        nxt = self.source.read()
+        first = self.c.read == 1 and self.seq_offset == 0
+        target = self.seq_offset + frame.index + behind  # frame number on the shared lattice
+        if first:
+            self.c.skipped += behind
+            log.info("camera %s: %.1f s after the shared start: joining it at frame %d",
+                     self.s.cam, behind * period_ns / 1e9, target)
+        else:
+            self.c.dropped += behind
+        nxt = self._seek_lattice(target, period_ns)
         if nxt is not None:
             self.c.read += 1
+        elif not self.s.loop:
+            log.info("camera %s: the recording ended before now on the shared clock", self.s.cam)
         return nxt
+
+    def _seek_lattice(self, target: int, period_ns: float) -> Frame | None:
+        """Read frame ``target`` of the shared lattice: with ``loop``, lap ``target // n``
+        of an ``n``-frame recording, its stamps and sequence numbers carrying on."""
+        n = getattr(self.source, "n_frames", None)
+        index = target
+        if self.s.loop and n:
+            laps, index = divmod(target, n)
+            self.seq_offset = laps * n
+            self.source.start_ns = int(self.s.start_ns) + int(round(laps * n * period_ns))
+        self.source.seek(index)
+        return self.source.read()
 
     def _restart_recorded(self) -> Frame | None:
         """Play a recorded source again, its stamps and sequence numbers carrying on."""
@@ -579,7 +601,7 @@ def _learn_background(segmenter: Segmenter, settings: WorkerSettings, start_ns: 
 def _summary(c: WorkerCounters) -> str:
     ms = c.stage_ms()
     stages = ", ".join(f"{s} {ms[s]:.2f}" for s in STAGES)
-    return (f"state {c.state}, read {c.read}, dropped {c.dropped}, published {c.published}, "
+    return (f"state {c.state}, read {c.read}, skipped {c.skipped}, dropped {c.dropped}, published {c.published}, "
             f"holds {c.holds_accepted} (rejected {c.holds_rejected}), looks answered {c.looks_answered} "
             f"(expired {c.looks_expired}, rejected {c.looks_rejected}), source failures {c.source_failures}, "
             f"ms/frame: {stages}")

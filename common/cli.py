@@ -31,6 +31,8 @@ examples:
   voxelwatch bench                            speed and size of every stage on this machine
   voxelwatch site check deploy/site.toml      validate a site file and its calibrations
   voxelwatch router --listen tcp/0.0.0.0:7447  a zenoh router for client-mode hosts
+  voxelwatch certs --site deploy/site.toml    the site's authority and one TLS certificate per host
+  voxelwatch router --site deploy/site.toml   the router with the site's TLS and access control
   voxelwatch camera --help                    the camera worker (same as voxelwatch-camera)
   voxelwatch fusion --help                    the fusion server (same as voxelwatch-fusion)
 """
@@ -102,10 +104,12 @@ def _register_site(sub) -> None:
 
 def _site_check(args: argparse.Namespace) -> int:
     from common.site import load_site
+    from fusion_server.node import FusionSettings
 
-    site = load_site(args.path)
+    site = load_site(args.path)  # endpoints are checked here, as the processes check them
     cameras = site.load_cameras()
     residents = site.load_residents()
+    FusionSettings(site=site, prefix=site.prefix)  # what the fusion server refuses at start (min_cameras ...)
     print(f"site {site.name}: prefix {site.prefix}, volume {list(site.volume.min_m)} .. {list(site.volume.max_m)} m")
     for cam_id, cam in cameras.items():
         x, y, z = cam.center
@@ -116,7 +120,33 @@ def _site_check(args: argparse.Namespace) -> int:
           f"colours asked {site.identity.rate_hz:g} times a second; {site.residents} residents, {len(residents)} enrolled")
     for spec, resident in zip(site.enrolled, residents):
         print(f"  enrolled {resident.name}: {_model_summary(resident.model)} ({site.resolve(spec.model)})")
+    for line in _network_lines(site):
+        print(f"  {line}")
     return 0
+
+
+def _network_lines(site) -> list[str]:
+    """What the site's [zenoh] section means for security, with warnings for plain transport."""
+    from common.transport import plain_endpoints
+
+    z = site.zenoh
+    plain = plain_endpoints(z)
+    if z.tls is None:
+        return [f"zenoh: {z.mode} mode, {', '.join([*z.listen, *z.connect]) or 'no endpoints'}",
+                "WARNING: zenoh runs over plain TCP: anyone on the network can read tracks and events and publish "
+                "fake ones. Make certificates with 'voxelwatch certs' and add a [zenoh.tls] section "
+                "(README: Securing a home)."]
+    acl = "the router lets each host do only its part" if z.tls.access_control else "no access control"
+    lines = [f"zenoh: {z.mode} mode over TLS with mutual authentication (authority {site.resolve(z.tls.ca)}); {acl}; "
+             f"readers {', '.join(z.tls.readers)}"]
+    if plain:
+        lines.append(f"WARNING: endpoints without TLS: {', '.join(plain)}: use tls/HOST:PORT")
+    if z.mode == "peer":
+        lines.append("WARNING: peer mode: only a router enforces the access control; use mode = \"client\" "
+                     "and voxelwatch router --site on the fusion host")
+    if not site.resolve(z.tls.ca).is_file():
+        lines.append(f"WARNING: the authority {site.resolve(z.tls.ca)} is missing")
+    return lines
 
 
 def _model_summary(model) -> str:
@@ -130,7 +160,13 @@ def _model_summary(model) -> str:
 
 def _register_router(sub) -> None:
     p = sub.add_parser("router", help="run a zenoh router (for client-mode hosts)")
-    p.add_argument("--listen", action="append", default=None, help="endpoint to listen on (repeatable), default tcp/0.0.0.0:7447")
+    p.add_argument("--site", type=Path, default=None,
+                   help="the site TOML file: its [zenoh] settings, TLS and access control (default: plain TCP, no site)")
+    p.add_argument("--listen", action="append", default=None,
+                   help="endpoint to listen on (repeatable), default tcp/0.0.0.0:7447, or tls/0.0.0.0:7447 for a "
+                        "site with [zenoh.tls]")
+    p.add_argument("--tls-cert", type=Path, default=None, help="the router's certificate (default: router.pem in the site's certs folder)")
+    p.add_argument("--tls-key", type=Path, default=None, help="the router's private key (default: router-key.pem beside it)")
     p.add_argument("--multicast-scouting", action="store_true", help="answer multicast scouting")
     p.set_defaults(handler=_router)
 
@@ -141,18 +177,100 @@ def _router(args: argparse.Namespace) -> int:
 
     import zenoh
 
-    from common.site import ZenohSettings
-    from common.transport import zenoh_config
+    from common.certs import ROUTER
+    from common.site import ZenohSettings, load_site
+    from common.transport import short_error, site_config, zenoh_config
 
-    listen = args.listen or ["tcp/0.0.0.0:7447"]
-    conf = zenoh_config(ZenohSettings(multicast_scouting=bool(args.multicast_scouting)), mode="router", listen=listen)
+    if args.site is not None:
+        site = load_site(args.site)
+        if args.multicast_scouting:
+            site = site.model_copy(update={"zenoh": site.zenoh.model_copy(update={"multicast_scouting": True})})
+        secure = site.zenoh.tls is not None
+        listen = args.listen or [f"{'tls' if secure else 'tcp'}/0.0.0.0:7447"]
+        conf = site_config(site, host=ROUTER, mode="router", listen=listen, connect=[],
+                           tls_cert=args.tls_cert, tls_key=args.tls_key)
+        how = ("TLS, access control for " + ", ".join(site.camera_ids) if secure and site.zenoh.tls.access_control
+               else "TLS, no access control" if secure else "plain TCP: no authentication, no access control")
+    else:
+        if args.tls_cert or args.tls_key:
+            raise ValueError("--tls-cert/--tls-key need --site (its [zenoh.tls] section names the authority)")
+        listen = args.listen or ["tcp/0.0.0.0:7447"]
+        conf = zenoh_config(ZenohSettings(multicast_scouting=bool(args.multicast_scouting)), mode="router", listen=listen)
+        how = "plain TCP: no authentication, no access control"
     stop = threading.Event()
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
     signal.signal(signal.SIGINT, lambda *_: stop.set())
-    with zenoh.open(conf):
-        print(f"voxelwatch router listening on {', '.join(listen)}", flush=True)
+    try:
+        session = zenoh.open(conf)
+    except Exception as exc:  # noqa: BLE001 - zenoh reports a busy port or a bad certificate as ZError
+        print(f"voxelwatch router: cannot listen on {', '.join(listen)}: {short_error(exc)}", file=sys.stderr)
+        return 1
+    with session:
+        print(f"voxelwatch router listening on {', '.join(listen)} ({how})", flush=True)
         stop.wait()
     return 0
+
+
+def _register_certs(sub) -> None:
+    p = sub.add_parser("certs", help="make the site's certificate authority and one certificate per host (TLS)")
+    p.add_argument("--site", type=Path, required=True, help="the site TOML file (its name, cameras and readers)")
+    p.add_argument("--out", type=Path, default=None,
+                   help="folder to write into (default: the site's [zenoh.tls] certs folder, else certs/ beside the site file)")
+    p.add_argument("--reader", action="append", default=None, metavar="NAME",
+                   help="a reader's certificate (repeatable; default: the site's [zenoh.tls] readers, or 'reader')")
+    p.add_argument("--name", action="append", default=[], metavar="HOST=NAME[,NAME]",
+                   help="extra DNS names or addresses for a host's certificate (host: router, fusion, a camera id, a "
+                        "reader, or * for all), e.g. --name router=fusion.local --name cam1=192.168.1.21; the host "
+                        "names of the site's endpoints go to the router and fusion certificates by themselves")
+    p.add_argument("--days", type=int, default=3650, help="validity in days (default 3650)")
+    p.add_argument("--force", action="store_true", help="replace an existing authority (every host then needs its new files)")
+    p.add_argument("--reuse-ca", action="store_true",
+                   help="keep the existing authority and sign certificates for the hosts that have none yet")
+    p.set_defaults(handler=_certs)
+
+
+def _certs(args: argparse.Namespace) -> int:
+    from common.certs import FUSION, ROUTER, make_site_certs, where_to_copy
+    from common.site import load_site
+
+    site = load_site(args.site)
+    tls = site.zenoh.tls
+    out = args.out if args.out is not None else site.resolve(tls.certs or ".") if tls else site.base_dir / "certs"
+    readers = args.reader if args.reader is not None else (tls.readers if tls else ["reader"])
+    names: dict[str, list[str]] = {}
+    for host in _endpoint_hosts([*site.zenoh.connect, *site.zenoh.listen]):
+        for role in (ROUTER, FUSION):
+            names.setdefault(role, []).append(host)
+    for item in args.name:
+        host, sep, text = item.partition("=")
+        if not sep or not host or not text:
+            raise ValueError(f"--name {item!r}: expected HOST=NAME[,NAME], e.g. router=fusion.local")
+        names.setdefault(host.strip(), []).extend(n.strip() for n in text.split(",") if n.strip())
+    made = make_site_certs(out, site=site.name, cameras=site.camera_ids, readers=readers, names=names,
+                           force=args.force, reuse_ca=args.reuse_ca, days=args.days)
+    print(f"site {site.name}: {'the existing authority' if made.ca_reused else 'new authority'} "
+          f"{made.ca}; {len(made.hosts)} new host certificates in {made.folder} (keys mode 0600)")
+    print(f"keep {made.ca_key.name} off the network (it makes certificates); copy to each host only its own files:")
+    for line in where_to_copy(made):
+        print(f"  {line}")
+    unlisted = [r for r in readers if tls is not None and r not in tls.readers]
+    if unlisted:
+        print(f"the router lets only the site's readers read: add {', '.join(unlisted)} to [zenoh.tls] readers")
+    if tls is None:
+        print("then add to the site file:\n  [zenoh.tls]\n  ca = \"certs/ca.pem\"\n  certs = \"certs\"\n"
+              "and make every endpoint tls/ (e.g. connect = [\"tls/fusion.local:7447\"])")
+    return 0
+
+
+def _endpoint_hosts(endpoints) -> list[str]:
+    """Host names in zenoh endpoints (``tls/fusion.local:7447`` -> ``fusion.local``), wildcards left out."""
+    hosts = []
+    for endpoint in endpoints:
+        _, _, address = endpoint.partition("/")
+        host = address.split("#")[0].rsplit(":", 1)[0].strip("[]")
+        if host and host not in ("0.0.0.0", "::", "localhost", "127.0.0.1") and host not in hosts:
+            hosts.append(host)
+    return hosts
 
 
 def _register_synth(sub) -> None:
@@ -352,6 +470,9 @@ def _register_eval(sub) -> None:
                         "who carries its name")
     p.add_argument("--enrolled-person", type=int, default=1, metavar="ID",
                    help="with --enrolled: the house's person the file enrols (default 1)")
+    p.add_argument("--set", action="append", default=[], metavar="SECTION.KEY=VALUE", dest="settings",
+                   help="with --suite: change a site setting for every replay (repeatable), "
+                        "e.g. --set carving.fusion=graphcut")
     p.add_argument("--seed", type=int, default=0)
     p.set_defaults(handler=_eval)
 
@@ -365,7 +486,8 @@ def _eval(args: argparse.Namespace) -> int:
         if args.seeds is None:
             raise ValueError("--world random needs --seeds, e.g. --seeds 0-19 to tune or --seeds 1000-1049 to report")
         run_world_suite(seeds=parse_seeds(args.seeds), out_dir=args.out, jobs=args.jobs, frames=args.frames,
-                        json_path=args.json, keep_media=args.keep_media, sensors=args.sensors)
+                        json_path=args.json, keep_media=args.keep_media, settings=args.settings,
+                        sensors=args.sensors)
         return 0
     if args.sensors != "colour":
         raise ValueError("--sensors is for --suite --world random")
@@ -376,7 +498,7 @@ def _eval(args: argparse.Namespace) -> int:
             out_dir=args.out, scenarios=args.scenarios.split(",") if args.scenarios else None, quick=args.quick,
             camera_counts=[int(c) for c in args.cameras.split(",")], max_frames=args.frames, seed=args.seed,
             json_path=args.json, jobs=args.jobs, mask_scale=args.mask_scale, enrolled=args.enrolled,
-            enrolled_person=args.enrolled_person,
+            enrolled_person=args.enrolled_person, settings=args.settings,
         )
     if args.truth is None or args.run is None:
         raise ValueError("give --truth and --run, or --suite")
@@ -406,22 +528,36 @@ def _site_near(folder: Path):
 def _register_demo(sub) -> None:
     p = sub.add_parser("demo", help="the synthetic house as a distributed system on this machine (the default job)")
     p.add_argument("--scenario", default=None, help="scenario name (default: the demo scenario); voxelwatch synth --list shows them")
+    p.add_argument("--world", choices=["random"], default=None,
+                   help="instead of the house, the randomised world of --seed (its room, rig and people)")
     p.add_argument("--out", type=Path, default=Path("voxelwatch-demo"), help="output folder (default ./voxelwatch-demo)")
-    p.add_argument("--seed", type=int, default=0, help="random seed of the scenario")
+    p.add_argument("--seed", type=int, default=0, help="random seed of the scenario or the world")
     p.add_argument("--frames", type=int, default=None, help="run only the first N frames")
     p.add_argument("--port", type=int, default=None, help="loopback port of the demo's zenoh router (default: a free one)")
+    p.add_argument("--secure", action="store_true",
+                   help="TLS with mutual authentication and the site's access control (certificates made in OUT/certs)")
     p.set_defaults(handler=_demo)
 
 
 def _demo(args: argparse.Namespace) -> int:
     from common.demo import run_demo
 
-    return run_demo(scenario=args.scenario, out_dir=args.out, seed=args.seed, frames=args.frames, port=args.port)
+    if args.world and args.scenario:
+        print("voxelwatch demo: give --scenario or --world, not both", file=sys.stderr)
+        return 2
+    return run_demo(scenario=args.scenario, world=args.world, out_dir=args.out, seed=args.seed, frames=args.frames, port=args.port,
+                    secure=args.secure)
 
 
 def _register_bench(sub) -> None:
     p = sub.add_parser("bench", help="measure every stage's speed and size on this machine")
-    p.add_argument("--sections", default=None, help="comma-separated subset of: codec, worker, render, carving, tracking, pipeline, latency")
+    p.add_argument("--sections", default=None, help="comma-separated subset of: codec, worker, render, carving, tracking, pipeline, looks, latency; "
+                   "and soak (never by default: the demo system for --soak-minutes with processes killed and restarted)")
+    p.add_argument("--soak-minutes", type=float, default=30.0, help="soak: how long (default 30)")
+    p.add_argument("--soak-speed", type=float, default=4.0, help="soak: times real time (default 4)")
+    p.add_argument("--soak-kill-every", type=float, default=180.0, metavar="SECONDS",
+                   help="soak: kill and restart a camera worker this often (default 180); the fusion server once, half-way")
+    p.add_argument("--soak-out", type=Path, default=Path("voxelwatch-soak"), help="soak: output folder (default ./voxelwatch-soak)")
     p.add_argument("--quick", action="store_true", help="fewer frames and configurations (a minute or two)")
     p.add_argument("--json", type=Path, default=None, help="also write the figures as JSON here")
     p.set_defaults(handler=_bench)
@@ -430,13 +566,27 @@ def _register_bench(sub) -> None:
 def _bench(args: argparse.Namespace) -> int:
     from fusion_server.benchmark import SECTIONS, run_bench
 
-    sections = args.sections.split(",") if args.sections else SECTIONS
-    run_bench(sections=sections, quick=args.quick, json_path=args.json)
+    sections = [s.strip() for s in args.sections.split(",")] if args.sections else list(SECTIONS)
+    unknown = sorted(set(sections) - set(SECTIONS) - {"soak"})
+    if unknown:
+        raise ValueError(f"unknown bench sections {unknown}; sections are {[*SECTIONS, 'soak']}")
+    soak = None
+    if "soak" in sections:
+        from common.soak import run_soak
+
+        sections.remove("soak")
+        soak = run_soak(minutes=args.soak_minutes, speed=args.soak_speed, kill_every_s=args.soak_kill_every,
+                        out_dir=args.soak_out)
+    figures = run_bench(sections=sections, quick=args.quick, json_path=None if soak else args.json) if sections else {}
+    if soak is not None and args.json is not None:
+        args.json.parent.mkdir(parents=True, exist_ok=True)
+        args.json.write_text(json.dumps({**figures, "soak": soak}, indent=2, default=str) + "\n")
     return 0
 
 
 _SUBCOMMANDS: list[Callable] = [
     _register_demo,
     _register_bench,
-    _register_synth, _register_replay, _register_enrol, _register_eval, _register_site, _register_router, _register_passthrough,
+    _register_synth, _register_replay, _register_enrol, _register_eval, _register_site, _register_router, _register_certs,
+    _register_passthrough,
 ]

@@ -7,6 +7,12 @@ router the others connect to as clients, and it subscribes to the events and
 tracks like any user would. It prints events as they happen with a progress
 line, and ends with a summary, the tracks and events files, a score against
 the scenario's ground truth and an annotated plan view.
+
+With ``secure``, the demo makes the site's certificates in its output folder
+(``certs/``), writes a ``[zenoh.tls]`` section into the demo's site file, and
+every link is TLS with mutual authentication: the router enforces the site's
+access control, and the demo listens as a reader (its own client session with
+the reader certificate), never from inside the router.
 """
 
 from __future__ import annotations
@@ -23,8 +29,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TextIO
 
+from common.certs import ROUTER
 from common.runfiles import EVENTS_FILE, TRACKS_FILE
-from common.transport import free_port, zenoh_config
+from common.transport import free_port, site_config
 
 START_DELAY_S = 10.0
 """Workers' first frame is stamped this long after launch, so all start in step."""
@@ -48,41 +55,74 @@ class _Live:
 def run_demo(
     *,
     scenario: str | None = None,
+    world: str | None = None,
     out_dir: str | Path = "voxelwatch-demo",
     seed: int = 0,
     frames: int | None = None,
     port: int | None = None,
+    secure: bool = False,
     stream: TextIO = sys.stdout,
 ) -> int:
-    """Run the scenario end to end; returns the process exit code."""
+    """Run the scenario (or ``world="random"``: the randomised world of ``seed``, each worker
+    rendering its own camera of it) end to end; returns the process exit code."""
     import zenoh
 
     from common import keys, messages, synth
 
-    name = scenario or synth.DEFAULT_SCENARIO
-    spec = synth.scenario_spec(name)  # unknown names stop here with the list
     out = Path(out_dir).resolve()
     run_dir = out / "run"
     for stale in (TRACKS_FILE, EVENTS_FILE, "events.sqlite"):
         (run_dir / stale).unlink(missing_ok=True)
     run_dir.mkdir(parents=True, exist_ok=True)
-    site = synth.default_site(out / "site")
-    site_path = site.base_dir / "site.toml"
-    sc = synth.get_scenario(name, seed, utc_offset_hours=site.utc_offset_hours)
-    n_frames = sc.n_frames if frames is None else min(frames, sc.n_frames)
-    synth.write_truth(sc, out / "truth", n_frames=n_frames)
-    endpoint = f"tcp/127.0.0.1:{port or free_port()}"
-    conf = zenoh_config(mode="router", listen=[endpoint])
+    if world is None:
+        name = scenario or synth.DEFAULT_SCENARIO
+        spec = synth.scenario_spec(name)  # unknown names stop here with the list
+        site = synth.default_site(out / "site")
+        sc = synth.get_scenario(name, seed, utc_offset_hours=site.utc_offset_hours)
+        n_frames = sc.n_frames if frames is None else min(frames, sc.n_frames)
+        synth.write_truth(sc, out / "truth", n_frames=n_frames)
+        source = f"synthetic:{name}"
+        title = f"scenario {name!r} ({spec.description})"
+    else:
+        if world != "random":
+            raise ValueError(f"world must be 'random', got {world!r}")
+        if scenario is not None:
+            raise ValueError("give a scenario or a world, not both")
+        from common.site import load_site
+        from common.synth.world import random_world, write_world_site
 
-    print(f"voxelwatch demo: scenario {name!r} ({spec.description}), {n_frames / sc.fps:.0f} s, "
-          f"{len(site.camera_ids)} cameras, zenoh router {endpoint}", file=stream, flush=True)
+        made = random_world(seed)
+        sc = made.scenario
+        n_frames = sc.n_frames if frames is None else min(frames, sc.n_frames)
+        written = write_world_site(made, out / "site", frames=n_frames)
+        (out / "truth").mkdir(exist_ok=True)
+        for item in written.truth_dir.iterdir():
+            item.replace(out / "truth" / item.name)
+        written.truth_dir.rmdir()
+        site = load_site(written.site)
+        source = f"world:{seed}"
+        summary = made.summary()
+        title = f"random world {seed} ({summary['people']} people, {summary['rig_label']} rig)"
+    site_path = site.base_dir / "site.toml"
+    if secure:
+        site = _secure_site(site, out / "certs", site_path)
+        endpoint = f"tls/localhost:{port or free_port()}"
+    else:
+        endpoint = f"tcp/127.0.0.1:{port or free_port()}"
+    conf = site_config(site, host=ROUTER, mode="router", listen=[endpoint], connect=[])
+
+    print(f"voxelwatch demo: {title}, {n_frames / sc.fps:.0f} s, "
+          f"{len(site.camera_ids)} cameras, zenoh router {endpoint}"
+          f"{' (TLS, access control; certificates in ' + str(out / 'certs') + ')' if secure else ''}",
+          file=stream, flush=True)
     live = _Live()
     t_launch = time.monotonic()
     procs: dict[str, subprocess.Popen] = {}
     logs = out / "logs"
     logs.mkdir(exist_ok=True)
     zenoh_args = ["--mode", "client", "--connect", endpoint]
-    with zenoh.open(conf) as session:
+    with zenoh.open(conf) as router, _reader_session(site, endpoint, secure) as reader:
+        session = reader or router
         subs = [
             session.declare_subscriber(keys.events_wildcard(site.prefix), lambda s: _on_event(s, live, stream, t_launch, sc)),
             session.declare_subscriber(keys.tracks_key(site.prefix), lambda s: _on_tracks(s, live, t_launch)),
@@ -98,8 +138,8 @@ def run_demo(
             start_ns = time.time_ns() + int(START_DELAY_S * 1e9)
             for cam in site.camera_ids:
                 procs[cam] = _spawn(
-                    ["voxelwatch-camera", "--site", str(site_path), "--camera", cam, "--source", f"synthetic:{name}",
-                     "--background", f"synthetic:{name}", "--background-frames", str(BACKGROUND_FRAMES),
+                    ["voxelwatch-camera", "--site", str(site_path), "--camera", cam, "--source", source,
+                     "--background", source, "--background-frames", str(BACKGROUND_FRAMES),
                      "--seed", str(seed), "--start-ns", str(start_ns), "--max-frames", str(n_frames), "-q", *zenoh_args],
                     logs / f"{cam}.log",
                 )
@@ -112,6 +152,40 @@ def run_demo(
             for sub in subs:
                 sub.undeclare()
     return _summary(out, run_dir, live, procs, stream)
+
+
+# ---------------------------------------------------------------- a secured demo
+
+
+def _secure_site(site, certs_dir: Path, site_path: Path):
+    """The demo's site with TLS and access control, written back to ``site_path``; the
+    certificates (fresh ones each run) in ``certs_dir``."""
+    from common.certs import make_site_certs
+    from common.site import TlsSettings, load_site, write_site
+
+    make_site_certs(certs_dir, site=site.name, cameras=site.camera_ids, force=True)
+    tls = TlsSettings(ca=str(certs_dir / "ca.pem"), certs=str(certs_dir))
+    write_site(site.model_copy(update={"zenoh": site.zenoh.model_copy(update={"tls": tls})}), site_path)
+    return load_site(site_path)
+
+
+class _reader_session:
+    """With ``secure``, a client session with the reader certificate (``None`` otherwise), closed on exit."""
+
+    def __init__(self, site, endpoint: str, secure: bool) -> None:
+        self.conf = site_config(site, host="reader", mode="client", connect=[endpoint]) if secure else None
+        self.session = None
+
+    def __enter__(self):
+        import zenoh
+
+        if self.conf is not None:
+            self.session = zenoh.open(self.conf)
+        return self.session
+
+    def __exit__(self, *exc) -> None:
+        if self.session is not None:
+            self.session.close()
 
 
 # ---------------------------------------------------------------- callbacks (only record and print)

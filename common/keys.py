@@ -15,7 +15,7 @@ site may replace with any valid multi-chunk key (``care/home-12`` ...).
 | ``<p>/history/events``       | queryable        | ``messages.Event`` per reply    |
 | ``<p>/status``               | fusion -> users  | ``messages.Status``             |
 
-Who may do what (for a site's access control): camera ``<cam>`` publishes
+Who may do what (the site's access control, :mod:`common.access`): camera ``<cam>`` publishes
 ``<p>/cam/<cam>/mask`` and declares ``<p>/alive/cam/<cam>``, and subscribes
 to ``<p>/cam/<cam>/hold`` and ``<p>/cam/<cam>/look``; the fusion server
 subscribes to ``<p>/cam/*/mask`` and ``<p>/alive/**``, publishes

@@ -384,10 +384,13 @@ class CameraStatus(BaseModel):
 
     Counters run since the server started: ``received`` masks, ``dropped``
     (sequence gaps and overflow), ``late`` (missed their frame set),
-    ``undecodable``. ``rate_hz`` and ``latency_ms`` (capture to arrival,
-    after clock-offset correction) are recent averages; ``last_seen_ns`` is
-    0 before the first mask; ``clock_offset_ms`` is the estimated camera
-    clock minus server clock.
+    ``undecodable``. ``refused``: masks the server's time and sequence checks
+    turned away (stamped ahead of the server's clock, older than what it
+    already took from the camera, or repeating a sequence number; also
+    counted in ``late`` or ``dropped``). ``rate_hz`` and ``latency_ms``
+    (capture to arrival, after clock-offset correction) are recent averages;
+    ``last_seen_ns`` is 0 before the first mask; ``clock_offset_ms`` is the
+    estimated camera clock minus server clock.
     """
 
     model_config = _CONFIG
@@ -402,10 +405,17 @@ class CameraStatus(BaseModel):
     latency_ms: float
     last_seen_ns: StampNs
     clock_offset_ms: float
+    refused: NonNegInt = 0
 
 
 class Status(_Message):
-    """Periodic health report of the fusion server: cameras and frame-set counters."""
+    """Periodic health report of the fusion server: cameras and frame-set counters.
+
+    ``events_not_stored``: events the store could not write since the server
+    started (each was published anyway and kept in the store's fallback file);
+    ``events_pending``: those still waiting in the fallback file to be merged
+    back into the store.
+    """
 
     TYPE: ClassVar[str] = "status"
 
@@ -413,6 +423,8 @@ class Status(_Message):
     cameras: list[CameraStatus] = Field(max_length=MAX_CAMERAS)
     frame_sets: NonNegInt
     frame_sets_dropped: NonNegInt
+    events_not_stored: NonNegInt = 0
+    events_pending: NonNegInt = 0
 
     @model_validator(mode="after")
     def _unique(self) -> Status:

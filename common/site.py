@@ -21,6 +21,12 @@ Schema (all lengths in metres, world frame Z up, floor at Z = 0)::
     min_cameras = 2              # seeing cameras that must find foreground
     min_ratio = 0.75             # and the fraction of seeing cameras that must
     mask_scale = 1.0             # workers downscale masks by this factor
+    fusion = "vote"              # vote | graphcut: keep the voxels that pass the vote, or
+                                 # label them by a graph cut with a Potts smoothness prior
+    smoothing = 0.1              # the graph cut's Potts lambda (0..1): an isolated voxel goes, and a
+                                 # one-voxel hole fills, when 6 lambda exceeds its margin (one camera
+                                 # short of the vote or just enough: 1 / cameras seeing)
+    free_space = true            # depth cameras carve the space in front of what they measure
 
     [events]
     long_lie_s = 30.0            # on the floor this long after a fall: long_lie (5..3600)
@@ -41,6 +47,16 @@ Schema (all lengths in metres, world frame Z up, floor at Z = 0)::
     connect = []
     multicast_scouting = false
     shared_memory = false
+    config = ""                  # a zenoh JSON5 file applied first (zenoh's own settings)
+    [zenoh.settings]             # zenoh's own settings applied last, by path or as tables
+    "transport/link/tx/lease" = 10000
+
+    [zenoh.tls]                  # TLS with mutual authentication (voxelwatch certs makes the files)
+    ca = "certs/ca.pem"          # the site's certificate authority
+    certs = "certs"              # folder with this host's <host>.pem and <host>-key.pem
+                                 # (host: router, fusion, the camera id; --tls-cert/--tls-key override)
+    readers = ["reader"]         # reader certificates (reader-<name>) allowed to read
+    access_control = true        # the router lets each host do only its part (common/access.py)
 
     [[cameras]]
     id = "cam1"
@@ -76,6 +92,7 @@ from __future__ import annotations
 import json
 import math
 import tomllib
+from collections.abc import Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Literal
 
@@ -159,6 +176,9 @@ class Carving(_Model):
     min_cameras: int = Field(default=2, ge=1)
     min_ratio: float = Field(default=0.75, gt=0.0, le=1.0)
     mask_scale: float = Field(default=1.0, ge=0.125, le=1.0)
+    fusion: Literal["vote", "graphcut"] = "vote"
+    smoothing: float = Field(default=0.1, ge=0.0, le=1.0)
+    free_space: bool = Field(default=True, strict=True)
 
     @field_validator("voxel_sizes_m")
     @classmethod
@@ -223,6 +243,24 @@ def check_person_name(name: str) -> str:
     return name
 
 
+class TlsSettings(_Model):
+    """TLS with mutual authentication: every host shows a certificate of the site's authority."""
+
+    ca: str = Field(min_length=1)
+    certs: str = ""
+    readers: list[str] = Field(default_factory=lambda: ["reader"])
+    access_control: bool = True
+
+    @field_validator("readers")
+    @classmethod
+    def _readers_ok(cls, readers: list[str]) -> list[str]:
+        for name in readers:
+            keys.validate_chunk(name, "reader name")
+        if len(set(readers)) != len(readers):
+            raise ValueError(f"reader names must be unique, got {readers}")
+        return readers
+
+
 class ZenohSettings(_Model):
     """How this process joins the zenoh network."""
 
@@ -232,6 +270,11 @@ class ZenohSettings(_Model):
     connect: list[str] = Field(default_factory=list)
     multicast_scouting: bool = False
     shared_memory: bool = False
+    config: str = ""
+    """A zenoh JSON5 configuration file (relative to the site file), applied before everything else."""
+    settings: dict[str, Any] = Field(default_factory=dict)
+    """zenoh's own settings, ``"path/to/key" = value`` or nested tables, applied after everything else."""
+    tls: TlsSettings | None = None
 
     @field_validator("prefix")
     @classmethod
@@ -240,6 +283,15 @@ class ZenohSettings(_Model):
             for chunk in prefix.split("/"):
                 keys.validate_chunk(chunk, "zenoh prefix")
         return prefix
+
+    @field_validator("listen", "connect")
+    @classmethod
+    def _endpoints_ok(cls, endpoints: list[str], info) -> list[str]:
+        from common.transport import check_endpoint  # the transport's own rule, checked at load
+
+        for endpoint in endpoints:
+            check_endpoint(endpoint, listen=info.field_name == "listen")
+        return endpoints
 
 
 class CameraSpec(_Model):
@@ -442,6 +494,27 @@ def site_from_dict(raw: dict[str, Any], *, base_dir: Path, source: str = "<site>
         raise SiteError(f"site file {source}: field {field}: {_problem(err)}{more}") from None
 
 
+def with_settings(site: Site, settings: Sequence[str]) -> Site:
+    """``site`` with ``SECTION.KEY=VALUE`` settings changed (VALUE read as a TOML value, else as
+    text), validated like the file: :class:`SiteError` naming the setting otherwise. For comparing
+    options on the same sites (``voxelwatch eval --suite --set carving.fusion=graphcut``)."""
+    data = site.model_dump(mode="json", exclude={"base_dir", "source"})
+    for item in settings:
+        name, sep, text = str(item).partition("=")
+        section, dot, key = name.strip().partition(".")
+        if not sep or not dot or not section or not key:
+            raise SiteError(f"setting {item!r}: expected SECTION.KEY=VALUE, e.g. carving.fusion=graphcut")
+        if not isinstance(data.get(section), dict):
+            tables = ", ".join(k for k, v in data.items() if isinstance(v, dict))
+            raise SiteError(f"setting {item!r}: no section [{section}] (sections: {tables})")
+        try:
+            value = tomllib.loads(f"v = {text.strip()}")["v"]
+        except tomllib.TOMLDecodeError:
+            value = text.strip()
+        data[section][key.strip()] = value
+    return site_from_dict(data, base_dir=site.base_dir, source=f"{site.source} with {', '.join(settings)}")
+
+
 def site_to_toml(site: Site) -> str:
     """The site as TOML text that :func:`load_site` reads back unchanged."""
     data = site.model_dump(mode="json", exclude={"base_dir"})
@@ -483,6 +556,8 @@ def _toml_value(value: Any) -> str:
         return f'"{escaped}"'
     if isinstance(value, (list, tuple)):
         return "[" + ", ".join(_toml_value(v) for v in value) + "]"
+    if isinstance(value, dict):  # an inline table ([zenoh] settings and tls)
+        return "{" + ", ".join(f"{_toml_value(str(k))} = {_toml_value(v)}" for k, v in value.items() if v is not None) + "}"
     raise TypeError(f"cannot write {type(value).__name__} to TOML")
 
 

@@ -38,10 +38,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--listen", action="append", default=None, help="zenoh endpoint to listen on (repeatable), overrides the site")
     p.add_argument("--connect", action="append", default=None, help="zenoh endpoint to connect to (repeatable), overrides the site")
     p.add_argument("--mode", choices=["peer", "client"], default=None, help="zenoh mode, overrides the site")
+    p.add_argument("--tls-cert", type=Path, default=None, help="this host's certificate (default: fusion.pem in the site's [zenoh.tls] certs folder)")
+    p.add_argument("--tls-key", type=Path, default=None, help="this host's private key (default: fusion-key.pem beside it)")
     p.add_argument("--cache-dir", type=Path, default=None, help="where carving lookup tables are cached (default ~/.cache/voxelwatch)")
     p.add_argument("--min-cameras", type=int, default=None, help="fewest cameras a frame set needs to be fused (default: the carving vote's min_cameras)")
     p.add_argument("--exit-after-idle", type=float, default=None, metavar="SECONDS", help="stop when no mask has arrived for this long (for replays and tests)")
     p.add_argument("--max-clock-skew-ms", type=float, default=None, metavar="MS", help="mark a camera skewed when its stamps run this far from the server's clock (default 250)")
+    p.add_argument("--free-timeline", action="store_true", help="let the frame-set timeline follow the cameras' stamps instead of this host's clock (recordings played faster than real time, e.g. workers run with --fast)")
     p.add_argument("-v", "--verbose", action="store_true", help="log debug messages")
     return p
 
@@ -72,7 +75,9 @@ def settings_from_args(args: argparse.Namespace) -> "FusionSettings":
             site=site, prefix=prefix, store_path=Path(store), out_dir=args.out, mode=args.mode,
             listen=tuple(args.listen) if args.listen is not None else None,
             connect=tuple(args.connect) if args.connect is not None else None,
-            cache_dir=args.cache_dir, min_cameras=args.min_cameras, exit_after_idle_s=args.exit_after_idle, **extra,
+            tls_cert=args.tls_cert, tls_key=args.tls_key,
+            cache_dir=args.cache_dir, min_cameras=args.min_cameras, exit_after_idle_s=args.exit_after_idle,
+            free_timeline=bool(args.free_timeline), **extra,
         )
     except ValueError as exc:
         text = str(exc)

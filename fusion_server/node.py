@@ -25,9 +25,12 @@ What the node does:
 * **fusing** (:meth:`~FusionNode.tick`, one ready set per call): the tracks of
   the frame as one :class:`~common.messages.TrackFrame` (non-finite tracks left
   out), each event first added to the event store (committed; an event whose
-  id is already stored is neither published nor written again), then queued
-  for ``<p>/events/<kind>/<track>`` as JSON text and written to
-  ``events.jsonl`` when files are kept. A frame set the pipeline fails on is
+  id is already stored is neither published nor written again; one the
+  store cannot write is still published -- an alarm must go out -- logged,
+  counted as ``events_not_stored`` in the status and kept in the store's
+  fallback file, ``events_pending`` until merged), then queued for
+  ``<p>/events/<kind>/<track>`` as JSON text and written to ``events.jsonl``
+  when files are kept. A frame set the pipeline fails on is
   counted and logged; the next one is fused as usual.
 * **holds**: per camera, :class:`~common.messages.HoldRegions` whenever the
   boxes change (by more than ``hold_slack_px`` on some side, or in number) and
@@ -37,24 +40,41 @@ What the node does:
 * **liveliness** (:meth:`~FusionNode.on_liveliness`): a camera whose token goes
   away is ``lost`` (a ``camera_lost`` event) and ``camera_back`` when it
   returns; the synchroniser goes on releasing sets without it.
+* **time** belongs to the server: a mask stamped more than
+  ``max_clock_skew_ms`` ahead of its arrival on the server's clock never
+  reaches the frame sets (counted ``future``, in ``late`` and ``refused``);
+  its camera is ``skewed`` at once and stays so while its masks are refused.
+  A mask stamped no later than the camera's newest mask taken (a replay, or a
+  worker replaying a recording from its start) is refused as ``replayed``, one
+  repeating the newest mask's sequence number as ``repeated`` (both in
+  ``dropped`` and ``refused``; the camera reads ``degraded`` meanwhile,
+  except for a second delivery of its newest mask itself).
+  Refused masks never become a camera's newest. A sequence gap counts at most
+  the frame periods between the two stamps as lost. With ``free_timeline``
+  (recordings played faster than real time) the server's clock is not
+  checked and the timeline follows the stamps.
 * **clock skew**: per camera, the median of ``stamp_ns - receive time`` over
-  the last ``skew_window`` masks; beyond ``max_clock_skew_ms`` the camera is
-  ``skewed`` in the status and one ``clock_skew`` event is emitted; the mark
-  clears once the median is back under 80 % of the threshold. Apart from
-  that, a mask whose ``stamp_ns - receive time`` runs more than
-  ``max_clock_skew_ms`` ahead of the other live cameras' newest masks is left
-  out of the frame sets (counted ``late``, logged): one camera with a fast
-  clock would otherwise push the synchroniser ahead and make every other
-  camera's masks look stale.
+  the last ``skew_window`` masks (refused future ones included); beyond
+  ``max_clock_skew_ms`` the camera is ``skewed`` in the status; the mark
+  clears once the median is back under 80 % of the threshold. A camera
+  turning skewed emits a ``clock_skew`` event (at most one a minute per
+  camera). A camera whose clock lags is left out by the synchroniser (its
+  masks are stale). With ``free_timeline``, where the server's clock is not
+  the reference, a mask whose ``stamp_ns - receive time`` runs more than
+  ``max_clock_skew_ms`` ahead of the other live cameras' newest masks is
+  left out of the frame sets instead (counted ``late``, logged): one camera
+  with a fast clock would otherwise push the synchroniser ahead and make
+  every other camera's masks look stale.
 * **status** every ``status_period_s`` (:meth:`~FusionNode.status`).
 * **history** (:func:`history_replies`): the replies to one query on
   ``<p>/history/events/**``.
 
 Per-camera counters in the status: ``received`` (masks that decoded),
 ``undecodable``, ``dropped`` (sequence gaps -- frames the camera, the network
-or the server's inbox lost -- plus duplicates, superseded frames and
-synchroniser overflow), ``late`` (out of order, stale, off the frame lattice,
-or stamped ahead of the other cameras), ``rate_hz`` (masks per second over the
+or the server's inbox lost -- plus duplicates, replays, repeated numbers,
+superseded frames and synchroniser overflow), ``late`` (out of order, stale,
+off the frame lattice, stamped ahead of the server's clock or of the other
+cameras), ``refused`` (future, replayed and repeated masks), ``rate_hz`` (masks per second over the
 last two seconds), ``latency_ms`` (mean receive time minus capture stamp; on
 one host this is the transport and worker latency, across hosts it includes
 the clock offset), ``clock_offset_ms`` (median capture stamp minus receive
@@ -93,6 +113,7 @@ log = logging.getLogger("voxelwatch.fusion")
 
 _SYNC_DROPS = ("duplicate", "superseded", "dropped_overflow")
 _SYNC_LATE = ("out_of_order", "stale", "unmatched")
+_SKEW_EVENT_EVERY_S = 60.0
 
 
 @dataclass(frozen=True)
@@ -103,10 +124,15 @@ class FusionSettings:
     SQLite event store (the live server needs one; the offline replay stores
     nothing). out_dir: where tracks.csv/events.jsonl go (None: no files).
     mode/listen/connect: zenoh overrides of the site (None: the site's).
+    tls_cert/tls_key: this host's certificate and key (None: ``fusion.pem`` and
+    ``fusion-key.pem`` in the site's ``[zenoh.tls] certs`` folder).
     cache_dir: carving lookup-table cache (None: the carver's default).
     min_cameras: fewest cameras a frame set needs (None: the
     site's carving vote). exit_after_idle_s: stop after this long without
-    masks (None: never). inbox_per_camera and history_queue size the
+    masks (None: never). free_timeline: let the frame-set timeline follow the
+    cameras' stamps instead of the server's clock, for recordings played over
+    zenoh faster than real time (a camera ahead of the others is still left
+    out, but the cameras' clocks are trusted). inbox_per_camera and history_queue size the
     process's queues; the rest tune the node (see the module doc).
     """
 
@@ -117,6 +143,8 @@ class FusionSettings:
     mode: str | None = None
     listen: tuple[str, ...] | None = None
     connect: tuple[str, ...] | None = None
+    tls_cert: Path | None = None
+    tls_key: Path | None = None
     cache_dir: Path | None = None
     min_cameras: int | None = None
     exit_after_idle_s: float | None = None
@@ -125,6 +153,7 @@ class FusionSettings:
     hold_ttl_ms: int = 2000
     hold_slack_px: int = 2
     max_clock_skew_ms: float = 250.0
+    free_timeline: bool = False
     skew_window: int = 30
     inbox_per_camera: int = 32
     max_ready_sets: int = 4
@@ -138,6 +167,9 @@ class FusionSettings:
         n_cams = len(self.site.cameras)
         if self.min_cameras is not None and (isinstance(self.min_cameras, bool) or not 1 <= self.min_cameras <= n_cams):
             raise ValueError(f"min_cameras must be an int in 1..{n_cams} (the site's cameras), got {self.min_cameras!r}")
+        if self.min_cameras is None and self.site.carving.min_cameras > n_cams:
+            raise ValueError(f"site file {self.site.source}: field carving.min_cameras: {self.site.carving.min_cameras} "
+                             f"exceeds the site's {n_cams} cameras: nothing could ever be carved")
         if self.exit_after_idle_s is not None and not (math.isfinite(self.exit_after_idle_s) and self.exit_after_idle_s > 0):
             raise ValueError(f"exit_after_idle_s must be a positive number of seconds, got {self.exit_after_idle_s!r}")
         for name in ("status_period_s", "max_clock_skew_ms", "stale_s", "log_every_s"):
@@ -204,7 +236,14 @@ class _CameraHealth:
     undecodable: int = 0
     seq_gaps: int = 0
     ahead: int = 0
+    future: int = 0
+    replayed: int = 0
+    repeated: int = 0
     last_seq: int | None = None
+    newest_stamp_ns: int | None = None  # of the newest mask taken (refused masks never count)
+    last_offset_ms: float | None = None  # stamp - receive time of that mask
+    refusing: bool = False  # its masks are stamped ahead of the server's clock
+    skew_event_mono: float | None = None
     last_seen_ns: int = 0
     last_mono: float | None = None
     last_bad_mono: float | None = None
@@ -219,16 +258,30 @@ class _CameraHealth:
         self.latency_ms = deque(maxlen=self.window)
         self.offset_ms = deque(maxlen=self.window)
 
-    def on_mask(self, seq: int, stamp_ns: int, recv_ns: int, mono: float) -> None:
+    def seen(self, recv_ns: int, mono: float) -> None:
+        """A mask that decoded arrived (taken or refused: either way a sign of life)."""
         self.received += 1
-        if self.last_seq is not None and seq > self.last_seq + 1:
-            self.seq_gaps += seq - self.last_seq - 1
-        self.last_seq = seq  # a restarted worker starts again from 0: no gap is counted
         self.last_seen_ns = recv_ns
         self.last_mono = mono
         self.arrivals.append(mono)
+
+    def take(self, seq: int, stamp_ns: int, recv_ns: int, period_ns: float) -> None:
+        """A mask passed the time and sequence checks: it becomes the camera's newest."""
+        if self.last_seq is not None and seq > self.last_seq + 1:
+            # frames lost cannot outnumber the frame periods between the two stamps: a forged
+            # or corrupted number far ahead is a renumbering, not millions of drops
+            elapsed_ns = stamp_ns - self.newest_stamp_ns if self.newest_stamp_ns is not None else 0
+            possible = max(0, int(round(elapsed_ns / period_ns)) - 1)
+            self.seq_gaps += min(seq - self.last_seq - 1, possible)
+        self.last_seq = seq  # a restarted worker starts again from 0: no gap is counted
+        self.newest_stamp_ns = stamp_ns
+        self.last_offset_ms = (stamp_ns - recv_ns) / 1e6
         self.latency_ms.append((recv_ns - stamp_ns) / 1e6)
-        self.offset_ms.append((stamp_ns - recv_ns) / 1e6)
+        self.offset_ms.append(self.last_offset_ms)
+
+    @property
+    def refused(self) -> int:
+        return self.future + self.replayed + self.repeated
 
     def rate_hz(self, mono: float, span_s: float = 2.0) -> float:
         recent = [t for t in self.arrivals if mono - t <= span_s]
@@ -246,7 +299,7 @@ class _CameraHealth:
         recent = self.recent(mono, stale_s)
         if self.lost or (self.token is not True and not recent):
             return "lost"
-        if self.skewed:
+        if self.skewed or self.refusing:
             return "skewed"
         if not recent or (self.last_bad_mono is not None and mono - self.last_bad_mono <= stale_s):
             return "degraded"
@@ -292,7 +345,12 @@ class FusionNode:
 
     def on_mask(self, key: str, data: bytes | int, recv_ns: int, mono: float) -> None:
         """One mask sample: its key, its payload (or its size when it was too large to copy),
-        the server's wall-clock time and monotonic time of its arrival."""
+        the server's wall-clock time and monotonic time of its arrival.
+
+        Before a mask reaches the frame sets it passes the server's time and
+        sequence checks (see the module doc): stamped no more than
+        ``max_clock_skew_ms`` ahead of ``recv_ns``, newer than the camera's
+        newest mask taken, and not repeating its sequence number."""
         self.last_mask_mono = mono
         try:
             cam = keys.camera_of(key, self.prefix)
@@ -317,9 +375,14 @@ class FusionNode:
             health.last_bad_mono = mono
             self.rlog.warn(f"camera {cam}", type(exc).__name__, f"undecodable mask dropped: {exc}", mono)
             return
-        health.on_mask(msg.seq, msg.stamp_ns, recv_ns, mono)
-        self._check_skew(health, recv_ns)
-        lead_ms = self._lead_ms(health, mono)
+        health.seen(recv_ns, mono)
+        if not self._admit(health, msg, recv_ns, mono):
+            self._check_skew(health, recv_ns, mono)
+            return
+        self._check_skew(health, recv_ns, mono)
+        # with the server's clock as the reference a fast camera was refused above; comparing with
+        # the other cameras would make a camera whose clock lags push the right ones out
+        lead_ms = self._lead_ms(health, mono) if self.s.free_timeline else None
         if lead_ms is not None and lead_ms > self.s.max_clock_skew_ms:
             health.ahead += 1
             self.rlog.warn(f"camera {cam}", "ahead", f"mask {msg.seq} is stamped {lead_ms:.0f} ms ahead of the "
@@ -358,6 +421,45 @@ class FusionNode:
             self._emit(camera_event("camera_back", cam, *self._event_time(now_ns)))
         elif present and had_token is None:
             log.info("camera %s is alive", cam)
+
+    def _admit(self, health: _CameraHealth, msg: MaskFrame, recv_ns: int, mono: float) -> bool:
+        """The time and sequence checks; True when the mask may go on to the frame sets."""
+        cam = health.cam
+        lead_ns = msg.stamp_ns - recv_ns
+        if not self.s.free_timeline and lead_ns > self.s.max_clock_skew_ms * 1e6:
+            # time belongs to the server: a mask from the future never moves the frame-set timeline
+            health.future += 1
+            health.offset_ms.append(lead_ns / 1e6)
+            if not health.refusing:
+                health.refusing = True
+                log.warning("camera %s: mask %d is stamped %.0f ms ahead of the server's clock (limit %.0f ms): "
+                            "its masks are refused until its clock is back", cam, msg.seq, lead_ns / 1e6,
+                            self.s.max_clock_skew_ms)
+                self._skew_event(health, lead_ns / 1e6, recv_ns, mono)
+            else:
+                self.rlog.warn(f"camera {cam}", "future", f"mask {msg.seq} stamped {lead_ns / 1e6:.0f} ms ahead "
+                               "of the server's clock: refused", mono)
+            return False
+        if health.newest_stamp_ns is not None and msg.stamp_ns <= health.newest_stamp_ns:
+            health.replayed += 1
+            if (msg.seq, msg.stamp_ns) == (health.last_seq, health.newest_stamp_ns):
+                return False  # the newest mask delivered twice (two network paths): harmless
+            health.last_bad_mono = mono
+            self.rlog.warn(f"camera {cam}", "replayed", f"mask {msg.seq} is stamped {msg.stamp_ns} ns, not after "
+                           f"the camera's newest mask ({health.newest_stamp_ns} ns): refused as a replay", mono)
+            return False
+        if msg.seq == health.last_seq:
+            health.repeated += 1
+            health.last_bad_mono = mono
+            self.rlog.warn(f"camera {cam}", "repeated", f"mask {msg.seq} repeats the sequence number of the "
+                           "camera's newest mask: refused", mono)
+            return False
+        if health.refusing:
+            health.refusing = False
+            log.info("camera %s: masks stamped in step with the server's clock again (%.0f ms ahead)",
+                     cam, lead_ns / 1e6)
+        health.take(msg.seq, msg.stamp_ns, recv_ns, self.sync.period_ns)
+        return True
 
     # ------------------------------------------------------------------ time
 
@@ -485,7 +587,7 @@ class FusionNode:
                 if not self.store.add(rec):
                     log.debug("event %s is already stored: not published again", rec.id)
                     return
-            except ValueError as exc:
+            except ValueError as exc:  # EventNotStored: in the store's fallback file if it could be written
                 self.c.events_not_stored += 1
                 log.error("event %s could not be stored (publishing it anyway): %s", rec.id, exc)
         self.c.events += 1
@@ -520,11 +622,11 @@ class FusionNode:
         masks (newest against newest, so that recordings played faster than real time, where
         every camera's stamps run ahead alike, compare equal). None when no other camera has
         sent masks lately."""
-        others = [h.offset_ms[-1] for h in self.health.values()
-                  if h is not health and not h.lost and h.offset_ms and h.recent(mono, self.s.stale_s)]
-        if not others or not health.offset_ms:
+        others = [h.last_offset_ms for h in self.health.values()
+                  if h is not health and not h.lost and h.last_offset_ms is not None and h.recent(mono, self.s.stale_s)]
+        if not others or health.last_offset_ms is None:
             return None
-        return health.offset_ms[-1] - statistics.median(others)
+        return health.last_offset_ms - statistics.median(others)
 
     def _check_shape(self, msg: MaskFrame) -> None:
         cam = self.cameras.get(msg.cam)
@@ -535,7 +637,7 @@ class FusionNode:
             raise _Shape(f"MaskFrame: a {msg.width}x{msg.height} mask does not have the {cam.width}x{cam.height} "
                          f"aspect of camera {msg.cam!r}")
 
-    def _check_skew(self, health: _CameraHealth, now_ns: int) -> None:
+    def _check_skew(self, health: _CameraHealth, now_ns: int, mono: float) -> None:
         if len(health.offset_ms) < min(10, health.offset_ms.maxlen):
             return
         offset = health.median_offset_ms()
@@ -544,11 +646,19 @@ class FusionNode:
             health.skewed = True
             log.warning("camera %s: clock off by %.0f ms (median of its last %d masks; limit %.0f ms)",
                         health.cam, offset, len(health.offset_ms), limit)
-            self._emit(camera_event("clock_skew", health.cam, *self._event_time(now_ns),
-                                    offset_ms=round(offset, 1), max_ms=float(limit)))
+            self._skew_event(health, offset, now_ns, mono)
         elif health.skewed and abs(offset) < 0.8 * limit:
             health.skewed = False
             log.info("camera %s: clock back in step (offset %.0f ms)", health.cam, offset)
+
+    def _skew_event(self, health: _CameraHealth, offset_ms: float, now_ns: int, mono: float) -> None:
+        """One ``clock_skew`` event, at most one per camera every ``_SKEW_EVENT_EVERY_S``."""
+        if health.skew_event_mono is not None and mono - health.skew_event_mono < _SKEW_EVENT_EVERY_S:
+            return
+        health.skew_event_mono = mono
+        self._emit(camera_event("clock_skew", health.cam, *self._event_time(now_ns),
+                                offset_ms=round(max(-1e12, min(1e12, offset_ms)), 1),
+                                max_ms=float(self.s.max_clock_skew_ms)))
 
     # ------------------------------------------------------------------ status
 
@@ -563,16 +673,18 @@ class FusionNode:
                 cam=cam,
                 state=h.state(mono, self.s.stale_s),
                 received=h.received,
-                dropped=h.seq_gaps + sum(sc[k] for k in _SYNC_DROPS),
-                late=sum(sc[k] for k in _SYNC_LATE) + h.ahead,
+                dropped=h.seq_gaps + sum(sc[k] for k in _SYNC_DROPS) + h.replayed + h.repeated,
+                late=sum(sc[k] for k in _SYNC_LATE) + h.ahead + h.future,
                 undecodable=h.undecodable,
                 rate_hz=float(h.rate_hz(mono)),
                 latency_ms=float(statistics.fmean(h.latency_ms)) if h.latency_ms else 0.0,
                 last_seen_ns=h.last_seen_ns,
                 clock_offset_ms=float(offset) if offset is not None else 0.0,
+                refused=h.refused,
             ))
         return Status(stamp_ns=int(now_ns), cameras=cams, frame_sets=self.c.frames_fused,
-                      frame_sets_dropped=self.c.frame_sets_dropped)
+                      frame_sets_dropped=self.c.frame_sets_dropped, events_not_stored=self.c.events_not_stored,
+                      events_pending=self.store.pending if self.store is not None else 0)
 
     def _queue_status(self, now_ns: int, mono: float) -> None:
         try:
@@ -583,7 +695,7 @@ class FusionNode:
     def summary(self, now_ns: int, mono: float) -> str:
         """One line of what the node has done, for the log at exit."""
         c = self.c
-        parts = [f"{c.frames_fused} frames fused", f"{c.events} events",
+        parts = [f"{c.frames_fused} frames fused", f"{c.events} events", f"{c.events_not_stored} not stored",
                  f"{c.frame_sets_dropped} frame sets dropped (slow)", f"{c.frame_sets_too_few} with too few cameras",
                  f"{c.inbox_dropped} masks dropped on arrival", f"{c.unknown_camera} from unknown cameras",
                  f"{c.pipeline_errors} fusion errors", f"{c.queries} history queries"]

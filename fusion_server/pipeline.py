@@ -148,7 +148,7 @@ class FusionPipeline:
         )
 
     def step(self, masks: Mapping[str, np.ndarray], stamp_ns: int, frame: int,
-             looks: Mapping[str, Iterable[Appearance]] | None = None, *,
+             looks: Mapping[str, Iterable[Appearance]] | None = None,
              depths: Mapping[str, np.ndarray] | None = None) -> FusedFrame:
         """Fuse one frame set.
 
@@ -156,11 +156,10 @@ class FusionPipeline:
             at full or downscaled resolution; absent cameras do not vote.
         stamp_ns: the frame set's capture time. frame: its frame number.
         looks: camera id -> the colour descriptors that came with its mask.
-        depths: depth cameras' foreground range, camera id -> (H, W) uint16
-            millimetres of range at the mask's size, 0 = none (accepted; the
-            carving does not use it yet).
+        depths: camera id -> (H, W) uint16 range image, millimetres, at its mask's size,
+            from depth cameras (0 = no measurement): carves free space in front of people.
         """
-        carve = self.carver.carve(masks, stamp_ns)
+        carve = self.carver.carve(masks, stamp_ns, depths=depths)
         blobs = self.detect_people(carve, masks)
         bodies = self.tracker.step(carve, blobs, stamp_ns)
         estimates = self.label(bodies, looks or {}, stamp_ns)
@@ -292,6 +291,9 @@ def build_carver(site: Site, cameras: Mapping[str, Camera], *, cache_dir: str | 
         min_cameras=carving.min_cameras,
         min_ratio=carving.min_ratio,
         mask_scale=carving.mask_scale,
+        fusion=carving.fusion,
+        smoothing=carving.smoothing,
+        free_space=carving.free_space,
         occluders=[Occluder(name=o.name, polygon_m=tuple(o.polygon_m), z_min_m=o.z_m[0], z_max_m=o.z_m[1])
                    for o in site.occluders],
         **kwargs,

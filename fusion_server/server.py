@@ -56,21 +56,32 @@ DEFAULT_STORE_NAME = "voxelwatch-events.sqlite"
 """The event store's file name next to the site file when ``--store`` is not given."""
 
 _EVENT_PUBLISHERS = 32
+_MAX_ERROR = 400
 
 
 def run_forever(settings: FusionSettings) -> int:
     """Build the pipeline, open the zenoh session and :func:`run` until stopped.
 
-    Returns the exit code: 0 after a stop (signal or idle), 1 when the zenoh
-    session cannot be opened, 2 when the calibrations, zenoh settings, event
-    store or output folder are unusable (the reason is logged).
+    Returns the exit code: 0 after a stop (signal or idle, also while still
+    waiting for zenoh: an unreachable router is logged once and retried with
+    back-off), 1 when the zenoh session cannot be opened (a port that cannot
+    be listened on), 2 when the calibrations, zenoh settings, event store or
+    output folder are unusable (the reason is logged).
     """
-    from common.transport import zenoh_config
+    from common.certs import FUSION
+    from common.transport import TransportError, open_session, site_config, watch_links
+
+    z = settings.site.zenoh
+    connect = list(settings.connect if settings.connect is not None else z.connect)
+
+    def make_config():
+        return site_config(settings.site, host=FUSION, mode=settings.mode, listen=settings.listen,
+                           connect=settings.connect, tls_cert=settings.tls_cert, tls_key=settings.tls_key,
+                           connect_timeout_ms=1000)
 
     try:
+        make_config()
         pipeline = settings.build_pipeline()
-        conf = zenoh_config(settings.site.zenoh, mode=settings.mode, listen=settings.listen,
-                            connect=settings.connect)
     except ValueError as exc:
         log.error("%s", exc)
         return 2
@@ -81,10 +92,14 @@ def run_forever(settings: FusionSettings) -> int:
     previous = _install_signal_handlers(stop)
     try:
         try:
-            session = zenoh.open(conf)
-        except Exception as exc:  # noqa: BLE001 - zenoh reports every failure as ZError
-            log.error("cannot open the zenoh session: %s", exc)
+            session = open_session(make_config, stop, who="fusion", endpoints=connect, log=log)
+        except TransportError as exc:
+            log.error("fusion: cannot open the zenoh session: %s", exc)
             return 1
+        if session is None:
+            log.info("fusion: stopped before zenoh could be reached")
+            return 0
+        watch_links(session, stop, who="fusion", endpoints=connect, log=log)
         try:
             return run(session, settings, stop, pipeline)
         finally:
@@ -205,12 +220,18 @@ class _HistoryResponder:
                 log.warning("history query failed: %s", exc)
 
     def _answer(self, query: Any) -> None:
+        """Every query gets an answer: its events, or one error of at most ``_MAX_ERROR`` characters."""
         self.counters.queries += 1
         try:
             replies = history_replies(self.store, self.key, str(query.key_expr), str(query.parameters),
                                       utc_offset_h=self.utc_offset_h)
         except ValueError as exc:
-            query.reply_err(str(exc), encoding="text/plain")
+            query.reply_err(_bounded(str(exc)), encoding="text/plain")
+            return
+        except Exception as exc:  # noqa: BLE001 - a query the store chokes on still gets an answer
+            log.warning("history query %s failed: %s", _bounded(str(query.parameters), 80), _bounded(repr(exc)))
+            query.reply_err("voxelwatch history: the query could not be answered (see the fusion server's log)",
+                            encoding="text/plain")
             return
         for key, payload, encoding in replies:
             query.reply(key, payload, encoding=encoding)
@@ -331,6 +352,10 @@ class _Server:
         else:
             self._event_pubs.move_to_end(key)
         return pub
+
+
+def _bounded(text: str, limit: int = _MAX_ERROR) -> str:
+    return text if len(text) <= limit else text[: limit - 3] + "..."
 
 
 # --------------------------------------------------------------------------- signals

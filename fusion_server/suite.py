@@ -52,6 +52,7 @@ def run_suite(
     mask_scale: float | None = None,
     enrolled: str | Path | None = None,
     enrolled_person: int = 1,
+    settings: Sequence[str] = (),
     stream=sys.stdout,
 ) -> int:
     """Replay and score the scenarios; print one table per camera count. Returns 0.
@@ -61,6 +62,7 @@ def run_suite(
     enrolled: an enrolment file (``voxelwatch enrol``) of the house's person
         ``enrolled_person``, made with the same seed; the site enrols it and the
         scores gain ``resident``.
+    settings: ``SECTION.KEY=VALUE`` changes to the site (:func:`common.site.with_settings`).
     """
     from common import synth
 
@@ -81,6 +83,11 @@ def run_suite(
             resident = (str(int(enrolled_person)), name)
         site = synth_site_with(raw, out / "site")
         site.load_residents()  # a bad enrolment file stops the suite before any replay
+    if settings:
+        from common.site import with_settings, write_site
+
+        site = with_settings(site, settings)
+        write_site(site, out / "site" / "site.toml")
     plans = []
     for count in camera_counts:
         cams = cameras_for(count, site.camera_ids)

@@ -63,20 +63,22 @@ def run_world_suite(
     frames: int | None = None,
     json_path: str | Path | None = None,
     keep_media: bool = False,
+    settings: Sequence[str] = (),
     sensors: str = "colour",
     stream=sys.stdout,
 ) -> dict[str, Any]:
     """Write, replay and score the worlds of ``seeds``; print the tables; return the report (also as JSON
-    at ``json_path``). ``frames``: only the first N frames of each world. ``sensors``: 'colour' rigs,
-    or 'mixed' (one depth and one thermal camera in each world; the same worlds otherwise, so the
-    two reports compare the rigs)."""
+    at ``json_path``). ``frames``: only the first N frames of each world. ``settings``: ``SECTION.KEY=VALUE``
+    changes to every world's site before its replay (:func:`common.site.with_settings`). ``sensors``:
+    'colour' rigs, or 'mixed' (one depth and one thermal camera in each world; the same worlds
+    otherwise, so the two reports compare the rigs)."""
     from common.synth.world import seed_set
 
     sets = sorted({seed_set(s) for s in seeds})
     out = Path(out_dir)
     if sensors not in ("colour", "mixed"):
         raise ValueError(f"sensors must be 'colour' or 'mixed', got {sensors!r}")
-    tasks = [(int(s), str(out), frames, keep_media, sensors) for s in seeds]
+    tasks = [(int(s), str(out), frames, keep_media, tuple(settings), sensors) for s in seeds]
     results: dict[int, dict] = {}
     if jobs <= 1:
         for task in tasks:
@@ -91,7 +93,8 @@ def run_world_suite(
                 results[futures[future]] = _report(future.result())
     ordered = [results[int(s)] for s in seeds]
     rigs = ", mixed rigs (a depth and a thermal camera in each)" if sensors == "mixed" else ""
-    print(f"\nrandom worlds, {' and '.join(sets)} seeds {_seed_text(seeds)}{rigs}", file=stream)
+    print(f"\nrandom worlds, {' and '.join(sets)} seeds {_seed_text(seeds)}{rigs}"
+          + (f"; site settings {', '.join(settings)}" if settings else ""), file=stream)
     print(composition(ordered), file=stream)
     print("", file=stream)
     print(worlds_table(ordered), file=stream)
@@ -103,7 +106,7 @@ def run_world_suite(
     print("\nby dress (whole worlds; 'alike': every adult in the same clothes):", file=stream)
     print(groups_table(ordered, dress_groups(ordered)), file=stream, flush=True)
     report = {
-        "seeds": list(seeds), "seed_sets": sets, "sensors": sensors,
+        "seeds": list(seeds), "seed_sets": sets, "settings": list(settings), "sensors": sensors,
         "worlds": [{k: r[k] for k in ("seed", "world", "frames", "fuse_s", "replay_s", "scores")} for r in ordered],
         "total": total,
         "groups": {label: suite_totals(r["scores"] for r in rs) for label, rs in rig_groups(ordered).items()},
@@ -220,9 +223,10 @@ def _score_cells(s: dict, frames: int, fuse_s: float) -> list[str]:
             fall_p, fall_r, ff, ss, ee, fmt_num(frames / fuse_s if fuse_s > 0 else None, 1)]
 
 
-def _run_world(seed: int, out: str, frames: int | None, keep_media: bool, sensors: str = "colour") -> dict:
+def _run_world(seed: int, out: str, frames: int | None, keep_media: bool, settings: tuple[str, ...] = (),
+               sensors: str = "colour") -> dict:
     """Write, replay and score one world (runs in a worker process)."""
-    from common.site import load_site
+    from common.site import load_site, with_settings
     from common.synth.world import random_world, write_world
     from fusion_server.replay import replay
 
@@ -232,7 +236,7 @@ def _run_world(seed: int, out: str, frames: int | None, keep_media: bool, sensor
     written = write_world(world, out_dir / "worlds" / world.name, frames=frames)
     t1 = time.perf_counter()
     run_dir = out_dir / "runs" / world.name
-    summary = replay(load_site(written.site), run_dir, input_dir=written.out_dir, cache_dir=out_dir / "cache")
+    summary = replay(with_settings(load_site(written.site), settings), run_dir, input_dir=written.out_dir, cache_dir=out_dir / "cache")
     t2 = time.perf_counter()
     scores = evaluate(written.truth_dir, run_dir)
     if not keep_media:

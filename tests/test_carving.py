@@ -413,8 +413,10 @@ def test_downscaled_masks(rig, renderer, coarse_carver, lut_dir):
 
 def test_measure_carving_reports_stages(carver, renderer):
     out = measure_carving(carver, [renderer.render(SCENES["one under the fisheye"])], repeats=1)
-    for key in ("distance_s", "octree_s", "floor_s", "dense_s", "octree_fps", "dense_fps", "missed_fraction"):
+    for key in ("distance_s", "octree_s", "floor_s", "dense_s", "octree_fps", "dense_fps", "missed_fraction",
+                "graphcut_s", "graphcut_fps", "graphcut_voxels"):
         assert out[key] >= 0
+    assert out["graphcut_total_s"] > out["octree_total_s"]
     assert out["voxels"] <= out["dense_voxels"] and out["cameras"] == 5 and out["lut_bytes"] == carver.lut_nbytes
 
 

@@ -314,8 +314,9 @@ def test_router_unit_command_routes_between_clients_configured_from_client_json5
     """The router unit's command, listening on loopback instead of every
     interface, with two client sessions from client.json5 pointed at it."""
     values = _unit(UNITS / "voxelwatch-router.service")
-    argv = _exec_argv(values["ExecStart"][0], ENV, "")
+    argv = _exec_argv(values["ExecStart"][0], {**ENV, "VOXELWATCH_SITE": str(SITE)}, "")
     assert Path(argv[0]).name == "voxelwatch" and argv[1] == "router"
+    assert argv[argv.index("--site") + 1] == str(SITE)  # TLS and access control come from the site file
     listen_at = argv.index("--listen") + 1
     assert argv[listen_at] == "tcp/0.0.0.0:7447"
     endpoint = f"tcp/127.0.0.1:{_free_port()}"
@@ -473,7 +474,7 @@ def test_units_run_together_router_fusion_and_two_cameras(tmp_path):
         procs["fusion"].terminate()
         assert procs["fusion"].wait(timeout=60) == 0, _logs(tmp_path)
         rows = (tmp_path / "out" / "tracks.csv").read_text().splitlines()
-        assert rows[0] == "frame,stamp_ns,id,x,y,z_top,posture"
+        assert rows[0] == "frame,stamp_ns,id,x,y,z_top,posture,person"
     finally:
         for proc in procs.values():
             if proc.poll() is None:
@@ -537,7 +538,7 @@ def test_compose_commands_are_accepted_by_the_real_parsers(site):
         argv = service["command"]
         assert argv and argv[0] in scripts, f"{name}: {argv}"
         if argv[0] == "voxelwatch":
-            assert argv[1:] == ["router", "--listen", "tcp/0.0.0.0:7447"]
+            assert argv[1:] == ["router", "--site", "/etc/voxelwatch/site.toml", "--listen", "tcp/0.0.0.0:7447"]
             continue
         args = _parse(argv[0], argv[1:])
         assert str(args.site) == "/etc/voxelwatch/site.toml"

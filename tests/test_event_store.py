@@ -185,3 +185,55 @@ def test_iso_times():
 def test_bad_selectors_raise_clear_errors(text, message):
     with pytest.raises(ValueError, match=message):
         parse_history_selector(text)
+
+
+# --------------------------------------------------------------------------- write failures
+
+
+class _Locker:
+    """Another process's connection holding the database's write lock (a real SQLite lock)."""
+
+    def __init__(self, path) -> None:
+        self.db = sqlite3.connect(str(path), timeout=0.1, isolation_level=None)
+        self.db.execute("BEGIN EXCLUSIVE")
+
+    def release(self) -> None:
+        self.db.execute("COMMIT")
+        self.db.close()
+
+
+def test_an_event_the_database_cannot_write_goes_to_the_fallback_and_is_merged_at_the_next_write(db_path):
+    from fusion_server.event_store import EventNotStored
+
+    store = EventStore(db_path, timeout_s=0.1)
+    first, locked, later = ev(T0), ev(T0 + NS, "long_lie"), ev(T0 + 2 * NS, "enter")
+    assert store.add(first)
+    lock = _Locker(db_path)
+    with pytest.raises(EventNotStored, match="locked") as refused:
+        store.add(locked)
+    assert refused.value.kept and store.pending == 1
+    lines = store.fallback_path.read_text().splitlines()
+    assert [Event.from_json(line) for line in lines] == [locked]
+    lock.release()
+    assert store.add(later)  # the next write merges the waiting event first
+    assert store.pending == 0 and not store.fallback_path.exists()
+    assert store.query() == [first, locked, later]
+    store.close()
+
+
+def test_events_waiting_in_the_fallback_are_merged_when_the_store_opens(db_path):
+    from fusion_server.event_store import EventNotStored
+
+    store = EventStore(db_path, timeout_s=0.1)
+    lock = _Locker(db_path)
+    waiting = [ev(T0 + i * NS) for i in range(3)]
+    for e in waiting:
+        with pytest.raises(EventNotStored):
+            store.add(e)
+    store.close()  # the server stops before the lock goes
+    with store.fallback_path.open("a") as f:
+        f.write("{not an event\n")
+    lock.release()
+    with EventStore(db_path) as again:
+        assert again.pending == 0 and again.query() == waiting and again.merged == 3
+        assert not again.fallback_path.exists()

@@ -334,8 +334,8 @@ def test_a_camera_whose_clock_runs_a_second_ahead_is_marked_skewed_once_and_left
 
 
 def test_recordings_played_faster_than_real_time_are_not_ahead(rig):
-    """Every camera's stamps run ahead of the server's clock alike: none is left out."""
-    r = rig()
+    """With a free timeline, every camera's stamps run ahead of the server's clock alike: none is left out."""
+    r = rig(free_timeline=True)
     for seq in range(20):
         for cid in r.cams:
             r.put(cid, encode(mask_frame(r.cams[cid], seq, T0_NS + seq * PERIOD_NS, r.masks[cid])))
@@ -420,9 +420,204 @@ def test_history_replies_each_event_on_its_own_key_filtered_and_in_either_format
     ("kind=flal", "kind"),
     ("since=yesterday", "since"),
     ("format=xml", "format"),
+    ("since=99999999999999999999999", "since.*beyond the largest stamp"),
+    ("until=9223372036854775808", "until.*beyond the largest stamp"),
+    ("since=" + "9" * 5000, "since.*beyond the largest stamp"),
+    ("until=9999-12-31T23:59:59Z", "until.*year 2262"),
+    ("limit=99999999999999999999999", "limit"),
+    ("kind=" + "x" * 10_000, "kind"),
+    ("kind=" + ",".join(f"k{i}" for i in range(2000)), "kind"),
+    ("x" * 10_000 + "=1", "unknown parameter"),
+    ("format=" + "y" * 10_000, "format"),
 ])
 def test_a_bad_history_selector_is_refused_with_the_reason(tmp_path, parameters, words):
+    """Every bad query gets a short reason: never an overflow deep in the store, never an echo of the query."""
     with EventStore(tmp_path / "events.sqlite") as store:
         _stored(store)
-        with pytest.raises(ValueError, match=words):
+        with pytest.raises(ValueError, match=words) as refused:
             history_replies(store, keys.history_key(PREFIX), keys.history_key(PREFIX), parameters)
+        assert len(str(refused.value)) < 400
+
+
+def test_the_largest_stamp_is_still_a_query(tmp_path):
+    with EventStore(tmp_path / "events.sqlite") as store:
+        _stored(store)
+        assert history_replies(store, keys.history_key(PREFIX), keys.history_key(PREFIX),
+                               f"since=0;until={2**63 - 1}")
+        assert history_replies(store, keys.history_key(PREFIX), keys.history_key(PREFIX), f"since={2**63 - 1}") == []
+
+
+# --------------------------------------------------------------------------- the server's timeline
+
+HOUR_NS = 3600 * 10**9
+
+
+def _falling_mask(cam: Camera, t: float) -> np.ndarray:
+    """The box falling over, ``t`` from 0 (standing) to 1 (lying: 1.7 m long, 0.3 m high)."""
+    k = (1 - np.cos(np.pi * min(1.0, max(0.0, t)))) / 2  # starts and ends slowly, as a body does
+    return box_mask(cam, *BOX_XY, width_m=0.5 + 1.2 * k, depth_m=0.4 + 0.1 * k, height_m=1.7 - 1.4 * k)
+
+
+def test_masks_stamped_an_hour_ahead_on_every_camera_never_move_the_timeline(rig):
+    r = rig()
+    r.frames(range(30))
+    fused_before = r.node.c.frames_fused
+    for cid in r.cams:  # one valid mask an hour ahead from every camera
+        r.put(cid, encode(mask_frame(r.cams[cid], 30, r.clock.ns + HOUR_NS, r.masks[cid])))
+    cams = r.cam_status()
+    assert all(c.state == "skewed" and c.refused == 1 and c.late == 1 for c in cams.values())
+    assert r.node.sync.last_released_ns < r.clock.ns  # the timeline did not move
+    r.frames(range(31, 60))  # the real masks go on, with the same numbers
+    cams = r.cam_status()
+    assert all(c.state == "ok" and c.refused == 1 and c.dropped == 0 for c in cams.values())
+    after = r.tracks[fused_before:]
+    assert len(after) >= 28 and all(f.cameras == ["c1", "c2", "c3"] for f in after)
+    assert all(_near_box(f) for f in after[-20:])
+    assert all(abs(f.stamp_ns - r.clock.ns) < HOUR_NS / 100 for f in after)
+    skews = [e for _, e in r.events if e.kind == "clock_skew"]
+    assert sorted(e.details["camera"] for e in skews) == ["c1", "c2", "c3"]
+    assert all(e.details["offset_ms"] > 3.5e6 for e in skews)
+
+
+def test_a_fall_after_future_masks_is_still_reported(rig):
+    r = rig()
+    r.frames(range(40))
+    for cid in r.cams:
+        r.put(cid, encode(mask_frame(r.cams[cid], 40, r.clock.ns + HOUR_NS, r.masks[cid])))
+    r.frames(range(41, 50))
+    for seq in range(50, 200):  # the person falls over a second and lies still
+        for cid in r.cams:
+            r.put(cid, encode(mask_frame(r.cams[cid], seq, r.clock.ns, _falling_mask(r.cams[cid], (seq - 50) / 30))))
+        r.take(r.node.tick(r.clock.ns, r.clock.mono))
+        r.clock.advance(PERIOD_NS / 1e9)
+    assert r.tracks[-1].tracks and r.tracks[-1].tracks[0].posture == "lying"
+    assert "fall" in r.kinds()
+    assert all(c.state == "ok" for c in r.cam_status().values())
+
+
+def test_a_camera_a_minute_fast_started_first_is_refused_and_the_others_track(rig):
+    r = rig()
+    fast = {"c3": 60 * 10**9}
+    r.put("c3", encode(mask_frame(r.cams["c3"], 0, r.clock.ns + fast["c3"], r.masks["c3"])))
+    assert r.cam_status()["c3"].state == "skewed"  # at once, from its first mask
+    r.clock.advance(PERIOD_NS / 1e9)
+    r.frames(range(1, 60), offsets_ns=fast)
+    cams = r.cam_status()
+    assert cams["c3"].state == "skewed" and cams["c3"].refused == 60 and cams["c3"].late == 60
+    assert abs(cams["c3"].clock_offset_ms - 60_000) < 10
+    assert cams["c1"].state == cams["c2"].state == "ok"
+    assert cams["c1"].late == cams["c2"].late == 0
+    assert len(r.tracks) >= 57 and all(f.cameras == ["c1", "c2"] for f in r.tracks)
+    assert sum(1 for f in r.tracks if _near_box(f, 0.3)) >= 45
+    assert [e.details["camera"] for _, e in r.events if e.kind == "clock_skew"] == ["c3"]
+    r.frames(range(60, 100))  # its clock is set right: it rejoins
+    assert r.cam_status()["c3"].state == "ok" and r.tracks[-1].cameras == ["c1", "c2", "c3"]
+
+
+def test_with_a_free_timeline_a_camera_ahead_of_the_others_is_still_left_out(rig):
+    r = rig(free_timeline=True)
+    r.frames(range(60), offsets_ns={"c3": 1_000_000_000})
+    cams = r.cam_status()
+    assert cams["c3"].late >= 55 and cams["c3"].refused == 0 and cams["c3"].state == "skewed"
+    assert sum(1 for f in r.tracks if f.cameras == ["c1", "c2"]) >= 55
+
+
+def test_a_camera_a_minute_slow_started_first_is_late_and_the_others_track(rig):
+    r = rig()
+    slow = {"c3": -60 * 10**9}
+    r.put("c3", encode(mask_frame(r.cams["c3"], 0, r.clock.ns + slow["c3"], r.masks["c3"])))
+    r.clock.advance(PERIOD_NS / 1e9)
+    r.frames(range(1, 60), offsets_ns=slow)
+    cams = r.cam_status()
+    assert cams["c3"].state == "skewed" and cams["c3"].late >= 58 and cams["c3"].refused == 0
+    assert cams["c1"].state == cams["c2"].state == "ok" and cams["c1"].late == cams["c2"].late == 0
+    assert len(r.tracks) >= 57 and all(f.cameras == ["c1", "c2"] for f in r.tracks)
+    assert [e.details["camera"] for _, e in r.events if e.kind == "clock_skew"] == ["c3"]
+
+
+def test_replayed_masks_and_repeated_numbers_are_refused_and_counted(rig):
+    r = rig()
+    sent = []
+    for seq in range(20):
+        payload = encode(mask_frame(r.cams["c1"], seq, r.clock.ns, r.masks["c1"]))
+        sent.append(payload)
+        for cid in ("c2", "c3"):
+            r.put(cid, encode(mask_frame(r.cams[cid], seq, r.clock.ns, r.masks[cid])))
+        r.put("c1", payload)
+        r.take(r.node.tick(r.clock.ns, r.clock.mono))
+        r.clock.advance(PERIOD_NS / 1e9)
+    fused = r.node.c.frames_fused
+    r.put("c1", sent[-1])  # the newest delivered twice: counted, harmless
+    assert r.cam_status()["c1"].state == "ok" and r.cam_status()["c1"].refused == 1
+    for payload in sent[:-1]:  # every older mask of c1 sent again
+        r.put("c1", payload)
+    # c1's newest number again, stamped now
+    r.put("c1", encode(mask_frame(r.cams["c1"], 19, r.clock.ns, r.masks["c1"])))
+    cams = r.cam_status()
+    assert cams["c1"].refused == 21 and cams["c1"].dropped == 21 and cams["c1"].state == "degraded"
+    assert r.node.c.frames_fused == fused and not [e for _, e in r.events if e.kind == "clock_skew"]
+    r.clock.advance(3.0)
+    r.frames(range(200, 230))
+    assert r.cam_status()["c1"].state == "ok" and r.tracks[-1].cameras == ["c1", "c2", "c3"]
+
+
+def test_a_recording_replayed_from_its_start_is_refused_without_a_false_skew(rig):
+    """A worker restarted on a file with the shared start replays the first frames' stamps."""
+    r = rig()
+    start_ns = r.clock.ns
+    r.frames(range(100))  # three seconds
+    for seq in range(30):  # c3 again from frame 0, while the others go on
+        for cid in ("c1", "c2"):
+            r.put(cid, encode(mask_frame(r.cams[cid], 100 + seq, r.clock.ns, r.masks[cid])))
+        r.put("c3", encode(mask_frame(r.cams["c3"], seq, start_ns + seq * PERIOD_NS, r.masks["c3"])))
+        r.take(r.node.tick(r.clock.ns, r.clock.mono))
+        r.clock.advance(PERIOD_NS / 1e9)
+    cams = r.cam_status()
+    assert cams["c3"].refused == 30 and cams["c3"].state == "degraded"
+    assert "clock_skew" not in r.kinds()
+    assert all(f.cameras == ["c1", "c2"] for f in r.tracks[-25:]) and _near_box(r.tracks[-1], 0.3)
+
+
+def test_a_hostile_sequence_jump_is_not_millions_of_drops(rig):
+    r = rig()
+    r.frames(range(10))
+    r.put("c1", encode(mask_frame(r.cams["c1"], 10**15, r.clock.ns, r.masks["c1"])))
+    for cid in ("c2", "c3"):
+        r.put(cid, encode(mask_frame(r.cams[cid], 10, r.clock.ns, r.masks[cid])))
+    r.clock.advance(PERIOD_NS / 1e9)
+    r.frames(range(11, 20), cams=["c2", "c3"])
+    for seq in range(20, 25):
+        r.put("c1", encode(mask_frame(r.cams["c1"], 10**15 + seq, r.clock.ns, r.masks["c1"])))
+        r.clock.advance(PERIOD_NS / 1e9)
+    assert r.cam_status()["c1"].dropped <= 12
+
+
+# --------------------------------------------------------------------------- a store that cannot write
+
+
+def test_an_event_the_store_cannot_write_is_published_counted_and_merged_later(rig, tmp_path):
+    import sqlite3
+
+    r = rig(store=False)
+    store = r.store = r.node.store = EventStore(tmp_path / "locked.sqlite", timeout_s=0.1)
+    alive = keys.alive_camera_key(PREFIX, "c3")
+    r.node.on_liveliness(alive, True, r.clock.ns)
+    r.frames(range(10))
+    other = sqlite3.connect(str(tmp_path / "locked.sqlite"), timeout=0.1, isolation_level=None)
+    other.execute("BEGIN EXCLUSIVE")  # another process holds the write lock
+    r.node.on_liveliness(alive, False, r.clock.ns)
+    r.take(r.node.report(r.clock.ns, r.clock.mono))
+    assert r.kinds() == ["camera_lost"]  # published all the same
+    st = r.status[-1]
+    assert st.events_not_stored == 1 and st.events_pending == 1
+    assert store.fallback_path.exists() and store.query() == []
+    other.execute("COMMIT")
+    other.close()
+    r.node.on_liveliness(alive, True, r.clock.ns)
+    r.frames(range(10, 15))
+    r.take(r.node.report(r.clock.ns, r.clock.mono))
+    assert r.kinds() == ["camera_lost", "camera_back"]
+    st = r.status[-1]
+    assert st.events_not_stored == 1 and st.events_pending == 0
+    assert [e.kind for e in store.query()] == ["camera_lost", "camera_back"]
+    assert not store.fallback_path.exists()

@@ -312,6 +312,11 @@ def test_events_are_stored_published_and_answered_after_a_restart(site, tmp_path
     assert none == [] and len(errors) == 1 and "since" in errors[0]
     none, errors = net.history("kind=teleport")
     assert none == [] and "teleport" in errors[0]
+    # every query gets an answer, however large its numbers or long its text
+    for parameters, words in (("since=99999999999999999999999", "since"), ("until=99999999999999999999999", "until"),
+                              ("limit=99999999999999999999999", "limit"), ("kind=" + "x" * 10_000, "kind")):
+        none, errors = net.history(parameters)
+        assert none == [] and len(errors) == 1 and words in errors[0] and len(errors[0]) < 400, (parameters, errors)
     assert server.stop() == 0
     token.undeclare()
 
@@ -350,3 +355,153 @@ def test_a_bad_site_file_stops_with_exit_code_2_and_one_message(site, tmp_path):
     result = subprocess.run([sys.executable, "-m", "fusion_server.cli", "--site", str(missing)], cwd=ROOT,
                             capture_output=True, text=True, timeout=60)
     assert result.returncode == 2 and "not found" in result.stderr and len(result.stderr.strip().splitlines()) == 1
+
+
+# --------------------------------------------------------------------------- the server's timeline
+
+
+def test_future_masks_and_a_camera_a_minute_fast_never_stop_the_live_server(site, tmp_path, net, start_server):
+    """Over zenoh, to the real process: c3 starts first with a clock 60 s fast, then every camera sends one
+    valid mask stamped an hour ahead; the server tracks on with c1 and c2, says c3 is skewed, and takes c3 back
+    once its clock is right."""
+    site_file, cams = site
+    server = start_server("--store", str(tmp_path / "events.sqlite"))
+    minute, hour = 60 * 10**9, 3600 * 10**9
+    net.publish_box({"c3": cams["c3"]}, range(5), offsets_ns={"c3": minute})  # started first
+    net.publish_box(cams, range(5, 40), offsets_ns={"c3": minute})
+
+    def forged(seq: int) -> None:
+        if seq == 45:
+            for cid, cam in cams.items():
+                net.put_mask(cid, encode(mask_frame(cam, 10_000, time.time_ns() + hour, box_mask(cam, *BOX_XY))))
+
+    net.publish_box(cams, range(40, 70), offsets_ns={"c3": minute}, between=forged)
+    status = wait_for(lambda: (st := net.latest_status()) and st.frame_sets >= 55
+                      and sum(c.refused for c in st.cameras if c.cam != "c3") == 2 and st, 10.0, "frame sets fused")
+    by_cam = {c.cam: c for c in status.cameras}
+    c3 = by_cam["c3"]
+    assert c3.state == "skewed" and c3.refused == c3.received >= 50 and c3.late == c3.refused, c3
+    assert by_cam["c3"].clock_offset_ms == pytest.approx(60_000, abs=500)
+    assert by_cam["c1"].state == by_cam["c2"].state == "ok", by_cam
+    assert by_cam["c1"].refused == by_cam["c2"].refused == 1 and by_cam["c1"].late == 1
+    with net.lock:
+        frames = list(net.tracks)
+    assert len(frames) >= 55 and all(f.cameras == ["c1", "c2"] for f in frames)
+    assert all(abs(f.stamp_ns - time.time_ns()) < 30 * 10**9 for f in frames)  # never an hour ahead
+    assert sum(1 for f in frames[-20:] if f.tracks and _near_box(f, 0.3)) >= 15
+    net.publish_box(cams, range(70, 110))  # c3's clock is set right
+    wait_for(lambda: {c.cam: c.state for c in net.latest_status().cameras} == {"c1": "ok", "c2": "ok", "c3": "ok"},
+             10.0, "every camera ok")
+    with net.lock:
+        assert net.tracks[-1].cameras == ["c1", "c2", "c3"] and _near_box(net.tracks[-1])
+        skews = sorted(e.details["camera"] for e in net.events if e.kind == "clock_skew")
+    assert skews == ["c1", "c2", "c3"]
+    assert server.stop() == 0 and "Traceback" not in server.output()
+
+
+def _write_box_videos(folder: Path, cam: Camera, n: int) -> tuple[Path, Path]:
+    """(background clip, clip of the box standing still) as ``cam`` sees the room, MJPG at the site rate."""
+    import cv2
+
+    rng = np.random.default_rng(5)
+    room = np.clip(120 + 50 * cv2.resize(rng.normal(0, 1, (H // 8, W // 8, 3)).astype(np.float32), (W, H)),
+                   0, 255).astype(np.uint8)
+    person = room.copy()
+    person[box_mask(cam, *BOX_XY) > 0] = (40, 40, 200)
+    paths = folder / f"{cam.id}-bg.avi", folder / f"{cam.id}-clip.avi"
+    for path, image, frames in ((paths[0], room, 30), (paths[1], person, n)):
+        writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), FPS, (W, H))
+        for _ in range(frames):
+            writer.write(image)
+        writer.release()
+    return paths
+
+
+@pytest.mark.slow
+def test_a_recorded_file_worker_restarted_mid_run_joins_the_shared_clock(site, tmp_path, net, start_server):
+    """A real worker plays c3's recording with the shared start while the test plays c1 and c2 on the same
+    lattice; SIGKILLed and started again with the same start, it publishes the frames for now (never frame 0
+    again): no replayed masks, no clock_skew, c3 ok, and sets with all three cameras again."""
+    site_file, cams = site
+    server = start_server("--store", str(tmp_path / "events.sqlite"))
+    bg, clip = _write_box_videos(tmp_path, cams["c3"], n=int(20 * FPS))
+    start_ns = time.time_ns() + 2_500_000_000
+    server_listen = server.argv[server.argv.index("--listen") + 1]
+
+    def worker() -> Proc:
+        return Proc("camera-c3", [sys.executable, "-m", "camera_worker.cli", "--site", str(site_file), "--camera", "c3",
+                                  "--source", str(clip), "--background", str(bg), "--start-ns", str(start_ns),
+                                  "--connect", net.endpoint, "--connect", server_listen,
+                                  "--listen", f"tcp/127.0.0.1:{_free_port()}"], tmp_path / f"c3-{time.monotonic_ns()}.log")
+
+    first = worker()
+    masks = {cid: box_mask(cam, *BOX_XY) for cid, cam in cams.items()}
+    restarted: list[Proc] = []
+    seq = 0
+    try:
+        while time.time_ns() < start_ns + int(9e9):
+            stamp = start_ns + int(round(seq * 1e9 / FPS))
+            if stamp > time.time_ns():
+                time.sleep((stamp - time.time_ns()) / 1e9)
+            if stamp >= start_ns:
+                for cid in ("c1", "c2"):
+                    net.put_mask(cid, encode(mask_frame(cams[cid], seq, stamp, masks[cid])))
+            if seq == int(3.5 * FPS):  # mid-run: the worker dies and is started again at once
+                first.kill()
+                restarted.append(worker())
+            seq += 1
+        status = net.latest_status()
+        with net.lock:
+            frames = list(net.tracks)
+            kinds = [e.kind for e in net.events]
+    finally:
+        first.kill()
+        for proc in restarted:
+            proc.stop()
+    again = restarted[0].output()
+    assert "joining it at frame" in again, again
+    c3 = {c.cam: c for c in status.cameras}["c3"]
+    assert c3.state == "ok" and c3.refused == 0 and c3.late <= 5, (c3, again)
+    assert "clock_skew" not in kinds
+    with_c3 = [f for f in frames if "c3" in f.cameras]
+    assert with_c3 and with_c3[-1].frame > int(6 * FPS), [(f.frame, f.cameras) for f in frames[-5:]]
+    assert sum(1 for f in frames[-30:] if f.cameras == ["c1", "c2", "c3"]) >= 25
+    assert _near_box(frames[-1], 0.3)
+
+
+# --------------------------------------------------------------------------- clean failure
+
+
+@pytest.mark.parametrize("endpoint, sig", [("free port", "SIGTERM"), ("tcp/router.invalid:7447", "SIGINT")])
+def test_a_server_whose_router_is_unreachable_says_so_once_and_stops_on_a_signal(site, tmp_path, endpoint, sig):
+    """Client mode, nothing listening at the router's address (or a name that does not resolve): one
+    warning line, retries with back-off, and a clean exit within 2 s of SIGTERM or SIGINT."""
+    import signal
+
+    site_file, _ = site
+    if endpoint == "free port":
+        endpoint = f"tcp/127.0.0.1:{_free_port()}"
+    argv = [sys.executable, "-m", "fusion_server.cli", "--site", str(site_file), "--mode", "client",
+            "--connect", endpoint, "--store", str(tmp_path / "events.sqlite"),
+            "--cache-dir", str(site_file.parent / "cache")]
+    server = Proc("fusion", argv, tmp_path / "server.log")
+    wait_for(lambda: "cannot reach zenoh" in server.output(), 30.0, "the unreachable router in the log")
+    time.sleep(2.0)  # a few retries
+    assert server.alive()
+    asked = time.monotonic()
+    code = server.stop(timeout_s=10.0, sig=getattr(signal, sig))
+    took = time.monotonic() - asked
+    out = server.output()
+    assert code == 0 and took < 2.0, (code, took, out)
+    assert out.count("cannot reach zenoh") == 1 and endpoint in out and "Traceback" not in out, out
+    assert "stopped before zenoh could be reached" in out
+
+
+def test_a_malformed_endpoint_stops_start_up_with_one_line(site, tmp_path):
+    site_file, _ = site
+    for endpoint in ("tpc/127.0.0.1:7447", "tcp/127.0.0.1"):
+        result = subprocess.run([sys.executable, "-m", "fusion_server.cli", "--site", str(site_file), "--mode", "client",
+                                 "--connect", endpoint, "--store", str(tmp_path / "events.sqlite")], cwd=ROOT,
+                                capture_output=True, text=True, timeout=60)
+        lines = [line for line in result.stderr.splitlines() if line.strip()]
+        assert result.returncode == 2 and len(lines) == 1 and endpoint in lines[0], result.stderr

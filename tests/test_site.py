@@ -81,6 +81,10 @@ def test_written_site_reads_back_equal(tmp_path):
         ('resolution = [644, 486]', 'resolution = [644]', "cameras[0].resolution", ""),
         ('units = "mm"', 'units = "inch"', "cameras[0].units", "'m', 'cm' or 'mm'"),
         ("min_cameras = 3", "min_cameras = 0", "carving.min_cameras", "greater than or equal to 1"),
+        ("min_cameras = 3", 'min_cameras = 3\nfusion = "cut"', "carving.fusion", "'vote' or 'graphcut'"),
+        ("min_cameras = 3", "min_cameras = 3\nsmoothing = -0.1", "carving.smoothing", "greater than or equal to 0"),
+        ("min_cameras = 3", "min_cameras = 3\nsmoothing = 2.0", "carving.smoothing", "less than or equal to 1"),
+        ("min_cameras = 3", 'min_cameras = 3\nfree_space = "yes"', "carving.free_space", "boolean"),
         ("voxel_sizes_m = [0.4, 0.2, 0.1, 0.05]", "voxel_sizes_m = [0.4, 0.1]", "carving.voxel_sizes_m", "halve"),
         ("max_m = [6.0, 4.0, 2.5]", "max_m = [6.0, -4.0, 2.5]", "volume", "must exceed"),
         ('id = "hall"', 'id = "ceiling"', "cameras", "unique"),
@@ -99,6 +103,16 @@ def test_bad_field_names_file_field_and_problem(tmp_path, old, new, field, probl
     assert str(path) in message
     assert f"field {field}" in message
     assert problem in message
+
+
+def test_carving_fusion_options_default_to_the_vote_and_read_back(tmp_path):
+    site = load_site(_write(tmp_path, GOOD))
+    assert (site.carving.fusion, site.carving.smoothing, site.carving.free_space) == ("vote", 0.1, True)
+    text = GOOD.replace("min_cameras = 3", 'min_cameras = 3\nfusion = "graphcut"\nsmoothing = 0.05\nfree_space = false')
+    site = load_site(_write(tmp_path, text))
+    assert (site.carving.fusion, site.carving.smoothing, site.carving.free_space) == ("graphcut", 0.05, False)
+    again = load_site(write_site(site, tmp_path / "copy" / "site.toml"))
+    assert again.carving == site.carving
 
 
 def test_events_section_is_optional_and_sets_the_alarm_durations(tmp_path):
@@ -301,3 +315,42 @@ def test_site_check_loads_the_enrolled_residents(tmp_path, capsys):
     out = capsys.readouterr().out
     assert "1 residents, 1 enrolled" in out
     assert "enrolled Ada: frames learnt head 0, torso 40, legs 0; 1.70 m tall" in out
+
+
+def test_settings_change_a_site_and_are_validated_like_the_file(tmp_path):
+    from common.site import with_settings
+    from common.synth import default_site
+
+    site = default_site(tmp_path / "site")
+    changed = with_settings(site, ["carving.min_ratio=0.5", "carving.min_cameras = 3"])
+    assert changed.carving.min_ratio == 0.5 and changed.carving.min_cameras == 3
+    assert site.carving.min_ratio != 0.5  # the site itself is unchanged
+    assert changed.base_dir == site.base_dir and changed.camera_ids == site.camera_ids
+    with pytest.raises(SiteError, match=r"carving\.min_ratio"):
+        with_settings(site, ["carving.min_ratio=2"])
+    with pytest.raises(SiteError, match="no section \\[carve\\]"):
+        with_settings(site, ["carve.min_ratio=0.5"])
+    with pytest.raises(SiteError, match="SECTION.KEY=VALUE"):
+        with_settings(site, ["min_ratio=0.5"])
+
+
+def test_site_check_refuses_what_the_processes_would_refuse(tmp_path, capsys):
+    """More carving cameras than the site has, or a mistyped endpoint: ``site check`` says so in one
+    line naming the field, as the fusion server and the workers would at start."""
+    import re
+
+    from common import cli
+    from tests.tinysite import write_site as write_tiny
+
+    path, _ = write_tiny(tmp_path)
+    text = path.read_text()
+    path.write_text(re.sub(r"min_cameras = \d+", "min_cameras = 9", text))
+    assert cli.main(["site", "check", str(path)]) == 2
+    err = capsys.readouterr().err
+    assert "carving.min_cameras: 9 exceeds the site's 3 cameras" in err and len(err.strip().splitlines()) == 1
+    path.write_text(text.replace('name = "tiny"\n', 'name = "tiny"\n[zenoh]\nconnect = ["tpc/10.0.0.2:7447"]\n', 1))
+    assert cli.main(["site", "check", str(path)]) == 2
+    err = capsys.readouterr().err
+    assert "zenoh.connect" in err and "'tpc'" in err and len(err.strip().splitlines()) == 1
+    path.write_text(text)
+    assert cli.main(["site", "check", str(path)]) == 0

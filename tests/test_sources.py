@@ -60,6 +60,27 @@ def test_video_file_yields_every_frame_with_recorded_stamps(tmp_path):
     assert frames[0].truth is None
 
 
+def test_video_file_and_image_folder_seek_to_any_frame(tmp_path):
+    path = write_video(tmp_path / "clip.avi", 20, fps=10.0)
+    with VideoFileSource(path, start_ns=5_000) as src:
+        assert src.n_frames == 20
+        for index in (13, 4, 19, 0):
+            src.seek(index)
+            frame = src.read()
+            assert frame.index == index and frame.stamp_ns == 5_000 + index * 100_000_000
+            assert abs(int(frame.image.mean()) - 10 * index) <= 3
+        src.seek(25)
+        assert src.read() is None
+    folder = tmp_path / "frames"
+    folder.mkdir()
+    for i in range(5):
+        cv2.imwrite(str(folder / f"f{i}.png"), np.full((8, 8, 3), 10 * i, np.uint8))
+    with ImageFolderSource(folder, fps=5.0) as src:
+        src.seek(3)
+        frame = src.read()
+        assert frame.index == 3 and frame.stamp_ns == 600_000_000 and int(frame.image.mean()) == 30
+
+
 def test_video_file_fps_override(tmp_path):
     path = write_video(tmp_path / "clip.avi", 3, fps=10.0)
     with VideoFileSource(path, fps=50.0) as src:

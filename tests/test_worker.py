@@ -477,3 +477,64 @@ def test_worker_process_of_a_depth_camera_sends_the_range_with_its_masks(tmp_pat
             assert np.percentile(v, 1) > 1500 and v.max() < 8000, (v.min(), v.max())
             ranged += 1
     assert ranged >= 20
+
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _start_module(site: Path, listener: Listener, *extra: str) -> subprocess.Popen:
+    """Like :func:`_start`, but this tree's worker (``python -m``), whichever is installed."""
+    cmd = [sys.executable, "-m", "camera_worker.cli", "--site", str(site), "--camera", "cam1", "--connect",
+           listener.endpoint, "--listen", f"tcp/127.0.0.1:{_free_port()}", "--stats-period", "60", *extra]
+    return subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=ROOT,
+                            env={**os.environ, "PYTHONUNBUFFERED": "1"})
+
+
+@pytest.mark.parametrize("loop", [False, True])
+def test_a_worker_restarted_after_the_shared_start_joins_at_the_frame_for_now(tmp_path, listener, loop):
+    """A recorded-file worker started when the shared start is already 1.2 s past (5.3 s, looping a
+    2.4 s clip), as a restarted worker is, publishes the frame for now on the shared lattice instead of
+    replaying the file from frame 0."""
+    n = 60 if loop else 200
+    _write_clips(tmp_path, n=n)
+    site = _write_site(tmp_path)
+    late_s = 5.3 if loop else 1.2
+    start_ns = time.time_ns() - int(late_s * 1e9)
+    proc = _start_module(site, listener, "--start-ns", str(start_ns), "--max-frames", "15",
+                         *(["--loop"] if loop else []))
+    out, err = proc.communicate(timeout=60)
+    assert proc.returncode == 0, err
+    masks = listener.masks()
+    period_ns = int(1e9 / FPS)
+    assert len(masks) >= 10, err
+    assert masks[0].seq >= int(late_s * FPS), [m.seq for m in masks]    # never frame 0
+    _check_masks(masks, start_ns, period_ns)                              # the shared lattice
+    skipped = int(re.search(r"skipped (\d+)", err).group(1))
+    assert skipped >= int(late_s * FPS) and "joining it at frame" in err
+    for m in masks:                                                       # the file's frame for that time
+        i = m.seq % n
+        if i >= BOX_FROM + 3:
+            mask = maskcodec.decode_mask(m.data, m.codec, m.width, m.height)
+            assert np.count_nonzero(mask[30:100, 10 + 2 * i:34 + 2 * i]) >= 0.8 * 70 * 24, m.seq
+
+
+def test_a_worker_whose_router_is_unreachable_says_so_once_and_stops_on_sigint(tmp_path):
+    _write_clips(tmp_path)
+    site = _write_site(tmp_path)
+    endpoint = f"tcp/127.0.0.1:{_free_port()}"
+    proc = subprocess.Popen([sys.executable, "-m", "camera_worker.cli", "--site", str(site), "--camera", "cam1",
+                             "--mode", "client", "--connect", endpoint], stdout=subprocess.PIPE,
+                            stderr=subprocess.STDOUT, text=True, cwd=ROOT, env={**os.environ, "PYTHONUNBUFFERED": "1"})
+    try:
+        time.sleep(4.0)
+        assert proc.poll() is None
+        asked = time.monotonic()
+        proc.send_signal(signal.SIGINT)
+        out, _ = proc.communicate(timeout=10)
+        took = time.monotonic() - asked
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    assert proc.returncode == 0 and took < 2.0, (proc.returncode, took, out)
+    assert out.count("cannot reach zenoh") == 1 and endpoint in out and "Traceback" not in out, out

@@ -281,6 +281,24 @@ class WorldOutput:
 
 def write_world(world: World, out_dir: str | Path, *, frames: int | None = None) -> WorldOutput:
     """Write ``world`` into ``out_dir`` (layout in the module text); ``frames``: only the first N frames."""
+    written = write_world_site(world, out_dir, frames=frames)
+    out, n, sc = written.out_dir, written.n_frames, world.scenario
+    colour = [c for c in world.cameras if world.modality(c) == "colour"]
+    bodies = [_bodies_at(sc, i) for i in range(n)] if world.media != "video" or world.modalities else None
+    if world.media == "video":
+        for cam_id in colour:
+            _write_video(world, cam_id, world.cameras[cam_id], out / cam_id, n)
+    else:
+        for cam_id in colour:
+            _write_masks(world, cam_id, out / cam_id / "masks", out / cam_id / "colour.avi", bodies)
+    for cam_id, modality in world.modalities.items():
+        _write_sensor(world, cam_id, modality, out / cam_id, bodies)
+    return written
+
+
+def write_world_site(world: World, out_dir: str | Path, *, frames: int | None = None) -> WorldOutput:
+    """The site file, calibrations and truth of :func:`write_world`, without the media: for camera
+    workers that render their own views live (source ``world:SEED``)."""
     sc = world.scenario
     n = sc.n_frames if frames is None else int(frames)
     if not 1 <= n <= sc.n_frames:
@@ -293,16 +311,6 @@ def write_world(world: World, out_dir: str | Path, *, frames: int | None = None)
     meta = json.loads(paths["meta"].read_text(encoding="utf-8"))
     meta["world"] = world.summary()
     paths["meta"].write_text(json.dumps(meta, indent=2) + "\n", encoding="utf-8")
-    colour = [c for c in world.cameras if world.modality(c) == "colour"]
-    bodies = [_bodies_at(sc, i) for i in range(n)] if world.media != "video" or world.modalities else None
-    if world.media == "video":
-        for cam_id in colour:
-            _write_video(world, cam_id, world.cameras[cam_id], out / cam_id, n)
-    else:
-        for cam_id in colour:
-            _write_masks(world, cam_id, out / cam_id / "masks", out / cam_id / "colour.avi", bodies)
-    for cam_id, modality in world.modalities.items():
-        _write_sensor(world, cam_id, modality, out / cam_id, bodies)
     return WorldOutput(out_dir=out, site=site_path, truth_dir=truth_dir, n_frames=n, media=world.media)
 
 

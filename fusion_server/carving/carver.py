@@ -5,10 +5,13 @@ Stages, kept apart so a benchmark can time each one:
 1. :meth:`Carver.distance_stage` - distance images of the inverted masks;
 2. :meth:`Carver.octree_stage` - the octree descent (seed paper, Figure 1), or
    :meth:`Carver.dense_stage` - the brute-force oracle that tests every finest voxel;
-3. :meth:`Carver.result` - floor maps and the :class:`CarveResult`.
+3. :meth:`Carver.fusion_stage` - at the finest level, the depth cameras' free
+   space (:mod:`.freespace`) and the graph cut (:mod:`.graphcut`), when the
+   carver uses them;
+4. :meth:`Carver.result` - floor maps and the :class:`CarveResult`.
 
 Both carves apply the same vote at the finest level, so the octree result is
-always a subset of the dense one. It can miss a few voxels the dense carve
+always a subset of the dense one (before the fusion stage). It can miss a few voxels the dense carve
 keeps (section 2.1.3 of the paper): a child's enclosing circle can reach
 outside its parent's circle, so foreground there passes the child's test while
 the parent, tested first, failed and was never split; a camera can also see a
@@ -24,17 +27,25 @@ from collections.abc import Mapping, Sequence
 import numpy as np
 
 from common.camera import Camera
-from fusion_server.carving.distance import DistanceImages, distance_images, vote
-from fusion_server.carving.lut import HIDDEN, CacheReport, load_or_compute_lut
+from fusion_server.carving.distance import (
+    DistanceImages, distance_images, mask_pixels, needed_votes, observations, tally, vote,
+)
+from fusion_server.carving.freespace import (
+    apply_verdicts, check_depth, depth_verdicts, footprint_depth, footprint_level,
+)
+from fusion_server.carving.graphcut import graphcut_labels
+from fusion_server.carving.lut import HIDDEN, RADIUS_UNITS_PER_PX, CacheReport, load_or_compute_lut
 from fusion_server.carving.occlusion import Occluder
 from fusion_server.carving.octree import OctreeLayout, descend, level_ijk, octree_layout
 from fusion_server.grid import CarveResult, VoxelGrid, floor_maps
 
-__all__ = ["Carver", "DEFAULT_CACHE_DIR", "DEFAULT_VOXEL_SIZES_M"]
+__all__ = ["Carver", "DEFAULT_CACHE_DIR", "DEFAULT_VOXEL_SIZES_M", "FUSIONS"]
 
 DEFAULT_CACHE_DIR = "~/.cache/voxelwatch"
 DEFAULT_VOXEL_SIZES_M = (0.4, 0.2, 0.1, 0.05)
 _DENSE_CHUNK = 1 << 17
+FUSIONS = ("vote", "graphcut")
+_REGION_DILATION = 1  # the graph cut's region: the voted voxels grown by this many 6-neighbour steps
 
 
 class Carver:
@@ -54,6 +65,11 @@ class Carver:
       cache_dir: directory for the lookup-table cache (``~`` expanded), None for no cache.
       occluders: furniture and walls that hide people (:mod:`fusion_server.carving.occlusion`):
         a camera does not vote on a voxel it sees only through one of them.
+      fusion: ``"vote"`` keeps the finest voxels that pass the vote; ``"graphcut"`` labels
+        the voted voxels and their 6-neighbours by the graph cut of :mod:`.graphcut`.
+      smoothing: the graph cut's Potts weight lambda (0.1: see the README; the paper's 0.01 is for a data term of another scale), >= 0.
+      free_space: depth images given to :meth:`carve` carve the space in front of the
+        measured surfaces (:mod:`.freespace`); False ignores them.
 
     Building the tables is the slow part (0.2-0.7 s per camera for the 1.1M voxels of an
     8 x 6 x 2.5 m room at 5 cm, about 3 s at 2.5 cm); it happens here, once per calibration
@@ -76,6 +92,9 @@ class Carver:
         mask_scale: float = 1.0,
         cache_dir: str | os.PathLike | None = DEFAULT_CACHE_DIR,
         occluders: Sequence[Occluder] = (),
+        fusion: str = "vote",
+        smoothing: float = 0.1,
+        free_space: bool = True,
     ) -> None:
         if not isinstance(cameras, Mapping) or not cameras:
             raise ValueError("cameras must be a non-empty mapping of camera id -> Camera")
@@ -95,6 +114,13 @@ class Carver:
             raise ValueError(f"min_ratio must be in [0, 1], got {min_ratio!r}")
         if not isinstance(mask_scale, (int, float)) or not (math.isfinite(mask_scale) and 0 < mask_scale <= 4):
             raise ValueError(f"mask_scale must be in (0, 4], got {mask_scale!r}")
+        if fusion not in FUSIONS:
+            raise ValueError(f"fusion must be one of {FUSIONS}, got {fusion!r}")
+        if isinstance(smoothing, bool) or not isinstance(smoothing, (int, float)) \
+                or not (math.isfinite(smoothing) and 0.0 <= smoothing <= 1.0):
+            raise ValueError(f"smoothing must be in [0, 1], got {smoothing!r}")
+        if not isinstance(free_space, bool):
+            raise ValueError(f"free_space must be a bool, got {free_space!r}")
         grid = _make_grid(volume_min_m, volume_max_m, grid, sizes[-1])
 
         self.grid: VoxelGrid = grid
@@ -103,6 +129,11 @@ class Carver:
         self.min_cameras = int(min_cameras)
         self.min_ratio = float(min_ratio)
         self.mask_scale = float(mask_scale)
+        self.fusion = fusion
+        self.smoothing = float(smoothing)
+        self.free_space = free_space
+        self.camera_centres_m: dict[str, np.ndarray] = {cid: np.asarray(cam.center, dtype=np.float64)
+                                                        for cid, cam in cameras.items()}
         self.camera_ids: tuple[str, ...] = tuple(cameras)
         self.cache_reports: dict[str, CacheReport] = {}
         self.lut_sizes: dict[str, tuple[int, int]] = {}
@@ -133,20 +164,28 @@ class Carver:
         """Bytes held by the lookup tables of all cameras and levels."""
         return sum(a.nbytes for a in self._pixel) + sum(a.nbytes for a in self._radius)
 
-    def carve(self, masks: Mapping[str, np.ndarray], stamp_ns: int) -> CarveResult:
+    def carve(self, masks: Mapping[str, np.ndarray], stamp_ns: int,
+              depths: Mapping[str, np.ndarray] | None = None) -> CarveResult:
         """Octree carve of one frame set.
 
         masks: camera id -> (H, W) uint8 mask (0 background, 255 foreground; > 127 counts)
             or bool; cameras absent from ``masks`` do not vote. Unknown ids raise ValueError.
         stamp_ns: the frame set's capture time.
+        depths: camera id -> (H, W) uint16 range in millimetres at its mask's size (distance
+            from the camera centre along the pixel's ray, 0 = none), for depth cameras;
+            any subset of the cameras in ``masks`` (others are ignored).
         """
         dists = self.distance_stage(masks)
-        return self.result(self.octree_stage(dists), stamp_ns, dists)
+        ijk = self.octree_stage(dists)
+        return self.result(self.fusion_stage(ijk, dists, self.depth_stage(masks, depths)), stamp_ns, dists)
 
-    def carve_dense(self, masks: Mapping[str, np.ndarray], stamp_ns: int) -> CarveResult:
-        """The brute-force oracle: every finest voxel tested with the same vote, no octree."""
+    def carve_dense(self, masks: Mapping[str, np.ndarray], stamp_ns: int,
+                    depths: Mapping[str, np.ndarray] | None = None) -> CarveResult:
+        """The brute-force oracle: every finest voxel tested with the same vote, no octree
+        (then the same fusion stage)."""
         dists = self.distance_stage(masks)
-        return self.result(self.dense_stage(dists), stamp_ns, dists)
+        ijk = self.dense_stage(dists)
+        return self.result(self.fusion_stage(ijk, dists, self.depth_stage(masks, depths)), stamp_ns, dists)
 
     def distance_stage(self, masks: Mapping[str, np.ndarray]) -> DistanceImages:
         """Stage 1: distance images of the present cameras (valid until the next call)."""
@@ -174,8 +213,76 @@ class Carver:
             hits.append(np.flatnonzero(passed) + lo)
         return level_ijk(np.concatenate(hits), self.layout.dims[-1])
 
+    def depth_stage(self, masks: Mapping[str, np.ndarray],
+                    depths: Mapping[str, np.ndarray] | None) -> dict[str, np.ndarray]:
+        """Stage 2b: camera id -> (K, H, W) uint16 footprint range images
+        (:func:`.freespace.footprint_depth`) of the depth cameras present in ``masks``
+        (the depth of a camera without a mask is ignored); empty without depths or with
+        ``free_space`` off. Unknown ids, other dtypes and other shapes raise ValueError."""
+        if not depths or not self.free_space:
+            return {}
+        out = {}
+        for cid, depth in depths.items():
+            if cid not in self.camera_centres_m:
+                raise ValueError(f"depths[{cid!r}]: unknown camera (known: {sorted(self.camera_ids)})")
+            if cid not in masks:
+                continue  # the camera is absent from the frame set: it does not vote at all
+            out[cid] = footprint_depth(check_depth(cid, depth, np.shape(masks[cid])))
+        return out
+
+    def fusion_stage(self, ijk: np.ndarray, dists: DistanceImages, footprints: Mapping[str, np.ndarray], *,
+                     fusion: str | None = None, smoothing: float | None = None) -> np.ndarray:
+        """Stage 3: the finest voxels the carve keeps, (N, 3) int32, given the voted voxels
+        ``ijk`` (N0, 3) and the depth cameras' ``footprints`` (:meth:`depth_stage`).
+
+        With the vote and no depth images, ``ijk`` itself. Otherwise the voted voxels (and,
+        for the graph cut, their neighbours) are counted again at the finest level with the
+        depth cameras' verdicts, then kept by the vote or labelled by the graph cut.
+        ``fusion`` and ``smoothing`` override the carver's own (for benchmarks).
+        """
+        fusion = self.fusion if fusion is None else fusion
+        smoothing = self.smoothing if smoothing is None else smoothing
+        if fusion not in FUSIONS:
+            raise ValueError(f"fusion must be one of {FUSIONS}, got {fusion!r}")
+        if ijk.shape[0] == 0 or (fusion == "vote" and not footprints):
+            return ijk
+        shape = self.layout.dims[-1]
+        linear = np.ravel_multi_index(ijk.T.astype(np.int64), shape)
+        if fusion == "vote":
+            found, seeing = self.finest_counts(linear, dists, footprints)
+            keep = found >= needed_votes(len(dists.columns), self.min_cameras, self.min_ratio)[seeing]
+            return ijk[keep]
+        region = _dilate(linear, shape, _REGION_DILATION)
+        found, seeing = self.finest_counts(region, dists, footprints)
+        labels = graphcut_labels(region, found, seeing, shape, n_cameras=len(dists.columns),
+                                 min_cameras=self.min_cameras, min_ratio=self.min_ratio, smoothing=smoothing)
+        return level_ijk(region[labels], shape)
+
+    def finest_counts(self, linear: np.ndarray, dists: DistanceImages,
+                      footprints: Mapping[str, np.ndarray] | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """``(found, seeing)`` (M,) uint8 camera counts of the finest voxels ``linear`` (M,) int64,
+        with the depth cameras' verdicts (:mod:`.freespace`) in place of their silhouettes'
+        where they measured a range."""
+        pixel = np.take(self._pixel[-1], linear, axis=0)
+        radius = np.take(self._radius[-1], linear, axis=0)
+        hit, seen = observations(pixel, radius, dists, hidden=self._hidden[-1])
+        if footprints:
+            centres = self.grid.centres(level_ijk(linear, self.layout.dims[-1]))
+            for cid, footprint in footprints.items():
+                p = dists.camera_ids.index(cid)
+                col = self.camera_ids.index(cid)
+                n_sizes, h, w = footprint.shape
+                lut_w, lut_h = self.lut_sizes[cid]
+                px = mask_pixels(pixel[:, col], (lut_w, lut_h), (w, h))
+                radius_px = radius[:, col] * (max(w / lut_w, h / lut_h) / RADIUS_UNITS_PER_PX)
+                flat = footprint_level(radius_px) * (h * w) + np.maximum(px, 0)
+                measured_m = np.where(px >= 0, footprint.ravel()[flat], 0) * 1e-3
+                range_m = np.linalg.norm(centres - self.camera_centres_m[cid], axis=1)
+                apply_verdicts(hit[:, p], seen[:, p], depth_verdicts(range_m, measured_m, self.grid.voxel_m))
+        return tally(hit, seen)
+
     def result(self, ijk: np.ndarray, stamp_ns: int, dists: DistanceImages) -> CarveResult:
-        """Stage 3: floor maps and the carve result."""
+        """Stage 4: floor maps and the carve result."""
         return CarveResult(ijk=ijk, grid=self.grid, floor=floor_maps(ijk, self.grid), stamp_ns=int(stamp_ns),
                            cameras=dists.camera_ids)
 
@@ -189,6 +296,22 @@ class Carver:
         pixel = np.take(self._pixel[level], index, axis=0)
         radius = np.take(self._radius[level], index, axis=0)
         return vote(pixel, radius, dists, self.min_cameras, self.min_ratio, hidden=self._hidden[level])
+
+
+def _dilate(linear: np.ndarray, shape: tuple[int, int, int], steps: int) -> np.ndarray:
+    """(M,) linear indices grown by ``steps`` 6-neighbour steps within ``shape``: sorted, unique."""
+    occupied = np.zeros(shape, dtype=bool)
+    occupied.ravel()[linear] = True
+    for _ in range(steps):
+        grown = occupied.copy()
+        grown[1:] |= occupied[:-1]
+        grown[:-1] |= occupied[1:]
+        grown[:, 1:] |= occupied[:, :-1]
+        grown[:, :-1] |= occupied[:, 1:]
+        grown[:, :, 1:] |= occupied[:, :, :-1]
+        grown[:, :, :-1] |= occupied[:, :, 1:]
+        occupied = grown
+    return np.flatnonzero(occupied)
 
 
 def _make_grid(volume_min_m, volume_max_m, grid, voxel_m: float) -> VoxelGrid:

@@ -26,7 +26,10 @@ import numpy as np
 
 from fusion_server.carving.lut import HIDDEN, RADIUS_UNITS_PER_PX
 
-__all__ = ["DistanceImages", "distance_images", "vote", "needed_votes", "FOREGROUND_THRESHOLD"]
+__all__ = [
+    "DistanceImages", "distance_images", "vote", "observations", "tally", "needed_votes", "mask_pixels",
+    "FOREGROUND_THRESHOLD",
+]
 
 FOREGROUND_THRESHOLD = 127  # mask values above this are foreground (MOG2 marks shadows 127)
 _RATIO_EPS = 1e-9
@@ -122,9 +125,21 @@ def vote(pixel: np.ndarray, radius_q: np.ndarray, dists: DistanceImages, min_cam
     radius_q: (M, C) uint16 (or float32) enclosing radii in 1/32 pixel, same layout.
     Returns (M,) bool.
     """
-    cols = dists.columns
-    if cols.size == 0:
+    if dists.columns.size == 0:
         return np.zeros(pixel.shape[0], dtype=bool)
+    found, seeing = tally(*observations(pixel, radius_q, dists, hidden=hidden))
+    return found >= needed_votes(len(dists.columns), min_cameras, min_ratio)[seeing]
+
+
+def observations(pixel: np.ndarray, radius_q: np.ndarray, dists: DistanceImages, *,
+                 hidden: bool = False) -> tuple[np.ndarray, np.ndarray]:
+    """Per voxel and present camera, whether the camera finds foreground and whether it sees it.
+
+    pixel, radius_q: as for :func:`vote`, (M, C) over all known cameras.
+    Returns ``(hit, seen)``, each (M, P) bool over the P present cameras in ``dists`` order
+    (``hit`` implies ``seen``).
+    """
+    cols = dists.columns
     if cols.size != pixel.shape[1] or np.any(cols != np.arange(pixel.shape[1])):
         pixel = pixel[:, cols]
         radius_q = radius_q[:, cols]
@@ -136,13 +151,35 @@ def vote(pixel: np.ndarray, radius_q: np.ndarray, dists: DistanceImages, min_cam
         behind = pixel == HIDDEN
         hit |= behind
         seen |= behind
+    return hit, seen
+
+
+def tally(hit: np.ndarray, seen: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(M, P) bool hits and sightings -> ``(found, seeing)``, (M,) uint8 camera counts: the
+    numerator and denominator of the visibility ratio h(v)."""
+    if hit.shape[1] == 0:
+        zeros = np.zeros(hit.shape[0], dtype=np.uint8)
+        return zeros, zeros.copy()
     # Column sums: much faster than a reduction along a short inner axis.
     found = hit[:, 0].astype(np.uint8)
     seeing = seen[:, 0].astype(np.uint8)
     for p in range(1, hit.shape[1]):
         found += hit[:, p]
         seeing += seen[:, p]
-    return found >= needed_votes(hit.shape[1], min_cameras, min_ratio)[seeing]
+    return found, seeing
+
+
+def mask_pixels(pixel: np.ndarray, lut_size: tuple[int, int], size: tuple[int, int]) -> np.ndarray:
+    """(M,) int LUT pixels of one camera (``lut_size`` (width, height)) -> flat pixels of an
+    image of ``size`` (width, height): the pixel holding the scaled centre; negatives kept."""
+    if tuple(size) == tuple(lut_size):
+        return pixel
+    (w, h), (lw, lh) = size, lut_size
+    seen = pixel >= 0
+    v, u = np.divmod(pixel, lw)
+    us = np.minimum(((u + 0.5) * (w / lw)).astype(np.int64), w - 1)
+    vs = np.minimum(((v + 0.5) * (h / lh)).astype(np.int64), h - 1)
+    return np.where(seen, vs * w + us, pixel)
 
 
 def needed_votes(n_cameras: int, min_cameras: int, min_ratio: float) -> np.ndarray:
@@ -177,12 +214,6 @@ def _rescale(pixel: np.ndarray, radius_q: np.ndarray, dists: DistanceImages):
     radius_q = radius_q.astype(np.float32)
     for p in scaled:
         (w, h), (lw, lh) = dists.sizes[p], dists.lut_sizes[p]
-        sx, sy = w / lw, h / lh
-        col = pixel[:, p]
-        seen = col >= 0
-        v, u = np.divmod(col, lw)
-        us = np.minimum(((u + 0.5) * sx).astype(np.int64), w - 1)
-        vs = np.minimum(((v + 0.5) * sy).astype(np.int64), h - 1)
-        pixel[:, p] = np.where(seen, vs * w + us, col)
-        radius_q[:, p] *= max(sx, sy)
+        pixel[:, p] = mask_pixels(pixel[:, p], (lw, lh), (w, h))
+        radius_q[:, p] *= max(w / lw, h / lh)
     return pixel, radius_q
