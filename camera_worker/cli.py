@@ -178,11 +178,12 @@ def _configure(args: argparse.Namespace):
         max_frames=args.max_frames,
         stats_period_s=args.stats_period,
         expected_size=tuple(spec.resolution) if spec.resolution else None,
+        modality=spec.modality,
     )
     # build the segmenter once here so that a bad value stops start-up with its name
-    from camera_worker.segmentation import ForegroundSegmenter
+    from camera_worker.segmenters import segmenter_for
 
-    ForegroundSegmenter(**{k: v for k, v in settings.segmenter.items() if v is not None})
+    segmenter_for(settings.modality, **settings.segmenter)
     def conf():
         return site_config(site, host=spec.id, mode=args.mode, listen=args.listen, connect=args.connect,
                            tls_cert=args.tls_cert, tls_key=args.tls_key, connect_timeout_ms=1000)

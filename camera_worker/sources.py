@@ -56,6 +56,7 @@ __all__ = [
 ]
 
 IMAGE_SUFFIXES = frozenset({".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".ppm", ".pgm", ".pnm", ".webp"})
+_DEEP_SUFFIXES = frozenset({".png", ".tif", ".tiff", ".pgm"})   # can hold 16-bit images
 URL_SCHEMES = ("rtsp", "rtsps", "http", "https", "udp", "tcp", "rtp", "srt", "rtmp")
 STREAM_TIMEOUT_MS = 5000
 """Open and read time-out given to FFmpeg for stream URLs."""
@@ -71,7 +72,9 @@ class SourceError(RuntimeError):
 class Frame:
     """One captured frame.
 
-    ``image``: ``(H, W, 3) uint8`` BGR. ``index``: 0-based position in a
+    ``image``: ``(H, W, 3) uint8`` BGR, or ``(H, W) uint16`` as a thermal or range camera
+    records it (16-bit single-channel images of a folder, the synthetic house's
+    thermal and range cameras), never converted. ``index``: 0-based position in a
     recording, or count of frames captured by a live source. ``stamp_ns``:
     capture time, nanoseconds. ``truth``: ``(H, W) uint8`` 0/255 true
     silhouette mask when the source knows it (synthetic house), else None.
@@ -241,7 +244,17 @@ class ImageFolderSource(FrameSource):
         if self._index >= len(self._files):
             return None
         path = self._files[self._index]
-        image = cv2.imread(str(path), cv2.IMREAD_COLOR)
+        if path.suffix.lower() in _DEEP_SUFFIXES:
+            # 16-bit single-channel images (thermal, range) reach the segmenter as they are
+            image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+            if image is not None and image.dtype == np.uint8:
+                image = _bgr(image)
+            elif image is not None and not (image.dtype == np.uint16 and image.ndim == 2):
+                raise SourceError(f"{self.name}: image {path.name} is {image.dtype} with "
+                                  f"{1 if image.ndim == 2 else image.shape[2]} channels; only 8-bit images and "
+                                  "16-bit single-channel ones (thermal, range) are read")
+        else:
+            image = cv2.imread(str(path), cv2.IMREAD_COLOR)
         if image is None:
             raise SourceError(f"{self.name}: cannot decode image {path.name}")
         frame = Frame(self._index, recorded_stamp_ns(self.start_ns, self._index, self.fps), image)
@@ -311,14 +324,17 @@ class SyntheticSource(FrameSource):
 
     ``background=True`` yields the clip of the empty room recorded before the
     scenario (``background_frame(i)``), for learning. ``n_frames`` caps either.
+    ``modality``: the camera's kind (``colour``, ``infrared``, ``thermal``, ``depth``);
+    thermal and depth frames are ``(H, W) uint16``.
     """
 
     live = False
 
     def __init__(self, cam_id: str, *, scenario: str | None = None, seed: int = 0, start_ns: int = 0,
                  background: bool = False, n_frames: int | None = None, world: int | None = None,
-                 fps: float | None = None) -> None:
+                 fps: float | None = None, modality: str = "colour") -> None:
         self.cam_id = cam_id
+        self.modality = modality
         self._fps_override = _check_fps(fps)
         self.scenario = scenario
         self.seed = int(seed)
@@ -338,11 +354,11 @@ class SyntheticSource(FrameSource):
             raise SourceError(f"{self.name}: the synthetic house is not available ({exc})") from None
         try:
             if self.world is not None:
-                camera = _world_camera(self.world, self.cam_id)
+                camera = _world_camera(self.world, self.cam_id, self.modality)
             elif self.scenario:
-                camera = SyntheticCamera(self.scenario, self.cam_id, self.seed)
+                camera = SyntheticCamera(self.scenario, self.cam_id, self.seed, modality=self.modality)
             else:
-                camera = SyntheticCamera(cam_id=self.cam_id, seed=self.seed)
+                camera = SyntheticCamera(cam_id=self.cam_id, seed=self.seed, modality=self.modality)
         except (KeyError, ValueError) as exc:
             raise SourceError(f"{self.name}: {exc}") from None
         self._camera = camera
@@ -378,8 +394,9 @@ class SyntheticSource(FrameSource):
         return frame
 
 
-def _world_camera(seed: int, cam_id: str):
-    """The renderer of camera ``cam_id`` of the randomised world ``seed``, as its video worlds render."""
+def _world_camera(seed: int, cam_id: str, modality: str = "colour"):
+    """The renderer of camera ``cam_id`` of the randomised world ``seed``, as its video worlds render
+    (a thermal or depth camera as a mixed rig's frames are written)."""
     from common.synth.source import BACKGROUND_S, SyntheticCamera
     from common.synth.world import random_world
 
@@ -387,7 +404,7 @@ def _world_camera(seed: int, cam_id: str):
     if cam_id not in world.cameras:
         raise ValueError(f"world {seed} has no camera {cam_id!r}; its cameras are {', '.join(world.cameras)}")
     return SyntheticCamera(world.scenario, cam_id, world.seed, camera=world.cameras[cam_id],
-                           background_s=BACKGROUND_S)
+                           background_s=BACKGROUND_S, modality=modality)
 
 
 def describe_source(spec: int | str | Path) -> str:
@@ -421,6 +438,7 @@ def open_source(
     n_frames: int | None = None,
     default_fps: float = 15.0,
     clock: Callable[[], int] = time.time_ns,
+    modality: str = "colour",
 ) -> FrameSource:
     """Build (not open) the source a spec string names; see the module docstring for the forms.
 
@@ -428,7 +446,8 @@ def open_source(
     when given. ``background=True`` asks for the empty room of the synthetic
     house; other specs are the clip itself. ``fps`` overrides a recording's
     own rate; ``default_fps`` (the site's camera fps) applies to image
-    folders and to files that state no rate. Raises SourceError for an
+    folders and to files that state no rate. ``modality`` (the site camera's) makes
+    the synthetic house render that kind of camera. Raises SourceError for an
     empty or unknown spec.
     """
     if isinstance(spec, int):
@@ -441,13 +460,13 @@ def open_source(
     if text == "synthetic" or text.startswith("synthetic:"):
         scenario = text.partition(":")[2] or None
         return SyntheticSource(cam_id, scenario=scenario, seed=seed, start_ns=start_ns, background=background,
-                               n_frames=n_frames, fps=fps)
+                               n_frames=n_frames, fps=fps, modality=modality)
     if text.startswith("world:"):
         seed_text = text.partition(":")[2]
         if not seed_text.isdigit():
             raise SourceError(f"{text}: a world source is 'world:SEED' with a non-negative integer seed")
         return SyntheticSource(cam_id, world=int(seed_text), start_ns=start_ns, background=background,
-                               n_frames=n_frames, fps=fps)
+                               n_frames=n_frames, fps=fps, modality=modality)
     match = _URL_RE.match(text)
     if match:
         if match.group(1).lower() not in URL_SCHEMES:

@@ -51,6 +51,7 @@ import numpy as np
 
 from camera_worker.looks import LookAnswerer
 from camera_worker.segmentation import Box, ForegroundSegmenter, SegmentStats, window_frames_for
+from camera_worker.segmenters import MODALITIES, Segmenter, foreground_depth, segmenter_for
 from camera_worker.sources import (
     Frame,
     FrameSource,
@@ -95,8 +96,10 @@ class WorkerSettings:
     sources at their rate -- from the first frame read, or, when ``start_ns``
     is given, on the host clock (each frame at its stamp, so workers given the
     same start stay in step; frames already late are skipped where the source
-    can seek). ``segmenter``: keyword arguments of
-    :class:`ForegroundSegmenter`. ``max_frames``: stop after this many frames
+    can seek). ``modality``: the camera's (site ``cameras[].modality``), which picks the
+    segmenter (:func:`camera_worker.segmenters.segmenter_for`); a depth camera's
+    messages carry the foreground range. ``segmenter``: keyword arguments of
+    :class:`ForegroundSegmenter` (the thermal and depth segmenters take the common ones). ``max_frames``: stop after this many frames
     (None: no limit). ``expected_size``: the ``(width, height)`` the site
     states for this camera; frames of another size are reported once.
     """
@@ -122,9 +125,12 @@ class WorkerSettings:
     hold_queue: int = 8
     look_queue: int = 4
     expected_size: tuple[int, int] | None = None
+    modality: str = "colour"
 
     def __post_init__(self) -> None:
         keys.validate_chunk(self.cam, "camera id")
+        if self.modality not in MODALITIES:
+            raise ValueError(f"modality must be one of {', '.join(MODALITIES)}, got {self.modality!r}")
         keys.validate_prefix(self.prefix)
         if self.codec not in maskcodec.CODECS:
             raise ValueError(f"codec must be one of {', '.join(maskcodec.CODECS)}, got {self.codec!r}")
@@ -223,9 +229,11 @@ def build_mask_frame(
     codec: str = maskcodec.DEFAULT_CODEC,
     fg_fraction: float | None = None,
     looks: Sequence[Appearance] = (),
+    depth_mm: np.ndarray | None = None,
 ) -> MaskFrame:
     """The wire message of one mask. ``mask``: ``(h, w) uint8`` 0/255; ``src_size``: capture ``(W, H)``;
-    ``looks``: the colour descriptors answering a look request on this frame."""
+    ``looks``: the colour descriptors answering a look request on this frame; ``depth_mm``: a
+    depth camera's foreground range, ``(h, w) uint16`` millimetres (sent at the mask's pixels)."""
     h, w = mask.shape
     if fg_fraction is None:
         fg_fraction = float(np.count_nonzero(mask)) / mask.size
@@ -234,11 +242,12 @@ def build_mask_frame(
         src_width=int(src_size[0]), src_height=int(src_size[1]), codec=codec,
         data=maskcodec.encode_mask(mask, codec), fg_fraction=min(1.0, max(0.0, float(fg_fraction))),
         looks=list(looks),
+        depth=maskcodec.encode_depth(depth_mm, mask) if depth_mm is not None else b"",
     )
 
 
 def step(
-    segmenter: ForegroundSegmenter,
+    segmenter: Segmenter,
     frame: Frame,
     *,
     cam: str,
@@ -251,9 +260,10 @@ def step(
     ``answerer`` holding a request, the message carries its answer on this frame."""
     mask, stats = segmenter.apply(frame.image, holds=holds)
     h, w = frame.image.shape[:2]
-    looks = answerer.answer(frame.image, mask, frame.stamp_ns) if answerer is not None and answerer.pending else []
+    image = frame.image if isinstance(segmenter, ForegroundSegmenter) else None   # thermal, range: no colours
+    looks = answerer.answer(image, mask, frame.stamp_ns) if answerer is not None and answerer.pending else []
     msg = build_mask_frame(mask, cam=cam, seq=seq, stamp_ns=frame.stamp_ns, src_size=(w, h), codec=codec,
-                           fg_fraction=stats.fg_fraction, looks=looks)
+                           fg_fraction=stats.fg_fraction, looks=looks, depth_mm=foreground_depth(segmenter))
     return msg, mask, stats
 
 
@@ -275,7 +285,8 @@ def run(session: Any, settings: WorkerSettings, *, stop: threading.Event | None 
     start_ns = settings.start_ns if settings.start_ns is not None else time.time_ns()
     try:
         source = open_source(settings.source, cam_id=settings.cam, start_ns=start_ns, fps=settings.fps,
-                             seed=settings.seed, base_dir=settings.base_dir, default_fps=settings.default_fps)
+                             seed=settings.seed, base_dir=settings.base_dir, default_fps=settings.default_fps,
+                             modality=settings.modality)
     except (SourceError, ValueError, TypeError) as exc:
         log.error("camera %s: %s", settings.cam, exc)
         return 1
@@ -290,7 +301,7 @@ def run(session: Any, settings: WorkerSettings, *, stop: threading.Event | None 
     if seg_kwargs.get("window_frames") is None:
         seg_kwargs["window_frames"] = window_frames_for(source.fps or settings.default_fps or 15.0)
     try:
-        segmenter = ForegroundSegmenter(**seg_kwargs)
+        segmenter = segmenter_for(settings.modality, **seg_kwargs)
     except (ValueError, TypeError) as exc:
         log.error("camera %s: %s", settings.cam, exc)
         source.close()
@@ -328,7 +339,7 @@ def run(session: Any, settings: WorkerSettings, *, stop: threading.Event | None 
 class _Loop:
     """The per-frame loop of :func:`run` (state that the loop shares between its stages)."""
 
-    def __init__(self, settings: WorkerSettings, segmenter: ForegroundSegmenter, source: FrameSource,
+    def __init__(self, settings: WorkerSettings, segmenter: Segmenter, source: FrameSource,
                  publisher: Any, hold_sub: Any, look_sub: Any, counters: WorkerCounters,
                  stop: threading.Event) -> None:
         self.s = settings
@@ -383,7 +394,8 @@ class _Loop:
             self.last_seq = self.seq_offset + frame.index
             msg = build_mask_frame(mask, cam=self.s.cam, seq=self.last_seq,
                                    stamp_ns=frame.stamp_ns, src_size=(w, h), codec=self.s.codec,
-                                   fg_fraction=stats.fg_fraction, looks=looks)
+                                   fg_fraction=stats.fg_fraction, looks=looks,
+                                   depth_mm=foreground_depth(self.segmenter))
             payload = messages.encode(msg)
             t4 = time.perf_counter()
             try:
@@ -533,7 +545,9 @@ class _Loop:
             self.answerer.ask(msg)
         if not self.answerer.pending:
             return []
-        looks = self.answerer.answer(frame.image, mask, frame.stamp_ns)
+        # a thermal or range camera has no colours to describe: the request is taken and left unanswered
+        image = frame.image if isinstance(self.segmenter, ForegroundSegmenter) else None
+        looks = self.answerer.answer(image, mask, frame.stamp_ns)
         self.c.looks_answered, self.c.looks_expired = self.answerer.answered, self.answerer.expired
         return looks
 
@@ -552,12 +566,13 @@ class _Loop:
         self.source.close()
 
 
-def _learn_background(segmenter: ForegroundSegmenter, settings: WorkerSettings, start_ns: int,
+def _learn_background(segmenter: Segmenter, settings: WorkerSettings, start_ns: int,
                       stop: threading.Event) -> int:
     """Learn every frame of the background clip (until ``stop``); returns the number of frames learned."""
     bg = open_source(settings.background, cam_id=settings.cam, start_ns=start_ns, fps=settings.fps,
                      seed=settings.seed, base_dir=settings.base_dir, background=True,
-                     n_frames=settings.background_frames, default_fps=settings.default_fps)
+                     n_frames=settings.background_frames, default_fps=settings.default_fps,
+                     modality=settings.modality)
     if bg.live:
         raise SourceError(f"background {bg.name}: must be a recording (file, folder or synthetic), not live")
     try:

@@ -286,6 +286,9 @@ def _register_synth(sub) -> None:
     p.add_argument("--masks", action="store_true", help="also write the true silhouettes as PNG")
     p.add_argument("--codec", default="MJPG", choices=["MJPG", "FFV1"], help="video codec")
     p.add_argument("--workers", type=int, default=1, help="render cameras in this many processes")
+    p.add_argument("--sensors", default="colour", choices=["colour", "mixed"],
+                   help="with --world random: every camera colour (default), or a mixed rig: one depth and one "
+                        "thermal camera among them (the same world otherwise)")
     p.add_argument("--list", action="store_true", help="list the scenarios and exit")
     p.set_defaults(handler=_synth)
 
@@ -302,6 +305,8 @@ def _synth(args: argparse.Namespace) -> int:
         raise ValueError("--out is required (the folder to write into)")
     if args.world == "random":
         return _synth_world(args)
+    if args.sensors != "colour":
+        raise ValueError("--sensors is for --world random")
     name = args.scenario or synth.DEFAULT_SCENARIO
     cameras = args.cameras.split(",") if args.cameras else None
     out = synth.write_scenario(
@@ -318,7 +323,7 @@ def _synth_world(args: argparse.Namespace) -> int:
 
     if args.scenario or args.cameras or args.masks:
         raise ValueError("--scenario, --cameras and --masks are for --world house; a random world is all its --seed")
-    world = random_world(args.seed)
+    world = random_world(args.seed, sensors=args.sensors)
     out = write_world(world, args.out, frames=args.frames)
     s = world.summary()
     room = s["room"]
@@ -326,6 +331,8 @@ def _synth_world(args: argparse.Namespace) -> int:
           f"{s['cameras']} cameras ({s['rig_label']}{', ceiling fisheye' if s['fisheye'] else ''}), "
           f"{s['people']} people ({', '.join(s['behaviours'])}"
           f"{'; every adult dressed alike' if s['dress'] == 'alike' else ''}), {out.n_frames} frames of {s['media']}")
+    for cam, why in s.get("sensors", {}).get("why", {}).items():
+        print(f"  {cam} {why}")
     print(f"  site {out.site}\n  truth {out.truth_dir}")
     return 0
 
@@ -448,6 +455,9 @@ def _register_eval(sub) -> None:
     p.add_argument("--seeds", default=None,
                    help="with --suite --world random: seeds, e.g. 1000-1049 or 3,7,20-22 (tuning 0-999, evaluation 1000 and up)")
     p.add_argument("--keep-media", action="store_true", help="with --world random: keep the worlds' masks and videos")
+    p.add_argument("--sensors", default="colour", choices=["colour", "mixed"],
+                   help="with --suite --world random: colour rigs (default) or mixed rigs (one depth and one thermal "
+                        "camera in each world, the same worlds otherwise)")
     p.add_argument("--scenarios", default=None, help="with --suite: comma-separated scenario names (default all)")
     p.add_argument("--quick", action="store_true", help="with --suite: a few short scenarios, first 45 s of each")
     p.add_argument("--cameras", default="5", help="with --suite: comma-separated camera counts to run, e.g. 5,4,3,2")
@@ -476,8 +486,11 @@ def _eval(args: argparse.Namespace) -> int:
         if args.seeds is None:
             raise ValueError("--world random needs --seeds, e.g. --seeds 0-19 to tune or --seeds 1000-1049 to report")
         run_world_suite(seeds=parse_seeds(args.seeds), out_dir=args.out, jobs=args.jobs, frames=args.frames,
-                        json_path=args.json, keep_media=args.keep_media, settings=args.settings)
+                        json_path=args.json, keep_media=args.keep_media, settings=args.settings,
+                        sensors=args.sensors)
         return 0
+    if args.sensors != "colour":
+        raise ValueError("--sensors is for --suite --world random")
     if args.suite:
         from fusion_server.suite import run_suite
 

@@ -92,7 +92,7 @@ import statistics
 from collections import Counter, deque
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Mapping
 
 from common import keys, maskcodec, messages
 from common.camera import Camera
@@ -109,6 +109,8 @@ from fusion_server.sync import FrameSet, FrameSynchroniser
 
 __all__ = ["FusionCounters", "FusionNode", "FusionSettings", "Outbox", "camera_event", "history_replies"]
 
+_MAX_PENDING_DEPTHS = 64
+"""Depth images kept for frame sets not fused yet (a few sets of a few depth cameras)."""
 log = logging.getLogger("voxelwatch.fusion")
 
 _SYNC_DROPS = ("duplicate", "superseded", "dropped_overflow")
@@ -340,6 +342,7 @@ class FusionNode:
         self._next_status = -math.inf
         self._out = Outbox()
         self._looks: dict[tuple[str, int], list] = {}  # (camera, mask stamp) -> its descriptors
+        self._depths: dict[tuple[str, int], Any] = {}  # (camera, mask stamp) -> its foreground range
 
     # ------------------------------------------------------------------ inputs
 
@@ -370,6 +373,7 @@ class FusionNode:
                 raise _Mismatch(f"MaskFrame says camera {msg.cam!r} but came on {cam!r}'s key")
             self._check_shape(msg)
             mask = maskcodec.decode_mask(msg.data, msg.codec, msg.width, msg.height)
+            depth = maskcodec.decode_depth(msg.depth, mask) if msg.depth else None
         except (WireError, MaskCodecError) as exc:
             health.undecodable += 1
             health.last_bad_mono = mono
@@ -390,6 +394,10 @@ class FusionNode:
             return
         if msg.looks:
             self.add_looks(cam, msg.stamp_ns, msg.looks)
+        if depth is not None:
+            self._depths[(cam, int(msg.stamp_ns))] = depth
+            while len(self._depths) > _MAX_PENDING_DEPTHS:   # sets dropped unfused leave theirs behind
+                self._depths.pop(next(iter(self._depths)))
         count = self.sync.counters[cam]
         before = dict(count)
         for fs in self.sync.push(cam, msg.seq, msg.stamp_ns, mask):
@@ -503,14 +511,24 @@ class FusionNode:
         (they arrive with its mask); they join that mask's frame set."""
         self._looks[(cam, int(stamp_ns))] = list(looks)
 
-    def fuse(self, fs: FrameSet, now_ns: int, mono: float) -> FusedFrame:
+    def fuse(self, fs: FrameSet, now_ns: int, mono: float, *,
+             depths: Mapping[str, Any] | None = None) -> FusedFrame:
         """Fuse one frame set: tracks, events (stored, written, queued), holds and look
-        requests. Errors of the pipeline propagate (:meth:`tick` counts them; the offline
-        replay stops on them)."""
+        requests. ``depths``: depth cameras' foreground range, camera id -> ``(h, w) uint16``
+        millimetres at the mask's size, passed to the pipeline (default: the ranges that came
+        with the set's masks). Errors of the pipeline propagate (:meth:`tick` counts them; the
+        offline replay stops on them)."""
         frame = _frame_of(fs)
+        newest = max(fs.stamps_ns.values(), default=fs.stamp_ns)
         looks = {cam: self._looks[(cam, stamp)] for cam, stamp in fs.stamps_ns.items() if (cam, stamp) in self._looks}
-        self._looks = {k: v for k, v in self._looks.items() if k[1] > max(fs.stamps_ns.values(), default=fs.stamp_ns)}
-        fused = self.pipeline.step(fs.payloads, fs.stamp_ns, frame, looks)
+        self._looks = {k: v for k, v in self._looks.items() if k[1] > newest}
+        if depths is None:
+            depths = {cam: self._depths[(cam, stamp)] for cam, stamp in fs.stamps_ns.items()
+                      if (cam, stamp) in self._depths}
+        self._depths = {k: v for k, v in self._depths.items() if k[1] > newest}
+        # pipelines without depth cameras need not know the keyword
+        extra = {"depths": depths} if depths else {}
+        fused = self.pipeline.step(fs.payloads, fs.stamp_ns, frame, looks, **extra)
         self.c.frames_fused += 1
         self.last_frame = int(fused.frame)
         self.last_stamp = (int(fused.stamp_ns), int(now_ns))

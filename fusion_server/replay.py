@@ -18,6 +18,12 @@ Inputs per camera, under ``INPUT/<camera id>/``:
   size), for the people's colour descriptors;
 * otherwise the folder itself as an image folder.
 
+A camera whose site ``modality`` is ``thermal`` or ``depth`` is segmented with
+the camera worker's own thermal or range segmenter: its frames are the 16-bit
+images of ``thermal/`` or ``range/`` (else the folder itself, or a video), its
+empty room ``background/`` when present. A depth camera's foreground range goes
+to the pipeline with its mask (``depths``), as its worker would send it.
+
 Or ``synthetic=SCENARIO``: every camera of the synthetic house rendered in
 this process (the site must be the synthetic house's).
 """
@@ -34,6 +40,7 @@ import numpy as np
 
 from camera_worker.looks import LookAnswerer
 from camera_worker.segmentation import ForegroundSegmenter, window_frames_for
+from camera_worker.segmenters import foreground_depth, segmenter_for
 from camera_worker.sources import FrameSource, SourceError, open_source
 from common.messages import LookRequest
 from common.site import Site
@@ -42,6 +49,8 @@ from fusion_server.outputs import RunOutputs
 from fusion_server.pipeline import FusedFrame, FusionPipeline
 from fusion_server.sync import FrameSet
 
+SENSOR_FOLDERS = {"thermal": "thermal", "depth": "range"}
+"""Where a thermal or depth camera's 16-bit frames lie under ``INPUT/<camera id>/``."""
 VIDEO_SUFFIXES = (".avi", ".mp4", ".mkv", ".mov", ".m4v", ".webm")
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".pgm", ".ppm", ".tif", ".tiff")
 @dataclass
@@ -103,14 +112,15 @@ class _MaskFolder:
 class _SegmentedCamera:
     """A frame source and its segmenter."""
 
-    def __init__(self, source: FrameSource, background: FrameSource | None, *, mask_scale: float, default_fps: float) -> None:
+    def __init__(self, source: FrameSource, background: FrameSource | None, *, mask_scale: float, default_fps: float,
+                 modality: str = "colour") -> None:
         self.source = source
         self.last_stamp_ns = 0
         source.open()
         fps = source.fps or default_fps
-        self.segmenter = ForegroundSegmenter(
-            mask_scale=mask_scale, window_frames=window_frames_for(fps)
-        )
+        self.segmenter = segmenter_for(modality, mask_scale=mask_scale, window_frames=window_frames_for(fps))
+        # only a colour camera's frames can answer a look request
+        self.colour = isinstance(self.segmenter, ForegroundSegmenter) and modality == "colour"
         if background is not None:
             with background:
                 while (frame := background.read()) is not None:
@@ -169,7 +179,8 @@ def replay(
             while max_frames is None or summary.frames < max_frames:
                 t0 = time.perf_counter()
                 images: dict[str, np.ndarray] | None = {} if overlay_every else None
-                masks, stamp_ns, frame_index, t_segment = _next_masks(inputs, holds, images, asked)
+                depths: dict[str, np.ndarray] = {}
+                masks, stamp_ns, frame_index, t_segment = _next_masks(inputs, holds, images, asked, depths)
                 if masks is None:
                     break
                 t1 = time.perf_counter()
@@ -178,7 +189,7 @@ def replay(
                         node.add_looks(cam, stamp_ns, answerer.last)
                 frame_set = FrameSet(stamp_ns=stamp_ns, payloads=masks, stamps_ns={cam: stamp_ns for cam in masks},
                                      seqs={cam: frame_index for cam in masks})
-                fused = node.fuse(frame_set, stamp_ns, t1)
+                fused = node.fuse(frame_set, stamp_ns, t1, depths=depths or None)
                 node.take()  # nothing is published offline
                 holds = fused.holds
                 for cam, people in fused.looks.items():
@@ -209,15 +220,26 @@ def _open_inputs(site, cam_ids, input_dir, synthetic, seed, background_frames) -
             seg_args = dict(mask_scale=site.carving.mask_scale, default_fps=spec.fps)
             if synthetic is not None:
                 start_ns = _scenario_start_ns(synthetic, seed, site.utc_offset_hours)
-                source = open_source(f"synthetic:{synthetic}", cam_id=cam, seed=seed, start_ns=start_ns)
+                source = open_source(f"synthetic:{synthetic}", cam_id=cam, seed=seed, start_ns=start_ns,
+                                     modality=spec.modality)
                 background = open_source(
-                    f"synthetic:{synthetic}", cam_id=cam, seed=seed, background=True, n_frames=background_frames
+                    f"synthetic:{synthetic}", cam_id=cam, seed=seed, background=True, n_frames=background_frames,
+                    modality=spec.modality,
                 )
-                inputs[cam] = _SegmentedCamera(source, background, **seg_args)
+                inputs[cam] = _SegmentedCamera(source, background, modality=spec.modality, **seg_args)
                 continue
             folder = Path(input_dir) / cam
             if not folder.is_dir():
                 raise SourceError(f"replay input {input_dir}: no folder for camera {cam!r} ({folder})")
+            if spec.modality in SENSOR_FOLDERS:
+                frames = folder / SENSOR_FOLDERS[spec.modality]
+                video = None if frames.is_dir() else _find_video(folder, "video")
+                source = open_source(str(video or (frames if frames.is_dir() else folder)), cam_id=cam,
+                                     fps=None if video else spec.fps)
+                back = folder / "background"
+                back_source = open_source(str(back), cam_id=cam, fps=spec.fps) if back.is_dir() else None
+                inputs[cam] = _SegmentedCamera(source, back_source, modality=spec.modality, **seg_args)
+                continue
             if (folder / "masks").is_dir():
                 colour = folder / "colour.avi"
                 source = open_source(str(colour), cam_id=cam, fps=spec.fps) if colour.is_file() else None
@@ -227,7 +249,7 @@ def _open_inputs(site, cam_ids, input_dir, synthetic, seed, background_frames) -
             background = _find_video(folder, "background")
             source = open_source(str(video or folder), cam_id=cam, fps=None if video else spec.fps)
             back = open_source(str(background), cam_id=cam) if background else None
-            inputs[cam] = _SegmentedCamera(source, back, **seg_args)
+            inputs[cam] = _SegmentedCamera(source, back, modality=spec.modality, **seg_args)
     except BaseException:
         for item in inputs.values():
             item.close()
@@ -235,11 +257,13 @@ def _open_inputs(site, cam_ids, input_dir, synthetic, seed, background_frames) -
     return inputs
 
 
-def _next_masks(inputs: dict, holds: dict, images: dict | None = None, asked: dict | None = None):
+def _next_masks(inputs: dict, holds: dict, images: dict | None = None, asked: dict | None = None,
+                depths: dict | None = None):
     """The next frame set: (masks, stamp_ns, frame index, seconds spent segmenting),
     or (None, ...) when any camera's recording has ended. ``images`` receives
     each segmented camera's frame; ``asked`` (camera id -> LookAnswerer) has each
-    camera answer its pending look request on its frame (into ``answerer.last``).
+    camera answer its pending look request on its frame (into ``answerer.last``);
+    ``depths`` receives each depth camera's foreground range (``(h, w) uint16`` mm).
     The stamp given to the answerers is the frame's own (the set's is the median)."""
     masks: dict[str, np.ndarray] = {}
     stamps: list[int] = []
@@ -263,11 +287,14 @@ def _next_masks(inputs: dict, holds: dict, images: dict | None = None, asked: di
             return None, 0, 0, t_segment
         t = time.perf_counter()
         masks[cam], _ = item.segmenter.apply(frame.image, holds=holds.get(cam, ()))
+        depth = foreground_depth(item.segmenter)
+        if depth is not None and depths is not None:
+            depths[cam] = depth
         if asked is not None:
-            asked[cam].answer(frame.image, masks[cam], frame.stamp_ns)
+            asked[cam].answer(frame.image if item.colour else None, masks[cam], frame.stamp_ns)
         t_segment += time.perf_counter() - t
         if images is not None:
-            images[cam] = frame.image
+            images[cam] = frame.image if frame.image.dtype == np.uint8 else _view8(frame.image)
         indices.append(frame.index)
         stamps.append(frame.stamp_ns)
     return masks, int(np.median(stamps)), int(np.median(indices)), t_segment
@@ -279,6 +306,16 @@ def _write_overlays(folder: Path, frame: int, images: dict, masks: dict) -> None
     folder.mkdir(parents=True, exist_ok=True)
     for cam, image in images.items():
         mask_overlay(image, masks[cam], folder / f"{cam}-{frame:06d}.png")
+
+
+def _view8(image: np.ndarray) -> np.ndarray:
+    """An 8-bit view of a 16-bit thermal or range frame for the overlays (its own 1-99 % span)."""
+    valid = image[image > 0]
+    if valid.size == 0:
+        return np.zeros(image.shape, np.uint8)
+    lo, hi = (float(v) for v in np.percentile(valid, (1.0, 99.0)))
+    scale = 255.0 / max(hi - lo, 1.0)
+    return cv2.convertScaleAbs(image.astype(np.float32), alpha=scale, beta=-lo * scale)
 
 
 def _expected_frames(inputs: dict, max_frames: int | None) -> int | None:

@@ -64,16 +64,21 @@ def run_world_suite(
     json_path: str | Path | None = None,
     keep_media: bool = False,
     settings: Sequence[str] = (),
+    sensors: str = "colour",
     stream=sys.stdout,
 ) -> dict[str, Any]:
     """Write, replay and score the worlds of ``seeds``; print the tables; return the report (also as JSON
     at ``json_path``). ``frames``: only the first N frames of each world. ``settings``: ``SECTION.KEY=VALUE``
-    changes to every world's site before its replay (:func:`common.site.with_settings`)."""
+    changes to every world's site before its replay (:func:`common.site.with_settings`). ``sensors``:
+    'colour' rigs, or 'mixed' (one depth and one thermal camera in each world; the same worlds
+    otherwise, so the two reports compare the rigs)."""
     from common.synth.world import seed_set
 
     sets = sorted({seed_set(s) for s in seeds})
     out = Path(out_dir)
-    tasks = [(int(s), str(out), frames, keep_media, tuple(settings)) for s in seeds]
+    if sensors not in ("colour", "mixed"):
+        raise ValueError(f"sensors must be 'colour' or 'mixed', got {sensors!r}")
+    tasks = [(int(s), str(out), frames, keep_media, tuple(settings), sensors) for s in seeds]
     results: dict[int, dict] = {}
     if jobs <= 1:
         for task in tasks:
@@ -87,7 +92,8 @@ def run_world_suite(
             for future in as_completed(futures):
                 results[futures[future]] = _report(future.result())
     ordered = [results[int(s)] for s in seeds]
-    print(f"\nrandom worlds, {' and '.join(sets)} seeds {_seed_text(seeds)}"
+    rigs = ", mixed rigs (a depth and a thermal camera in each)" if sensors == "mixed" else ""
+    print(f"\nrandom worlds, {' and '.join(sets)} seeds {_seed_text(seeds)}{rigs}"
           + (f"; site settings {', '.join(settings)}" if settings else ""), file=stream)
     print(composition(ordered), file=stream)
     print("", file=stream)
@@ -100,7 +106,7 @@ def run_world_suite(
     print("\nby dress (whole worlds; 'alike': every adult in the same clothes):", file=stream)
     print(groups_table(ordered, dress_groups(ordered)), file=stream, flush=True)
     report = {
-        "seeds": list(seeds), "seed_sets": sets, "settings": list(settings),
+        "seeds": list(seeds), "seed_sets": sets, "settings": list(settings), "sensors": sensors,
         "worlds": [{k: r[k] for k in ("seed", "world", "frames", "fuse_s", "replay_s", "scores")} for r in ordered],
         "total": total,
         "groups": {label: suite_totals(r["scores"] for r in rs) for label, rs in rig_groups(ordered).items()},
@@ -217,7 +223,8 @@ def _score_cells(s: dict, frames: int, fuse_s: float) -> list[str]:
             fall_p, fall_r, ff, ss, ee, fmt_num(frames / fuse_s if fuse_s > 0 else None, 1)]
 
 
-def _run_world(seed: int, out: str, frames: int | None, keep_media: bool, settings: tuple[str, ...] = ()) -> dict:
+def _run_world(seed: int, out: str, frames: int | None, keep_media: bool, settings: tuple[str, ...] = (),
+               sensors: str = "colour") -> dict:
     """Write, replay and score one world (runs in a worker process)."""
     from common.site import load_site, with_settings
     from common.synth.world import random_world, write_world
@@ -225,7 +232,7 @@ def _run_world(seed: int, out: str, frames: int | None, keep_media: bool, settin
 
     out_dir = Path(out)
     t0 = time.perf_counter()
-    world = random_world(seed)
+    world = random_world(seed, sensors=sensors)
     written = write_world(world, out_dir / "worlds" / world.name, frames=frames)
     t1 = time.perf_counter()
     run_dir = out_dir / "runs" / world.name

@@ -197,6 +197,41 @@ def test_a_set_the_pipeline_fails_on_is_counted_and_the_next_is_fused(rig):
     assert [f.frame for f in r.tracks] == [0, 1, 2, 3, 4, 6, 7, 8, 9]
 
 
+def test_a_depth_cameras_range_reaches_the_pipeline_with_its_frame_set(rig):
+    """One camera's masks carry a range (a depth camera's worker): the node decodes it and hands
+    it to the pipeline with that mask's frame set, and only then; a broken range drops the mask."""
+    r = rig()
+    seen: list = []
+
+    class Recording(FusionPipeline):
+        def step(self, masks, stamp_ns, frame, looks=None, depths=None):
+            seen.append((frame, depths))
+            return super().step(masks, stamp_ns, frame, looks, depths=depths)
+
+    real = r.node.pipeline
+    r.node.pipeline = Recording(carver=real.carver, cameras=real.cameras, reasoner=real.reasoner,
+                                rng=np.random.default_rng(0))
+    cid = next(iter(r.cams))
+    mask = r.masks[cid]
+    depth = np.where(mask > 0, 3000 + np.arange(mask.size).reshape(mask.shape) % 50, 0).astype(np.uint16)
+    for seq in range(6):
+        for c in r.cams:
+            extra = {"depth": maskcodec.encode_depth(depth, mask)} if c == cid and seq % 2 == 0 else {}
+            r.put(c, encode(mask_frame(r.cams[c], seq, r.clock.ns, r.masks[c], **extra)))
+        r.take(r.node.tick(r.clock.ns, r.clock.mono))
+        r.clock.advance(PERIOD_NS / 1e9)
+    r.take(r.node.finish(r.clock.ns, r.clock.mono))
+    assert [f for f, _ in seen] == list(range(6))
+    for frame, depths in seen:
+        if frame % 2 == 0:
+            assert set(depths) == {cid} and np.array_equal(depths[cid], depth)
+        else:
+            assert not depths
+    before = r.node.health[cid].undecodable
+    r.put(cid, encode(mask_frame(r.cams[cid], 6, r.clock.ns, mask, depth=b"\x78\x9c" + bytes(40))))
+    assert r.node.health[cid].undecodable == before + 1
+
+
 def test_sets_with_too_few_cameras_are_counted_not_fused(rig):
     r = rig()  # the site's vote needs two cameras
     r.frames(range(10), cams=["c1"])

@@ -151,3 +151,42 @@ def test_missing_input_is_one_clear_message(missing, house, inputs, cache, tmp_p
     assert str(source) in lines[0]
     if missing == "camera folder":
         assert "cam3" in lines[0]
+
+
+@pytest.mark.slow
+def test_replay_of_the_house_with_a_thermal_and_a_depth_camera(tmp_path):
+    """The house's site with cam2 a range camera and cam4 a thermal one: replay renders them as
+    such, segments them with their own segmenters, passes cam2's foreground range to the pipeline
+    and still tracks the person walking through."""
+    from common.site import load_site
+    from common.synth import default_site
+    from fusion_server.pipeline import FusionPipeline
+    from fusion_server.replay import replay
+
+    default_site(tmp_path / "site")
+    path = tmp_path / "site" / "site.toml"
+    text = path.read_text(encoding="utf-8")
+    blocks = text.split("[[cameras]]")
+    for cam, modality in (("cam2", "depth"), ("cam4", "thermal")):
+        blocks = [b.replace('modality = "colour"', f'modality = "{modality}"') if f'id = "{cam}"' in b else b
+                  for b in blocks]
+    path.write_text("[[cameras]]".join(blocks), encoding="utf-8")
+    site = load_site(path)
+    assert site.camera("cam2").modality == "depth" and site.camera("cam4").modality == "thermal"
+
+    class Recording(FusionPipeline):
+        def step(self, masks, stamp_ns, frame, looks=None, *, depths=None):
+            self.seen.append((masks, depths))
+            return super().step(masks, stamp_ns, frame, looks, depths=depths)
+
+    pipeline = Recording.from_site(site, cache_dir=tmp_path / "cache")
+    pipeline.seen = []
+    summary = replay(site, tmp_path / "run", synthetic=SCENARIO, max_frames=FRAMES, pipeline=pipeline)
+    assert summary.frames == FRAMES
+    assert all(set(depths) == {"cam2"} for _, depths in pipeline.seen)
+    late_masks, late_depths = pipeline.seen[-1]
+    assert np.count_nonzero(late_masks["cam4"]) > 100 and np.count_nonzero(late_masks["cam2"]) > 100
+    assert np.count_nonzero(late_depths["cam2"]) > 50
+    assert np.all(late_masks["cam2"][late_depths["cam2"] > 0] > 0)
+    tracks = read_tracks(tmp_path / "run" / "tracks.csv")
+    assert len(tracks) > 0

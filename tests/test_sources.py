@@ -114,6 +114,27 @@ def test_image_folder_in_natural_order(tmp_path):
     assert all(f.image.shape == (8, 8, 3) for f in frames)
 
 
+def test_image_folder_hands_sixteen_bit_images_over_unconverted(tmp_path):
+    """Thermal (centi-kelvin) and range (millimetre) frames keep every bit; an 8-bit image beside
+    them still becomes BGR; a 16-bit colour image is refused by name."""
+    ramp = (np.arange(12 * 16, dtype=np.uint16).reshape(12, 16) * 311 + 29415).astype(np.uint16)
+    cv2.imwrite(str(tmp_path / "000000.png"), ramp)
+    cv2.imwrite(str(tmp_path / "000001.tiff"), ramp[::-1].copy())
+    cv2.imwrite(str(tmp_path / "000002.png"), np.full((12, 16), 9, np.uint8))
+    with ImageFolderSource(tmp_path, fps=9.0) as src:
+        a, b, c = src.read(), src.read(), src.read()
+    assert a.image.dtype == np.uint16 and np.array_equal(a.image, ramp)
+    assert np.array_equal(b.image, ramp[::-1])
+    assert c.image.shape == (12, 16, 3) and c.image.dtype == np.uint8
+    (tmp_path / "000003.png").unlink(missing_ok=True)
+    cv2.imwrite(str(tmp_path / "000003.png"), np.zeros((12, 16, 3), np.uint16))
+    with ImageFolderSource(tmp_path, fps=9.0) as src:
+        for _ in range(3):
+            src.read()
+        with pytest.raises(SourceError, match="000003.png.*uint16 with 3 channels"):
+            src.read()
+
+
 def test_image_folder_failures(tmp_path):
     with pytest.raises(SourceError, match="holds no images"):
         ImageFolderSource(tmp_path).open()
@@ -330,3 +351,25 @@ def test_synthetic_source_names_an_unknown_scenario_or_camera():
         open_source("synthetic:nowhere", cam_id="cam1").open()
     with pytest.raises(SourceError, match="cam9"):
         open_source("synthetic", cam_id="cam9").open()
+
+
+@pytest.mark.parametrize("modality", ["thermal", "depth"])
+def test_synthetic_source_serves_a_thermal_or_depth_camera_its_segmenter_reads(modality):
+    """The house's cam2 as a thermal or range camera: 16-bit frames, the true masks beside them,
+    and the worker's own segmenter for that modality finds the person in them."""
+    from camera_worker.segmenters import segmenter_for
+
+    seg = segmenter_for(modality, mask_scale=0.5, window_frames=500)
+    with open_source("synthetic:walk", cam_id="cam2", modality=modality, background=True, n_frames=30) as bg:
+        while (frame := bg.read()) is not None:
+            assert frame.image.dtype == np.uint16 and frame.image.ndim == 2
+            seg.learn(frame.image)
+    ious = []
+    with open_source("synthetic:walk", cam_id="cam2", modality=modality, n_frames=120) as src:
+        while (frame := src.read()) is not None:
+            mask, _ = seg.apply(frame.image)
+            truth = cv2.resize(frame.truth, (mask.shape[1], mask.shape[0]), interpolation=cv2.INTER_NEAREST) > 0
+            if frame.index % 10 == 0 and truth.sum() > 200:
+                m = mask > 0
+                ious.append((m & truth).sum() / (m | truth).sum())
+    assert len(ious) >= 5 and np.mean(ious) > 0.6

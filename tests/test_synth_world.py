@@ -337,3 +337,99 @@ def _ray_cast_mask(cam: Camera, room, bodies) -> np.ndarray:
     got[hit] = near[hit] < wall
     out[consider] = got
     return out
+
+
+# ---------------------------------------------------------------------- mixed rigs
+
+
+@pytest.mark.parametrize("seed", (2, 3, 9))
+def test_a_mixed_rig_turns_two_wall_cameras_into_sensors_and_leaves_the_world_as_it_was(seed):
+    colour = random_world(seed)
+    mixed = random_world(seed, sensors="mixed")
+    assert colour.modalities == {} and random_world(seed, sensors="colour").summary() == colour.summary()
+    for name in ("room", "spec", "cast", "media", "mask_scale", "rig", "dress"):
+        assert getattr(mixed, name) == getattr(colour, name), name
+    assert list(mixed.cameras) == list(colour.cameras)
+    for cam in colour.cameras:
+        a, b = colour.cameras[cam], mixed.cameras[cam]
+        assert (a.model, a.width, a.height) == (b.model, b.width, b.height)
+        assert all(np.array_equal(getattr(a, k), getattr(b, k)) for k in ("K", "dist", "R", "t"))
+    assert sorted(mixed.modalities.values()) == ["depth", "thermal"]
+    assert all(mixed.cameras[c].model != "fisheye" for c in mixed.modalities)
+    assert mixed.faults == {c: f for c, f in colour.faults.items() if c not in mixed.modalities}
+    # the depth camera is (within the 0.25 m a draw decides) the wall camera nearest the floor's middle
+    depth = next(c for c, m in mixed.modalities.items() if m == "depth")
+    (x0, y0), (x1, y1) = mixed.room.volume_rect_m
+    middle = np.array([(x0 + x1) / 2, (y0 + y1) / 2, 1.0])
+    dist = {c: np.linalg.norm(cam.center - middle) for c, cam in mixed.cameras.items() if cam.model != "fisheye"}
+    assert dist[depth] <= min(dist.values()) + 0.25
+    s_colour, s_mixed = colour.summary(), mixed.summary()
+    assert set(s_mixed["sensors"]["why"]) == set(mixed.modalities)
+    assert {k: v for k, v in s_mixed.items() if k not in ("sensors", "faults")} == \
+        {k: v for k, v in s_colour.items() if k != "faults"}
+    with pytest.raises(ValueError, match="sensors"):
+        random_world(seed, sensors="thermal")
+
+
+@pytest.mark.slow
+def test_a_mixed_world_writes_sixteen_bit_frames_and_replay_segments_them(tmp_path):
+    from common.synth.render import CameraRenderer
+    from common.synth.world import SENSOR_FOLDERS, sensor_frame
+    from fusion_server.pipeline import FusionPipeline
+    from fusion_server.replay import replay
+
+    world = random_world(3, sensors="mixed")
+    n = 30
+    out = write_world(world, tmp_path / "w", frames=n)
+    site = load_site(out.site)
+    for cam, modality in world.modalities.items():
+        assert site.camera(cam).modality == modality
+        frames = sorted((out.out_dir / cam / SENSOR_FOLDERS[modality]).glob("*.png"))
+        backs = sorted((out.out_dir / cam / "background").glob("*.png"))
+        assert len(frames) == n and len(backs) == 45
+        assert not (out.out_dir / cam / "masks").exists()
+        image = cv2.imread(str(frames[12]), cv2.IMREAD_UNCHANGED)
+        renderer = CameraRenderer(world.cameras[cam], world.room, seed=world.seed, colour=False)
+        assert image.dtype == np.uint16
+        assert np.array_equal(image, sensor_frame(world, renderer, cam, world.scenario.bodies(12), 12))
+    for cam in world.cameras:
+        if cam not in world.modalities:
+            assert site.camera(cam).modality == "colour" and (out.out_dir / cam / "masks").is_dir()
+
+    class Recording(FusionPipeline):
+        def step(self, masks, stamp_ns, frame, looks=None, *, depths=None):
+            self.depths.append(depths)
+            self.masks.append(masks)
+            return super().step(masks, stamp_ns, frame, looks, depths=depths)
+
+    pipeline = Recording.from_site(site, cache_dir=tmp_path / "cache")
+    pipeline.depths, pipeline.masks = [], []
+    summary = replay(site, tmp_path / "run", input_dir=out.out_dir, pipeline=pipeline)
+    assert summary.frames == n
+    depth_cam = next(c for c, m in world.modalities.items() if m == "depth")
+    shipped = 0
+    for i, (depths, masks) in enumerate(zip(pipeline.depths, pipeline.masks)):
+        assert set(depths) == {depth_cam}
+        d, mask = depths[depth_cam], masks[depth_cam]
+        assert d.shape == mask.shape and d.dtype == np.uint16
+        assert np.all(mask[d > 0] > 0)
+        frame = cv2.imread(str(out.out_dir / depth_cam / "range" / f"{i:06d}.png"), cv2.IMREAD_UNCHANGED)
+        small = cv2.resize(frame, (mask.shape[1], mask.shape[0]), interpolation=cv2.INTER_NEAREST)
+        assert np.array_equal(d[d > 0], small[d > 0])   # the camera's own readings
+        shipped += int(np.count_nonzero(d))
+    assert shipped > 0 or not any(world.scenario.states[0]["present"][:n])
+
+
+def test_synth_command_writes_a_mixed_rig_and_says_which_camera_is_which(tmp_path, capsys):
+    from common.cli import main
+
+    assert main(["synth", "--world", "random", "--seed", "3", "--sensors", "mixed", "--frames", "3",
+                 "--out", str(tmp_path / "w")]) == 0
+    out = capsys.readouterr().out
+    world = random_world(3, sensors="mixed")
+    for cam, modality in world.modalities.items():
+        assert f"{cam} {modality}:" in out
+        assert load_site(tmp_path / "w" / "site.toml").camera(cam).modality == modality
+    meta = json.loads((tmp_path / "w" / "truth" / "meta.json").read_text())
+    assert meta["world"]["sensors"]["modalities"] == world.modalities
+    assert main(["synth", "--scenario", "walk", "--sensors", "mixed", "--out", str(tmp_path / "h")]) != 0

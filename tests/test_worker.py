@@ -20,6 +20,7 @@ import zenoh
 
 from camera_worker.looks import LookAnswerer
 from camera_worker.segmentation import ForegroundSegmenter
+from camera_worker.segmenters import segmenter_for
 from camera_worker.sources import Frame
 from camera_worker.worker import (
     HoldBook,
@@ -99,6 +100,46 @@ def test_step_segments_and_wraps_one_frame():
     assert msg.seq == 4 and msg.stamp_ns == 99 and msg.fg_fraction == stats.fg_fraction
     # the person's 30 x 10 mask pixels, less the four corners the elliptic opening rounds off
     assert np.count_nonzero(mask[15:45, 30:40]) >= 296 and np.count_nonzero(mask) == np.count_nonzero(mask[15:45, 30:40])
+
+
+def test_step_of_a_depth_camera_ships_the_foreground_range_and_a_thermal_one_none():
+    """A drawn range scene: a wall at 4 m, a person at 2.5 m (30 x 10 pixels at mask size);
+    the message's range decodes to the person's readings. A thermal camera sends no range and
+    leaves a colour look request unanswered."""
+    wall = np.full((H, W), 4000, np.uint16)
+    depth_seg = segmenter_for("depth", mask_scale=0.5, window_frames=50)
+    for _ in range(10):
+        depth_seg.learn(wall)
+    scene = wall.copy()
+    scene[30:90, 60:80] = 2500 + (np.arange(60, dtype=np.uint16)[:, None] % 7)
+    scene[50, 70] = 0   # one missing reading inside the person
+    msg, mask, _ = step(depth_seg, Frame(0, 5, scene), cam="cam1", seq=0)
+    assert msg.depth
+    back = maskcodec.decode_depth(msg.depth, mask)
+    assert np.count_nonzero(mask[15:45, 30:40]) >= 296
+    assert set(np.unique(back[mask > 0])) <= set(range(2500, 2507)) | {0}
+    assert back[25, 35] == 0   # the missing reading is in the mask but ships no range
+    assert np.count_nonzero(back) >= 290
+    hot = np.full((H, W), 29415, np.uint16)
+    thermal_seg = segmenter_for("thermal", mask_scale=0.5, window_frames=50)
+    for _ in range(10):
+        thermal_seg.learn(hot)
+    warm = hot.copy()
+    warm[30:90, 60:80] = 30215   # 8 K warmer
+    answerer = LookAnswerer()
+    answerer.ask(_person_request(5))
+    msg, mask, _ = step(thermal_seg, Frame(0, 5, warm), cam="cam1", seq=0, answerer=answerer)
+    assert msg.depth == b"" and msg.looks == []
+    assert np.count_nonzero(mask[15:45, 30:40]) >= 296
+
+
+def test_segmenter_for_names_a_bad_modality_and_keeps_colour_settings_to_colour():
+    assert isinstance(segmenter_for("infrared", detect_shadows=False), ForegroundSegmenter)
+    assert segmenter_for("thermal", var_threshold=9.0, mask_scale=0.5).mask_scale == 0.5
+    with pytest.raises(ValueError, match="modality"):
+        segmenter_for("sonar")
+    with pytest.raises(ValueError, match="modality"):
+        WorkerSettings(cam="cam1", prefix="voxelwatch/x", source="0", modality="sonar")
 
 
 def _person_request(stamp_ns: int, track: int = 3, cam: str = "cam1") -> LookRequest:
@@ -411,6 +452,31 @@ def test_worker_process_plays_the_synthetic_house(tmp_path, listener):
     assert all(m.fg_fraction > 0.002 for m in masks)              # the person is in every mask
     assert "learned the background from 45 frames" in err
     assert "frames are 640x480 but the site file says 160x120" in err
+
+
+def test_worker_process_of_a_depth_camera_sends_the_range_with_its_masks(tmp_path, listener):
+    """The site's camera is a range camera: the synthetic house renders it as one, the worker
+    segments it with the range segmenter and every mask with a person carries its range."""
+    pytest.importorskip("common.synth.source")
+    site = _write_site(tmp_path)
+    site.write_text(site.read_text().replace('source = "clip.avi"', 'modality = "depth"\nsource = "clip.avi"'))
+    proc = _start(site, listener, "--source", "synthetic:walk", "--background", "synthetic:walk", "--fast",
+                  "--max-frames", "30", "--start-ns", "0")
+    out, err = proc.communicate(timeout=60)
+    assert proc.returncode == 0, err
+    masks = listener.masks()
+    assert len(masks) >= 20
+    ranged = 0
+    for m in masks:
+        mask = maskcodec.decode_mask(m.data, m.codec, m.width, m.height)
+        if m.depth:
+            depth = maskcodec.decode_depth(m.depth, mask)
+            assert np.all(mask[depth > 0] > 0)
+            # the walker is 2-7 m from the camera (a reading at an edge may fly a little beyond)
+            v = depth[depth > 0]
+            assert np.percentile(v, 1) > 1500 and v.max() < 8000, (v.min(), v.max())
+            ranged += 1
+    assert ranged >= 20
 
 
 ROOT = Path(__file__).resolve().parents[1]

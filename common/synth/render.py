@@ -26,7 +26,7 @@ Units: world metres; pixels in OpenCV convention (integer = pixel centre).
 from __future__ import annotations
 
 import zlib
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
@@ -34,6 +34,9 @@ import numpy as np
 from common.camera import Camera
 from common.synth.body import FOREARM_PARTS, HEAD_PART, HAIR, PART_MATERIAL, SKIN, Body
 from common.synth.scene import Room
+from common.synth.sensors import (
+    RangeModel, ThermalModel, body_temperature_c, range_frame_mm, surface_offsets_k, thermal_frame_ck,
+)
 
 NOISE_OFFSET = 32
 SHADOW_STRIDE = 4
@@ -182,6 +185,7 @@ class CameraRenderer:
         self.bg_points = hits.point.reshape(H, W, 3).astype(np.float32)
         self._zbuf = np.full((H, W), np.inf, dtype=np.float32)
         self._part = np.full((H, W), -1, dtype=np.int16)
+        self._sensor: _SensorBackground | None = None   # range and thermal models' view, on first use
         if not colour:  # silhouettes only (:meth:`labels`)
             return
         look = np.random.default_rng([self.seed, self.cam_key, 11])
@@ -264,7 +268,106 @@ class CameraRenderer:
             labels[y0:y1, x0:x1][visible] = np.uint8(plan.body.person_id)
         return labels
 
+    # ------------------------------------------------------------------ other sensors
+
+    def range_mm(self, bodies: list[Body], key: tuple[int, ...], *, model: RangeModel = RangeModel()) -> np.ndarray:
+        """(H, W) uint16 what a time-of-flight camera here measures: range (distance from the
+        camera centre along the pixel's ray) of the nearest surface, millimetres, 0 where it
+        gives no value (model in :mod:`common.synth.sensors`). Deterministic per ``key``."""
+        return self.range_labels(bodies, key, model=model)[0]
+
+    def range_labels(self, bodies: list[Body], key: tuple[int, ...], *,
+                     model: RangeModel = RangeModel()) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`range_mm` and the true person ids per pixel (as :meth:`labels`) from one raycast."""
+        surfaces, labels = self._body_surfaces(bodies)
+        sb = self._sensor_background()
+        r = self.bg_depth.copy()
+        refl = sb.reflectance.copy()
+        cos = sb.cos.copy()
+        for plan, surf in surfaces:
+            yy, xx = plan.roi[1] + surf.iy, plan.roi[0] + surf.ix
+            r[yy, xx] = surf.t
+            refl[yy, xx] = plan.body.shape.colours_bgr[surf.material].mean(axis=1) / 255.0
+            cos[yy, xx] = np.abs(np.einsum("ni,ni->n", surf.normal, surf.ray))
+        return range_frame_mm(r, refl, cos, self.valid, self._draws(key), model), labels
+
+    def thermal(self, bodies: list[Body], key: tuple[int, ...], *, ambient_c: float = 21.0,
+                model: ThermalModel = ThermalModel()) -> np.ndarray:
+        """(H, W) uint16 radiometric thermal frame, centi-kelvin (``(t_c + 273.15) * 100``): the
+        room at ``ambient_c`` Celsius with its surfaces' offsets, people warmer, sensor noise and
+        fixed-pattern noise (model in :mod:`common.synth.sensors`). Deterministic per ``key``."""
+        return self.thermal_labels(bodies, key, ambient_c=ambient_c, model=model)[0]
+
+    def thermal_labels(self, bodies: list[Body], key: tuple[int, ...], *, ambient_c: float = 21.0,
+                       model: ThermalModel = ThermalModel()) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`thermal` and the true person ids per pixel (as :meth:`labels`) from one raycast."""
+        if not -30.0 <= ambient_c <= 60.0:
+            raise ValueError(f"ambient_c must lie in -30..60 C, got {ambient_c!r}")
+        surfaces, labels = self._body_surfaces(bodies)
+        sb = self._sensor_background()
+        amb = np.float32(ambient_c)
+        temp = sb.offset_k + amb
+        for plan, surf in surfaces:
+            yy, xx = plan.roi[1] + surf.iy, plan.roi[0] + surf.ix
+            body_c = body_temperature_c(surf.material, plan.body.person_id, self.seed)
+            cos = np.abs(np.einsum("ni,ni->n", surf.normal, surf.ray)).astype(np.float32)
+            # emissivity falls towards grazing angles: edges look nearer the room's temperature
+            temp[yy, xx] = amb + (body_c - amb) * (np.float32(0.8) + np.float32(0.2) * cos)
+        draws = self._draws(key)
+        return thermal_frame_ck(temp, sb.fixed_k(model), draws[0], model), labels
+
     # ------------------------------------------------------------------ internals
+
+    def _body_surfaces(self, bodies: list[Body]) -> tuple[list, np.ndarray]:
+        """Raycast ``bodies``: [(plan, visible surface)] and the (H, W) uint8 person ids."""
+        labels = np.zeros((self.camera.height, self.camera.width), dtype=np.uint8)
+        plans = [p for p in (self._plan(b) for b in bodies) if p is not None]
+        for plan in plans:
+            x0, y0, x1, y1 = plan.roi
+            self._zbuf[y0:y1, x0:x1] = np.inf
+            self._part[y0:y1, x0:x1] = -1
+        for pi, plan in enumerate(plans):
+            self._raycast(plan, pi)
+        out = []
+        for pi, plan in enumerate(plans):
+            surf = self._visible_surface(plan, pi)
+            if surf is None:
+                continue
+            labels[plan.roi[1] + surf.iy, plan.roi[0] + surf.ix] = np.uint8(plan.body.person_id)
+            out.append((plan, surf))
+        return out, labels
+
+    def _sensor_background(self) -> "_SensorBackground":
+        """What the range and thermal models need of the empty room, built on first use."""
+        sb = self._sensor
+        if sb is None:
+            H, W = self.camera.height, self.camera.width
+            rays = self.rays.reshape(-1, 3).astype(np.float64)
+            hits = raycast_room(self.room, self.center, rays)
+            cos = np.abs(np.einsum("ni,ni->n", hits.normal, rays)).reshape(H, W).astype(np.float32)
+            refl = (background_colour(self.room, hits).mean(axis=1) / 255.0).reshape(H, W).astype(np.float32)
+            offset = surface_offsets_k(self.room, hits.surface, hits.point, self.seed).reshape(H, W)
+            offset[~self.valid] = 0.0
+            rng = np.random.default_rng([self.seed, self.cam_key, 43])
+            n = H * W
+            sb = self._sensor = _SensorBackground(
+                reflectance=np.clip(refl, 0.0, 1.0), cos=cos, offset_k=offset,
+                pattern=(rng.standard_normal((H, W)).astype(np.float32),
+                         rng.standard_normal((1, W)).astype(np.float32)),
+                normal_bank=rng.standard_normal(2 * n).astype(np.float32),
+                uniform_bank=rng.random(2 * n, dtype=np.float32),
+                shape=(H, W))
+        return sb
+
+    def _draws(self, key: tuple[int, ...]) -> np.ndarray:
+        """(2, H, W) float32 this frame's standard normal and uniform draws (from the sensor banks)."""
+        sb = self._sensor_background()
+        H, W = sb.shape
+        n = H * W
+        rng = np.random.default_rng([self.seed, self.cam_key, 53, *key])
+        a, b = (int(v) for v in rng.integers(0, n, 2))
+        return np.stack([sb.normal_bank[a: a + n].reshape(H, W), sb.uniform_bank[b: b + n].reshape(H, W)])
+
 
     def _plan(self, body: Body) -> "_BodyPlan | None":
         cam = self.camera
@@ -313,12 +416,29 @@ class CameraRenderer:
             np.copyto(part[y0:y1, x0:x1], np.int16(pi * 32 + k), where=closer)
 
     def _shade(self, scene: np.ndarray, labels: np.ndarray, plan: "_BodyPlan", pi: int, plans) -> None:
+        surf = self._visible_surface(plan, pi)
+        if surf is None:
+            return
+        body = plan.body
+        x0, y0 = plan.roi[:2]
+        iy, ix, point, normal, material = surf.iy, surf.ix, surf.point, surf.normal, surf.material
+        shade = lambert(self.room, point, normal)
+        colours = body.shape.colours_bgr[material].astype(np.float64)
+        # Cloth texture: faint stripes on shirts across the body, so the colour is not flat.
+        colours *= (1.0 + 0.05 * np.sin(40.0 * point[:, 2]))[:, None]
+        rgb = colours * shade[:, None] * self.white_balance[None, :] * self.vignette[y0 + iy, x0 + ix][:, None]
+        scene[y0 + iy, x0 + ix] = np.clip(np.rint(rgb), 0, 255).astype(np.uint8)
+        labels[y0 + iy, x0 + ix] = np.uint8(body.person_id)
+
+    def _visible_surface(self, plan: "_BodyPlan", pi: int) -> "_Surface | None":
+        """The pixels of ``plan``'s body that the depth buffer shows (None: none), with their
+        range, world point, unit normal and material (SKIN, HAIR, ...)."""
         x0, y0, x1, y1 = plan.roi
         zb = self._zbuf[y0:y1, x0:x1]
         pb = self._part[y0:y1, x0:x1]
         visible = (pb >= pi * 32) & (pb < pi * 32 + 32) & (zb < self.bg_depth[y0:y1, x0:x1])
         if not visible.any():
-            return
+            return None
         body = plan.body
         iy, ix = np.nonzero(visible)
         k = pb[iy, ix] - pi * 32
@@ -328,18 +448,12 @@ class CameraRenderer:
         normal = np.einsum("nji,nj->ni", plan.inv[k], u)
         normal /= np.maximum(np.linalg.norm(normal, axis=1, keepdims=True), 1e-12)
         point = self.center + d * t[:, None]
-        shade = lambert(self.room, point, normal)
         material = PART_MATERIAL[k].astype(np.int64)
         head = k == HEAD_PART
         material[head & ((u[:, 2] > 0.3) | ((u[:, 0] < -0.25) & (u[:, 2] > -0.35)))] = HAIR
         hand = np.isin(k, FOREARM_PARTS) & (u[:, 2] < (-0.45 if body.shape.long_sleeves else 1.1))
         material[hand] = SKIN
-        colours = body.shape.colours_bgr[material].astype(np.float64)
-        # Cloth texture: faint stripes on shirts across the body, so the colour is not flat.
-        colours *= (1.0 + 0.05 * np.sin(40.0 * point[:, 2]))[:, None]
-        rgb = colours * shade[:, None] * self.white_balance[None, :] * self.vignette[y0 + iy, x0 + ix][:, None]
-        scene[y0 + iy, x0 + ix] = np.clip(np.rint(rgb), 0, 255).astype(np.uint8)
-        labels[y0 + iy, x0 + ix] = np.uint8(body.person_id)
+        return _Surface(iy=iy, ix=ix, t=t, ray=d, point=point, normal=normal, material=material)
 
     def _shadow(self, scene: np.ndarray, body: Body) -> None:
         cam = self.camera
@@ -398,6 +512,33 @@ class CameraRenderer:
         scene[fy0:fy1, fx0:fx1] = np.clip(roi.astype(np.float32) * full[..., None] + 0.5, 0, 255).astype(np.uint8)
 
 
+MODALITIES = ("colour", "thermal", "infrared", "depth")
+"""What a site camera can be (``cameras[].modality``); :func:`frame_for` renders each."""
+
+
+def frame_for(renderer: CameraRenderer, modality: str, bodies: list[Body], key: tuple[int, ...], *,
+              gain: float = 1.0, ambient_c: float = 21.0, range_model: RangeModel = RangeModel(),
+              thermal_model: ThermalModel = ThermalModel()) -> tuple[np.ndarray, np.ndarray]:
+    """One frame of a camera of any modality and its true person ids per pixel.
+
+    ``colour``: (H, W, 3) uint8 BGR (:meth:`CameraRenderer.render`, lit with ``gain``);
+    ``infrared``: the same scene as grey, (H, W, 3) uint8 (an active near-infrared camera: no
+    colour); ``thermal``: (H, W) uint16 centi-kelvin, the room's air at ``ambient_c`` Celsius;
+    ``depth``: (H, W) uint16 range in millimetres, 0 = no value. Labels: (H, W) uint8 person ids,
+    0 = nobody. Deterministic per ``key``.
+    """
+    if modality == "colour":
+        return renderer.render(bodies, gain, key)
+    if modality == "infrared":
+        bgr, labels = renderer.render(bodies, gain, key)
+        return cv2.cvtColor(cv2.cvtColor(bgr, cv2.COLOR_BGR2GRAY), cv2.COLOR_GRAY2BGR), labels
+    if modality == "thermal":
+        return renderer.thermal_labels(bodies, key, ambient_c=ambient_c, model=thermal_model)
+    if modality == "depth":
+        return renderer.range_labels(bodies, key, model=range_model)
+    raise ValueError(f"modality must be one of {', '.join(MODALITIES)}, got {modality!r}")
+
+
 def soft_occlusion(body: Body, points_m: np.ndarray, light_m: np.ndarray) -> np.ndarray:
     """(N,) float64 in 0..1: how much ``body`` blocks the ceiling light seen from ``points_m`` (N, 3).
 
@@ -435,6 +576,49 @@ class _BodyPlan:
     keep: np.ndarray
     inv: np.ndarray
     o: np.ndarray
+
+
+@dataclass
+class _SensorBackground:
+    """The empty room as the range and thermal models see it: (H, W) float32 reflectance 0..1,
+    |cos| of incidence, temperature above the air (K); the fixed-pattern draws (pixel, column);
+    banks of standard normal and uniform draws (2 H W float32)."""
+
+    reflectance: np.ndarray
+    cos: np.ndarray
+    offset_k: np.ndarray
+    pattern: tuple[np.ndarray, np.ndarray]
+    normal_bank: np.ndarray
+    uniform_bank: np.ndarray
+    shape: tuple[int, int]
+    _fixed: dict = field(default_factory=dict)
+
+    def fixed_k(self, model: ThermalModel) -> np.ndarray:
+        """(H, W) float32 the camera's fixed-pattern offsets under ``model``, kelvin."""
+        if model in self._fixed:
+            return self._fixed[model]
+        H, W = self.shape
+        yy, xx = np.mgrid[0:H, 0:W].astype(np.float32)
+        rr = ((xx - W / 2) ** 2 + (yy - H / 2) ** 2) / ((W / 2) ** 2 + (H / 2) ** 2)
+        pixel, column = self.pattern
+        fixed = (np.float32(model.fpn_k) * pixel + np.float32(model.column_k) * column
+                 + np.float32(model.radial_k) * rr).astype(np.float32)
+        self._fixed[model] = fixed
+        return fixed
+
+
+@dataclass
+class _Surface:
+    """Visible body pixels of one plan: rows/columns inside its roi, range (m), unit rays, world points,
+    unit normals (float64) and material codes."""
+
+    iy: np.ndarray
+    ix: np.ndarray
+    t: np.ndarray
+    ray: np.ndarray
+    point: np.ndarray
+    normal: np.ndarray
+    material: np.ndarray
 
 
 def _box_points() -> np.ndarray:

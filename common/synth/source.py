@@ -3,7 +3,11 @@
 ``SyntheticCamera(scenario, cam_id, seed)`` renders frame ``index`` as a pure
 function of (scenario, seed, camera, index), so each camera worker renders
 its own camera independently and any frame can be rendered on its own
-(random access, no state carried between frames).
+(random access, no state carried between frames). ``modality`` makes it a
+thermal (``(H, W) uint16`` centi-kelvin), range (``(H, W) uint16`` millimetres)
+or near-infrared camera instead of a colour one
+(:func:`common.synth.render.frame_for`); the room's air drifts as
+:func:`common.synth.sensors.ambient_c` says.
 """
 
 from __future__ import annotations
@@ -13,10 +17,11 @@ from pathlib import Path
 import numpy as np
 
 from common.camera import Camera
-from common.synth.render import CameraRenderer
+from common.synth.render import MODALITIES, CameraRenderer, frame_for
 from common.synth.scenario import Scenario, ScenarioSpec
 from common.synth.scenarios import DEFAULT_SCENARIO, get_scenario
 from common.synth.scene import default_cameras
+from common.synth.sensors import ambient_c
 
 BACKGROUND_S = 3.0
 _FRAME_STREAM, _BACKGROUND_STREAM = 0, 1
@@ -34,6 +39,7 @@ class SyntheticCamera:
     camera: optional :class:`Camera` used as is (overrides ``site``), e.g. a scaled-down
         default camera for fast tests.
     noise_std: sensor noise, grey levels. shadows: draw cast shadows.
+    modality: 'colour' (default), 'infrared', 'thermal' or 'depth'.
     """
 
     def __init__(
@@ -47,7 +53,11 @@ class SyntheticCamera:
         noise_std: float = 2.5,
         shadows: bool = True,
         background_s: float = BACKGROUND_S,
+        modality: str = "colour",
     ) -> None:
+        if modality not in MODALITIES:
+            raise ValueError(f"modality must be one of {', '.join(MODALITIES)}, got {modality!r}")
+        self.modality = modality
         self.scenario = get_scenario(scenario, seed)
         self.seed = int(seed)
         if camera is None:
@@ -56,7 +66,8 @@ class SyntheticCamera:
             raise ValueError(f"camera id {camera.id!r} does not match cam_id {cam_id!r}")
         self.camera = camera
         self.cam_id = cam_id
-        self.renderer = CameraRenderer(camera, self.scenario.room, seed=self.seed, noise_std=noise_std, shadows=shadows)
+        self.renderer = CameraRenderer(camera, self.scenario.room, seed=self.seed, noise_std=noise_std, shadows=shadows,
+                                       colour=modality in ("colour", "infrared"))
         self.n_background_frames = int(round(background_s * self.scenario.fps))
 
     @property
@@ -80,7 +91,8 @@ class SyntheticCamera:
         return self.scenario.stamp_ns(index)
 
     def frame(self, index: int) -> tuple[np.ndarray, np.ndarray]:
-        """Frame ``index``: BGR (H, W, 3) uint8 and the true person mask (H, W) uint8 (255 = person)."""
+        """Frame ``index``: BGR (H, W, 3) uint8 (a thermal or depth camera: (H, W) uint16) and the
+        true person mask (H, W) uint8 (255 = person)."""
         bgr, labels = self.frame_labels(index)
         return bgr, np.where(labels > 0, np.uint8(255), np.uint8(0))
 
@@ -88,14 +100,20 @@ class SyntheticCamera:
         """Frame ``index``: BGR (H, W, 3) uint8 and the visible person id per pixel (H, W) uint8 (0 = nobody)."""
         self._check(index, self.n_frames)
         sc = self.scenario
-        return self.renderer.render(sc.bodies(index), sc.gain(index), (_FRAME_STREAM, int(index)))
+        if self.modality == "colour":
+            return self.renderer.render(sc.bodies(index), sc.gain(index), (_FRAME_STREAM, int(index)))
+        return frame_for(self.renderer, self.modality, sc.bodies(index), (_FRAME_STREAM, int(index)),
+                         gain=sc.gain(index), ambient_c=ambient_c(self.seed, index / self.fps))
 
     def background_frame(self, index: int) -> np.ndarray:
         """Frame ``index`` (0..n_background_frames-1) of a clip of the empty room recorded just before
         the scenario (same lighting drift and noise statistics): BGR (H, W, 3) uint8."""
         self._check(index, self.n_background_frames)
         t = (index - self.n_background_frames) / self.fps
-        return self.renderer.background(float(self.scenario.gain_at(t)), (_BACKGROUND_STREAM, int(index)))
+        if self.modality == "colour":
+            return self.renderer.background(float(self.scenario.gain_at(t)), (_BACKGROUND_STREAM, int(index)))
+        return frame_for(self.renderer, self.modality, [], (_BACKGROUND_STREAM, int(index)),
+                         gain=float(self.scenario.gain_at(t)), ambient_c=ambient_c(self.seed, t))[0]
 
     def frames(self, start: int = 0, stop: int | None = None):
         """Iterate ``(index, stamp_ns, bgr, mask)`` over frames ``start..stop-1``."""

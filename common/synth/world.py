@@ -10,6 +10,9 @@ as the synthetic house (site file, calibrations, per-camera media, truth), so
     DIR/<cam>/colour.avi                  mask worlds: the people's colours at the mask size, MJPG,
                                           one frame per mask (no shadows; for appearance only)
     DIR/<cam>/video.avi, background.avi   video worlds: rendered frames (segmented on replay)
+    DIR/<cam>/thermal/000000.png ...      mixed rigs' thermal camera: 16-bit centi-kelvin frames
+    DIR/<cam>/range/000000.png ...        mixed rigs' depth camera: 16-bit range frames, mm (0 = none)
+    DIR/<cam>/background/000000.png ...   beside either: the empty room before the scenario
     DIR/truth/tracks.csv, events.jsonl    ground truth
     DIR/truth/meta.json                   fps, frames, people, and ``world``: what the world holds
 
@@ -28,6 +31,17 @@ world as it was: the dress (one world in four dresses every adult alike: the
 same shirt, sleeves and trousers; ``summary()['dress']`` 'alike' or 'distinct')
 and step-outs (in two of five worlds with doors or open edges, one or two
 people walk out and come back 3-20 s later, :mod:`common.synth.crowd`).
+
+Sensors (``sensors=``): ``'colour'`` (the default) gives the worlds above,
+unchanged. ``'mixed'`` turns two cameras of the same world into other sensors
+(a generator of its own, so the rest of the world stays as it was): a depth
+camera (time of flight, reading to 7 m) where a wall camera is nearest the
+middle of the monitored floor, so that most of it lies within its range, and a
+thermal camera drawn among the other wall cameras (fisheyes stay colour). Their
+frames come from :mod:`common.synth.sensors` and are segmented on replay by the
+camera worker's own thermal and range segmenters; the room's air drifts
+(:func:`common.synth.sensors.ambient_c`). The site file gives each camera its
+``modality``; ``summary()['sensors']`` says which camera is which and why.
 
 Seeds: :data:`TUNING_SEEDS` are for changing the pipeline; :data:`EVALUATION_SEEDS`
 are only for reporting. Every table of figures on random worlds says which.
@@ -53,11 +67,12 @@ from common.synth.body import SHIRT_COLOURS, TROUSER_COLOURS, pose_body
 from common.synth.crowd import Cast, random_people
 from common.synth.degrade import MaskFaults, degrade, random_faults
 from common.synth.house import open_video_writer
-from common.synth.render import CameraRenderer
+from common.synth.render import CameraRenderer, frame_for
 from common.synth.rigs import CalibrationRef, real_rig, random_rig
 from common.synth.rooms import FloorPlan, random_room, summarise_room
 from common.synth.scenario import Scenario, ScenarioSpec
 from common.synth.scene import Box, HotSpot, Room, Seat, site_dict
+from common.synth.sensors import RangeModel, ambient_c
 from common.synth.source import BACKGROUND_S, SyntheticCamera
 from common.synth.truth import derive_truth, write_truth
 
@@ -80,6 +95,12 @@ STEP_OUT_P = 0.4
 """Share of worlds with doors or open edges where people step out and come back."""
 ADULT_M = 1.45
 """People this tall or taller are adults (the dress of an 'alike' world)."""
+SENSOR_RIGS = ("colour", "mixed")
+"""What a world's cameras are: all colour, or a mixed rig (one depth and one thermal camera)."""
+SENSOR_FOLDERS = {"thermal": "thermal", "depth": "range"}
+"""Each non-colour camera's frame folder under ``DIR/<cam>/``."""
+DEPTH_RANGE_M = 7.0
+"""A mixed rig's depth camera reads to this range (:class:`common.synth.sensors.RangeModel`)."""
 
 
 def seed_set(seed: int) -> str:
@@ -116,6 +137,14 @@ class World:
     faults: dict[str, MaskFaults]
     open_edges: bool
     dress: str = "distinct"
+    modalities: dict[str, str] = dataclasses.field(default_factory=dict)
+    """Camera id -> 'thermal' or 'depth' for the cameras that are not colour (mixed rigs)."""
+    sensor_notes: dict[str, str] = dataclasses.field(default_factory=dict)
+    """Camera id -> why it was made that sensor (mixed rigs)."""
+
+    def modality(self, cam_id: str) -> str:
+        """The camera's modality: 'colour', 'thermal' or 'depth'."""
+        return self.modalities.get(cam_id, "colour")
 
     @property
     def name(self) -> str:
@@ -159,6 +188,8 @@ class World:
             "mask_scale": self.mask_scale,
             "faults": {cam: f.describe() for cam, f in self.faults.items() if f.describe()},
             "duration_s": self.spec.duration_s,
+            **({"sensors": {"rig": "mixed", "modalities": dict(self.modalities), "why": dict(self.sensor_notes)}}
+               if self.modalities else {}),
         }
 
     def _present_counts(self) -> np.ndarray:
@@ -170,11 +201,14 @@ class World:
         return counts
 
 
-def random_world(seed: int, *, data_dir: str | Path | None = None) -> World:
+def random_world(seed: int, *, data_dir: str | Path | None = None, sensors: str = "colour") -> World:
     """The world of ``seed`` (deterministic). The real rigs need the recordings' calibrations in
-    ``data_dir`` (default :func:`default_data_dir`): ValueError naming the missing file otherwise."""
+    ``data_dir`` (default :func:`default_data_dir`): ValueError naming the missing file otherwise.
+    ``sensors``: 'colour' or 'mixed' (see the module text; the same world either way)."""
     if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)):
         raise ValueError(f"seed must be an int, got {seed!r}")
+    if sensors not in SENSOR_RIGS:
+        raise ValueError(f"sensors must be one of {', '.join(SENSOR_RIGS)}, got {sensors!r}")
     seed = int(seed)
     seed_set(seed)
     rng = np.random.default_rng([seed, 11])
@@ -224,8 +258,14 @@ def random_world(seed: int, *, data_dir: str | Path | None = None) -> World:
     dress = "alike" if dress_rng.random() < ALIKE_P else "distinct"
     if dress == "alike":
         cast, spec = _dress_alike(dress_rng, cast, spec)
+    modalities: dict[str, str] = {}
+    notes: dict[str, str] = {}
+    if sensors == "mixed":
+        modalities, notes = _mixed_sensors(np.random.default_rng([seed, 31]), room, cameras)
+        faults = {cam: f for cam, f in faults.items() if cam not in modalities}
     return World(seed=seed, room=room, cameras=cameras, refs=refs, rig=rig, fisheye=fisheye, spec=spec, cast=cast,
-                 media=media, mask_scale=mask_scale, faults=faults, open_edges=open_edges, dress=dress)
+                 media=media, mask_scale=mask_scale, faults=faults, open_edges=open_edges, dress=dress,
+                 modalities=modalities, sensor_notes=notes)
 
 
 @dataclass(frozen=True)
@@ -243,13 +283,16 @@ def write_world(world: World, out_dir: str | Path, *, frames: int | None = None)
     """Write ``world`` into ``out_dir`` (layout in the module text); ``frames``: only the first N frames."""
     written = write_world_site(world, out_dir, frames=frames)
     out, n, sc = written.out_dir, written.n_frames, world.scenario
+    colour = [c for c in world.cameras if world.modality(c) == "colour"]
+    bodies = [_bodies_at(sc, i) for i in range(n)] if world.media != "video" or world.modalities else None
     if world.media == "video":
-        for cam_id, cam in world.cameras.items():
-            _write_video(world, cam_id, cam, out / cam_id, n)
+        for cam_id in colour:
+            _write_video(world, cam_id, world.cameras[cam_id], out / cam_id, n)
     else:
-        bodies = [_bodies_at(sc, i) for i in range(n)]
-        for cam_id in world.cameras:
+        for cam_id in colour:
             _write_masks(world, cam_id, out / cam_id / "masks", out / cam_id / "colour.avi", bodies)
+    for cam_id, modality in world.modalities.items():
+        _write_sensor(world, cam_id, modality, out / cam_id, bodies)
     return written
 
 
@@ -399,6 +442,10 @@ def _write_site(world: World, out: Path) -> Path:
     content["volume"]["open_edges"] = world.open_edges
     content["utc_offset_hours"] = 0.0
     for entry in content["cameras"]:
+        modality = world.modality(entry["id"])
+        if modality != "colour":
+            entry.update(modality=modality, source=f"{entry['id']}/{SENSOR_FOLDERS[modality]}",
+                         background=f"{entry['id']}/background")
         ref = world.refs[entry["id"]]
         if ref.source is None:
             save_voxelwatch(cams[entry["id"]], out / "calib" / f"{entry['id']}.toml")
@@ -435,6 +482,64 @@ def _write_masks(world: World, cam_id: str, folder: Path, colour_path: Path, bod
             cv2.imwrite(str(folder / f"{i:06d}.png"), mask)
     finally:
         writer.release()
+
+
+def sensor_frame(world: World, renderer: CameraRenderer, cam_id: str, bodies: list, i: int, *,
+                 background: bool = False) -> np.ndarray:
+    """Frame ``i`` of a mixed rig's thermal or depth camera (``renderer`` its
+    :class:`CameraRenderer`), or of its clip of the empty room before the scenario
+    (``background``): (H, W) uint16 centi-kelvin or millimetres."""
+    modality = world.modality(cam_id)
+    n_bg = int(round(BACKGROUND_S * WORLD_FPS))
+    t_s = (i - n_bg if background else i) / WORLD_FPS
+    key = (1 if background else 0, int(i))
+    image, _ = frame_for(renderer, modality, [] if background else bodies, key,
+                         ambient_c=ambient_c(world.seed, t_s), range_model=RangeModel(max_range_m=DEPTH_RANGE_M))
+    return image
+
+
+def _mixed_sensors(rng: np.random.Generator, room: Room, cameras: dict[str, Camera]) -> tuple[dict, dict]:
+    """Which camera becomes the depth camera and which the thermal one, and why."""
+    walls = [c for c, cam in cameras.items() if cam.model != "fisheye"]
+    (x0, y0), (x1, y1) = room.volume_rect_m
+    middle = np.array([(x0 + x1) / 2, (y0 + y1) / 2, 1.0])
+    dist = {c: float(np.linalg.norm(cameras[c].center - middle)) for c in walls}
+    nearest = min(dist.values())
+    # cameras within 0.25 m of the nearest are as good: the draw decides
+    close = [c for c in walls if dist[c] <= nearest + 0.25]
+    depth = close[int(rng.integers(len(close)))]
+    rest = [c for c in walls if c != depth]
+    thermal = rest[int(rng.integers(len(rest)))]
+    far = _floor_beyond(cameras[depth], room, DEPTH_RANGE_M)
+    notes = {
+        depth: (f"depth: the wall camera nearest the middle of the monitored floor ({dist[depth]:.1f} m from it); "
+                f"{100 * far:.0f}% of that floor (at 1 m height) lies beyond its {DEPTH_RANGE_M:g} m range"),
+        thermal: f"thermal: drawn among the other {len(rest)} wall cameras",
+    }
+    return {depth: "depth", thermal: "thermal"}, notes
+
+
+def _floor_beyond(camera: Camera, room: Room, range_m: float) -> float:
+    """Share of the monitored floor, sampled at 1 m height every 0.25 m, farther than ``range_m``."""
+    (x0, y0), (x1, y1) = room.volume_rect_m
+    xs, ys = np.meshgrid(np.arange(x0, x1 + 1e-9, 0.25), np.arange(y0, y1 + 1e-9, 0.25))
+    pts = np.stack([xs.ravel(), ys.ravel(), np.ones(xs.size)], axis=1)
+    return float(np.mean(np.linalg.norm(pts - camera.center, axis=1) > range_m))
+
+
+def _write_sensor(world: World, cam_id: str, modality: str, folder: Path, bodies: list) -> None:
+    """A thermal or depth camera's 16-bit frames and its clip of the empty room, as PNG folders."""
+    frames_dir = folder / SENSOR_FOLDERS[modality]
+    back_dir = folder / "background"
+    for d in (frames_dir, back_dir):
+        d.mkdir(parents=True, exist_ok=True)
+        for old in d.glob("*.png"):
+            old.unlink()
+    renderer = CameraRenderer(world.cameras[cam_id], world.room, seed=world.seed, colour=False)
+    for i in range(int(round(BACKGROUND_S * WORLD_FPS))):
+        cv2.imwrite(str(back_dir / f"{i:06d}.png"), sensor_frame(world, renderer, cam_id, [], i, background=True))
+    for i, people in enumerate(bodies):
+        cv2.imwrite(str(frames_dir / f"{i:06d}.png"), sensor_frame(world, renderer, cam_id, people, i))
 
 
 def _write_video(world: World, cam_id: str, cam: Camera, folder: Path, n: int) -> None:
