@@ -534,6 +534,8 @@ def _register_demo(sub) -> None:
     p.add_argument("--seed", type=int, default=0, help="random seed of the scenario or the world")
     p.add_argument("--frames", type=int, default=None, help="run only the first N frames")
     p.add_argument("--port", type=int, default=None, help="loopback port of the demo's zenoh router (default: a free one)")
+    p.add_argument("--sensors", default="colour", choices=["colour", "mixed"],
+                   help="with --world random: 'mixed' makes one camera a depth camera and one a thermal camera")
     p.add_argument("--secure", action="store_true",
                    help="TLS with mutual authentication and the site's access control (certificates made in OUT/certs)")
     p.set_defaults(handler=_demo)
@@ -545,8 +547,11 @@ def _demo(args: argparse.Namespace) -> int:
     if args.world and args.scenario:
         print("voxelwatch demo: give --scenario or --world, not both", file=sys.stderr)
         return 2
+    if args.sensors != "colour" and not args.world:
+        print("voxelwatch demo: --sensors is for --world random", file=sys.stderr)
+        return 2
     return run_demo(scenario=args.scenario, world=args.world, out_dir=args.out, seed=args.seed, frames=args.frames, port=args.port,
-                    secure=args.secure)
+                    secure=args.secure, sensors=args.sensors)
 
 
 def _register_bench(sub) -> None:

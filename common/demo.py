@@ -61,10 +61,12 @@ def run_demo(
     frames: int | None = None,
     port: int | None = None,
     secure: bool = False,
+    sensors: str = "colour",
     stream: TextIO = sys.stdout,
 ) -> int:
     """Run the scenario (or ``world="random"``: the randomised world of ``seed``, each worker
-    rendering its own camera of it) end to end; returns the process exit code."""
+    rendering its own camera of it; ``sensors="mixed"``: its rig with a depth and a thermal
+    camera) end to end; returns the process exit code."""
     import zenoh
 
     from common import keys, messages, synth
@@ -75,6 +77,8 @@ def run_demo(
         (run_dir / stale).unlink(missing_ok=True)
     run_dir.mkdir(parents=True, exist_ok=True)
     if world is None:
+        if sensors != "colour":
+            raise ValueError("sensors other than colour are for a random world")
         name = scenario or synth.DEFAULT_SCENARIO
         spec = synth.scenario_spec(name)  # unknown names stop here with the list
         site = synth.default_site(out / "site")
@@ -91,7 +95,7 @@ def run_demo(
         from common.site import load_site
         from common.synth.world import random_world, write_world_site
 
-        made = random_world(seed)
+        made = random_world(seed, sensors=sensors)
         sc = made.scenario
         n_frames = sc.n_frames if frames is None else min(frames, sc.n_frames)
         written = write_world_site(made, out / "site", frames=n_frames)
@@ -102,7 +106,10 @@ def run_demo(
         site = load_site(written.site)
         source = f"world:{seed}"
         summary = made.summary()
-        title = f"random world {seed} ({summary['people']} people, {summary['rig_label']} rig)"
+        kinds = summary.get("sensors", {}).get("modalities", {})
+        mixed = ", ".join(f"{cam} {kind}" for cam, kind in kinds.items() if kind != "colour")
+        title = (f"random world {seed} ({summary['people']} people, {summary['rig_label']} rig"
+                 + (f"; {mixed}" if mixed else "") + ")")
     site_path = site.base_dir / "site.toml"
     if secure:
         site = _secure_site(site, out / "certs", site_path)

@@ -198,6 +198,7 @@ class FusionCounters:
     """What the node has done since it started (also logged at exit)."""
 
     frames_fused: int = 0
+    frames_with_range: int = 0  # of those, sets carrying a depth camera's foreground range
     events: int = 0
     events_not_stored: int = 0
     events_unpublishable: int = 0
@@ -530,6 +531,7 @@ class FusionNode:
         extra = {"depths": depths} if depths else {}
         fused = self.pipeline.step(fs.payloads, fs.stamp_ns, frame, looks, **extra)
         self.c.frames_fused += 1
+        self.c.frames_with_range += bool(depths)
         self.last_frame = int(fused.frame)
         self.last_stamp = (int(fused.stamp_ns), int(now_ns))
         tracks = [t for t in fused.tracks if all(math.isfinite(float(v)) for v in (t.x, t.y, t.z_top))]
@@ -711,7 +713,7 @@ class FusionNode:
     def summary(self, now_ns: int, mono: float) -> str:
         """One line of what the node has done, for the log at exit."""
         c = self.c
-        parts = [f"{c.frames_fused} frames fused", f"{c.events} events", f"{c.events_not_stored} not stored",
+        parts = [f"{c.frames_fused} frames fused ({c.frames_with_range} with range)", f"{c.events} events", f"{c.events_not_stored} not stored",
                  f"{c.frame_sets_dropped} frame sets dropped (slow)", f"{c.frame_sets_too_few} with too few cameras",
                  f"{c.inbox_dropped} masks dropped on arrival", f"{c.unknown_camera} from unknown cameras",
                  f"{c.pipeline_errors} fusion errors", f"{c.queries} history queries"]

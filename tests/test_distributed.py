@@ -305,7 +305,7 @@ def feed_lockstep(listener: Listener, feeder: Feeder, fed, frames: range, fusion
 
 
 PERIOD_NS = round(1e9 / 15)
-SUMMARY = re.compile(r"fusion stopped: (?P<fused>\d+) frames fused; (?P<events>\d+) events; (?P<slow>\d+) frame sets "
+SUMMARY = re.compile(r"fusion stopped: (?P<fused>\d+) frames fused \(\d+ with range\); (?P<events>\d+) events; \d+ not stored; (?P<slow>\d+) frame sets "
                      r"dropped \(slow\); (?P<few>\d+) with too few cameras; (?P<inbox>\d+) masks dropped on arrival; "
                      r"(?P<unknown>\d+) from unknown cameras")
 
