@@ -42,22 +42,19 @@ Pure: no clock, no files, no network.
 
 from __future__ import annotations
 
-import math
 from typing import Iterable, Sequence
 
 import cv2
 import numpy as np
 
-from camera_worker.segmentation import (
-    REFERENCE_AREA_PX, SegmentStats, _kernel, _scaled_size, cleanup_mask, learning_rate_schedule, scale_box,
-)
+from camera_worker.segmentation import SegmenterBase, SegmentStats, _scaled_size, describe_frame
 
 __all__ = ["DepthSegmenter"]
 
 _GAP_KERNEL = cv2.getStructuringElement(cv2.MORPH_RECT, (3, 3))
 
 
-class DepthSegmenter:
+class DepthSegmenter(SegmenterBase):
     """Nearer-than-the-room foreground of a range camera, with its range, and hold regions.
 
     Frames: ``(H, W) uint16`` millimetres of range, 0 = no value, all of one size. Masks:
@@ -87,12 +84,8 @@ class DepthSegmenter:
         reject_flying: bool = True,
         flying_mm: float = 150.0,
     ) -> None:
-        if isinstance(window_frames, bool) or not isinstance(window_frames, int) or window_frames < 1:
-            raise ValueError(f"window_frames must be an int >= 1, got {window_frames!r}")
-        if alpha is None:
-            alpha = 1.0 / window_frames
-        if not 0.0 < alpha <= 1.0:
-            raise ValueError(f"alpha must be in (0, 1], got {alpha!r}")
+        super().__init__(window_frames=window_frames, alpha=alpha, mask_scale=mask_scale, open_px=open_px,
+                         close_px=close_px, min_area_px=min_area_px, fill_holes=fill_holes)
         for name, value, lo, hi in (("min_step_mm", min_step_mm, 1.0, 2000.0), ("noise_sigmas", noise_sigmas, 0.0, 20.0),
                                     ("floor_mm", floor_mm, 0.0, 500.0), ("floor_per_m_mm", floor_per_m_mm, 0.0, 500.0),
                                     ("min_valid_fraction", min_valid_fraction, 0.0, 1.0), ("far_rate", far_rate, 0.0, 1.0),
@@ -101,13 +94,6 @@ class DepthSegmenter:
                 raise ValueError(f"{name} must lie in {lo:g}..{hi:g}, got {value!r}")
         if isinstance(clip_frames, bool) or not isinstance(clip_frames, int) or not 1 <= clip_frames <= 1000:
             raise ValueError(f"clip_frames must be an int in 1..1000, got {clip_frames!r}")
-        if not 0.0 < mask_scale <= 1.0:
-            raise ValueError(f"mask_scale must be in (0, 1], got {mask_scale!r}")
-        for name, value in (("open_px", open_px), ("close_px", close_px), ("min_area_px", min_area_px)):
-            if isinstance(value, bool) or not isinstance(value, int) or value < 0:
-                raise ValueError(f"{name} must be an int >= 0, got {value!r}")
-        self.window_frames = window_frames
-        self.alpha = float(alpha)
         self.min_step_mm = float(min_step_mm)
         self.noise_sigmas = float(noise_sigmas)
         self.floor_mm = float(floor_mm)
@@ -116,39 +102,21 @@ class DepthSegmenter:
         self.far_rate = float(far_rate)
         self.fg_rate_factor = float(fg_rate_factor)
         self.clip_frames = clip_frames
-        self.mask_scale = float(mask_scale)
-        self.fill_holes = bool(fill_holes)
         self.fill_missing = bool(fill_missing)
         self.reject_flying = bool(reject_flying)
         self.flying_mm = float(flying_mm)
-        self._cleanup_px = (int(open_px), int(close_px), int(min_area_px))
         self.reset()
 
     # -- public ---------------------------------------------------------------
 
     def reset(self) -> None:
         """Forget the background."""
+        super().reset()
         self._clip: list[np.ndarray] = []
         self._bg: np.ndarray | None = None        # background range, mm (float32, mask size; 0 = none)
         self._sigma: np.ndarray | None = None     # its spread, mm
         self._seen: np.ndarray | None = None      # how often the pixel gives a value, 0..1
-        self._frames = 0
-        self._settled = False
-        self._full_size: tuple[int, int] | None = None
-        self._cleanup: tuple | None = None
         self.depth_mm: np.ndarray | None = None
-
-    @property
-    def frames_seen(self) -> int:
-        return self._frames
-
-    @property
-    def full_size(self) -> tuple[int, int] | None:
-        return self._full_size
-
-    @property
-    def mask_size(self) -> tuple[int, int] | None:
-        return None if self._full_size is None else _scaled_size(self._full_size, self.mask_scale)
 
     def background_mm(self) -> np.ndarray | None:
         """``(h, w) float32`` background range at mask size, 0 where there is none (None before a frame)."""
@@ -157,31 +125,25 @@ class DepthSegmenter:
             return None
         return np.where(self._seen >= self.min_valid_fraction, self._bg, 0.0).astype(np.float32)
 
-    def next_learning_rate(self) -> float:
-        if self._settled:
-            return self.alpha
-        return learning_rate_schedule(self._frames + 1, window_frames=self.window_frames, alpha=self.alpha)
-
     def learn(self, frame: np.ndarray) -> None:
         """Learn one frame of a background clip (the empty room); the first ``clip_frames`` are
         kept for a robust median, later ones learnt as live background."""
         r = self._prepare(frame)
+        rate = self._window_rate()
         self._frames += 1
         self._settled = True
         if self._bg is None and len(self._clip) < self.clip_frames:
             self._clip.append(r)
             return
         self._finish_clip()
-        self._learn(r, np.zeros(r.shape, bool), [], learning_rate_schedule(
-            self._frames, window_frames=self.window_frames, alpha=self.alpha))
+        self._learn(r, np.zeros(r.shape, bool), [], rate)
 
     def apply(self, frame: np.ndarray, *, holds: Iterable[Sequence[int]] = (),
               learn: bool = True) -> tuple[np.ndarray, SegmentStats]:
         """Segment one frame and update the model; return ``(mask, stats)``; the foreground range
         is in :attr:`depth_mm` afterwards."""
         r = self._prepare(frame)
-        h, w = r.shape
-        boxes = [b for b in (scale_box(box, self.mask_scale, (w, h)) for box in holds) if b is not None]
+        boxes = self._mask_boxes(holds, r.shape)
         rate = self.next_learning_rate() if learn else 0.0
         self._finish_clip()
         first = self._bg is None
@@ -205,33 +167,20 @@ class DepthSegmenter:
             gaps = cv2.dilate(fg_raw, _GAP_KERNEL)
             gaps[valid] = 0
             fg_raw |= gaps
-        open_k, close_k, min_area = self._cleanup_sizes()
-        mask, components = cleanup_mask(fg_raw, open_kernel=open_k, close_kernel=close_k,
-                                        min_area_px=min_area, fill=self.fill_holes)
+        mask, components = self._clean(fg_raw)
         depth = np.zeros(r.shape, np.uint16)
         ship = raw & (mask > 0)
         depth[ship] = np.rint(r[ship]).astype(np.uint16)
         self.depth_mm = depth
-        n_pix = float(mask.size)
-        stats = SegmentStats(
-            frame_index=self._frames, learning_rate=rate, fg_fraction=cv2.countNonZero(mask) / n_pix,
-            changed_fraction=cv2.countNonZero(fg_raw) / n_pix, shadow_fraction=0.0, components=components,
-            holds=len(boxes), light_change=False, relearning=False,
-        )
-        return mask, stats
+        return mask, self._plain_stats(rate, mask, fg_raw, components, len(boxes))
 
     # -- internals ------------------------------------------------------------
 
     def _prepare(self, frame: np.ndarray) -> np.ndarray:
         if not isinstance(frame, np.ndarray) or frame.dtype != np.uint16 or frame.ndim != 2:
-            raise ValueError("range frame must be an (H, W) uint16 array of millimetres, got "
-                             f"{getattr(frame, 'shape', None)} {getattr(frame, 'dtype', type(frame).__name__)}")
+            raise ValueError(f"range frame must be an (H, W) uint16 array of millimetres, got {describe_frame(frame)}")
         size = (int(frame.shape[1]), int(frame.shape[0]))
-        if self._full_size is None:
-            self._full_size = size
-        elif size != self._full_size:
-            raise ValueError(f"frame size {size[0]}x{size[1]} differs from the model's "
-                             f"{self._full_size[0]}x{self._full_size[1]} (reset() to start a new model)")
+        self._adopt_size(size)
         if self.mask_scale != 1.0:
             frame = cv2.resize(frame, _scaled_size(size, self.mask_scale), interpolation=cv2.INTER_NEAREST)
         return frame.astype(np.float32)
@@ -276,15 +225,6 @@ class DepthSegmenter:
         bg = upd & ~raw
         # spread: a running mean absolute deviation (times 1.25: a Gaussian's sigma)
         self._sigma[bg] += np.float32(rate) * (1.2533 * np.abs(d[bg]) - self._sigma[bg])
-
-    def _cleanup_sizes(self) -> tuple:
-        if self._cleanup is None:
-            w, h = self._full_size
-            scale = self.mask_scale * math.sqrt(w * h / float(REFERENCE_AREA_PX))
-            open_px, close_px, min_area_px = self._cleanup_px
-            self._cleanup = (_kernel(open_px, self.mask_scale), _kernel(close_px, scale),
-                             int(math.ceil(min_area_px * scale * scale)))
-        return self._cleanup
 
 
 def _has_close_neighbour(r: np.ndarray, tol_mm: np.ndarray) -> np.ndarray:

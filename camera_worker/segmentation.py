@@ -81,7 +81,9 @@ __all__ = [
     "Box",
     "ForegroundSegmenter",
     "SegmentStats",
+    "SegmenterBase",
     "cleanup_mask",
+    "describe_frame",
     "fill_holes",
     "learning_rate_schedule",
     "remove_small_components",
@@ -142,7 +144,135 @@ def learning_rate_schedule(n: int, *, window_frames: int, alpha: float) -> float
     return alpha
 
 
-class ForegroundSegmenter:
+class SegmenterBase:
+    """What every segmenter shares: the window schedule, the frames' size, the mask size and the clean-up.
+
+    ``window_frames`` and ``alpha`` set the learning rates (:func:`learning_rate_schedule`);
+    ``mask_scale`` reduces the frames before segmentation; ``open_px`` (full-resolution pixels),
+    ``close_px`` and ``min_area_px`` (pixels of a 640x480 frame, :data:`REFERENCE_AREA_PX`) and
+    ``fill_holes`` set the clean-up (:func:`cleanup_mask`). A subclass stores its own settings,
+    then calls :meth:`reset`, whose own version calls this one.
+    """
+
+    def __init__(
+        self,
+        *,
+        window_frames: int,
+        alpha: float | None,
+        mask_scale: float,
+        open_px: int,
+        close_px: int,
+        min_area_px: int,
+        fill_holes: bool,
+    ) -> None:
+        if isinstance(window_frames, bool) or not isinstance(window_frames, int) or window_frames < 1:
+            raise ValueError(f"window_frames must be an int >= 1, got {window_frames!r}")
+        if alpha is None:
+            alpha = 1.0 / window_frames
+        if not 0.0 < alpha <= 1.0:
+            raise ValueError(f"alpha must be in (0, 1], got {alpha!r}")
+        if not 0.0 < mask_scale <= 1.0:
+            raise ValueError(f"mask_scale must be in (0, 1], got {mask_scale!r}")
+        for name, value in (("open_px", open_px), ("close_px", close_px), ("min_area_px", min_area_px)):
+            if isinstance(value, bool) or not isinstance(value, int) or value < 0:
+                raise ValueError(f"{name} must be an int >= 0, got {value!r}")
+        self.window_frames = window_frames
+        self.alpha = float(alpha)
+        self.mask_scale = float(mask_scale)
+        self.fill_holes = bool(fill_holes)
+        self._cleanup_px = (int(open_px), int(close_px), int(min_area_px))
+
+    def reset(self) -> None:
+        """Forget the frames: the next one starts the window schedule again and sets the frames' size."""
+        self._frames = 0            # frames the model has seen
+        self._settled = False       # a background clip was learned: live frames use alpha
+        self._full_size: tuple[int, int] | None = None   # (W, H) of input frames
+        self._dtype: np.dtype | None = None   # the frames' type, where a subclass keeps to one
+        self._cleanup: tuple | None = None   # kernels and smallest area for the frames' size, set on the first
+
+    @property
+    def frames_seen(self) -> int:
+        """Frames the model has been updated with or evaluated on."""
+        return self._frames
+
+    @property
+    def full_size(self) -> tuple[int, int] | None:
+        """``(width, height)`` of the input frames, None before the first frame."""
+        return self._full_size
+
+    @property
+    def mask_size(self) -> tuple[int, int] | None:
+        """``(width, height)`` of the masks, None before the first frame."""
+        if self._full_size is None:
+            return None
+        return _scaled_size(self._full_size, self.mask_scale)
+
+    def next_learning_rate(self) -> float:
+        """The rate :meth:`apply` will use for the next frame (when learning)."""
+        if self._settled:
+            return self.alpha
+        return self._window_rate()
+
+    # -- for subclasses -------------------------------------------------------
+
+    def _window_rate(self) -> float:
+        """The window schedule's rate for the next frame (``1/n``, then ``alpha``)."""
+        return learning_rate_schedule(self._frames + 1, window_frames=self.window_frames, alpha=self.alpha)
+
+    def _adopt_size(self, size: tuple[int, int], dtype: np.dtype | None = None) -> None:
+        """Take ``size = (W, H)`` (and ``dtype``, where the frames must keep to one) from the first
+        frame; raise ValueError when a later frame differs."""
+        if self._full_size is None:
+            self._full_size, self._dtype = size, dtype
+        elif size != self._full_size or dtype != self._dtype:
+            what, mine, theirs = "frame size", f"{size[0]}x{size[1]}", f"{self._full_size[0]}x{self._full_size[1]}"
+            if dtype is not None:
+                what, mine, theirs = "frame", f"{mine} {dtype}", f"{theirs} {self._dtype}"
+            raise ValueError(f"{what} {mine} differs from the model's {theirs} (reset() to start a new model)")
+
+    def _mask_boxes(self, holds: Iterable[Sequence[int]], shape: tuple[int, ...]) -> list[Box]:
+        """Full-resolution hold boxes scaled and clipped to a mask of ``shape`` ``(h, w, ...)``; empty ones dropped."""
+        size = (shape[1], shape[0])
+        return [b for b in (scale_box(box, self.mask_scale, size) for box in holds) if b is not None]
+
+    def _cleanup_sizes(self) -> tuple:
+        """(open kernel, close kernel, smallest component in mask pixels) for the frames' size. The
+        opening removes pixel noise and scales with the mask scale only; the closing and the smallest
+        component are sizes of the view, given for a 640x480 frame and scaled by the mask's linear
+        size against it, so that a person far off or a child is kept or dropped alike at 320x240
+        and at 1280x720."""
+        if self._cleanup is None:
+            w, h = self._full_size
+            scale = self.mask_scale * math.sqrt(w * h / float(REFERENCE_AREA_PX))
+            open_px, close_px, min_area_px = self._cleanup_px
+            self._cleanup = (_kernel(open_px, self.mask_scale), _kernel(close_px, scale),
+                             int(math.ceil(min_area_px * scale * scale)))
+        return self._cleanup
+
+    def _clean(self, fg_raw: np.ndarray) -> tuple[np.ndarray, int]:
+        """:func:`cleanup_mask` with the sizes for the frames' size: ``(mask, components)``."""
+        open_k, close_k, min_area = self._cleanup_sizes()
+        return cleanup_mask(fg_raw, open_kernel=open_k, close_kernel=close_k,
+                            min_area_px=min_area, fill=self.fill_holes)
+
+    def _plain_stats(self, rate: float, mask: np.ndarray, fg_raw: np.ndarray, components: int,
+                     holds: int) -> SegmentStats:
+        """Stats of a frame for a model without shadows or light changes: ``fg_raw`` (0/255, before
+        clean-up) is what changed, ``mask`` the cleaned foreground."""
+        n_pix = float(mask.size)
+        return SegmentStats(
+            frame_index=self._frames, learning_rate=rate, fg_fraction=cv2.countNonZero(mask) / n_pix,
+            changed_fraction=cv2.countNonZero(fg_raw) / n_pix, shadow_fraction=0.0, components=components,
+            holds=holds, light_change=False, relearning=False,
+        )
+
+
+def describe_frame(frame: object) -> str:
+    """``shape dtype`` of something offered as a frame, for error messages."""
+    return f"{getattr(frame, 'shape', None)} {getattr(frame, 'dtype', type(frame).__name__)}"
+
+
+class ForegroundSegmenter(SegmenterBase):
     """Adaptive GMM foreground with shadow removal, clean-up and hold regions.
 
     Frames are ``(H, W, 3) uint8`` BGR images (``(H, W)`` grey is accepted),
@@ -174,12 +304,8 @@ class ForegroundSegmenter:
         light_change_fraction: float | None = 0.45,
         relearn_frames: int = 10,
     ) -> None:
-        if isinstance(window_frames, bool) or not isinstance(window_frames, int) or window_frames < 1:
-            raise ValueError(f"window_frames must be an int >= 1, got {window_frames!r}")
-        if alpha is None:
-            alpha = 1.0 / window_frames
-        if not 0.0 < alpha <= 1.0:
-            raise ValueError(f"alpha must be in (0, 1], got {alpha!r}")
+        super().__init__(window_frames=window_frames, alpha=alpha, mask_scale=mask_scale, open_px=open_px,
+                         close_px=close_px, min_area_px=min_area_px, fill_holes=fill_holes)
         if not 1 <= n_mixtures <= 16:
             raise ValueError(f"n_mixtures must be in 1..16, got {n_mixtures!r}")
         if not var_threshold > 0:
@@ -188,34 +314,25 @@ class ForegroundSegmenter:
             raise ValueError(f"background_ratio must be in (0, 1], got {background_ratio!r}")
         if not 0.0 < shadow_threshold < 1.0:
             raise ValueError(f"shadow_threshold must be in (0, 1), got {shadow_threshold!r}")
-        if not 0.0 < mask_scale <= 1.0:
-            raise ValueError(f"mask_scale must be in (0, 1], got {mask_scale!r}")
-        for name, value in (("open_px", open_px), ("close_px", close_px), ("min_area_px", min_area_px)):
-            if isinstance(value, bool) or not isinstance(value, int) or value < 0:
-                raise ValueError(f"{name} must be an int >= 0, got {value!r}")
         if light_change_fraction is not None and not 0.0 < light_change_fraction <= 1.0:
             raise ValueError(f"light_change_fraction must be in (0, 1] or None, got {light_change_fraction!r}")
         if isinstance(relearn_frames, bool) or not isinstance(relearn_frames, int) or relearn_frames < 0:
             raise ValueError(f"relearn_frames must be an int >= 0, got {relearn_frames!r}")
 
-        self.window_frames = window_frames
-        self.alpha = float(alpha)
-        self.mask_scale = float(mask_scale)
         self.light_change_fraction = light_change_fraction
         self.relearn_frames = relearn_frames
-        self.fill_holes = bool(fill_holes)
         self._params = dict(
             n_mixtures=int(n_mixtures), var_threshold=float(var_threshold),
             background_ratio=float(background_ratio), detect_shadows=bool(detect_shadows),
             shadow_threshold=float(shadow_threshold),
         )
-        self._cleanup_px = (int(open_px), int(close_px), int(min_area_px))
         self.reset()
 
     # -- public ---------------------------------------------------------------
 
     def reset(self) -> None:
         """Forget the background: the next frame starts the window schedule again."""
+        super().reset()
         p = self._params
         self._model = cv2.createBackgroundSubtractorMOG2(
             history=self.window_frames, varThreshold=p["var_threshold"], detectShadows=p["detect_shadows"])
@@ -223,54 +340,17 @@ class ForegroundSegmenter:
         self._model.setBackgroundRatio(p["background_ratio"])
         self._model.setShadowThreshold(p["shadow_threshold"])
         self._model.setShadowValue(127)
-        self._frames = 0            # frames the model has seen
-        self._settled = False       # a background clip was learned: live frames use alpha
         self._relearn_n = 0         # > 0: inside the re-learn window, next rate 1/_relearn_n
-        self._full_size: tuple[int, int] | None = None   # (W, H) of input frames
-        self._cleanup: tuple | None = None   # kernels and smallest area for the frames' size, set on the first
         self._bg: np.ndarray | None = None   # cached background image for hold boxes ...
         self._bg_frame = 0
         self._pred: np.ndarray | None = None  # ... and the same times the current gain
         self._pred_frame = -1
 
-    @property
-    def frames_seen(self) -> int:
-        """Frames the model has been updated with or evaluated on."""
-        return self._frames
-
-    @property
-    def full_size(self) -> tuple[int, int] | None:
-        """``(width, height)`` of the input frames, None before the first frame."""
-        return self._full_size
-
-    @property
-    def mask_size(self) -> tuple[int, int] | None:
-        """``(width, height)`` of the masks, None before the first frame."""
-        if self._full_size is None:
-            return None
-        return _scaled_size(self._full_size, self.mask_scale)
-
-    def _cleanup_sizes(self) -> tuple:
-        """(open kernel, close kernel, smallest component in mask pixels) for the frames' size. The
-        opening removes pixel noise and scales with the mask scale only; the closing and the smallest
-        component are sizes of the view, given for a 640x480 frame and scaled by the mask's linear
-        size against it, so that a person far off or a child is kept or dropped alike at 320x240
-        and at 1280x720."""
-        if self._cleanup is None:
-            w, h = self._full_size
-            scale = self.mask_scale * math.sqrt(w * h / float(REFERENCE_AREA_PX))
-            open_px, close_px, min_area_px = self._cleanup_px
-            self._cleanup = (_kernel(open_px, self.mask_scale), _kernel(close_px, scale),
-                             int(math.ceil(min_area_px * scale * scale)))
-        return self._cleanup
-
     def next_learning_rate(self) -> float:
         """The rate :meth:`apply` will use for the next frame (when learning and not re-learning)."""
         if self._relearn_n:
             return max(1.0 / self._relearn_n, self.alpha)
-        if self._settled:
-            return self.alpha
-        return learning_rate_schedule(self._frames + 1, window_frames=self.window_frames, alpha=self.alpha)
+        return super().next_learning_rate()
 
     def learn(self, frame: np.ndarray) -> None:
         """Learn one frame of a background clip (an empty room) with the ``1/n`` schedule.
@@ -278,10 +358,8 @@ class ForegroundSegmenter:
         Live frames given to :meth:`apply` afterwards use the settled rate ``alpha``.
         """
         small = self._prepare(frame)
-        n = self._frames + 1
-        self._model.apply(small, learningRate=learning_rate_schedule(
-            n, window_frames=self.window_frames, alpha=self.alpha))
-        self._frames = n
+        self._model.apply(small, learningRate=self._window_rate())
+        self._frames += 1
         self._settled = True
 
     def apply(
@@ -299,8 +377,7 @@ class ForegroundSegmenter:
         frame without changing the model.
         """
         small = self._prepare(frame)
-        h, w = small.shape[:2]
-        boxes = [b for b in (scale_box(box, self.mask_scale, (w, h)) for box in holds) if b is not None]
+        boxes = self._mask_boxes(holds, small.shape)
         first = self._frames == 0
         rate = self.next_learning_rate() if learn else 0.0
         relearning = learn and self._relearn_n > 0
@@ -331,9 +408,7 @@ class ForegroundSegmenter:
 
         fg_raw = cv2.threshold(raw, 200, 255, cv2.THRESH_BINARY)[1]   # 255 foreground, 127 shadow, 0 background
         n_fg_raw = cv2.countNonZero(fg_raw)
-        open_k, close_k, min_area = self._cleanup_sizes()
-        mask, components = cleanup_mask(fg_raw, open_kernel=open_k, close_kernel=close_k,
-                                        min_area_px=min_area, fill=self.fill_holes)
+        mask, components = self._clean(fg_raw)
         stats = SegmentStats(
             frame_index=self._frames,
             learning_rate=rate,
@@ -356,14 +431,9 @@ class ForegroundSegmenter:
     def _prepare(self, frame: np.ndarray) -> np.ndarray:
         if not isinstance(frame, np.ndarray) or frame.dtype != np.uint8 or frame.ndim not in (2, 3) \
                 or (frame.ndim == 3 and frame.shape[2] not in (1, 3)):
-            raise ValueError("frame must be an (H, W, 3) or (H, W) uint8 array, got "
-                             f"{getattr(frame, 'shape', None)} {getattr(frame, 'dtype', type(frame).__name__)}")
+            raise ValueError(f"frame must be an (H, W, 3) or (H, W) uint8 array, got {describe_frame(frame)}")
         size = (int(frame.shape[1]), int(frame.shape[0]))
-        if self._full_size is None:
-            self._full_size = size
-        elif size != self._full_size:
-            raise ValueError(f"frame size {size[0]}x{size[1]} differs from the model's "
-                             f"{self._full_size[0]}x{self._full_size[1]} (reset() to start a new model)")
+        self._adopt_size(size)
         if self.mask_scale != 1.0:
             frame = cv2.resize(frame, _scaled_size(size, self.mask_scale), interpolation=cv2.INTER_AREA)
         return frame

@@ -34,15 +34,12 @@ Pure: no clock, no files, no network.
 
 from __future__ import annotations
 
-import math
 from typing import Iterable, Sequence
 
 import cv2
 import numpy as np
 
-from camera_worker.segmentation import (
-    REFERENCE_AREA_PX, SegmentStats, _kernel, _scaled_size, cleanup_mask, learning_rate_schedule, scale_box,
-)
+from camera_worker.segmentation import SegmenterBase, SegmentStats, _scaled_size, describe_frame
 
 __all__ = ["ThermalSegmenter", "UNITS_PER_K_8BIT", "UNITS_PER_K_16BIT"]
 
@@ -55,7 +52,7 @@ _MIN_SIGMA_K = 0.03
 _INITIAL_SIGMA_K = 0.15       # spread of a pixel before anything is known
 
 
-class ThermalSegmenter:
+class ThermalSegmenter(SegmenterBase):
     """Warmer-than-the-room foreground with a drifting per-pixel background and hold regions.
 
     Frames: ``(H, W) uint16`` radiometric, or ``(H, W)`` / ``(H, W, 3)`` ``uint8`` views, all of one
@@ -83,12 +80,8 @@ class ThermalSegmenter:
         min_area_px: int = 400,
         fill_holes: bool = True,
     ) -> None:
-        if isinstance(window_frames, bool) or not isinstance(window_frames, int) or window_frames < 1:
-            raise ValueError(f"window_frames must be an int >= 1, got {window_frames!r}")
-        if alpha is None:
-            alpha = 1.0 / window_frames
-        if not 0.0 < alpha <= 1.0:
-            raise ValueError(f"alpha must be in (0, 1], got {alpha!r}")
+        super().__init__(window_frames=window_frames, alpha=alpha, mask_scale=mask_scale, open_px=open_px,
+                         close_px=close_px, min_area_px=min_area_px, fill_holes=fill_holes)
         if not 0.05 <= min_contrast_k <= 30.0:
             raise ValueError(f"min_contrast_k must lie in 0.05..30 K, got {min_contrast_k!r}")
         if not 0.0 <= noise_sigmas <= 20.0:
@@ -97,63 +90,31 @@ class ThermalSegmenter:
             raise ValueError(f"fg_rate_factor must lie in 0..1, got {fg_rate_factor!r}")
         if units_per_k is not None and not units_per_k > 0:
             raise ValueError(f"units_per_k must be > 0, got {units_per_k!r}")
-        if not 0.0 < mask_scale <= 1.0:
-            raise ValueError(f"mask_scale must be in (0, 1], got {mask_scale!r}")
-        for name, value in (("open_px", open_px), ("close_px", close_px), ("min_area_px", min_area_px)):
-            if isinstance(value, bool) or not isinstance(value, int) or value < 0:
-                raise ValueError(f"{name} must be an int >= 0, got {value!r}")
-        self.window_frames = window_frames
-        self.alpha = float(alpha)
         self.min_contrast_k = float(min_contrast_k)
         self.noise_sigmas = float(noise_sigmas)
         self.fg_rate_factor = float(fg_rate_factor)
         self.units_per_k = units_per_k
         self.fit_gain = fit_gain
-        self.mask_scale = float(mask_scale)
-        self.fill_holes = bool(fill_holes)
-        self._cleanup_px = (int(open_px), int(close_px), int(min_area_px))
         self.reset()
 
     # -- public ---------------------------------------------------------------
 
     def reset(self) -> None:
         """Forget the background."""
+        super().reset()
         self._mean: np.ndarray | None = None     # background, kelvin (mask size)
         self._var: np.ndarray | None = None      # spread squared, kelvin squared
-        self._frames = 0
-        self._settled = False
-        self._full_size: tuple[int, int] | None = None
-        self._dtype: np.dtype | None = None
-        self._cleanup: tuple | None = None
         self._last_fg: np.ndarray | None = None
         self.drift = (1.0, 0.0)                  # last fitted (gain, offset kelvin)
-
-    @property
-    def frames_seen(self) -> int:
-        return self._frames
-
-    @property
-    def full_size(self) -> tuple[int, int] | None:
-        return self._full_size
-
-    @property
-    def mask_size(self) -> tuple[int, int] | None:
-        return None if self._full_size is None else _scaled_size(self._full_size, self.mask_scale)
 
     def background_k(self) -> np.ndarray | None:
         """The background at mask size, ``(h, w) float32`` in the frames' kelvin scale (None before a frame)."""
         return None if self._mean is None else self._mean.copy()
 
-    def next_learning_rate(self) -> float:
-        if self._settled:
-            return self.alpha
-        return learning_rate_schedule(self._frames + 1, window_frames=self.window_frames, alpha=self.alpha)
-
     def learn(self, frame: np.ndarray) -> None:
         """Learn one frame of a background clip (the empty room) with the ``1/n`` schedule."""
         k = self._prepare(frame)
-        n = self._frames + 1
-        rate = learning_rate_schedule(n, window_frames=self.window_frames, alpha=self.alpha)
+        rate = self._window_rate()
         if self._mean is None:
             self._mean = k.copy()
             self._var = np.full_like(k, _INITIAL_SIGMA_K ** 2)
@@ -161,15 +122,14 @@ class ThermalSegmenter:
             d = k - self._mean
             self._mean += np.float32(rate) * d
             self._var += np.float32(rate) * (d * d - self._var)
-        self._frames = n
+        self._frames += 1
         self._settled = True
 
     def apply(self, frame: np.ndarray, *, holds: Iterable[Sequence[int]] = (),
               learn: bool = True) -> tuple[np.ndarray, SegmentStats]:
         """Segment one frame and update the model; return ``(mask, stats)`` (as the colour segmenter)."""
         k = self._prepare(frame)
-        h, w = k.shape
-        boxes = [b for b in (scale_box(box, self.mask_scale, (w, h)) for box in holds) if b is not None]
+        boxes = self._mask_boxes(holds, k.shape)
         first = self._mean is None
         rate = self.next_learning_rate() if learn else 0.0
         if first:
@@ -188,17 +148,9 @@ class ThermalSegmenter:
         if learn and not first:
             self._update(k, pred, raw, boxes, rate, gain, offset)
         fg_raw = raw.astype(np.uint8) * np.uint8(255)
-        open_k, close_k, min_area = self._cleanup_sizes()
-        mask, components = cleanup_mask(fg_raw, open_kernel=open_k, close_kernel=close_k,
-                                        min_area_px=min_area, fill=self.fill_holes)
+        mask, components = self._clean(fg_raw)
         self._last_fg = mask
-        n_pix = float(mask.size)
-        stats = SegmentStats(
-            frame_index=self._frames, learning_rate=rate, fg_fraction=cv2.countNonZero(mask) / n_pix,
-            changed_fraction=cv2.countNonZero(fg_raw) / n_pix, shadow_fraction=0.0, components=components,
-            holds=len(boxes), light_change=False, relearning=False,
-        )
-        return mask, stats
+        return mask, self._plain_stats(rate, mask, fg_raw, components, len(boxes))
 
     # -- internals ------------------------------------------------------------
 
@@ -207,17 +159,13 @@ class ThermalSegmenter:
         if not isinstance(frame, np.ndarray) or frame.dtype not in (np.uint8, np.uint16) or frame.ndim not in (2, 3) \
                 or (frame.ndim == 3 and frame.shape[2] not in (1, 3)):
             raise ValueError("thermal frame must be an (H, W) uint16 or uint8 array (or grey (H, W, 3) uint8), got "
-                             f"{getattr(frame, 'shape', None)} {getattr(frame, 'dtype', type(frame).__name__)}")
+                             + describe_frame(frame))
         if frame.ndim == 3:
             if frame.dtype != np.uint8:
                 raise ValueError("a multi-channel thermal frame must be uint8")
             frame = frame[..., 0]
         size = (int(frame.shape[1]), int(frame.shape[0]))
-        if self._full_size is None:
-            self._full_size, self._dtype = size, frame.dtype
-        elif size != self._full_size or frame.dtype != self._dtype:
-            raise ValueError(f"frame {size[0]}x{size[1]} {frame.dtype} differs from the model's "
-                             f"{self._full_size[0]}x{self._full_size[1]} {self._dtype} (reset() to start a new model)")
+        self._adopt_size(size, frame.dtype)
         units = self.units_per_k or (UNITS_PER_K_16BIT if frame.dtype == np.uint16 else UNITS_PER_K_8BIT)
         f = frame.astype(np.float32)
         if self.mask_scale != 1.0:
@@ -278,12 +226,3 @@ class ThermalSegmenter:
         for x0, y0, x1, y1 in boxes:
             bg[y0:y1, x0:x1] = False
         self._var[bg] += np.float32(rate) * (d[bg] * d[bg] - self._var[bg])
-
-    def _cleanup_sizes(self) -> tuple:
-        if self._cleanup is None:
-            w, h = self._full_size
-            scale = self.mask_scale * math.sqrt(w * h / float(REFERENCE_AREA_PX))
-            open_px, close_px, min_area_px = self._cleanup_px
-            self._cleanup = (_kernel(open_px, self.mask_scale), _kernel(close_px, scale),
-                             int(math.ceil(min_area_px * scale * scale)))
-        return self._cleanup

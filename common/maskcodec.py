@@ -88,13 +88,7 @@ def decode_mask(data: bytes, codec: str, width: int, height: int) -> np.ndarray:
     range, or the data is truncated, corrupt, oversized or of another size.
     """
     n_px = check_mask_size(width, height)
-    lo, hi = encoded_size_bounds(codec, width, height)
-    if not isinstance(data, (bytes, bytearray, memoryview)):
-        raise MaskCodecError(f"mask data must be bytes, got {type(data).__name__}")
-    data = bytes(data)
-    if not lo <= len(data) <= hi:
-        raise MaskCodecError(f"{codec} data of {len(data)} bytes is implausible for a {width}x{height} "
-                             f"mask (expected {lo}..{hi})")
+    data = _plausible_bytes(data, "mask", codec, (width, height), encoded_size_bounds(codec, width, height))
     if codec == "rle-zlib":
         # A run of r >= 1 pixels takes at most r varint bytes; the first run may be 0 (1 byte).
         return _runs_to_mask(_inflate(data, n_px + 1, codec), width, height)
@@ -136,13 +130,8 @@ def decode_depth(data: bytes, mask: np.ndarray) -> np.ndarray:
     foreground pixels than ``mask``."""
     fg = _check_mask(mask) != 0
     n_fg = int(np.count_nonzero(fg))
-    lo, hi = depth_size_bounds(fg.shape[1], fg.shape[0])
-    if not isinstance(data, (bytes, bytearray, memoryview)):
-        raise MaskCodecError(f"depth data must be bytes, got {type(data).__name__}")
-    data = bytes(data)
-    if not lo <= len(data) <= hi:
-        raise MaskCodecError(f"{DEPTH_CODEC} data of {len(data)} bytes is implausible for a "
-                             f"{fg.shape[1]}x{fg.shape[0]} mask (expected {lo}..{hi})")
+    size = (fg.shape[1], fg.shape[0])
+    data = _plausible_bytes(data, "depth", DEPTH_CODEC, size, depth_size_bounds(*size))
     raw = _inflate(data, 2 * n_fg, DEPTH_CODEC)
     if len(raw) != 2 * n_fg:
         raise MaskCodecError(f"{DEPTH_CODEC} data holds {len(raw) // 2} values for a mask of {n_fg} "
@@ -276,6 +265,19 @@ def _check_mask(mask: np.ndarray) -> np.ndarray:
         raise MaskCodecError(f"mask dtype must be bool or uint8, got {mask.dtype}")
     check_mask_size(mask.shape[1], mask.shape[0])
     return np.ascontiguousarray(mask)
+
+
+def _plausible_bytes(data: bytes, what: str, codec: str, size: tuple[int, int], bounds: tuple[int, int]) -> bytes:
+    """``data`` as bytes when it is bytes of a length ``bounds = (lo, hi)`` that ``codec`` can give
+    for a mask of ``size = (width, height)``; MaskCodecError otherwise (``what``: whose data, for the message)."""
+    if not isinstance(data, (bytes, bytearray, memoryview)):
+        raise MaskCodecError(f"{what} data must be bytes, got {type(data).__name__}")
+    data = bytes(data)
+    lo, hi = bounds
+    if not lo <= len(data) <= hi:
+        raise MaskCodecError(f"{codec} data of {len(data)} bytes is implausible for a {size[0]}x{size[1]} "
+                             f"mask (expected {lo}..{hi})")
+    return data
 
 
 def _zlib_bound(n: int) -> int:

@@ -9,14 +9,9 @@ import pytest
 
 from camera_worker.depth import DepthSegmenter
 from common.maskcodec import decode_depth, encode_depth
-from common.synth.body import BodyShape, pose_body, standing_pose
-from common.synth.render import CameraRenderer
-from common.synth.scenarios import get_scenario
-from common.synth.scene import default_cameras
 from common.synth.sensors import RangeModel
+from tests.halfhouse import SCENARIO, half_renderers, hold_box, iou, standing_person, still_person_ious
 
-HALF = default_cameras(scale=0.5)
-SCENARIO = get_scenario("walk", 0)
 IOU_BOUND = 0.6
 """Mean IoU with the true silhouettes on the walk at 320x240, over frames where the person stands
 within the camera's range (measured 0.66-0.75): feet on the floor are within the range noise of
@@ -25,17 +20,7 @@ it, dark hair and clothes drop out."""
 
 @pytest.fixture(scope="module")
 def renderers():
-    return {cid: CameraRenderer(HALF[cid], SCENARIO.room, seed=0, colour=False) for cid in ("cam1", "cam3")}
-
-
-def _person(x=4.0, y=3.0):
-    shape = BodyShape(height_m=1.7)
-    return pose_body(shape, standing_pose(shape, x, y, 0.5), person_id=1)
-
-
-def _iou(mask, labels) -> float:
-    m, t = mask > 0, labels > 0
-    return float((m & t).sum() / max((m | t).sum(), 1))
+    return half_renderers()
 
 
 def _walk(renderer, seg, *, model=RangeModel(), step=5):
@@ -51,7 +36,7 @@ def _walk(renderer, seg, *, model=RangeModel(), step=5):
 
 @pytest.mark.parametrize("cam", ["cam1", "cam3"])
 def test_people_found_against_the_true_silhouettes(renderers, cam):
-    ious = [_iou(m, lab) for frame, lab, m, _ in _walk(renderers[cam], DepthSegmenter())
+    ious = [iou(m, lab) for frame, lab, m, _ in _walk(renderers[cam], DepthSegmenter())
             if (lab > 0).sum() > 150 and np.mean(frame[lab > 0] > 0) > 0.5]
     assert len(ious) > 20
     assert np.mean(ious) > IOU_BOUND
@@ -89,7 +74,7 @@ def test_people_in_front_of_a_room_beyond_range(renderers):
     for frame, labels, mask, _ in frames:
         visible = (labels > 0) & (frame > 0)   # the people the camera can see at all
         if visible.sum() > 150:
-            ious.append(_iou(mask, visible.astype(np.uint8)))
+            ious.append(iou(mask, visible.astype(np.uint8)))
     assert len(ious) > 10 and np.mean(ious) > IOU_BOUND
 
 
@@ -118,7 +103,7 @@ def test_shipped_range_is_the_true_range_within_noise(renderers):
     """Noise-free and noisy renders of the same person: the shipped readings are within four
     standard deviations of the truth (flying pixels at the edge aside)."""
     r = renderers["cam1"]
-    person = _person()
+    person = standing_person()
     quiet = RangeModel(noise_mm=0.0, flying_p=0.0, edge_dropout_p=0.0, dark_dropout=0.0, min_amplitude=0.0)
     truth_mm = r.range_mm([person], (0, 0), model=quiet).astype(np.float64)
     seg = DepthSegmenter()
@@ -143,25 +128,18 @@ def test_shipped_range_is_the_true_range_within_noise(renderers):
 
 def test_a_held_still_person_is_kept_and_one_who_left_the_clip_is_forgotten(renderers):
     r = renderers["cam1"]
-    person = _person()
+    person = standing_person()
     labels = r.labels([person])
-    ys, xs = np.nonzero(labels)
-    box = (int(xs.min()) - 4, int(ys.min()) - 4, int(xs.max()) + 5, int(ys.max()) + 5)
+    box = hold_box(labels)
 
-    def run(holds, fg_rate_factor):
-        seg = DepthSegmenter(window_frames=20, fg_rate_factor=fg_rate_factor)
-        for i in range(20):
-            seg.learn(r.range_mm([], (1, i)))
-        ious = []
-        for i in range(600):
-            mask, _ = seg.apply(r.range_mm([person], (0, i)), holds=holds)
-            if i in (5, 599):
-                ious.append(_iou(mask, labels))
-        return ious
+    def run(holds):
+        return still_person_ious(DepthSegmenter(window_frames=20, fg_rate_factor=1.0),
+                                 lambda i: r.range_mm([], (1, i)), lambda i: r.range_mm([person], (0, i)),
+                                 labels, holds=holds, n_frames=600)
 
-    early, late = run([box], 1.0)
+    early, late = run([box])
     assert early > 0.6 and late > early - 0.05
-    assert run([], 1.0)[1] < 0.2
+    assert run([])[1] < 0.2
     # someone stood in the background clip and walked off: what lies behind them is farther, adopted at once
     seg = DepthSegmenter()
     for i in range(45):

@@ -8,31 +8,16 @@ import numpy as np
 import pytest
 
 from camera_worker.thermal import ThermalSegmenter
-from common.synth.body import BodyShape, pose_body, standing_pose
-from common.synth.render import CameraRenderer
-from common.synth.scenarios import get_scenario
-from common.synth.scene import default_cameras
 from common.synth.sensors import agc8
+from tests.halfhouse import SCENARIO, half_renderers, hold_box, iou, standing_person, still_person_ious
 
-HALF = default_cameras(scale=0.5)
-SCENARIO = get_scenario("walk", 0)
 IOU_BOUND = 0.7
 """Mean IoU with the true silhouettes on the walk at 320x240 (measured 0.80-0.86 over the cameras)."""
 
 
 @pytest.fixture(scope="module")
 def renderers():
-    return {cid: CameraRenderer(HALF[cid], SCENARIO.room, seed=0, colour=False) for cid in ("cam1", "cam3")}
-
-
-def _person(x=4.0, y=3.0):
-    shape = BodyShape(height_m=1.7)
-    return pose_body(shape, standing_pose(shape, x, y, 0.5), person_id=1)
-
-
-def _iou(mask, labels) -> float:
-    m, t = mask > 0, labels > 0
-    return float((m & t).sum() / max((m | t).sum(), 1))
+    return half_renderers()
 
 
 def _walk_ious(renderer, seg, *, view=lambda ck: ck, ambient=lambda i: 21.0, step=5):
@@ -43,7 +28,7 @@ def _walk_ious(renderer, seg, *, view=lambda ck: ck, ambient=lambda i: 21.0, ste
         frame, labels = renderer.thermal_labels(SCENARIO.bodies(i), (0, i), ambient_c=ambient(i))
         mask, _ = seg.apply(view(frame))
         if (labels > 0).sum() > 150:
-            ious.append(_iou(mask, labels))
+            ious.append(iou(mask, labels))
     return ious
 
 
@@ -89,25 +74,19 @@ def test_people_still_found_while_the_room_warms(renderers):
 def test_a_held_still_person_is_never_learnt_in(renderers):
     """A short window (learnt quickly); the person stands still for 40 windows."""
     r = renderers["cam1"]
-    person = _person()
+    person = standing_person()
     labels = r.labels([person])
-    ys, xs = np.nonzero(labels)
-    box = (int(xs.min()) - 4, int(ys.min()) - 4, int(xs.max()) + 5, int(ys.max()) + 5)
+    box = hold_box(labels)
 
-    def run(holds, fg_rate_factor):
-        seg = ThermalSegmenter(window_frames=20, fg_rate_factor=fg_rate_factor)
-        for i in range(20):
-            seg.learn(r.thermal([], (1, i), ambient_c=21.0))
-        ious = []
-        for i in range(800):
-            mask, _ = seg.apply(r.thermal([person], (0, i), ambient_c=21.0 + i / 800), holds=holds)
-            if i in (5, 799):
-                ious.append(_iou(mask, labels))
-        return ious
+    def run(holds):
+        return still_person_ious(ThermalSegmenter(window_frames=20, fg_rate_factor=1.0),
+                                 lambda i: r.thermal([], (1, i), ambient_c=21.0),
+                                 lambda i: r.thermal([person], (0, i), ambient_c=21.0 + i / 800),
+                                 labels, holds=holds, n_frames=800)
 
-    early, late = run([box], 1.0)
+    early, late = run([box])
     assert early > 0.6 and late > early - 0.05   # held: as found at the start after 800 frames at rate 1/20
-    _, gone = run([], 1.0)
+    _, gone = run([])
     assert gone < 0.2                             # not held, learnt as fast as background: gone
 
 

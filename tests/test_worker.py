@@ -438,14 +438,21 @@ def test_bad_site_and_camera_exit_2_with_one_line(tmp_path):
     assert proc.returncode == 0 and "--source" in proc.stdout and "rtsp://" in proc.stdout
 
 
+def _play_walk(site: Path, listener: Listener) -> str:
+    """Run the worker on 30 frames of the synthetic house's walk (background from the same walk),
+    as fast as possible; its standard error once it has exited cleanly."""
+    proc = _start(site, listener, "--source", "synthetic:walk", "--background", "synthetic:walk", "--fast",
+                  "--max-frames", "30", "--start-ns", "0")
+    _, err = proc.communicate(timeout=60)
+    assert proc.returncode == 0, err
+    return err
+
+
 def test_worker_process_plays_the_synthetic_house(tmp_path, listener):
     """The synthetic house as source and background: masks of the walking person, as fast as possible."""
     pytest.importorskip("common.synth.source")
     site = _write_site(tmp_path)
-    proc = _start(site, listener, "--source", "synthetic:walk", "--background", "synthetic:walk", "--fast",
-                  "--max-frames", "30", "--start-ns", "0")
-    out, err = proc.communicate(timeout=60)
-    assert proc.returncode == 0, err
+    err = _play_walk(site, listener)
     masks = listener.masks()
     assert len(masks) >= 20
     assert all((m.width, m.height) == (640, 480) and m.stamp_ns == round(m.seq * 1e9 / 15.0) for m in masks)
@@ -460,10 +467,7 @@ def test_worker_process_of_a_depth_camera_sends_the_range_with_its_masks(tmp_pat
     pytest.importorskip("common.synth.source")
     site = _write_site(tmp_path)
     site.write_text(site.read_text().replace('source = "clip.avi"', 'modality = "depth"\nsource = "clip.avi"'))
-    proc = _start(site, listener, "--source", "synthetic:walk", "--background", "synthetic:walk", "--fast",
-                  "--max-frames", "30", "--start-ns", "0")
-    out, err = proc.communicate(timeout=60)
-    assert proc.returncode == 0, err
+    _play_walk(site, listener)
     masks = listener.masks()
     assert len(masks) >= 20
     ranged = 0

@@ -238,13 +238,7 @@ class CameraRenderer:
         if self.shadows:
             for body, plan in zip(bodies, plans):
                 self._shadow(scene, body)
-        zbuf, part = self._zbuf, self._part
-        for plan in plans:
-            x0, y0, x1, y1 = plan.roi
-            zbuf[y0:y1, x0:x1] = np.inf
-            part[y0:y1, x0:x1] = -1
-        for pi, plan in enumerate(plans):
-            self._raycast(plan, pi)
+        self._raycast_all(plans)
         for pi, plan in enumerate(plans):
             self._shade(scene, labels, plan, pi, plans)
         return cv2.addWeighted(scene, float(gain), self.noise(key), 1.0, -float(NOISE_OFFSET)), labels
@@ -253,13 +247,7 @@ class CameraRenderer:
         """(H, W) uint8 the person id whose body is visible at each pixel (furniture and walls
         occlude), 0 for background: the true silhouettes of :meth:`render` without drawing."""
         labels = np.zeros((self.camera.height, self.camera.width), dtype=np.uint8)
-        plans = [p for p in (self._plan(b) for b in bodies) if p is not None]
-        for plan in plans:
-            x0, y0, x1, y1 = plan.roi
-            self._zbuf[y0:y1, x0:x1] = np.inf
-            self._part[y0:y1, x0:x1] = -1
-        for pi, plan in enumerate(plans):
-            self._raycast(plan, pi)
+        plans = self._raycast_bodies(bodies)
         for pi, plan in enumerate(plans):
             x0, y0, x1, y1 = plan.roi
             zb = self._zbuf[y0:y1, x0:x1]
@@ -321,13 +309,7 @@ class CameraRenderer:
     def _body_surfaces(self, bodies: list[Body]) -> tuple[list, np.ndarray]:
         """Raycast ``bodies``: [(plan, visible surface)] and the (H, W) uint8 person ids."""
         labels = np.zeros((self.camera.height, self.camera.width), dtype=np.uint8)
-        plans = [p for p in (self._plan(b) for b in bodies) if p is not None]
-        for plan in plans:
-            x0, y0, x1, y1 = plan.roi
-            self._zbuf[y0:y1, x0:x1] = np.inf
-            self._part[y0:y1, x0:x1] = -1
-        for pi, plan in enumerate(plans):
-            self._raycast(plan, pi)
+        plans = self._raycast_bodies(bodies)
         out = []
         for pi, plan in enumerate(plans):
             surf = self._visible_surface(plan, pi)
@@ -393,6 +375,22 @@ class CameraRenderer:
         inv = body.inverse_axes
         o = np.einsum("pij,pj->pi", inv, self.center[None, :] - body.centers_m)
         return _BodyPlan(body=body, roi=roi, boxes=np.stack([x0, y0, x1, y1], axis=1), keep=keep, inv=inv, o=o)
+
+    def _raycast_bodies(self, bodies: list[Body]) -> list["_BodyPlan"]:
+        """Plan and raycast ``bodies`` (those out of view are dropped): the plans, in the order of
+        their parts in the depth and part buffers."""
+        plans = [p for p in (self._plan(b) for b in bodies) if p is not None]
+        self._raycast_all(plans)
+        return plans
+
+    def _raycast_all(self, plans: list["_BodyPlan"]) -> None:
+        """Clear the depth and part buffers over the plans' regions, then raycast each plan."""
+        for plan in plans:
+            x0, y0, x1, y1 = plan.roi
+            self._zbuf[y0:y1, x0:x1] = np.inf
+            self._part[y0:y1, x0:x1] = -1
+        for pi, plan in enumerate(plans):
+            self._raycast(plan, pi)
 
     def _raycast(self, plan: "_BodyPlan", pi: int) -> None:
         zbuf, part = self._zbuf, self._part

@@ -93,17 +93,11 @@ class MaskRenderer:
         out = {}
         for cid in self.cameras if camera_ids is None else camera_ids:
             cam = self.cameras[cid]
-            rays = self._rays[cid]
-            body = np.full(rays.shape[0], np.inf)
-            for b in bodies:
-                np.minimum(body, _ray_enter(cam.center, rays, b), out=body)
-            wall = np.full(rays.shape[0], np.inf)
-            for b in hidden_by:
-                np.minimum(wall, _ray_enter(cam.center, rays, b), out=wall)
+            body = self._nearest(cid, bodies)
+            wall = self._nearest(cid, hidden_by)
             hit = np.isfinite(body) & (body < wall)
             out[cid] = (hit.reshape(cam.height, cam.width).astype(np.uint8)) * np.uint8(255)
         return out
-
 
     def render_depth(self, bodies: Sequence[Cylinder | Box], camera_ids: Sequence[str] | None = None) -> dict[str, np.ndarray]:
         """camera id -> (H, W) uint16 range images of a depth camera: millimetres from the
@@ -112,13 +106,19 @@ class MaskRenderer:
         out = {}
         for cid in self.cameras if camera_ids is None else camera_ids:
             cam = self.cameras[cid]
-            rays = self._rays[cid]
-            body = np.full(rays.shape[0], np.inf)
-            for b in bodies:
-                np.minimum(body, _ray_enter(cam.center, rays, b), out=body)
+            body = self._nearest(cid, bodies)
             mm = np.where(np.isfinite(body), np.clip(np.rint(body * 1000.0), 1, 65535), 0)
             out[cid] = mm.reshape(cam.height, cam.width).astype(np.uint16)
         return out
+
+    def _nearest(self, camera_id: str, bodies: Sequence[Cylinder | Box]) -> np.ndarray:
+        """(H*W,) float64 ray parameter (metres) at which each of the camera's pixel rays first
+        enters one of ``bodies``, inf where it meets none."""
+        cam, rays = self.cameras[camera_id], self._rays[camera_id]
+        nearest = np.full(rays.shape[0], np.inf)
+        for b in bodies:
+            np.minimum(nearest, _ray_enter(cam.center, rays, b), out=nearest)
+        return nearest
 
 
 def random_people(n: int, rng: np.random.Generator, *, volume_min_m=(0.0, 0.0, 0.0), volume_max_m=(8.0, 6.0, 2.5),
