@@ -13,7 +13,7 @@ Tracks and events are written by the server's own writers and scored with
 every true event of every kind matched one to one within +-30 frames, and no
 event that matches nothing, whatever the case is about.
 
-Inactivity has no truth event. Its case sets ``[events] inactivity_s = 40``
+Inactivity has no truth event. Its case (slow: 705 frames) sets ``[events] inactivity_s = 40``
 in the site file and checks the alarm against an expectation worked out by
 hand from the script (see the test).
 
@@ -268,6 +268,7 @@ def test_site_posture_decisions_reach_the_estimators(house):
     assert (tuned.posture_settings["decisions"], tuned.posture_settings["viterbi_lag_s"]) == ("viterbi", 0.8)
 
 
+@pytest.mark.slow
 def test_inactivity_of_a_seated_person_after_the_sites_inactivity_s(house):
     """Worked out by hand from the script: the person walks to the sofa, sits down (the
     truth's sit_down frame, half-way down) and sits still to the end, on the sofa, which

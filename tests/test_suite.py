@@ -4,6 +4,9 @@
 :func:`fusion_server.suite.run_suite`) with two camera counts: per count, one
 table row per scenario and a total row from summed counts, and the same
 figures written as JSON.
+
+slow: the suite with an enrolled resident (``tests/test_enrolment.py`` names
+the resident on the same house in the default run).
 """
 
 from __future__ import annotations
@@ -89,6 +92,7 @@ def test_cameras_for_keeps_opposite_corners_last():
         cameras_for(6, cams)
 
 
+@pytest.mark.slow
 def test_the_suite_scores_an_enrolled_resident(tmp_path):
     """With an enrolment (here a model of colours nobody in the house wears), the site of the
     suite enrols it and every scenario scores who carries the name."""

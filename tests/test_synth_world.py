@@ -2,6 +2,9 @@
 
 Every world here comes from the tuning seeds (0-999); the evaluation seeds are
 only ever run by ``voxelwatch eval --suite --world random`` for the README.
+
+slow: the ``synth``, ``replay`` and ``eval`` commands on one world (the world
+suite's own test runs the same stages in the default run).
 """
 
 from __future__ import annotations
@@ -286,6 +289,7 @@ def test_a_missing_recording_folder_is_named(tmp_path):
         random_world(6, data_dir=tmp_path)
 
 
+@pytest.mark.slow
 def test_synth_replay_and_eval_take_a_random_world_unchanged(tmp_path):
     world_dir, run_dir = tmp_path / "world", tmp_path / "run"
     r = voxelwatch("synth", "--world", "random", "--seed", "7", "--out", str(world_dir), "--frames", "45")
