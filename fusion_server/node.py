@@ -527,9 +527,7 @@ class FusionNode:
             depths = {cam: self._depths[(cam, stamp)] for cam, stamp in fs.stamps_ns.items()
                       if (cam, stamp) in self._depths}
         self._depths = {k: v for k, v in self._depths.items() if k[1] > newest}
-        # pipelines without depth cameras need not know the keyword
-        extra = {"depths": depths} if depths else {}
-        fused = self.pipeline.step(fs.payloads, fs.stamp_ns, frame, looks, **extra)
+        fused = self.pipeline.step(fs.payloads, fs.stamp_ns, frame, looks, depths=depths)
         self.c.frames_fused += 1
         self.c.frames_with_range += bool(depths)
         self.last_frame = int(fused.frame)

@@ -184,10 +184,10 @@ def test_a_set_the_pipeline_fails_on_is_counted_and_the_next_is_fused(rig):
     class Failing(FusionPipeline):
         """The tiny site's pipeline, failing on frame 5 as a bug would."""
 
-        def step(self, masks, stamp_ns, frame, looks=None):
+        def step(self, masks, stamp_ns, frame, looks=None, depths=None):
             if frame == 5:
                 raise RuntimeError("frame 5 is cursed")
-            return super().step(masks, stamp_ns, frame, looks)
+            return super().step(masks, stamp_ns, frame, looks, depths=depths)
 
     real = r.node.pipeline
     failing = Failing(carver=real.carver, cameras=real.cameras, reasoner=real.reasoner, rng=np.random.default_rng(0))
