@@ -13,6 +13,7 @@ site may replace with any valid multi-chunk key (``care/home-12`` ...).
 | ``<p>/tracks``               | fusion -> users  | ``messages.TrackFrame``         |
 | ``<p>/events/<kind>/<track>``| fusion -> users  | ``messages.Event`` (JSON text)  |
 | ``<p>/history/events``       | queryable        | ``messages.Event`` per reply    |
+| ``<p>/ack/<event id>``       | queryable        | the ``alarm_ack`` ``Event``     |
 | ``<p>/status``               | fusion -> users  | ``messages.Status``             |
 
 Who may do what (the site's access control, :mod:`common.access`): camera ``<cam>`` publishes
@@ -20,9 +21,12 @@ Who may do what (the site's access control, :mod:`common.access`): camera ``<cam
 to ``<p>/cam/<cam>/hold`` and ``<p>/cam/<cam>/look``; the fusion server
 subscribes to ``<p>/cam/*/mask`` and ``<p>/alive/**``, publishes
 ``<p>/cam/*/hold``, ``<p>/cam/*/look``, ``<p>/tracks``, ``<p>/events/**``
-and ``<p>/status``, declares ``<p>/alive/fusion`` and the history
-queryable; readers subscribe to tracks, events and status and query the
-history. The answers to look requests travel inside the masks
+and ``<p>/status``, declares ``<p>/alive/fusion``, the history
+queryable and the acknowledgement queryable; readers subscribe to tracks,
+events and status, query the history, and acknowledge an alarm by querying
+``<p>/ack/<event id>?by=<name>``: the fusion server stores and publishes an
+``alarm_ack`` event and answers with it (an error reply when there is no
+such alarm). An acknowledgement is a query so that readers never publish. The answers to look requests travel inside the masks
 (``MaskFrame.looks``): colour histograms, never pixels.
 
 Chunks that come from configuration (site, camera ids, event kinds) are
@@ -128,6 +132,16 @@ def events_wildcard(prefix: str) -> str:
 def history_key(prefix: str) -> str:
     """``<p>/history/events``: the queryable event store."""
     return f"{validate_prefix(prefix)}/history/events"
+
+
+def ack_key(prefix: str, event_id: str) -> str:
+    """``<p>/ack/<event id>``: query it (``?by=<name>``) to acknowledge the alarm ``event_id``."""
+    return f"{validate_prefix(prefix)}/ack/{validate_chunk(event_id, 'event id')}"
+
+
+def ack_wildcard(prefix: str) -> str:
+    """``<p>/ack/*``: the acknowledgement queryable."""
+    return f"{validate_prefix(prefix)}/ack/*"
 
 
 def status_key(prefix: str) -> str:

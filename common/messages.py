@@ -71,10 +71,13 @@ JSON_ENCODING = "application/json"
 PERSON_EVENT_KINDS = ("fall", "long_lie", "sit_down", "stand_up", "enter", "exit", "dwell_start", "dwell_end",
                       "visit", "inactivity")
 """Events about people: what the reasoner decides and the evaluation scores."""
-CAMERA_EVENT_KINDS = ("camera_lost", "camera_back", "clock_skew")
-"""Events about the system's health."""
-EVENT_KINDS = PERSON_EVENT_KINDS + CAMERA_EVENT_KINDS
-CAMERA_STATES = ("ok", "degraded", "lost", "skewed")
+CAMERA_EVENT_KINDS = ("camera_lost", "camera_back", "clock_skew", "camera_stopped")
+"""Events about the system's health (``camera_stopped``: a worker that stopped on purpose said so)."""
+ACK_EVENT_KINDS = ("alarm_ack",)
+"""Someone acknowledged an alarm: ``details`` name the ``event`` (its id), the ``alarm`` (its kind)
+and who acknowledged it (``by``)."""
+EVENT_KINDS = PERSON_EVENT_KINDS + CAMERA_EVENT_KINDS + ACK_EVENT_KINDS
+CAMERA_STATES = ("ok", "degraded", "lost", "skewed", "stopped")
 
 _I64_MAX = 2**63 - 1
 _MAX_ARRAY_LEN = 4096
@@ -396,7 +399,7 @@ class CameraStatus(BaseModel):
     model_config = _CONFIG
 
     cam: CamId
-    state: Literal["ok", "degraded", "lost", "skewed"]
+    state: Literal[CAMERA_STATES]  # type: ignore[valid-type]
     received: NonNegInt
     dropped: NonNegInt
     late: NonNegInt

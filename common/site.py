@@ -58,6 +58,38 @@ Schema (all lengths in metres, world frame Z up, floor at Z = 0)::
     readers = ["reader"]         # reader certificates (reader-<name>) allowed to read
     access_control = true        # the router lets each host do only its part (common/access.py)
 
+    [view]                       # voxelwatch view: the live web page
+    listen = "127.0.0.1:8080"    # host:port; localhost unless told otherwise
+    token_file = "view.token"    # the access token (12+ characters), or token = "..."
+    alarms = ["fall", "long_lie"]  # kinds shown as an alarm banner until acknowledged
+    trail_s = 10.0               # seconds of each person's path drawn on the plan
+
+    [notify]                     # voxelwatch notify: alerts where people already look
+    kinds = ["fall", "long_lie", "camera_lost", "clock_skew"]  # default for every channel
+    outbox = "notify-outbox.sqlite"  # kept until every channel has taken each event
+    retry_max_s = 300.0          # back-off doubles up to this
+    [notify.mqtt]                # a broker, e.g. the home-automation hub's
+    host = "127.0.0.1"
+    port = 1883
+    username = ""
+    password_file = ""           # or password = "..."
+    tls_ca = ""                  # the broker's authority: connect with TLS
+    topic_prefix = ""            # default voxelwatch/<name>
+    discovery = true             # people and cameras appear as Home Assistant sensors
+    discovery_prefix = "homeassistant"
+    [[notify.webhooks]]          # JSON POST of each event, retried with back-off
+    url = "https://example.org/hook"
+    kinds = ["fall"]             # optional: this channel's own kinds
+    headers = { Authorization = "Bearer ..." }
+    [notify.email]
+    host = "smtp.example.org"
+    port = 587
+    security = "starttls"        # starttls | tls | none
+    username = ""
+    password_file = ""
+    sender = "voxelwatch@example.org"
+    to = ["nurse@example.org"]
+
     [[cameras]]
     id = "cam1"
     calibration = "calib/cam1.toml"
@@ -305,6 +337,127 @@ class ZenohSettings(_Model):
         return endpoints
 
 
+ALARM_KINDS = ("fall", "long_lie", "camera_lost", "clock_skew")
+"""Event kinds that raise an alarm in the live view and that notifications deliver by default."""
+
+
+def _kinds_ok(kinds: list[str]) -> list[str]:
+    from common.messages import EVENT_KINDS
+
+    unknown = sorted(set(kinds) - set(EVENT_KINDS))
+    if unknown:
+        raise ValueError(f"unknown event kinds {unknown}; kinds are {list(EVENT_KINDS)}")
+    return list(dict.fromkeys(kinds))
+
+
+class ViewSettings(_Model):
+    """``voxelwatch view``: the live web page for the people who watch."""
+
+    listen: str = "127.0.0.1:8080"
+    """host:port the page is served on; localhost unless told otherwise."""
+    token: str = ""
+    """The access token (at least 12 characters), or ``token_file``: a file holding it."""
+    token_file: str = ""
+    alarms: list[str] = Field(default_factory=lambda: ["fall", "long_lie"])
+    """Event kinds shown as an alarm banner, with sound, until acknowledged."""
+    trail_s: float = Field(default=10.0, ge=0.0, le=600.0, allow_inf_nan=False)
+    """How much of each person's recent path the plan draws, seconds."""
+
+    _kinds = field_validator("alarms")(classmethod(lambda cls, k: _kinds_ok(k)))
+
+    @field_validator("listen")
+    @classmethod
+    def _listen_ok(cls, listen: str) -> str:
+        host, sep, port = listen.rpartition(":")
+        if not sep or not host or not port.isdigit() or not 0 < int(port) < 65536:
+            raise ValueError(f"expected host:port, e.g. 127.0.0.1:8080, got {listen!r}")
+        return listen
+
+    @model_validator(mode="after")
+    def _one_token(self) -> "ViewSettings":
+        if self.token and self.token_file:
+            raise ValueError("give token or token_file, not both")
+        if self.token and len(self.token) < 12:
+            raise ValueError("token must be at least 12 characters")
+        return self
+
+
+class MqttSettings(_Model):
+    """An MQTT broker (a home-automation hub's): events, retained state per person, and
+    Home Assistant discovery."""
+
+    host: str = Field(min_length=1)
+    port: int = Field(default=1883, gt=0, lt=65536)
+    username: str = ""
+    password: str = ""
+    password_file: str = ""
+    tls_ca: str = ""
+    """The broker's certificate authority: connect with TLS (port usually 8883)."""
+    topic_prefix: str = ""
+    """Topics ``<topic_prefix>/events/<kind>``, ``<topic_prefix>/person/<id>/state``;
+    default ``voxelwatch/<site>``."""
+    discovery: bool = True
+    """Announce each person and camera to Home Assistant (``<discovery_prefix>/sensor/...``)."""
+    discovery_prefix: str = "homeassistant"
+    kinds: list[str] | None = None
+    """Event kinds published; default ``[notify] kinds``."""
+
+    _kinds = field_validator("kinds")(classmethod(lambda cls, k: k if k is None else _kinds_ok(k)))
+
+
+class WebhookSettings(_Model):
+    """An HTTP endpoint that receives each event as a JSON POST."""
+
+    url: str = Field(pattern=r"^https?://[^\s]+$")
+    kinds: list[str] | None = None
+    headers: dict[str, str] = Field(default_factory=dict)
+    """Extra headers, e.g. an authorisation token."""
+    timeout_s: float = Field(default=10.0, gt=0.0, le=120.0)
+
+    _kinds = field_validator("kinds")(classmethod(lambda cls, k: k if k is None else _kinds_ok(k)))
+
+
+class EmailSettings(_Model):
+    """E-mail through an SMTP server."""
+
+    host: str = Field(min_length=1)
+    port: int = Field(default=587, gt=0, lt=65536)
+    security: Literal["starttls", "tls", "none"] = "starttls"
+    username: str = ""
+    password: str = ""
+    password_file: str = ""
+    sender: str = Field(pattern=r"^[^@\s]+@[^@\s]+$")
+    to: list[str] = Field(min_length=1)
+    kinds: list[str] | None = None
+
+    _kinds = field_validator("kinds")(classmethod(lambda cls, k: k if k is None else _kinds_ok(k)))
+
+    @field_validator("to")
+    @classmethod
+    def _addresses_ok(cls, to: list[str]) -> list[str]:
+        bad = [a for a in to if "@" not in a or any(c.isspace() for c in a)]
+        if bad:
+            raise ValueError(f"not e-mail addresses: {bad}")
+        return to
+
+
+class NotifySettings(_Model):
+    """``voxelwatch notify``: alerts delivered where the people who watch already look."""
+
+    kinds: list[str] = Field(default_factory=lambda: list(ALARM_KINDS))
+    """Event kinds delivered by every channel that does not choose its own."""
+    outbox: str = "notify-outbox.sqlite"
+    """The outbox on disk (relative to the site file): every event is kept until each
+    channel has taken it, across restarts."""
+    retry_max_s: float = Field(default=300.0, ge=1.0, le=86400.0)
+    """Back-off between delivery attempts doubles up to this, seconds."""
+    mqtt: MqttSettings | None = None
+    webhooks: list[WebhookSettings] = Field(default_factory=list)
+    email: EmailSettings | None = None
+
+    _kinds = field_validator("kinds")(classmethod(lambda cls, k: _kinds_ok(k)))
+
+
 class CameraSpec(_Model):
     """One camera of the home."""
 
@@ -382,6 +535,8 @@ class Site(_Model):
     doors: list[DoorSpec] = Field(default_factory=list)
     occluders: list[OccluderSpec] = Field(default_factory=list)
     enrolled: list[EnrolledSpec] = Field(default_factory=list)
+    view: ViewSettings = Field(default_factory=ViewSettings)
+    notify: NotifySettings = Field(default_factory=NotifySettings)
     base_dir: Path = Field(default=Path("."), exclude=True)
     source: str = Field(default="<site>", exclude=True)
     """Where the site came from (its file), for messages."""
@@ -442,6 +597,19 @@ class Site(_Model):
 
     def load_cameras(self) -> dict[str, "Camera"]:
         return {cam_id: self.load_camera(cam_id) for cam_id in self.camera_ids}
+
+    def secret(self, value: str, file: str, field: str) -> str:
+        """A secret given in the file (``value``) or in a file of its own (``file``, relative to
+        the site file; surrounding whitespace dropped); "" when neither is set. A secret file that
+        cannot be read, or is empty, is a :class:`SiteError` naming the field."""
+        if not file:
+            return value
+        path = self.resolve(file)
+        text = _read_text(path, f"site file {self.source}: field {field}: file {path}",
+                          folder="is a folder, expected a file").strip()
+        if not text:
+            raise SiteError(f"site file {self.source}: field {field}: file {path} is empty")
+        return text
 
     def load_residents(self) -> list["Resident"]:
         """The enrolled residents with their appearance models, in file order (they
