@@ -538,6 +538,8 @@ def _register_demo(sub) -> None:
                    help="with --world random: 'mixed' makes one camera a depth camera and one a thermal camera")
     p.add_argument("--secure", action="store_true",
                    help="TLS with mutual authentication and the site's access control (certificates made in OUT/certs)")
+    p.add_argument("--view", nargs="?", const="127.0.0.1:8080", default=None, metavar="HOST:PORT",
+                   help="also serve the live view (default 127.0.0.1:8080); its token goes to OUT/view.token")
     p.set_defaults(handler=_demo)
 
 
@@ -551,7 +553,7 @@ def _demo(args: argparse.Namespace) -> int:
         print("voxelwatch demo: --sensors is for --world random", file=sys.stderr)
         return 2
     return run_demo(scenario=args.scenario, world=args.world, out_dir=args.out, seed=args.seed, frames=args.frames, port=args.port,
-                    secure=args.secure, sensors=args.sensors)
+                    secure=args.secure, sensors=args.sensors, view=args.view)
 
 
 def _register_bench(sub) -> None:
@@ -589,8 +591,15 @@ def _bench(args: argparse.Namespace) -> int:
     return 0
 
 
+def _register_view(sub) -> None:
+    from common.view.cli import register
+
+    register(sub)
+
+
 _SUBCOMMANDS: list[Callable] = [
     _register_demo,
+    _register_view,
     _register_bench,
     _register_synth, _register_replay, _register_enrol, _register_eval, _register_site, _register_router, _register_certs,
     _register_passthrough,
