@@ -28,7 +28,10 @@ What :func:`run` does:
   time to live by then is counted as expired and left unanswered);
 * counts frames read, dropped and published, look requests answered,
   expired and rejected, and the time of each stage (read, segment, looks,
-  encode, publish), logged every ``stats_period_s``.
+  encode, publish), logged every ``stats_period_s``;
+* when it stops on purpose (the recording ended, or SIGTERM/SIGINT), sends a
+  DELETE on its mask key before withdrawing its token: the fusion server then
+  reports the camera ``stopped`` (event ``camera_stopped``), not ``lost``.
 
 :func:`measure_worker` times the same stages on a synthetic 640x480 clip for
 the benchmark command.
@@ -80,6 +83,7 @@ __all__ = [
 log = logging.getLogger("voxelwatch.camera")
 
 STAGES = ("read", "segment", "looks", "encode", "publish")
+_STOP_NOTICE_S = 0.2
 """The timed stages of one frame, in order (``looks``: answering a look request, nearly
 nothing on the frames without one)."""
 
@@ -323,17 +327,35 @@ def run(session: Any, settings: WorkerSettings, *, stop: threading.Event | None 
     look_sub = session.declare_subscriber(keys.look_key(settings.prefix, settings.cam),
                                           zenoh.handlers.RingChannel(settings.look_queue))
     loop = _Loop(settings, segmenter, source, publisher, hold_sub, look_sub, counters, stop)
+    code = 1
     try:
-        return loop.run()
+        code = loop.run()
+        return code
     finally:
         counters.state = "stopped"
         loop.close()
+        if code == 0:
+            _say_stopping(session, settings)
         for entity in (look_sub, hold_sub, publisher, token):
             try:
                 entity.undeclare()
             except Exception:  # noqa: BLE001 - the session may already be closing
                 pass
         log.info("camera %s: stopped: %s", settings.cam, _summary(counters))
+
+
+def _say_stopping(session: Any, settings: WorkerSettings) -> None:
+    """Tell the fusion server this camera stops on purpose (its recording ended, or it was told to
+    stop): a DELETE on its own mask key, sent reliably before its liveliness token goes, so that
+    the server reports the camera ``stopped`` instead of raising ``camera_lost``. A worker that
+    dies never sends it."""
+    import zenoh
+
+    try:
+        session.delete(keys.mask_key(settings.prefix, settings.cam), congestion_control=zenoh.CongestionControl.BLOCK)
+        time.sleep(_STOP_NOTICE_S)  # the notice leaves before the token's withdrawal
+    except Exception as exc:  # noqa: BLE001 - the session may already be closing
+        log.debug("camera %s: stop notice not sent: %s", settings.cam, exc)
 
 
 class _Loop:

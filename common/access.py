@@ -12,15 +12,18 @@ and what it forwards to each host (``egress``), so both flows are listed:
 | fusion        | puts tracks, events, status, every camera's hold and look;   | masks, liveliness, history queries        |
 |               | token ``<p>/alive/fusion``; the history queryable and its    |                                           |
 |               | replies; subscribes masks, liveliness of ``<p>/alive/**``    |                                           |
-| reader        | subscribes tracks, events, status; queries the history;      | tracks, events, status, history replies   |
-|               | liveliness of ``<p>/alive/**`` (who is up)                   |                                           |
+| reader        | subscribes tracks, events, status and masks; queries the     | tracks, events, status, masks, replies    |
+|               | history and ``<p>/ack/<id>``; liveliness of ``<p>/alive/**`` |                                           |
 
 Each host also hears of the subscribers and queryables it sends to (a
 publisher sends only once it knows of a subscriber). zenoh allows a message
 when a rule's key expression includes the message's whole key expression, so
 the fusion server's ``<p>/cam/*/mask`` subscription reaches a camera through
-a rule on ``<p>/cam/*/mask``. Readers publish nothing: the site has no
-acknowledgement key.
+a rule on ``<p>/cam/*/mask``. Readers publish nothing: they acknowledge an
+alarm with a query on ``<p>/ack/<event id>``, which the fusion server answers
+(and it alone publishes the acknowledgement). Readers see the masks (the live
+view's installer page draws them: silhouettes, never pixels of video), never
+the holds and look requests.
 """
 
 from __future__ import annotations
@@ -67,7 +70,7 @@ def site_acl(prefix: str, cameras: Sequence[str], *, readers: Sequence[str] | No
 
     published = [keys.tracks_key(p), keys.events_wildcard(p), keys.status_key(p),
                  f"{p}/cam/*/hold", f"{p}/cam/*/look"]
-    history = [f"{keys.history_key(p)}/**"]
+    history = [f"{keys.history_key(p)}/**", keys.ack_wildcard(p)]
     alive = [f"{p}/alive/**"]
     fusion_ids = [
         allow("fusion publishes", "ingress", ["put", "delete"], published),
@@ -83,7 +86,7 @@ def site_acl(prefix: str, cameras: Sequence[str], *, readers: Sequence[str] | No
     subjects.append({"id": "fusion", "cert_common_names": [common_name(FUSION)]})
     policies.append({"id": "fusion", "rules": fusion_ids, "subjects": ["fusion"]})
 
-    read = [keys.tracks_key(p), keys.events_wildcard(p), keys.status_key(p)]
+    read = [keys.tracks_key(p), keys.events_wildcard(p), keys.status_key(p), keys.mask_wildcard(p)]
     reader_ids = [
         allow("readers subscribe", "ingress", ["declare_subscriber"], read),
         allow("readers query the history", "ingress", ["query"], history),

@@ -24,7 +24,7 @@ subscribes to ``<p>/cam/*/mask`` and ``<p>/alive/**``, publishes
 and ``<p>/status``, declares ``<p>/alive/fusion``, the history
 queryable and the acknowledgement queryable; readers subscribe to tracks,
 events and status, query the history, and acknowledge an alarm by querying
-``<p>/ack/<event id>?by=<name>``: the fusion server stores and publishes an
+``<p>/ack/<event id>?by=<name>`` (:func:`ack_selector`): the fusion server stores and publishes an
 ``alarm_ack`` event and answers with it (an error reply when there is no
 such alarm). An acknowledgement is a query so that readers never publish. The answers to look requests travel inside the masks
 (``MaskFrame.looks``): colour histograms, never pixels.
@@ -137,6 +137,14 @@ def history_key(prefix: str) -> str:
 def ack_key(prefix: str, event_id: str) -> str:
     """``<p>/ack/<event id>``: query it (``?by=<name>``) to acknowledge the alarm ``event_id``."""
     return f"{validate_prefix(prefix)}/ack/{validate_chunk(event_id, 'event id')}"
+
+
+def ack_selector(prefix: str, event_id: str, by: str) -> str:
+    """The selector that acknowledges alarm ``event_id`` on behalf of ``by``:
+    ``<p>/ack/<event id>?by=<name, percent-encoded>`` (``session.get`` it)."""
+    from urllib.parse import quote
+
+    return f"{ack_key(prefix, event_id)}?by={quote(str(by), safe='')}"
 
 
 def ack_wildcard(prefix: str) -> str:

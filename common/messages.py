@@ -71,8 +71,9 @@ JSON_ENCODING = "application/json"
 PERSON_EVENT_KINDS = ("fall", "long_lie", "sit_down", "stand_up", "enter", "exit", "dwell_start", "dwell_end",
                       "visit", "inactivity")
 """Events about people: what the reasoner decides and the evaluation scores."""
-CAMERA_EVENT_KINDS = ("camera_lost", "camera_back", "clock_skew", "camera_stopped")
-"""Events about the system's health (``camera_stopped``: a worker that stopped on purpose said so)."""
+CAMERA_EVENT_KINDS = ("camera_lost", "camera_back", "clock_skew", "camera_stopped", "camera_moved")
+"""Events about the system's health (``camera_stopped``: a worker that stopped on purpose said so;
+``camera_moved``: a camera's masks stopped agreeing with what the other cameras carve)."""
 ACK_EVENT_KINDS = ("alarm_ack",)
 """Someone acknowledged an alarm: ``details`` name the ``event`` (its id), the ``alarm`` (its kind)
 and who acknowledged it (``by``)."""
@@ -393,7 +394,9 @@ class CameraStatus(BaseModel):
     counted in ``late`` or ``dropped``). ``rate_hz`` and ``latency_ms``
     (capture to arrival, after clock-offset correction) are recent averages;
     ``last_seen_ns`` is 0 before the first mask; ``clock_offset_ms`` is the
-    estimated camera clock minus server clock.
+    estimated camera clock minus server clock. ``consistency``: how well the
+    camera's recent masks agree with the people the other cameras carve (0..1;
+    None until it has been measured); a camera that was moved or bumped drops.
     """
 
     model_config = _CONFIG
@@ -409,6 +412,7 @@ class CameraStatus(BaseModel):
     last_seen_ns: StampNs
     clock_offset_ms: float
     refused: NonNegInt = 0
+    consistency: Fraction | None = None
 
 
 class Status(_Message):

@@ -221,6 +221,20 @@ class EventStore:
             for r in rows
         ]
 
+    def get(self, event_id: str) -> Event | None:
+        """The stored event with id ``event_id``, or None."""
+        with self._lock:
+            try:
+                row = self._open().execute(
+                    "SELECT id, kind, track, stamp_ns, frame, x, y, details FROM events WHERE id = ?",
+                    (str(event_id),)).fetchone()
+            except sqlite3.Error as exc:
+                raise ValueError(f"event store {self.path}: cannot read: {exc}") from None
+        if row is None:
+            return None
+        return Event(id=row[0], kind=row[1], track=row[2], stamp_ns=row[3], frame=row[4], x=row[5], y=row[6],
+                     details=json.loads(row[7]))
+
     def query_filter(self, flt: "HistoryFilter") -> list[Event]:
         """:meth:`query` with a :class:`HistoryFilter` from :func:`parse_history_selector`."""
         return self.query(flt.since_ns, flt.until_ns, flt.kinds, flt.limit)

@@ -253,6 +253,7 @@ class _CameraHealth:
     token: bool | None = None  # None: no liveliness news yet
     lost: bool = False
     skewed: bool = False
+    stopped: bool = False
     arrivals: deque = field(default_factory=lambda: deque(maxlen=256))
     latency_ms: deque = field(init=False)
     offset_ms: deque = field(init=False)
@@ -300,6 +301,8 @@ class _CameraHealth:
 
     def state(self, mono: float, stale_s: float) -> str:
         recent = self.recent(mono, stale_s)
+        if self.stopped and self.token is not True:
+            return "stopped"
         if self.lost or (self.token is not True and not recent):
             return "lost"
         if self.skewed or self.refusing:
@@ -420,7 +423,12 @@ class FusionNode:
             return
         had_token = health.token
         health.token = present
-        if not present and had_token and not health.lost:
+        if present and health.stopped:
+            health.stopped = False
+            log.info("camera %s started again", cam)
+        elif not present and health.stopped:
+            log.info("camera %s: its worker has gone (stopped on purpose)", cam)
+        elif not present and had_token and not health.lost:
             health.lost = True
             log.warning("camera %s lost (its liveliness token went away); tracking with the others", cam)
             self._emit(camera_event("camera_lost", cam, *self._event_time(now_ns)))
@@ -430,6 +438,44 @@ class FusionNode:
             self._emit(camera_event("camera_back", cam, *self._event_time(now_ns)))
         elif present and had_token is None:
             log.info("camera %s is alive", cam)
+
+    def on_stopping(self, key: str, now_ns: int) -> None:
+        """Camera ``key``'s worker says it stops on purpose (a DELETE on its mask key): it reads
+        ``stopped``, one ``camera_stopped`` event goes out, and its token's withdrawal raises no
+        ``camera_lost``."""
+        try:
+            cam = keys.camera_of(key, self.prefix)
+        except ValueError:
+            return
+        health = self.health.get(cam)
+        if health is None or health.stopped:
+            return
+        health.stopped = True
+        log.info("camera %s is stopping on purpose", cam)
+        self._emit(camera_event("camera_stopped", cam, *self._event_time(now_ns)))
+
+    def acknowledge(self, alarm_id: str, by: str, now_ns: int) -> Event:
+        """Someone (``by``) acknowledged the alarm ``alarm_id``: the ``alarm_ack`` event, stored and
+        queued for publishing like any event. Acknowledging again returns the first acknowledgement
+        (nothing new is published). ValueError naming the problem when there is no store, no such
+        event, or it is not an alarm (an acknowledgement of an acknowledgement)."""
+        if self.store is None:
+            raise ValueError("this fusion server keeps no event store: nothing to acknowledge")
+        by = " ".join(str(by).split())[:64] or "someone"
+        alarm = self.store.get(alarm_id)
+        if alarm is None:
+            raise ValueError(f"no stored event {alarm_id[:80]!r}")
+        if alarm.kind in messages.ACK_EVENT_KINDS:
+            raise ValueError(f"event {alarm_id!r} is an acknowledgement, not an alarm")
+        ack_id = f"{alarm.id}-ack"
+        first = self.store.get(ack_id)
+        if first is not None:
+            return first
+        stamp_ns, frame = self._event_time(now_ns)
+        ack = Event(id=ack_id, kind="alarm_ack", track=alarm.track, stamp_ns=stamp_ns, frame=frame, x=alarm.x,
+                    y=alarm.y, details={"event": alarm.id, "alarm": alarm.kind, "by": by})
+        self._emit(ack)
+        return ack
 
     def _admit(self, health: _CameraHealth, msg: MaskFrame, recv_ns: int, mono: float) -> bool:
         """The time and sequence checks; True when the mask may go on to the frame sets."""

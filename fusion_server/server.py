@@ -6,7 +6,8 @@ feeds the node what arrives with its arrival time, and publishes what the
 node hands back:
 
 * masks on ``<p>/cam/*/mask`` and camera liveliness on ``<p>/alive/cam/*``
-  (with history): the callbacks only put ``(key, payload, receive time)`` into
+  (with history), and a worker's stop notice (a DELETE on its mask key, put
+  in the liveliness inbox to keep its order with the token): the callbacks only put ``(key, payload, receive time)`` into
   bounded inboxes (drop-oldest, counted as ``inbox_dropped``); a payload over
   the mask size limit is never copied, only its size goes on;
 * ``<p>/tracks`` and ``<p>/status`` (congestion control DROP),
@@ -22,6 +23,10 @@ node hands back:
   query is finalised (``with query:``). On exactly ``<p>/history/events`` all
   replies share one key, so a get there needs consolidation ``NONE`` to see
   them all; under ``<p>/history/events/**`` each event has its own key.
+* a queryable on ``<p>/ack/*``: a query on ``<p>/ack/<event id>?by=<name>``
+  acknowledges that alarm. The loop answers it (the node stores and
+  publishes the ``alarm_ack`` event, then the reply carries it); a second
+  acknowledgement gets the first one back; an unknown id gets ``reply_err``.
 
 :func:`run_forever` opens the session from the site's ``[zenoh]`` section
 (plus command-line overrides), turns SIGINT/SIGTERM into a clean stop and
@@ -57,6 +62,7 @@ DEFAULT_STORE_NAME = "voxelwatch-events.sqlite"
 
 _EVENT_PUBLISHERS = 32
 _MAX_ERROR = 400
+_MAX_ACKS_WAITING = 64
 
 
 def run_forever(settings: FusionSettings) -> int:
@@ -251,6 +257,8 @@ class _Server:
         self._entities: list[Any] = []
         self._event_pubs: OrderedDict[str, Any] = OrderedDict()
         self._history: _HistoryResponder | None = None
+        self._acks: deque = deque()
+        self._acks_lock = threading.Lock()
 
     def declare(self) -> None:
         p = self.node.prefix
@@ -269,6 +277,7 @@ class _Server:
         self._history = _HistoryResponder(self.node.store, p, self.s.site.utc_offset_hours, self.s.history_queue,
                                           self.node.c)
         self._keep(self.session.declare_queryable(f"{keys.history_key(p)}/**", self._history.offer))
+        self._keep(self.session.declare_queryable(keys.ack_wildcard(p), self._on_ack))
         self._keep(self.session.liveliness().declare_subscriber(
             keys.alive_cameras_wildcard(p), self._on_alive, history=True))
         self._keep(self.session.declare_subscriber(keys.mask_wildcard(p), self._on_mask))
@@ -294,10 +303,41 @@ class _Server:
 
     # callbacks: enqueue only
     def _on_mask(self, sample: Any) -> None:
+        if sample.kind == zenoh.SampleKind.DELETE:  # a worker stopping on purpose; in order with its token
+            self.alive.put((str(sample.key_expr), None, time.time_ns()))
+            return
         payload = sample.payload
         n = len(payload)
         data = payload.to_bytes() if n <= MaskFrame.MAX_BYTES else n  # oversize: never copied
         self.masks.put((str(sample.key_expr), data, time.time_ns(), time.monotonic()))
+
+    def _on_ack(self, query: Any) -> None:
+        """An acknowledgement query: answered from the loop (the node stores and publishes it)."""
+        with self._acks_lock:
+            if len(self._acks) < _MAX_ACKS_WAITING:
+                self._acks.append(query)
+                self.wake.set()
+                return
+        with query:
+            query.reply_err("voxelwatch ack: too many acknowledgements waiting, try again", encoding="text/plain")
+
+    def _answer_acks(self) -> None:
+        """Every acknowledgement query gets an answer: the ``alarm_ack`` event, or one bounded error."""
+        with self._acks_lock:
+            waiting, self._acks = list(self._acks), deque()
+        for query in waiting:
+            try:
+                with query:
+                    try:
+                        alarm_id = str(query.key_expr).rsplit("/", 1)[-1]
+                        by = _parameter(str(query.parameters), "by")
+                        ack = self.node.acknowledge(alarm_id, by, time.time_ns())
+                    except ValueError as exc:
+                        query.reply_err(_bounded(f"voxelwatch ack: {exc}"), encoding="text/plain")
+                        continue
+                    query.reply(str(query.key_expr), ack.to_json(), encoding=messages.JSON_ENCODING)
+            except Exception as exc:  # noqa: BLE001 - a failed reply must not stop the loop
+                log.warning("acknowledgement query failed: %s", _bounded(repr(exc)))
 
     def _on_alive(self, sample: Any) -> None:
         self.alive.put((str(sample.key_expr), sample.kind == zenoh.SampleKind.PUT, time.time_ns()))
@@ -308,10 +348,15 @@ class _Server:
             self.wake.wait(0.0 if node.pending else 0.05)
             self.wake.clear()
             for key, present, now_ns in self.alive.drain():
-                node.on_liveliness(key, present, now_ns)
+                if present is None:
+                    node.on_stopping(key, now_ns)
+                else:
+                    node.on_liveliness(key, present, now_ns)
             for key, data, recv_ns, arrived in self.masks.drain():
                 node.on_mask(key, data, recv_ns, arrived)
             node.c.inbox_dropped = self.masks.dropped
+            if self._acks:
+                self._answer_acks()
             self._publish(node.tick(time.time_ns(), time.monotonic()))
             if node.idle(time.monotonic()):
                 log.info("fusion: no mask for %.1f s: finishing", self.s.exit_after_idle_s)
@@ -352,6 +397,18 @@ class _Server:
         else:
             self._event_pubs.move_to_end(key)
         return pub
+
+
+def _parameter(parameters: str, name: str) -> str:
+    """The value of ``name`` in a selector's parameters (``a=1;b=2``, ``&`` also separates; values
+    percent-decoded); "" if absent."""
+    from urllib.parse import unquote
+
+    for item in parameters.replace("&", ";").split(";"):
+        key, _, value = item.partition("=")
+        if key.strip() == name:
+            return unquote(value).strip()
+    return ""
 
 
 def _bounded(text: str, limit: int = _MAX_ERROR) -> str:

@@ -191,6 +191,19 @@ def stock_get(endpoint: str, selector: str, *, timeout_s: float = 10.0) -> tuple
     return ok, errors
 
 
+def acknowledge(session, prefix: str, event_id: str, by: str, *, timeout_s: float = 10.0):
+    """Acknowledge alarm ``event_id`` as the live view does (a query on ``<p>/ack/<id>?by=...``):
+    the ``alarm_ack`` Event the fusion server answers with; AssertionError with its error text otherwise."""
+    from common import keys, messages
+
+    replies = list(session.get(keys.ack_selector(prefix, event_id, by), timeout=timeout_s))
+    assert len(replies) == 1, f"{len(replies)} replies to the acknowledgement of {event_id}"
+    reply = replies[0]
+    if reply.ok is None:
+        raise AssertionError(reply.err.payload.to_string())
+    return messages.Event.from_json(reply.ok.payload.to_bytes())
+
+
 # --------------------------------------------------------------------------- the router and a listener
 
 

@@ -444,7 +444,7 @@ def test_units_run_together_router_fusion_and_two_cameras(tmp_path):
         procs["fusion"] = start("fusion", argv_of("voxelwatch-fusion.service") + ["--out", str(tmp_path / "out")])
         conf = zenoh.Config.from_file(str(DEPLOY / "zenoh" / "client.json5"))
         conf.insert_json5("connect/endpoints", json.dumps([endpoint]))
-        selector = "voxelwatch/maple-court-flat-4/history/events/**?since=2000-01-01T00:00:00Z;kind=camera_lost"
+        selector = "voxelwatch/maple-court-flat-4/history/events/**?since=2000-01-01T00:00:00Z;kind=camera_stopped"
         lost: set[str] = set()
         with zenoh.open(conf) as session:
             # the fusion server is ready once its liveliness token is up (its first start computes carving tables)
@@ -465,7 +465,7 @@ def test_units_run_together_router_fusion_and_two_cameras(tmp_path):
                 lost = set()
                 for reply in session.get(selector, timeout=5.0):
                     event = json.loads(reply.ok.payload.to_string())
-                    assert event["kind"] == "camera_lost"
+                    assert event["kind"] == "camera_stopped"
                     lost.add(event["details"]["camera"])
                 if lost >= {"cam1", "cam2"}:
                     break

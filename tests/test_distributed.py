@@ -44,6 +44,7 @@ zenoh = pytest.importorskip("zenoh")
 
 from procs import (  # noqa: E402
     Listener,
+    acknowledge,
     Proc,
     Router,
     start_camera,
@@ -187,8 +188,22 @@ def test_fall_is_raised_over_processes_and_a_killed_camera_is_left_out_then_rejo
                     assert worker.popen.wait(timeout=START_DELAY_S + N_FRAMES / 15 + 120) == 0, worker.tail()
             assert again.stop() == 0, again.tail()
             assert fusion.alive(), fusion.tail()
-            wait_for(lambda: len(listener.events_of("camera_lost")) >= len(site.camera_ids) + 1, 30,
-                     "camera_lost events as the workers end", procs=[fusion])
+            # workers that end on purpose say so: camera_stopped, never camera_lost
+            wait_for(lambda: len(listener.events_of("camera_stopped")) >= len(site.camera_ids), 30,
+                     "camera_stopped events as the workers end", procs=[fusion])
+            wait_for(lambda: all(listener.camera_state(c) == "stopped" for c in site.camera_ids), 30,
+                     "every camera 'stopped' in the status", procs=[fusion])
+            assert [e.details["camera"] for e in listener.events_of("camera_lost")] == [VICTIM]  # the kill only
+
+            # -- acknowledge the fall as the live view does: a query that the fusion server answers
+            (fall_id,) = [e.id for e in listener.events_of("fall")]
+            ack = acknowledge(router.session, prefix, fall_id, "night nurse")
+            assert (ack.kind, ack.details, ack.id) == ("alarm_ack", {"event": fall_id, "alarm": "fall", "by": "night nurse"},
+                                                       f"{fall_id}-ack")
+            assert acknowledge(router.session, prefix, fall_id, "someone else") == ack  # the first one stands
+            with pytest.raises(AssertionError, match="no stored event"):
+                acknowledge(router.session, prefix, "0-fall-99", "night nurse")
+            wait_for(lambda: listener.events_of("alarm_ack"), 10, "the acknowledgement published", procs=[fusion])
             time.sleep(1.0)
             heard = listener.event_list()
             got, errors = stock_get(router.endpoint, keys.history_key(prefix) + "/**")
@@ -211,6 +226,8 @@ def test_fall_is_raised_over_processes_and_a_killed_camera_is_left_out_then_rejo
     history = [messages.Event.from_json(text) for _, text in got]
     assert sorted(e.id for e in history) == sorted(published)
     assert all(e == published[e.id] for e in history)
+
+    assert [e.kind for e in history].count("alarm_ack") == 1  # stored once, with the events
 
     # the fall: once, near the truth frame; nothing else called a fall
     falls = [e for e in published.values() if e.kind == "fall"]

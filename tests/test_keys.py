@@ -129,3 +129,10 @@ def test_event_of():
                 "voxelwatch/home/tracks"]:
         with pytest.raises(ValueError):
             keys.event_of(bad, P)
+
+
+def test_the_acknowledgement_selector_percent_encodes_the_name():
+    assert keys.ack_key(P, "17-fall-2") == "voxelwatch/home/ack/17-fall-2"
+    assert keys.ack_selector(P, "17-fall-2", "night nurse; Ann") == "voxelwatch/home/ack/17-fall-2?by=night%20nurse%3B%20Ann"
+    with pytest.raises(ValueError, match="event id"):
+        keys.ack_key(P, "a/b")

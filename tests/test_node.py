@@ -310,6 +310,51 @@ def test_a_camera_that_stops_is_degraded_then_lost_and_sets_go_on_without_it(rig
     assert r.kinds() == ["camera_lost", "camera_back"]
 
 
+def test_a_worker_that_says_it_stops_reads_stopped_and_raises_no_camera_lost(rig):
+    r = rig()
+    alive = keys.alive_camera_key(PREFIX, "c3")
+    r.node.on_liveliness(alive, True, r.clock.ns)
+    r.frames(range(10))
+    r.node.on_stopping(keys.mask_key(PREFIX, "c3"), r.clock.ns)
+    r.node.on_stopping(keys.mask_key(PREFIX, "c3"), r.clock.ns)  # said twice: one event
+    assert r.cam_status()["c3"].state == "ok"  # its token is still up
+    r.node.on_liveliness(alive, False, r.clock.ns)
+    r.frames(range(10, 80), cams=["c1", "c2"])
+    assert r.cam_status()["c3"].state == "stopped"  # not lost, even once its masks are stale
+    r.node.on_liveliness(alive, True, r.clock.ns)  # started again
+    r.frames(range(80, 85))
+    assert r.cam_status()["c3"].state == "ok"
+    r.node.on_liveliness(alive, False, r.clock.ns)  # this time it died
+    assert r.cam_status()["c3"].state == "lost"
+    r.take(r.node.report(r.clock.ns, r.clock.mono))
+    assert r.kinds() == ["camera_stopped", "camera_lost"]
+    assert r.events[0][1].details == {"camera": "c3"}
+    r.node.on_stopping("elsewhere/cam/c3/mask", r.clock.ns)  # not under the prefix: ignored
+    r.node.on_stopping(keys.mask_key(PREFIX, "c9"), r.clock.ns)  # not a camera of the site
+    r.take(r.node.report(r.clock.ns, r.clock.mono))
+    assert r.kinds() == ["camera_stopped", "camera_lost"]
+
+
+def test_an_alarm_is_acknowledged_once_stored_and_published(rig):
+    r = rig()
+    r.frames(range(5))
+    fall = Event(id="123-fall-4", kind="fall", track=4, stamp_ns=T0_NS, frame=3, x=1.5, y=2.5)
+    assert r.store.add(fall)
+    ack = r.node.acknowledge(fall.id, "  night\nnurse ", r.clock.ns)
+    assert (ack.id, ack.kind, ack.track, ack.x, ack.y) == ("123-fall-4-ack", "alarm_ack", 4, 1.5, 2.5)
+    assert ack.details == {"event": "123-fall-4", "alarm": "fall", "by": "night nurse"}
+    assert r.node.acknowledge(fall.id, "someone else", r.clock.ns + 10**9) == ack  # the first stands
+    r.take(r.node.report(r.clock.ns, r.clock.mono))
+    assert r.kinds() == ["alarm_ack"]
+    assert r.events[0][0] == keys.event_key(PREFIX, "alarm_ack", 4)
+    assert r.store.get(ack.id) == ack
+    with pytest.raises(ValueError, match="no stored event"):
+        r.node.acknowledge("999-fall-1", "nurse", r.clock.ns)
+    with pytest.raises(ValueError, match="an acknowledgement, not an alarm"):
+        r.node.acknowledge(ack.id, "nurse", r.clock.ns)
+    assert r.node.acknowledge(fall.id, "", r.clock.ns).details["by"] == "night nurse"
+
+
 def test_a_camera_without_token_or_masks_is_lost_and_a_late_camera_is_counted(rig):
     r = rig()
     r.frames(range(10), cams=["c1", "c2"])

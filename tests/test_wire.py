@@ -51,17 +51,23 @@ BUDGET_B = 1024
 
 @dataclass
 class Recorder:
-    """Every sample under ``<p>/**``: ``(key, payload bytes)``; the callback only appends."""
+    """Every sample under ``<p>/**``: ``(key, payload bytes)``, and apart the keys of DELETE samples
+    (a worker's notice that it stops on purpose); the callback only appends."""
 
     session: object
     prefix: str
     lock: threading.Lock = field(default_factory=threading.Lock)
     samples: list[tuple[str, bytes]] = field(default_factory=list)
+    deletes: list[str] = field(default_factory=list)
 
     def __post_init__(self) -> None:
         self.sub = self.session.declare_subscriber(f"{self.prefix}/**", self._on)
 
     def _on(self, sample) -> None:
+        if sample.kind == zenoh.SampleKind.DELETE:
+            with self.lock:
+                self.deletes.append(str(sample.key_expr))
+            return
         item = (str(sample.key_expr), sample.payload.to_bytes())
         with self.lock:
             self.samples.append(item)
@@ -174,9 +180,12 @@ def run_house(house, tmp_path, n_frames: int) -> tuple[list[tuple[str, bytes]], 
             procs.extend(workers)
             for worker in workers:
                 assert worker.popen.wait(timeout=START_DELAY_S + n_frames / 15 + 120) == 0, worker.tail()
-            # the fusion server reports the cameras gone (events) once their tokens go
-            wait_for(lambda: len(listener.events_of("camera_lost")) >= len(workers), 30,
-                     "camera_lost events as the workers end", procs=[fusion])
+            # the workers say they stop on purpose: camera_stopped, not camera_lost
+            wait_for(lambda: len(listener.events_of("camera_stopped")) >= len(workers), 30,
+                     "camera_stopped events as the workers end", procs=[fusion])
+            time.sleep(0.5)
+            assert listener.events_of("camera_lost") == []
+            assert sorted(recorder.deletes) == sorted(keys.mask_key(site.prefix, c) for c in site.camera_ids)
             time.sleep(1.0)
             assert fusion.stop() == 0, fusion.tail()
             for worker in workers:
