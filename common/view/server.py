@@ -58,7 +58,7 @@ from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
-from urllib.parse import urlencode
+from urllib.parse import quote, urlencode
 
 from aiohttp import web
 
@@ -330,7 +330,7 @@ class View:
         """Ask the fusion server to acknowledge the alarm ``event_id`` for ``name`` (blocking).
         Returns the stored ``alarm_ack`` event; ValueError with the reason otherwise."""
         key = keys.ack_key(self.prefix, event_id)
-        for reply in self.session.get(f"{key}?{urlencode({'by': clean_name(name)})}", timeout=ACK_TIMEOUT_S):
+        for reply in self.session.get(f"{key}?by={quote(clean_name(name), safe='')}", timeout=ACK_TIMEOUT_S):
             if reply.ok is not None:
                 return messages.decode_event(reply.ok.payload.to_bytes())
             raise ValueError(reply.err.payload.to_string())
@@ -366,14 +366,7 @@ class View:
             except WireError as exc:
                 self._unreadable("event", exc)
                 continue
-            out = self.state.on_event(event)
-            if out is None:
-                continue
-            text = json.dumps(out["event"], separators=(",", ":"))
-            for c in self.clients:
-                c.push_event(text)
-            if out["alarms"] is not None:
-                self._broadcast_alarms()
+            self.apply_event(event)
         if status is not None:
             try:
                 st = messages.decode(status, Status)
@@ -402,6 +395,17 @@ class View:
                 for c in self.clients:
                     c.frame = text
                     c.wake.set()
+
+    def apply_event(self, event: Event) -> None:
+        """An event into the state and out to every page (once per id, however it came)."""
+        out = self.state.on_event(event)
+        if out is None:
+            return
+        text = json.dumps(out["event"], separators=(",", ":"))
+        for c in self.clients:
+            c.push_event(text)
+        if out["alarms"] is not None:
+            self._broadcast_alarms()
 
     def _broadcast_alarms(self) -> None:
         text = json.dumps(self.state.alarm_list(), separators=(",", ":"))
@@ -475,6 +479,7 @@ def make_app(view: View) -> web.Application:
     app.router.add_get("/api/install/{cam}", _install_api)
     app.router.add_get("/api/mask/{cam}.png", _mask)
     app.router.add_static("/static/", STATIC, show_index=False, follow_symlinks=False)
+    app.router.add_get("/favicon.ico", _no_icon)
 
     async def on_startup(app: web.Application) -> None:
         view.start(asyncio.get_running_loop())
@@ -527,7 +532,7 @@ def _security(view: View):
                                     "default-src 'self'; img-src 'self' data:; style-src 'self'; "
                                     "script-src 'self'; frame-ancestors 'none'; form-action 'self'")
         response.headers.setdefault("X-Content-Type-Options", "nosniff")
-        response.headers.setdefault("Referrer-Policy", "no-referrer")
+        response.headers.setdefault("Referrer-Policy", "same-origin")  # "no-referrer" would make POSTs say Origin: null
         return response
 
     return check
@@ -548,6 +553,10 @@ def _page(name: str):
         return web.FileResponse(STATIC / name, headers={"Cache-Control": "no-store"})
 
     return handler
+
+
+async def _no_icon(request: web.Request) -> web.StreamResponse:
+    return web.Response(status=204)
 
 
 async def _install_page(request: web.Request) -> web.StreamResponse:
@@ -654,9 +663,7 @@ async def _ack(request: web.Request) -> web.StreamResponse:
                                                                request["name"])
     except (ValueError, WireError) as exc:
         return web.json_response({"error": str(exc)}, status=502)
-    out = view.state.on_event(ack)  # at once here; the published copy clears the other pages
-    if out is not None and out["alarms"] is not None:
-        view._broadcast_alarms()
+    view.apply_event(ack)  # at once, for every page; the published copy then counts as seen
     return web.json_response({"ack": ack.to_dict()})
 
 

@@ -38,11 +38,10 @@
     for (const c of plan.cameras) {
       const [cx, cy] = px(c.position_m[0], c.position_m[1]);
       const g = VW.svg("g", { class: "camera", "data-camera": c.id, transform: `translate(${cx},${cy})` }, svg);
-      if (c.heading_deg !== null) {
-        VW.svg("path", { d: "M0,-9 L16,0 L0,9 Z", transform: `rotate(${-c.heading_deg})` }, g);
-      } else {
-        VW.svg("circle", { r: 9 }, g);
+      if (c.heading_deg !== null) {  // a wedge pointing where the camera looks
+        VW.svg("path", { class: "cone", d: "M0,0 L38,-18 L38,18 Z", transform: `rotate(${-c.heading_deg})` }, g);
       }
+      VW.svg("circle", { r: 8 }, g);
       VW.svg("text", { y: -14, "text-anchor": "middle" }, g).textContent = c.id;
     }
     VW.svg("g", { id: "trails" }, svg);

@@ -1,0 +1,292 @@
+"""``voxelwatch view``: the live page, in a real browser, over the real demo system.
+
+Default run (one demo system for the module): ``voxelwatch demo --view``
+plays 'fall_forward' (the person falls at frame 101 and lies still) as five
+camera workers, the fusion server and the view, all processes on loopback.
+Headless Chromium (selenium, ``/usr/bin/chromedriver``) logs in with the
+token and a name, and checks against the scenario's truth: the fall banner
+comes up, the person's marker lies on the plan where the fall was, the event
+list holds the fall; a click on the banner's button acknowledges it, the
+``alarm_ack`` (by the name typed at login) is in the fusion server's history
+and the banner clears on every open page. The installer's page shows a
+camera's mask under the floor outline. Over plain HTTP: a wrong token is
+refused (401 form, 403 link, 401 API), and the command refuses to start
+without a token.
+
+slow: a page left open while a test session publishes 54,000 track frames
+(an hour of the house at 15 frames/s) with events and status as fast as it
+can; the JS heap after a garbage collection grows by less than
+:data:`HEAP_GROWTH_BOUND` bytes.
+
+``VOXELWATCH_VIEW_SHOTS=1`` also writes the screenshots ``docs/view-plan.png``
+(during the fall) and ``docs/view-install.png``.
+"""
+
+from __future__ import annotations
+
+import http.cookiejar
+import json
+import os
+import re
+import shutil
+import signal
+import subprocess
+import sys
+import time
+import urllib.error
+import urllib.parse
+import urllib.request
+from pathlib import Path
+
+import pytest
+
+from procs import ROOT, Proc, free_port, loopback_config, wait_for
+
+from common import keys, messages, synth
+
+CHROMEDRIVER = Path("/usr/bin/chromedriver")
+SCENARIO = "fall_forward"
+FRAMES = 540            # 36 s: the truth fall is at frame 101 (6.7 s), its long lie (frame 551) just after the end
+NEAR_M = 0.5
+NAME = "Night nurse"
+SHOTS = os.environ.get("VOXELWATCH_VIEW_SHOTS") == "1"
+HEAP_GROWTH_BOUND = 4 * 1024 * 1024
+PYTHON_CLI = [sys.executable, "-c", "import sys; from common.cli import main; sys.exit(main())"]
+
+
+def _chrome_or_skip():
+    try:
+        from selenium import webdriver
+        from selenium.webdriver.chrome.service import Service
+    except ImportError:
+        pytest.skip("selenium is not installed (pip install -e '.[test]')")
+    browser = shutil.which("chromium") or shutil.which("chromium-browser") or shutil.which("google-chrome")
+    if not CHROMEDRIVER.is_file() or browser is None:
+        pytest.skip("headless Chromium is not installed (Debian: apt-get install chromium chromium-driver)")
+    opts = webdriver.ChromeOptions()
+    for arg in ("--headless=new", "--no-sandbox", "--disable-gpu", "--disable-dev-shm-usage",
+                "--window-size=1280,1000", "--autoplay-policy=no-user-gesture-required",
+                "--js-flags=--expose-gc"):
+        opts.add_argument(arg)
+    opts.binary_location = browser
+    return webdriver.Chrome(service=Service(str(CHROMEDRIVER)), options=opts)
+
+
+# --------------------------------------------------------------------------- the demo system with the view
+
+
+class DemoView:
+    def __init__(self, proc: Proc, out: Path, url: str, token: str, endpoint: str) -> None:
+        self.proc, self.out, self.url, self.token, self.endpoint = proc, out, url, token, endpoint
+
+    def log(self) -> str:
+        return self.proc.output()
+
+
+@pytest.fixture(scope="module")
+def demo(tmp_path_factory):
+    if not CHROMEDRIVER.is_file():
+        pytest.skip("chromedriver is not installed (Debian: apt-get install chromium chromium-driver)")
+    out = tmp_path_factory.mktemp("demo-view")
+    port = free_port()
+    proc = Proc("demo", [*PYTHON_CLI, "demo", "--view", f"127.0.0.1:{port}", "--scenario", SCENARIO,
+                         "--frames", str(FRAMES), "--out", str(out / "demo")],
+                out / "demo.log", env={"PYTHONPATH": str(ROOT)})
+    try:
+        text = wait_for(lambda: re.search(r"live view: (http://127\.0\.0\.1:\d+/)\?token=(\S+)", proc.output())
+                        and "voxelwatch view: http" in (out / "demo" / "logs" / "view.log").read_text(errors="replace")
+                        and proc.output(), 120, "the demo's view", procs=[proc])
+        url = re.search(r"live view: (http://127\.0\.0\.1:\d+/)", text).group(1)
+        endpoint = re.search(r"zenoh router (tcp/127\.0\.0\.1:\d+)", text).group(1)
+        token = (out / "demo" / "view.token").read_text().strip()
+        yield DemoView(proc, out / "demo", url, token, endpoint)
+    finally:
+        proc.stop(timeout_s=30, sig=signal.SIGINT)  # Ctrl-C: the demo stops every process it started
+
+
+@pytest.fixture(scope="module")
+def truth_fall(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("truth")
+    synth.write_truth(synth.get_scenario(SCENARIO, 0), folder, n_frames=FRAMES)
+    events = [json.loads(line) for line in (folder / "events.jsonl").read_text().splitlines()]
+    (fall,) = [e for e in events if e["kind"] == "fall"]
+    return fall
+
+
+@pytest.fixture(scope="module")
+def browser():
+    driver = _chrome_or_skip()
+    yield driver
+    driver.quit()
+
+
+# --------------------------------------------------------------------------- access over HTTP
+
+
+def _opener():
+    jar = http.cookiejar.CookieJar()
+    return urllib.request.build_opener(urllib.request.HTTPCookieProcessor(jar)), jar
+
+
+def _status(opener, url: str, data: bytes | None = None, headers: dict | None = None) -> tuple[int, str]:
+    req = urllib.request.Request(url, data=data, headers=headers or {})
+    try:
+        with opener.open(req, timeout=10) as r:
+            return r.status, r.read().decode()
+    except urllib.error.HTTPError as exc:
+        return exc.code, exc.read().decode()
+
+
+def test_a_wrong_token_is_refused_and_the_right_one_opens_the_page(demo):
+    opener, jar = _opener()
+    code, body = _status(opener, demo.url)
+    assert code == 401 and 'name="token"' in body  # the login form
+    code, body = _status(opener, demo.url + "?token=not-the-token-at-all")
+    assert code == 403 and "Wrong token" in body
+    code, _ = _status(opener, demo.url + "api/plan")
+    assert code == 401
+    form = urllib.parse.urlencode({"token": "not-the-token-at-all", "name": "x", "next": "/"}).encode()
+    code, body = _status(opener, demo.url + "login", form)
+    assert code == 401 and "Wrong token" in body and not list(jar)
+    # a form posted from another site is refused even with the right token
+    form = urllib.parse.urlencode({"token": demo.token, "next": "/"}).encode()
+    code, _ = _status(opener, demo.url + "login", form, {"Origin": "http://evil.example"})
+    assert code == 403 and not list(jar)
+    code, body = _status(opener, demo.url + "login", form)
+    assert code == 200 and "/static/app.js" in body  # redirected to the page
+    (cookie,) = list(jar)
+    assert cookie.has_nonstandard_attr("HttpOnly") and cookie.get_nonstandard_attr("SameSite") == "Strict"
+    code, body = _status(opener, demo.url + "api/plan")
+    plan = json.loads(body)
+    assert code == 200 and plan["plan"]["site"] == "synthetic-house" and plan["alarms"] == ["fall", "long_lie"]
+    assert [c["id"] for c in plan["plan"]["cameras"]] == ["cam1", "cam2", "cam3", "cam4", "cam5"]
+
+
+def test_the_command_refuses_to_start_without_a_token(tmp_path):
+    site = synth.default_site(tmp_path / "site")
+    result = subprocess.run([*PYTHON_CLI, "view", "--site", str(site.base_dir / "site.toml")], cwd=ROOT,
+                            capture_output=True, text=True, timeout=60, env={**os.environ, "PYTHONPATH": str(ROOT)})
+    assert result.returncode == 2
+    lines = result.stderr.strip().splitlines()
+    assert len(lines) == 1 and "no access token" in lines[0] and "[view] token" in lines[0], result.stderr
+
+
+# --------------------------------------------------------------------------- the fall in the browser
+
+
+def _login(driver, url: str, token: str, name: str) -> None:
+    from selenium.webdriver.common.by import By
+
+    driver.get(url + "login")  # the form, whether or not the browser has been here before
+    driver.find_element(By.ID, "token").send_keys(token)
+    driver.find_element(By.ID, "name").send_keys(name)
+    driver.find_element(By.ID, "login-button").click()
+    wait_for(lambda: driver.execute_script("return !!document.getElementById('plan') && "
+                                           "document.querySelectorAll('#plan .camera').length"), 20, "the plan")
+
+
+def _history(endpoint: str, prefix: str, params: str) -> list[messages.Event]:
+    import zenoh
+
+    with zenoh.open(loopback_config(mode="client", connect=[endpoint])) as session:
+        replies = session.get(f"{keys.history_key(prefix)}/**?{params}", timeout=10)
+        return [messages.decode_event(r.ok.payload.to_bytes()) for r in replies if r.ok is not None]
+
+
+def test_the_installer_page_shows_the_mask_under_the_floor_outline(demo, browser):
+    browser.get(demo.url + "install/cam1?token=" + urllib.parse.quote(demo.token))  # the printed link's way in
+    assert browser.current_url == demo.url + "install/cam1"  # the token left the address bar
+    wait_for(lambda: browser.execute_script(
+        "const i = document.querySelector('#image image'); return i && i.getAttribute('href')"), 120,
+        "the mask image", procs=[demo.proc])
+    counts = browser.execute_script(
+        "return [document.querySelectorAll('#image .floor').length, document.querySelectorAll('#image .hotspot-line').length]")
+    assert counts[0] >= 1 and counts[1] >= 4, counts  # the floor (cut where it leaves the image) and four hot spots
+    wait_for(lambda: browser.execute_script(
+        "const s = document.querySelector('#health [data-field=state]'); return s && s.textContent === 'ok'"), 30,
+        "cam1 reported ok on its page", procs=[demo.proc])
+    # the PNG the page shows is the camera's mask: the mask's size, with foreground (the person lying)
+    cookie = browser.get_cookie("voxelwatch_view")
+    req = urllib.request.Request(demo.url + "api/mask/cam1.png", headers={"Cookie": f"voxelwatch_view={cookie['value']}"})
+    with urllib.request.urlopen(req, timeout=10) as r:
+        png = r.read()
+    import cv2
+    import numpy as np
+
+    mask = cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_GRAYSCALE)
+    assert mask.shape == (240, 320) and set(np.unique(mask)) <= {0, 255} and (mask == 255).sum() > 50
+    if SHOTS:
+        time.sleep(1.0)
+        browser.save_screenshot(str(ROOT / "docs" / "view-install.png"))
+
+
+def test_the_fall_raises_the_banner_the_marker_lies_where_it_fell_and_a_click_acknowledges_it(demo, browser,
+                                                                                              truth_fall):
+    from selenium.webdriver.common.by import By
+
+    _login(browser, demo.url, demo.token, NAME)
+    first = browser.current_window_handle
+    assert browser.execute_script("return voxelwatchView.name") == NAME
+    wait_for(lambda: browser.execute_script("return !document.getElementById('alarm').hidden"), 90,
+             "the fall banner", procs=[demo.proc])
+    banner = browser.find_element(By.ID, "alarm")
+    assert browser.find_element(By.ID, "alarm-title").text == "FALL"
+    fall_id = banner.get_attribute("data-event")
+    prefix = "voxelwatch/synthetic-house"
+    (fall,) = [e for e in _history(demo.endpoint, prefix, "kind=fall")]
+    assert fall.id == fall_id
+    # the fall the system raised is the scenario's fall: near the truth in time and place
+    assert -30 <= fall.frame - truth_fall["frame"] <= 45, (fall, truth_fall)
+    assert ((fall.x - truth_fall["x"]) ** 2 + (fall.y - truth_fall["y"]) ** 2) ** 0.5 < NEAR_M
+
+    # the person's marker: lying, on the plan where the fall happened (plan units: cm from the
+    # volume's corner less a 0.3 m margin, y flipped; read from the marker's own transform)
+    def marker():
+        return browser.execute_script(
+            "const g = document.querySelector('#markers .person:not([visibility])');"
+            "return g && [g.getAttribute('transform'), g.dataset.posture, g.querySelector('text').textContent];")
+    transform, posture, label = wait_for(lambda: (m := marker()) and m[1] == "lying" and m, 20, "a lying marker")
+    cx, cy = map(float, re.match(r"translate\(([-\d.]+),([-\d.]+)\)", transform).groups())
+    x, y = cx / 100 - 0.3, 6.0 - (cy / 100 - 0.3)
+    assert ((x - fall.x) ** 2 + (y - fall.y) ** 2) ** 0.5 < NEAR_M, (x, y, fall)
+    assert label.startswith(f"#{fall.track}") and "lying" in label
+    # the event list holds the fall
+    wait_for(lambda: browser.execute_script(
+        f"return !!document.querySelector('#events tr[data-id=\"{fall_id}\"][data-kind=\"fall\"]')"), 20,
+        "the fall in the event list")
+    if SHOTS:
+        (ROOT / "docs").mkdir(exist_ok=True)
+        browser.save_screenshot(str(ROOT / "docs" / "view-plan.png"))
+
+    # a second page open on the same view: it too shows the banner, and clears it when the first acknowledges
+    browser.switch_to.new_window("window")
+    second = browser.current_window_handle
+    browser.get(demo.url)
+    wait_for(lambda: browser.execute_script("return !document.getElementById('alarm').hidden"), 20,
+             "the banner on the second page")
+    browser.switch_to.window(first)
+    browser.find_element(By.ID, "ack").click()
+    wait_for(lambda: browser.execute_script("return document.getElementById('alarm').hidden"), 20,
+             "the banner to clear")
+    acks = wait_for(lambda: _history(demo.endpoint, prefix, "kind=alarm_ack"), 20, "the stored alarm_ack")
+    assert [(a.details["event"], a.details["alarm"], a.details["by"]) for a in acks] == [(fall_id, "fall", NAME)]
+    wait_for(lambda: browser.execute_script(
+        "return !!document.querySelector('#events tr[data-kind=\"alarm_ack\"]')"), 20, "the alarm_ack in the list")
+    browser.switch_to.window(second)
+    wait_for(lambda: browser.execute_script("return document.getElementById('alarm').hidden"), 20,
+             "the banner to clear on the second page")
+    browser.close()
+    browser.switch_to.window(first)
+
+
+def test_the_demo_ends_with_a_plan_svg_of_the_run(demo):
+    import xml.etree.ElementTree as ET
+
+    assert demo.proc.popen.wait(timeout=180) == 0, demo.proc.tail()
+    text = demo.log()
+    assert re.search(r"plan view: .*run/plan\.svg", text), text[-2000:]
+    root = ET.fromstring((demo.out / "run" / "plan.svg").read_text())
+    ns = "{http://www.w3.org/2000/svg}"
+    assert len(root.findall(f".//{ns}g[@class='path']")) >= 1
+    assert [g.get("data-kind") for g in root.findall(f".//{ns}g[@class='event']")].count("fall") == 1
+    assert len(root.findall(f".//{ns}polyline[@class='truth']")) == 1
