@@ -229,7 +229,7 @@ def test_the_installer_page_shows_the_mask_under_the_floor_outline(demo, browser
     mask = cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_GRAYSCALE)
     assert mask.shape == (240, 320) and set(np.unique(mask)) <= {0, 255} and (mask == 255).sum() > 50
     if SHOTS:
-        _shot(browser, "view-install.png", 700)
+        _shot(browser, "view-install.png", 860)
 
 
 def test_the_fall_raises_the_banner_the_marker_lies_where_it_fell_and_a_click_acknowledges_it(demo, browser,

@@ -326,7 +326,7 @@
         ctx.fillStyle = VW.POSTURE_COLOURS[r[2]] || "#888";
         ctx.fillRect(xOf(r[0]), y + 2, Math.max(1, xOf(r[1]) - xOf(r[0])), 12);
       }
-      ctx.fillStyle = "#1f77b4";
+      ctx.fillStyle = "#17becf";
       for (const d of p.dwells) {
         const x = xOf(d[0]), x2 = xOf(d[1] === null ? t1 : d[1]);
         ctx.fillRect(x, y + 16, Math.max(1, x2 - x), 5);
