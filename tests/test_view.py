@@ -198,6 +198,15 @@ def _shot(driver, name: str, height: int) -> None:
     driver.set_window_size(size["width"], size["height"])
 
 
+def _get(driver, url: str, *, text: bool = True):
+    """GET ``url`` with the browser's session cookie."""
+    cookie = driver.get_cookie("voxelwatch_view")
+    req = urllib.request.Request(url, headers={"Cookie": f"voxelwatch_view={cookie['value']}"})
+    with urllib.request.urlopen(req, timeout=10) as r:
+        body = r.read()
+    return body.decode() if text else body
+
+
 def _history(endpoint: str, prefix: str, params: str) -> list[messages.Event]:
     import zenoh
 
@@ -219,10 +228,7 @@ def test_the_installer_page_shows_the_mask_under_the_floor_outline(demo, browser
         "const s = document.querySelector('#health [data-field=state]'); return s && s.textContent === 'ok'"), 30,
         "cam1 reported ok on its page", procs=[demo.proc])
     # the PNG the page shows is the camera's mask: the mask's size, with foreground (the person lying)
-    cookie = browser.get_cookie("voxelwatch_view")
-    req = urllib.request.Request(demo.url + "api/mask/cam1.png", headers={"Cookie": f"voxelwatch_view={cookie['value']}"})
-    with urllib.request.urlopen(req, timeout=10) as r:
-        png = r.read()
+    png = _get(browser, demo.url + "api/mask/cam1.png", text=False)
     import cv2
     import numpy as np
 
@@ -266,6 +272,14 @@ def test_the_fall_raises_the_banner_the_marker_lies_where_it_fell_and_a_click_ac
     wait_for(lambda: browser.execute_script(
         f"return !!document.querySelector('#events tr[data-id=\"{fall_id}\"][data-kind=\"fall\"]')"), 20,
         "the fall in the event list")
+    # the banner beeps (WebAudio) while it waits
+    assert browser.execute_script("return voxelwatchView.beepTimer !== null && !!voxelwatchView.audio")
+    # the day's timeline of the person: standing, then lying from about the fall, with the fall marked
+    timeline = json.loads(_get(browser, demo.url + "api/timeline"))
+    (person,) = [p for p in timeline["people"] if p["key"] == str(fall.track)]
+    lying = [r for r in person["runs"] if r[2] == "lying"]
+    assert lying and abs(lying[0][0] - fall.stamp_ns) < 3e9 and person["runs"][0][2] != "lying", person["runs"]
+    assert [fall.stamp_ns, "fall"] in person["marks"]
     if SHOTS:
         _shot(browser, "view-plan.png", 1500)
 
@@ -281,6 +295,7 @@ def test_the_fall_raises_the_banner_the_marker_lies_where_it_fell_and_a_click_ac
              "the banner to clear")
     acks = wait_for(lambda: _history(demo.endpoint, prefix, "kind=alarm_ack"), 20, "the stored alarm_ack")
     assert [(a.details["event"], a.details["alarm"], a.details["by"]) for a in acks] == [(fall_id, "fall", NAME)]
+    assert browser.execute_script("return voxelwatchView.beepTimer") is None  # and the beeping stopped
     wait_for(lambda: browser.execute_script(
         "return !!document.querySelector('#events tr[data-kind=\"alarm_ack\"]')"), 20, "the alarm_ack in the list")
     browser.switch_to.window(second)

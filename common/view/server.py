@@ -50,6 +50,7 @@ import hashlib
 import hmac
 import json
 import logging
+import re
 import threading
 import time
 from collections import deque
@@ -499,6 +500,9 @@ def make_app(view: View) -> web.Application:
 
 
 _PUBLIC = ("/login", "/static/", "/favicon.ico")
+_PARAM = re.compile(r"[A-Za-z0-9_,:.+-]{1,200}")
+"""A history parameter's value as the page sends it (kinds, nanoseconds or ISO times, a limit): nothing
+that could end the parameter and start another."""
 
 
 def _security(view: View):
@@ -609,9 +613,9 @@ async def _stream(request: web.Request) -> web.StreamResponse:
     await response.prepare(request)
     client = Client()
     snapshot = {**view.state.snapshot(), "fusion_alive": view.fusion_alive}
-    await response.write(_sse("snapshot", json.dumps(snapshot, separators=(",", ":"))))
-    view.clients.add(client)
+    view.clients.add(client)  # before the first await: nothing that comes after the snapshot is missed
     try:
+        await response.write(_sse("snapshot", json.dumps(snapshot, separators=(",", ":"))))
         while True:
             try:
                 await asyncio.wait_for(client.wake.wait(), HEARTBEAT_S)
@@ -624,7 +628,7 @@ async def _stream(request: web.Request) -> web.StreamResponse:
             due = client.pending()
             if due:
                 await response.write(b"".join(_sse(kind, text) for kind, text in due))
-    except (ConnectionResetError, asyncio.CancelledError):
+    except ConnectionResetError:  # the page went away (a cancelled handler goes on up)
         pass
     finally:
         view.clients.discard(client)
@@ -634,6 +638,9 @@ async def _stream(request: web.Request) -> web.StreamResponse:
 async def _events(request: web.Request) -> web.StreamResponse:
     view: View = request.app["view"]
     params = {k: request.query[k] for k in ("kind", "since", "until", "limit") if request.query.get(k)}
+    bad = [k for k, v in params.items() if not _PARAM.fullmatch(v)]
+    if bad:
+        return web.json_response({"error": f"parameter {bad[0]}: unexpected characters"}, status=400)
     try:
         events = await asyncio.get_running_loop().run_in_executor(view._pool, view.query_history, params)
     except ValueError as exc:
