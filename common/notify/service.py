@@ -300,15 +300,15 @@ def run_forever(site: Site, *, outbox_path: Path, make_config: Callable[[], Any]
         for sig in (signal.SIGINT, signal.SIGTERM):
             previous[sig] = signal.signal(sig, lambda *_: stop.set())
     dispatchers: dict[str, Dispatcher] = {}
+    notifier = Notifier(site, outbox, channels, wake=lambda name: dispatchers[name].wake.set())
     try:
         for channel in channels:
             if isinstance(channel, MqttChannel):
                 channel.confirm = lambda event_id, name=channel.name: outbox.delivered(event_id, name, time.time_ns())
             dispatchers[channel.name] = Dispatcher(channel, outbox, stop)
-        notifier = Notifier(site, outbox, channels, wake=lambda name: dispatchers[name].wake.set())
-        pending = {c.label: k["pending"] for c, k in zip(channels, outbox.counts([c.name for c in channels]).values())}
+        counts = outbox.counts([c.name for c in channels])
         log.info("notify: outbox %s (%s)", outbox_path,
-                 ", ".join(f"{label}: {n} pending" for label, n in pending.items()))
+                 ", ".join(f"{c.label}: {counts[c.name]['pending']} pending" for c in channels))
         for dispatcher in dispatchers.values():
             dispatcher.start()
         try:
@@ -327,9 +327,9 @@ def run_forever(site: Site, *, outbox_path: Path, make_config: Callable[[], Any]
         stop.set()
         for dispatcher in dispatchers.values():
             dispatcher.join()
+        log.info("%s", notifier.status_line().replace("notify: ", "notify: stopping; ", 1))
         for channel in channels:
             channel.close()
-        log.info("notify: stopped; %s", Notifier(site, outbox, channels).status_line().removeprefix("notify: "))
         outbox.close()
         for sig, handler in previous.items():
             signal.signal(sig, handler)
