@@ -81,6 +81,7 @@ Schema (all lengths in metres, world frame Z up, floor at Z = 0)::
     url = "https://example.org/hook"
     kinds = ["fall"]             # optional: this channel's own kinds
     headers = { Authorization = "Bearer ..." }
+    timeout_s = 10.0             # per attempt; 2xx delivered, 408/429/5xx retried, other 4xx given up
     [notify.email]
     host = "smtp.example.org"
     port = 587

@@ -249,7 +249,9 @@ def test_person_states_are_published_on_changes_only():
         (0.5, [(1, 3.8, 3.0, "standing", "Ada"), (5, 4.0, 4.0, "standing", None)]),  # moved, but within 1 s
         (1.2, [(1, 3.8, 3.0, "standing", "Ada"), (5, 4.0, 4.0, "standing", None)]),  # moved 0.8 m since sent
         (1.3, [(1, 1.5, 1.5, "sitting", "Ada"), (5, 4.0, 4.0, "standing", None)]),  # posture and place
-        (1.4, [(1, 1.5, 1.5, "sitting", "Ada")]),  # 5 left
+        (1.4, [(1, 1.5, 1.5, "sitting", "Ada")]),  # 5 missing: not yet absent
+        (1.5, [(1, 1.5, 1.5, "sitting", "Ada"), (5, 4.0, 4.0, "standing", None)]),  # a frame without 5: nothing
+        (3.6, [(1, 1.5, 1.5, "sitting", "Ada")]),  # 5 missing for 2.1 s: absent
         (70.0, [(1, 1.5, 1.5, "sitting", "Ada")]),  # heartbeat; 5 gone long enough: forgotten
     ]
     for i, (t, tracks) in enumerate(script):
@@ -257,7 +259,7 @@ def test_person_states_are_published_on_changes_only():
         sent.append([(p.id, p.posture, p.place) for p in changed] + [("forgotten", f) for f in people.forgotten])
     assert sent == [
         [(1, "standing", ""), (5, "standing", "")], [], [], [(1, "standing", "")], [(1, "sitting", "sofa")],
-        [(5, "absent", "")], [(1, "sitting", "sofa"), ("forgotten", 5)]]
+        [], [], [(5, "absent", "")], [(1, "sitting", "sofa"), ("forgotten", 5)]]
     assert people.name_of(1) == "Ada"
 
 

@@ -129,7 +129,8 @@ class Dispatcher:
             if self._streak:
                 log.info("%s: delivering again after %d failed attempts", label, self._streak)
             self._streak = 0
-            log.info("%s: delivered %s %s", label, event.kind, event.id)
+            log.info("%s: delivered %s %s%s", label, event.kind, event.id,
+                     f" ({outcome.reason})" if outcome.reason else "")
         elif outcome.kind == "give_up":
             self.outbox.give_up(event.id, self.channel.name, now, outcome.reason)
             self.given_up += 1

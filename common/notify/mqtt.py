@@ -300,7 +300,9 @@ class MqttChannel(Channel):
             client.subscribe(f"{self.discovery_prefix}/status", qos=1)
         self._announce_all()
         self._ready_at = time.monotonic() + self.settle_s
-        threading.Timer(self.settle_s + 0.05, self._wake).start()
+        timer = threading.Timer(self.settle_s + 0.05, self._wake)
+        timer.daemon = True
+        timer.start()
 
     def _on_connect_fail(self, client, userdata) -> None:
         if not self._down_logged:

@@ -4,7 +4,7 @@ Pure logic, fed with messages and the time (``now_ns``): :class:`PeopleState`
 turns the stream of :class:`~common.messages.TrackFrame` into the few state
 changes worth publishing (a person's posture, place, presence or name
 changed; they moved half a metre, at most once a second; or a minute went by
-without news), :class:`CameraStates` does the same for the cameras of
+without news; absent once missing from the tracks for two seconds), :class:`CameraStates` does the same for the cameras of
 :class:`~common.messages.Status`, and :func:`describe` makes the one-line
 texts of an alarm (the e-mail subject and body).
 """
@@ -24,6 +24,9 @@ MOVE_EVERY_S = 1.0
 """... but not more often than this (positions change every frame)."""
 HEARTBEAT_S = 60.0
 """A present person's state is published at least this often (``last_seen`` stays fresh)."""
+ABSENT_AFTER_S = 2.0
+"""A person missing from the tracks this long (fusion host time) is ``absent``: a track missing
+from a frame or two does not flip the state."""
 
 
 @dataclass(frozen=True)
@@ -103,11 +106,14 @@ class PeopleState:
         for pid, state in list(self.people.items()):
             if pid in seen:
                 continue
+            missing_s = (frame.stamp_ns - state.last_seen_ns) * 1e-9
             if state.posture != "absent":
+                if missing_s < ABSENT_AFTER_S:
+                    continue
                 gone = replace(state, posture="absent")
                 self.people[pid] = gone
                 out.append(self._sent(gone, now_ns))
-            elif state.name is None and (frame.stamp_ns - state.last_seen_ns) * 1e-9 > self.forget_s:
+            elif state.name is None and missing_s > self.forget_s:
                 del self.people[pid]
                 self._published.pop(pid, None)
                 self.forgotten.append(pid)

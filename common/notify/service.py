@@ -126,7 +126,8 @@ class Notifier:
         new = self.outbox.add(event, names, now_ns, context)
         if new:
             self.kept += 1
-            log.info("alarm %s %s kept for %s", event.kind, event.id, ", ".join(new))
+            labels = {c.name: c.label for c in self.channels}
+            log.info("alarm %s %s kept for %s", event.kind, event.id, ", ".join(labels[n] for n in new))
         for name in new:
             self.wake(name)
         return new
@@ -151,7 +152,7 @@ class Notifier:
         parts = []
         for c in self.channels:
             k = counts[c.name]
-            ready = "" if c.ready() else " (not connected)"
+            ready = "" if c.ready() else " (not ready)"
             parts.append(f"{c.label}{ready}: delivered {k['delivered']}, pending {k['pending']}, failed {k['failed']}")
         return f"notify: {'; '.join(parts)}; events heard {self.heard}, kept {self.kept}"
 
