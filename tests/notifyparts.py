@@ -162,6 +162,7 @@ class MqttWatcher:
     port: int
     topics: tuple[str, ...]
     got: list[tuple[str, str, bool]] = field(default_factory=list)
+    first_at: dict[str, float] = field(default_factory=dict)  # topic -> time.monotonic() of its first message
     lock: threading.Lock = field(default_factory=threading.Lock)
 
     def __post_init__(self) -> None:
@@ -182,6 +183,7 @@ class MqttWatcher:
         def on_message(client, userdata, message):
             with self.lock:
                 self.got.append((message.topic, message.payload.decode("utf-8"), bool(message.retain)))
+                self.first_at.setdefault(message.topic, time.monotonic())
 
         self.client.on_connect, self.client.on_disconnect, self.client.on_message = on_connect, on_disconnect, on_message
         self.client.connect_async("127.0.0.1", self.port)
