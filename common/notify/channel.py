@@ -95,6 +95,9 @@ class Dispatcher:
         self.wake.set()
         self._thread.join(timeout_s)
 
+    def alive(self) -> bool:
+        return self._thread.is_alive()
+
     # ------------------------------------------------------------------ the loop
 
     def _run(self) -> None:

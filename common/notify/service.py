@@ -53,6 +53,8 @@ FIRST_LOOKBACK_S = 600.0
 HISTORY_TIMEOUT_S = 10.0
 INBOX_EVENTS = 10_000
 PRUNE_EVERY_S = 3600.0
+STOP_WAIT_S = 3.0
+"""On SIGTERM, how long the channels may finish an attempt under way."""
 
 
 def build_channels(site: Site) -> list[Channel]:
@@ -326,11 +328,16 @@ def run_forever(site: Site, *, outbox_path: Path, make_config: Callable[[], Any]
             session.close()
     finally:
         stop.set()
+        deadline = time.monotonic() + STOP_WAIT_S
         for dispatcher in dispatchers.values():
-            dispatcher.join()
+            dispatcher.join(max(0.0, deadline - time.monotonic()))
+        busy = [d.channel.label for d in dispatchers.values() if d.alive()]
         log.info("%s", notifier.status_line().replace("notify: ", "notify: stopping; ", 1))
+        if busy:  # its attempt is cut short: the delivery stays pending in the outbox
+            log.info("notify: not waiting for the attempt under way at %s", ", ".join(busy))
         for channel in channels:
             channel.close()
-        outbox.close()
+        if not busy:
+            outbox.close()
         for sig, handler in previous.items():
             signal.signal(sig, handler)
