@@ -33,6 +33,7 @@ examples:
   voxelwatch router --listen tcp/0.0.0.0:7447  a zenoh router for client-mode hosts
   voxelwatch certs --site deploy/site.toml    the site's authority and one TLS certificate per host
   voxelwatch router --site deploy/site.toml   the router with the site's TLS and access control
+  voxelwatch notify --site deploy/site.toml  alarms to MQTT/Home Assistant, webhooks and e-mail
   voxelwatch camera --help                    the camera worker (same as voxelwatch-camera)
   voxelwatch fusion --help                    the fusion server (same as voxelwatch-fusion)
 """
@@ -591,16 +592,14 @@ def _bench(args: argparse.Namespace) -> int:
     return 0
 
 
-def _register_view(sub) -> None:
-    from common.view.cli import register
-
-    register(sub)
-
+from common.notify.cli import register as _register_notify  # noqa: E402 - its own package, argparse only
+from common.view.cli import register as _register_view  # noqa: E402 - its own package, argparse only
 
 _SUBCOMMANDS: list[Callable] = [
     _register_demo,
     _register_view,
     _register_bench,
     _register_synth, _register_replay, _register_enrol, _register_eval, _register_site, _register_router, _register_certs,
+    _register_notify,
     _register_passthrough,
 ]
