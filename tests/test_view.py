@@ -163,6 +163,30 @@ def test_a_wrong_token_is_refused_and_the_right_one_opens_the_page(demo):
     plan = json.loads(body)
     assert code == 200 and plan["plan"]["site"] == "synthetic-house" and plan["alarms"] == ["fall", "long_lie"]
     assert [c["id"] for c in plan["plan"]["cameras"]] == ["cam1", "cam2", "cam3", "cam4", "cam5"]
+    # pages that go away free their places: twice as many streams as may be open at once, one after the other
+    from common.view.server import MAX_CLIENTS
+
+    for _ in range(2 * MAX_CLIENTS):
+        _fusion_up(opener, demo.url)
+    # the fusion server's refusals come through with its reason
+    wait_for(lambda: _fusion_up(opener, demo.url), 60, "the fusion server", procs=[demo.proc], period_s=1.0)
+    code, body = _status(opener, demo.url + "api/ack", json.dumps({"event": "1-fall-99"}).encode(),
+                         {"Content-Type": "application/json"})
+    assert code == 502 and "no stored event" in json.loads(body)["error"], body
+    code, body = _status(opener, demo.url + "api/events?kind=tumble")
+    assert code == 400 and "unknown kind" in json.loads(body)["error"], body
+    code, body = _status(opener, demo.url + "api/events?kind=fall%3Bformat%3Dmsgpack")
+    assert code == 400, body  # nothing but the page's own parameters reaches the selector
+
+
+def _fusion_up(opener, url: str) -> bool:
+    """Whether the view has seen the fusion server's liveliness token (its stream's first message says)."""
+    req = urllib.request.Request(url + "api/stream")
+    with opener.open(req, timeout=10) as r:
+        first = b""
+        while not first.endswith(b"\n\n"):
+            first += r.read(1)
+    return json.loads(first.decode().split("data: ", 1)[1])["fusion_alive"] is True
 
 
 def test_the_command_refuses_to_start_without_a_token(tmp_path):

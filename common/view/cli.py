@@ -99,7 +99,9 @@ async def _serve(session, site, *, host: str, port: int, token: str, prefix: str
     from common.view.server import View, make_app
 
     view = View(session, site, token=token, prefix=prefix)
-    runner = web.AppRunner(make_app(view), handle_signals=False, access_log=None, shutdown_timeout=2.0)
+    # handler_cancellation: a page that goes away ends its stream at once (not at the next write)
+    runner = web.AppRunner(make_app(view), handle_signals=False, access_log=None, shutdown_timeout=2.0,
+                           handler_cancellation=True)
     await runner.setup()
     try:
         try:
