@@ -42,7 +42,7 @@ from pathlib import Path
 
 import pytest
 
-from procs import ROOT, Proc, free_port, loopback_config, wait_for
+from procs import ROOT, Proc, free_port, loopback_config, stop_all, wait_for
 
 from common import keys, messages, synth
 
@@ -449,3 +449,75 @@ def test_a_page_left_open_for_an_hour_of_frames_keeps_a_flat_heap(tmp_path):
     assert rows <= 300 and markers <= 4, measured
     assert after - before < HEAP_GROWTH_BOUND, measured
     assert rss_kb - rss_before_kb < RSS_GROWTH_BOUND_KB, measured
+
+
+# --------------------------------------------------------------------------- a view that starts late
+
+
+def test_a_view_started_after_a_fall_shows_it_from_the_history_and_acknowledges_it(tmp_path):
+    """The fusion server's store already holds a fall, an older fall someone acknowledged, and a
+    sit-down; a view started now shows the one alarm still waiting, and acknowledges it."""
+    from procs import Listener, Router, start_fusion
+
+    from fusion_server.event_store import EventStore
+
+    site = synth.default_site(tmp_path / "site")
+    now = time.time_ns()
+
+    def ev(kind: str, ago_s: float, **details) -> messages.Event:
+        stamp = now - int(ago_s * 1e9)
+        return messages.Event(id=messages.event_id(stamp, kind, 1), kind=kind, track=1, stamp_ns=stamp, frame=-1,
+                              x=2.0, y=3.0, details=details)
+
+    old, sit, fall = ev("fall", 3600), ev("sit_down", 600), ev("fall", 60)
+    old_ack = messages.Event(id=f"{old.id}-ack", kind="alarm_ack", track=1, stamp_ns=old.stamp_ns + 10**9, frame=-1,
+                             x=2.0, y=3.0, details={"event": old.id, "alarm": "fall", "by": "Ada's son"})
+    store = EventStore(tmp_path / "events.sqlite")
+    store.add_many([old, old_ack, sit, fall])
+    store.close()
+    token_file = tmp_path / "view.token"
+    token_file.write_text("another-long-test-token\n")
+    port = free_port()
+    url = f"http://127.0.0.1:{port}/"
+    with Router() as router:
+        listener = Listener(router.session, site.prefix)
+        procs = []
+        try:
+            fusion = start_fusion(site.base_dir / "site.toml", endpoint=router.endpoint, store=tmp_path / "events.sqlite",
+                                  out=None, cache_dir=tmp_path / "cache", log_dir=tmp_path)
+            procs.append(fusion)
+            listener.wait_fusion(fusion)
+            view = Proc("view", [*PYTHON_CLI, "view", "--site", str(site.base_dir / "site.toml"), "--listen",
+                                 f"127.0.0.1:{port}", "--token-file", str(token_file), "--mode", "client",
+                                 "--connect", router.endpoint], tmp_path / "view.log", env={"PYTHONPATH": str(ROOT)})
+            procs.append(view)
+            wait_for(lambda: "voxelwatch view: http" in view.output(), 60, "the view", procs=procs)
+            opener, _ = _opener()
+            assert _status(opener, url + "?token=another-long-test-token")[0] == 200
+
+            def snapshot() -> dict:
+                with opener.open(url + "api/stream", timeout=10) as r:
+                    first = b""
+                    while not first.endswith(b"\n\n"):
+                        first += r.read(1)
+                return json.loads(first.decode().split("data: ", 1)[1])
+
+            alarms = wait_for(lambda: snapshot()["alarms"], 30, "the alarm from the history", procs=procs)
+            assert [a["id"] for a in alarms] == [fall.id]  # the acknowledged fall waits for nobody
+            timeline = json.loads(_status(opener, url + "api/timeline")[1])
+            (person,) = timeline["people"]
+            assert person["marks"] == [[old.stamp_ns, "fall"], [sit.stamp_ns, "sit_down"], [fall.stamp_ns, "fall"]]
+            code, body = _status(opener, url + "api/ack", json.dumps({"event": fall.id}).encode(),
+                                 {"Content-Type": "application/json"})
+            assert code == 200 and json.loads(body)["ack"]["details"] == {"event": fall.id, "alarm": "fall", "by": "view"}
+            assert snapshot()["alarms"] == []
+            heard = wait_for(lambda: listener.events_of("alarm_ack"), 20, "the published alarm_ack", procs=procs)
+            assert [e.details["event"] for e in heard] == [fall.id]
+        finally:
+            stop_all(procs)
+            listener.close()
+    store = EventStore(tmp_path / "events.sqlite")
+    try:
+        assert store.get(f"{fall.id}-ack") is not None
+    finally:
+        store.close()

@@ -115,11 +115,20 @@ async def _serve(session, site, *, host: str, port: int, token: str, prefix: str
         done = asyncio.Event()
         for sig in (signal.SIGINT, signal.SIGTERM):
             loop.add_signal_handler(sig, done.set)
-        threading.Thread(target=lambda: (stop.wait(), loop.call_soon_threadsafe(done.set)), daemon=True).start()
+        threading.Thread(target=_relay, args=(stop, loop, done), daemon=True).start()
         await done.wait()
     finally:
         await runner.cleanup()
     return 0
+
+
+def _relay(stop: threading.Event, loop: asyncio.AbstractEventLoop, done: asyncio.Event) -> None:
+    """``stop`` (a signal before the loop ran, a lost session) ends the loop's wait."""
+    stop.wait()
+    try:
+        loop.call_soon_threadsafe(done.set)
+    except RuntimeError:  # the loop has already ended
+        pass
 
 
 def _host_port(listen: str) -> tuple[str, int]:
