@@ -10,8 +10,12 @@ list holds the fall; a click on the banner's button acknowledges it, the
 ``alarm_ack`` (by the name typed at login) is in the fusion server's history
 and the banner clears on every open page. The installer's page shows a
 camera's mask under the floor outline. Over plain HTTP: a wrong token is
-refused (401 form, 403 link, 401 API), and the command refuses to start
-without a token.
+refused (401 form, 403 link, 401 API), a form from another site too, the
+fusion server's refusals (an unknown alarm, a bad history filter) reach the
+page with their reason, pages that go away free their places, and the
+command refuses to start without a token. A view started after a fall (a
+fusion server whose store holds it) shows the alarm still waiting, not the
+one acknowledged before, and acknowledges it.
 
 slow: a page left open while a test session publishes 54,000 track frames
 (an hour of the house at 15 frames/s) with events and status as fast as it
