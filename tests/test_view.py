@@ -303,7 +303,7 @@ def test_the_fall_raises_the_banner_the_marker_lies_where_it_fell_and_a_click_ac
     # the banner beeps (WebAudio) while it waits
     assert browser.execute_script("return voxelwatchView.beepTimer !== null && !!voxelwatchView.audio")
     # the day's timeline of the person: standing, then lying from about the fall, with the fall marked
-    timeline = json.loads(_get(browser, demo.url + "api/timeline"))
+    timeline = json.loads(_get(browser, demo.url + "api/timeline?since=0"))
     (person,) = [p for p in timeline["people"] if p["key"] == str(fall.track)]
     lying = [r for r in person["runs"] if r[2] == "lying"]
     assert lying and abs(lying[0][0] - fall.stamp_ns) < 3e9 and person["runs"][0][2] != "lying", person["runs"]
@@ -508,7 +508,7 @@ def test_a_view_started_after_a_fall_shows_it_from_the_history_and_acknowledges_
 
             alarms = wait_for(lambda: snapshot()["alarms"], 30, "the alarm from the history", procs=procs)
             assert [a["id"] for a in alarms] == [fall.id]  # the acknowledged fall waits for nobody
-            timeline = json.loads(_status(opener, url + "api/timeline")[1])
+            timeline = json.loads(_status(opener, url + "api/timeline?since=0")[1])  # not only since midnight
             (person,) = timeline["people"]
             assert person["marks"] == [[old.stamp_ns, "fall"], [sit.stamp_ns, "sit_down"], [fall.stamp_ns, "fall"]]
             code, body = _status(opener, url + "api/ack", json.dumps({"event": fall.id}).encode(),

@@ -23,7 +23,7 @@ Web side:
 | ``/api/plan`` | the plan geometry (:mod:`common.plan`) and the view settings |
 | ``/api/stream`` | server-sent events: ``snapshot`` first, then ``tracks``, ``event``, ``alarms``, ``status``, ``fusion`` |
 | ``/api/events`` | the history (``kind``, ``since``, ``until``, ``limit`` as the history queryable takes them) |
-| ``/api/timeline`` | the day per person |
+| ``/api/timeline`` | the day per person (since the home's midnight, or ``since``) |
 | ``/api/ack`` | POST ``{"event": id}``: acknowledge an alarm through the fusion server |
 | ``/api/install/<cam>`` | the floor outline and hot spots in the camera's pixels, and its status |
 | ``/api/mask/<cam>.png`` | the camera's latest mask as a PNG |
@@ -81,7 +81,7 @@ HEARTBEAT_S = 15.0
 QUERY_TIMEOUT_S = 10.0
 ACK_TIMEOUT_S = 10.0
 MAX_NAME = 64
-SEED_DAY_NS = 86_400_000_000_000
+DAY_NS = 86_400_000_000_000
 
 
 # --------------------------------------------------------------------------- access
@@ -338,9 +338,10 @@ class View:
         raise ValueError("the fusion server did not answer (is it running?)")
 
     async def _seed(self) -> None:
-        """Today's alarms, acknowledgements and timeline events from the history."""
+        """The alarms of the last day still waiting, and today's events for the timeline, from the
+        history (postures are not stored: the timeline has them from when the view started)."""
         loop = asyncio.get_running_loop()
-        since = time.time_ns() - SEED_DAY_NS
+        since = min(time.time_ns() - DAY_NS, self.day_start_ns())
         try:
             events = await loop.run_in_executor(self._pool, self.query_history,
                                                 {"since": str(since), "limit": "5000"})
@@ -407,6 +408,12 @@ class View:
             c.push_event(text)
         if out["alarms"] is not None:
             self._broadcast_alarms()
+
+    def day_start_ns(self, now_ns: int | None = None) -> int:
+        """Midnight of the home's day (the site's ``utc_offset_hours``), nanoseconds since the epoch."""
+        now = time.time_ns() if now_ns is None else now_ns
+        offset = int(self.site.utc_offset_hours * 3600 * 1e9)
+        return (now + offset) // DAY_NS * DAY_NS - offset
 
     def _broadcast_alarms(self) -> None:
         text = json.dumps(self.state.alarm_list(), separators=(",", ":"))
@@ -652,7 +659,7 @@ async def _timeline(request: web.Request) -> web.StreamResponse:
     view: View = request.app["view"]
     since = request.query.get("since")
     try:
-        since_ns = int(since) if since else None
+        since_ns = int(since) if since else view.day_start_ns()  # the home's day so far
     except ValueError:
         return web.json_response({"error": f"since {since!r} is not integer nanoseconds"}, status=400)
     return web.json_response(view.state.timeline(since_ns=since_ns))
