@@ -273,6 +273,14 @@ def test_the_fall_raises_the_banner_the_marker_lies_where_it_fell_and_a_click_ac
     _login(browser, demo.url, demo.token, NAME)
     first = browser.current_window_handle
     assert browser.execute_script("return voxelwatchView.name") == NAME
+    # the plan: every hot spot, door, piece of furniture and camera of the site, each camera's view on the floor
+    from common.site import load_site
+
+    site = load_site(demo.out / "site" / "site.toml")
+    drawn = browser.execute_script(
+        "return ['.hotspot', '.door', '.occluder', '.camera', '#fov polygon'].map("
+        "q => document.querySelectorAll('#plan ' + q).length)")
+    assert drawn == [len(site.hotspots), len(site.doors), len(site.occluders), 5, 5], drawn
     wait_for(lambda: browser.execute_script("return !document.getElementById('alarm').hidden"), 90,
              "the fall banner", procs=[demo.proc])
     banner = browser.find_element(By.ID, "alarm")
