@@ -58,6 +58,7 @@ NAME = "Night nurse"
 SHOTS = os.environ.get("VOXELWATCH_VIEW_SHOTS") == "1"
 HEAP_GROWTH_BOUND = 1024 * 1024
 RSS_GROWTH_BOUND_KB = 20 * 1024
+PREFIX = "voxelwatch/synthetic-house"
 PYTHON_CLI = [sys.executable, "-c", "import sys; from common.cli import main; sys.exit(main())"]
 
 
@@ -90,16 +91,75 @@ class DemoView:
         return self.proc.output()
 
 
+class Alerts:
+    """``voxelwatch notify`` beside the demo system, with its real receivers: a mosquitto broker, an
+    HTTP hook server and an MQTT subscriber."""
+
+    def __init__(self, folder: Path) -> None:
+        from notifyparts import HookServer, Mosquitto, MqttWatcher
+
+        from common.site import MqttSettings, NotifySettings, WebhookSettings, write_site
+
+        self.folder = folder
+        self.broker = Mosquitto(folder / "broker").start()
+        self.hooks = HookServer()
+        self.watcher = MqttWatcher(self.broker.port, (f"{PREFIX}/#",))
+        site = synth.default_site(folder / "site")  # the demo's house: same name, same prefix
+        notify = NotifySettings(retry_max_s=2.0, outbox=str(folder / "outbox.sqlite"),
+                                mqtt=MqttSettings(host="127.0.0.1", port=self.broker.port),
+                                webhooks=[WebhookSettings(url=self.hooks.url("/hook"))])
+        self.site_file = write_site(site.model_copy(update={"notify": notify}), site.base_dir / "site.toml")
+        self.port = free_port()
+        self.notifier: Proc | None = None
+
+    def start_notifier(self, endpoint: str) -> None:
+        self.notifier = Proc("notify", [sys.executable, "-m", "common.notify", "--site", str(self.site_file),
+                                        "--mode", "client", "--connect", endpoint, "--status-every", "2"],
+                             self.folder / "notify.log", env={"PYTHONPATH": str(ROOT)})
+
+    def close(self) -> None:
+        if self.notifier is not None:
+            self.notifier.stop()
+        self.watcher.close()
+        self.hooks.close()
+        self.broker.stop()
+
+
 @pytest.fixture(scope="module")
-def demo(tmp_path_factory):
+def alerts(tmp_path_factory):
+    """The notifier's receivers, or None where mosquitto is not installed (the view's tests go on)."""
+    from notifyparts import MOSQUITTO
+
+    if MOSQUITTO is None:
+        yield None
+        return
+    made = Alerts(tmp_path_factory.mktemp("alerts"))
+    try:
+        yield made
+    finally:
+        made.close()
+
+
+@pytest.fixture(scope="module")
+def demo(tmp_path_factory, alerts):
+    """The demo system with its view; with ``alerts``, the notifier joins the demo's router and
+    connects to the broker, and the broker is stopped before the workers' first frame: the fall
+    happens while it is down."""
     if not CHROMEDRIVER.is_file():
         pytest.skip("chromedriver is not installed (Debian: apt-get install chromium chromium-driver)")
     out = tmp_path_factory.mktemp("demo-view")
     port = free_port()
+    router = alerts.port if alerts is not None else free_port()
     proc = Proc("demo", [*PYTHON_CLI, "demo", "--view", f"127.0.0.1:{port}", "--scenario", SCENARIO,
-                         "--frames", str(FRAMES), "--out", str(out / "demo")],
+                         "--frames", str(FRAMES), "--out", str(out / "demo"), "--port", str(router)],
                 out / "demo.log", env={"PYTHONPATH": str(ROOT)})
     try:
+        if alerts is not None:
+            wait_for(lambda: "zenoh router" in proc.output(), 60, "the demo's router", procs=[proc])
+            alerts.start_notifier(f"tcp/127.0.0.1:{router}")
+            wait_for(lambda: ("online", True) in alerts.watcher.on(f"{PREFIX}/availability"), 60,
+                     "the notifier online on the broker", procs=[proc, alerts.notifier])
+            alerts.broker.stop()
         text = wait_for(lambda: re.search(r"live view: (http://127\.0\.0\.1:\d+/)\?token=(\S+)", proc.output())
                         and "voxelwatch view: http" in (out / "demo" / "logs" / "view.log").read_text(errors="replace")
                         and proc.output(), 120, "the demo's view", procs=[proc])
@@ -339,6 +399,31 @@ def test_the_fall_raises_the_banner_the_marker_lies_where_it_fell_and_a_click_ac
              "the banner to clear on the second page")
     browser.close()
     browser.switch_to.window(first)
+
+
+def test_the_fall_reaches_the_webhook_and_mqtt_once_the_broker_is_back(demo, alerts):
+    """The notifier heard the demo's fall while the broker was down: the webhook has it at once;
+    MQTT only once the broker is started again, then with nothing lost; every delivery carries the
+    event id (duplicates recognisable)."""
+    if alerts is None:
+        pytest.skip("mosquitto is not installed (Debian: apt-get install mosquitto)")
+    from common.messages import Event
+
+    def falls_at_hook():
+        return [h for h in alerts.hooks.at("/hook") if h.status == 200 and Event.from_json(h.body).kind == "fall"]
+
+    hits = wait_for(falls_at_hook, 120, "the fall at the webhook", procs=[demo.proc, alerts.notifier])
+    (fall,) = _history(demo.endpoint, PREFIX, "kind=fall")
+    assert {Event.from_json(h.body).id for h in hits} == {h.headers["Idempotency-Key"] for h in hits} == {fall.id}
+    time.sleep(2.0)
+    assert alerts.watcher.on(f"{PREFIX}/events/fall") == []  # no broker, no delivery yet
+    alerts.broker.start()
+    got = wait_for(lambda: alerts.watcher.on(f"{PREFIX}/events/fall"), 60, "the fall on MQTT",
+                   procs=[alerts.notifier])
+    assert {json.loads(payload)["id"] for payload, _ in got} == {fall.id}
+    # only the chosen kinds travel: the fall, and no camera_lost (the cameras are all up)
+    delivered = {Event.from_json(h.body).kind for h in alerts.hooks.at("/hook")}
+    assert delivered == {"fall"}, delivered
 
 
 def test_the_demo_ends_with_a_plan_svg_of_the_run(demo):

@@ -249,6 +249,7 @@ class Listener:
         self.session = zenoh.open(zenoh_config(mode="peer", listen=[self.endpoint]))
         self.lock = threading.Lock()
         self.payloads: list[bytes] = []
+        self.stops: list[int] = []  # masks heard before each stop notice
         self.alive: list[tuple[str, str]] = []
         self.sub = self.session.declare_subscriber(keys.mask_key(self.prefix, "cam1"), self._on_mask)
         self.live = self.session.liveliness().declare_subscriber(
@@ -258,7 +259,10 @@ class Listener:
 
     def _on_mask(self, sample) -> None:
         with self.lock:
-            self.payloads.append(sample.payload.to_bytes())
+            if sample.kind == zenoh.SampleKind.DELETE:  # the worker's notice that it stops on purpose
+                self.stops.append(len(self.payloads))
+            else:
+                self.payloads.append(sample.payload.to_bytes())
 
     def _on_alive(self, sample) -> None:
         with self.lock:
@@ -391,6 +395,7 @@ def test_worker_process_stops_cleanly_on_sigterm_while_looping(tmp_path, listene
     assert masks[-1].seq >= 80
     stamps = [m.stamp_ns for m in masks]
     assert all(a < b for a, b in zip(stamps, stamps[1:]))
+    assert _wait(lambda: listener.stops) and listener.stops == [len(masks)]  # one stop notice, after the last mask
 
 
 def test_worker_process_reads_a_live_stream(tmp_path, listener):
