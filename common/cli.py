@@ -30,6 +30,7 @@ examples:
   voxelwatch eval --suite                     the whole scenario library
   voxelwatch bench                            speed and size of every stage on this machine
   voxelwatch site check deploy/site.toml      validate a site file and its calibrations
+  voxelwatch calibrate floor --site deploy/site.toml --clip cam1=board1.avi ...   camera poses from a board on the floor
   voxelwatch router --listen tcp/0.0.0.0:7447  a zenoh router for client-mode hosts
   voxelwatch certs --site deploy/site.toml    the site's authority and one TLS certificate per host
   voxelwatch router --site deploy/site.toml   the router with the site's TLS and access control
@@ -92,6 +93,12 @@ _PASSTHROUGH: dict[str, Callable[[], Callable[[Sequence[str]], int]]] = {
 def _register_passthrough(sub) -> None:
     sub.add_parser("camera", help="run one camera worker (voxelwatch-camera)", add_help=False)
     sub.add_parser("fusion", help="run the fusion server (voxelwatch-fusion)", add_help=False)
+
+
+def _register_calibrate(sub) -> None:
+    from common.calibrate.command import register
+
+    register(sub)
 
 
 def _register_site(sub) -> None:
@@ -593,5 +600,6 @@ _SUBCOMMANDS: list[Callable] = [
     _register_demo,
     _register_bench,
     _register_synth, _register_replay, _register_enrol, _register_eval, _register_site, _register_router, _register_certs,
+    _register_calibrate,
     _register_passthrough,
 ]
