@@ -110,7 +110,7 @@ def find_board(gray: np.ndarray, board: Board, *, camera: Camera | None = None, 
     """
     corners = _find_direct(gray, board, exhaustive=False)
     if corners is None and thorough:
-        corners = _find_direct(gray, board, exhaustive=True, scale=2)
+        corners = _find_direct(gray, board, exhaustive=False, scale=2)
         if corners is None and camera is not None:
             corners = _find_from_above(gray, board, camera, rough_pose)
     if corners is None:
@@ -185,7 +185,7 @@ def _find_from_above(gray, board: Board, camera: Camera, rough_pose) -> np.ndarr
                 continue
             mx, my = maps
             view = cv2.remap(gray, mx, my, cv2.INTER_CUBIC, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
-            corners = _find_direct(view, board, exhaustive=True)
+            corners = _find_direct(view, board, exhaustive=False)
             if corners is None:
                 continue
             uv = np.stack([_bilinear(mx, corners), _bilinear(my, corners)], axis=1)

@@ -29,7 +29,7 @@ from common.synth.render import SURF_FLOOR, CameraRenderer, raycast_room
 from common.synth.scene import Room
 
 BLACK, WHITE = 28.0, 220.0
-FLOOR_MIN_AREA = 0.003
+FLOOR_MIN_AREA = 0.006
 """A floor position counts as seen by a camera when the board covers at least this share of its image."""
 FLOOR_MAX_SLANT_DEG = 78.0
 
