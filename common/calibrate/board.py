@@ -195,7 +195,7 @@ def _find_from_above(gray, board: Board, camera: Camera, rough_pose) -> np.ndarr
     return None
 
 
-def _candidate_windows(gray: np.ndarray, count: int = 3) -> list[tuple[int, int, int, int]]:
+def _candidate_windows(gray: np.ndarray, count: int = 2) -> list[tuple[int, int, int, int]]:
     """Up to ``count`` image boxes ``(x0, y0, x1, y1)`` dense in saddle points (where four squares
     meet), densest first, each grown by half its size: where a board may lie."""
     g = cv2.GaussianBlur(gray.astype(np.float32), (0, 0), 1.0)
@@ -234,6 +234,7 @@ def _downward_rotations(camera: Camera, rough_pose):
             y_w = np.cross(z_w, x_w)
             R_vw = np.stack([x_w, y_w, z_w])   # world -> virtual
             yield R_vw @ R_wc.T
+            return                              # a rough pose is near enough: no guessing
     for pitch in GUESSED_PITCHES_DEG:
         a = math.radians(90.0 - pitch)        # turn the view down about the camera's x axis
         c, s = math.cos(a), math.sin(a)

@@ -14,8 +14,11 @@ import cv2
 import numpy as np
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
-STILL_GREY = 2.0
-"""Mean absolute change (grey levels, on a quarter-size image) below which two frames show a still scene."""
+CHANGE_GREY = 12
+"""A pixel of the quarter-size image changed between two frames when it moved by more than this (grey levels)."""
+STILL_SHARE = 0.001
+"""Two frames show a still scene when at most this share of the pixels changed (a board put down or
+taken away changes far more; sensor noise far less)."""
 MIN_STILL_FRAMES = 3
 MEDIAN_FRAMES = 15
 LIVE_FRAMES = 150
@@ -84,10 +87,10 @@ def still_stretches(frames: list[np.ndarray], index: list[int]) -> list[Still]:
         return [Still(index[0], index[0] + 1, frames[0])] if frames else []
     small = [cv2.resize(f, (max(1, f.shape[1] // 4), max(1, f.shape[0] // 4)), interpolation=cv2.INTER_AREA).astype(np.int16)
              for f in frames]
-    change = [float(np.abs(a - b).mean()) for a, b in zip(small, small[1:])]
+    change = [float((np.abs(a - b) > CHANGE_GREY).mean()) for a, b in zip(small, small[1:])]
     out, start = [], 0
     for i in range(1, len(frames) + 1):
-        if i == len(frames) or change[i - 1] > STILL_GREY:
+        if i == len(frames) or change[i - 1] > STILL_SHARE:
             if i - start >= MIN_STILL_FRAMES:
                 picked = frames[start:i]
                 if len(picked) > MEDIAN_FRAMES:

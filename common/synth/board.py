@@ -143,7 +143,7 @@ def intrinsics_poses(camera: Camera, board: Board, count: int, rng: np.random.Ge
     return poses
 
 
-def floor_sees(camera: Camera, room: Room | None, board: Board, pose) -> bool:
+def floor_sees(camera: Camera, room: Room | None, board: Board, pose, *, min_area: float = FLOOR_MIN_AREA) -> bool:
     """Whether ``camera`` sees the whole board lying at ``pose`` on the floor, big enough and not edge-on."""
     pts = _sheet_corners(board, pose)
     uv, valid = camera.project(pts)
@@ -153,7 +153,7 @@ def floor_sees(camera: Camera, room: Room | None, board: Board, pose) -> bool:
         return False
     inner, _ = camera.project(corners_world(board, pose))
     hull = cv2.convexHull(inner.astype(np.float32).reshape(-1, 1, 2))
-    if cv2.contourArea(hull) < FLOOR_MIN_AREA * camera.width * camera.height:
+    if cv2.contourArea(hull) < min_area * camera.width * camera.height:
         return False
     d = pts - camera.center
     slant = np.degrees(np.arccos(np.clip(-d[:, 2] / np.linalg.norm(d, axis=1), -1, 1)))
@@ -168,7 +168,7 @@ def floor_sees(camera: Camera, room: Room | None, board: Board, pose) -> bool:
 
 
 def floor_positions(cameras: dict[str, Camera], room: Room, board: Board, rng: np.random.Generator, *,
-                    max_positions: int = 8, step_m: float = 0.4) -> list:
+                    max_positions: int = 8, step_m: float = 0.4, min_area: float = FLOOR_MIN_AREA) -> list:
     """Board poses on the floor (Z = 0) that chain every camera: the first is the place most cameras
     see, each next one is seen by a camera already chained and by the most cameras not yet chained.
     ValueError naming the cameras left out when no such chain exists."""
@@ -180,7 +180,7 @@ def floor_positions(cameras: dict[str, Camera], room: Room, board: Board, rng: n
             centre_b = np.array([(board.cols - 1) / 2, (board.rows - 1) / 2, 0.0]) * board.square_m
             R = _rot(2, yaw)
             t = np.array([x, y, 0.0]) - R @ centre_b
-            seen = {c for c, cam in cameras.items() if floor_sees(cam, room, board, (R, t))}
+            seen = {c for c, cam in cameras.items() if floor_sees(cam, room, board, (R, t), min_area=min_area)}
             if seen:
                 cands.append(((R, t), seen))
     if not cands:
@@ -218,14 +218,15 @@ def intrinsics_clip(renderer: BoardRenderer, board: Board, poses, *, frames_per_
 
 def floor_clip(renderer: BoardRenderer, board: Board, poses, *, still_frames: int = 5, gap_frames: int = 2):
     """Frames of the board lying at each floor pose in turn, the empty floor for ``gap_frames`` between
-    (the board is being carried), as every camera records it at the same time."""
+    (the board is being carried), as every camera records it at the same time. A pose of None: the
+    camera does not see the board there (the empty floor instead)."""
     k = 0
     for pose in poses:
         for _ in range(gap_frames):
             yield renderer.render(None, key=k)
             k += 1
         for _ in range(still_frames):
-            yield renderer.render(board, pose, key=k)
+            yield renderer.render(None if pose is None else board, pose, key=k)
             k += 1
 
 
