@@ -1,6 +1,7 @@
 """Intrinsic calibration from a clip of a board moved in front of one camera.
 
-Every ``step``-th frame is searched for the board (:func:`~common.calibrate.board.find_board`).
+Up to :data:`MAX_CANDIDATES` frames, spread evenly over the clip, are searched for the board
+(:func:`~common.calibrate.board.find_board`).
 Views are then picked, sharpest first: a view is skipped when it is blurred (the variance of the
 Laplacian over the board below :data:`BLUR_SHARE` of the clip's median) or when it repeats one
 already picked (its four outer corners within :data:`DUPLICATE_SHARE` of the image diagonal of
