@@ -236,7 +236,6 @@ def test_a_clip_that_cannot_be_read_is_refused_and_nothing_written(tmp_path, cap
     assert "not found" in capsys.readouterr().err and not (tmp_path / "cam1.toml").exists()
 
 
-@pytest.mark.slow
 def test_cameras_that_share_no_board_position_are_named(tmp_path, capsys):
     """cam1 and cam2 see the board only at different times: the chain cannot reach cam2."""
     world, site_path = _synthetic_site(tmp_path)
@@ -245,7 +244,7 @@ def test_cameras_that_share_no_board_position_are_named(tmp_path, capsys):
     ids = list(world.cameras)
     clips = {}
     for k, cam_id in enumerate(ids):
-        renderer = BoardRenderer(world.cameras[cam_id], world.room)
+        renderer = BoardRenderer(world.cameras[cam_id], None)   # a plain floor: quicker
         frames = [renderer.render(None, key=i) for i in range(3)]
         # cam1 records the first position, every other camera the board only once it has moved on
         frames += [renderer.render(BOARD, poses[0], key=9) for _ in range(5)] if k == 0 else \
@@ -259,7 +258,7 @@ def test_cameras_that_share_no_board_position_are_named(tmp_path, capsys):
                  *[f"--clip={c}={p}" for c, p in clips.items()]])
     err = capsys.readouterr().err
     assert code == 2
-    assert "share no board position with cam1" in err or "not found by camera" in err, err
+    assert "share no board position with cam1" in err and len(err.strip().splitlines()) == 1, err
     assert _snapshot(site_path) == before
 
 
