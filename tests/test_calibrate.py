@@ -222,6 +222,21 @@ def test_a_clip_without_the_board_is_refused_and_nothing_written(tmp_path, capsy
     assert "not found in any of 4 frames" in capsys.readouterr().err and not (tmp_path / "cam1.toml").exists()
 
 
+def test_a_board_too_small_in_the_image_is_refused(tmp_path, capsys):
+    """A 9x6 board of 35 mm squares where a 140 mm one would fill a quarter to half of the image."""
+    world = random_world(FLOOR_SEED)
+    cam = world.cameras["cam1"]
+    poses = intrinsics_poses(cam, BOARD, 6, np.random.default_rng(1))
+    clip = write_frames(intrinsics_clip(BoardRenderer(cam, None, seed=1), Board(9, 6, 0.035), poses, frames_per_pose=1),
+                        tmp_path / "clip")
+    out = tmp_path / "cam1.toml"
+    assert main(["calibrate", "intrinsics", "--camera", "cam1", "--clip", str(clip), "--board", "9x6",
+                 "--square-mm", "35", "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert "the board is too small in the image" in err and len(err.strip().splitlines()) == 1
+    assert not out.exists()
+
+
 def test_a_clip_that_cannot_be_read_is_refused_and_nothing_written(tmp_path, capsys):
     _, site_path = _synthetic_site(tmp_path)
     before = _snapshot(site_path)
