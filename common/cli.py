@@ -34,6 +34,7 @@ examples:
   voxelwatch router --listen tcp/0.0.0.0:7447  a zenoh router for client-mode hosts
   voxelwatch certs --site deploy/site.toml    the site's authority and one TLS certificate per host
   voxelwatch router --site deploy/site.toml   the router with the site's TLS and access control
+  voxelwatch notify --site deploy/site.toml  alarms to MQTT/Home Assistant, webhooks and e-mail
   voxelwatch camera --help                    the camera worker (same as voxelwatch-camera)
   voxelwatch fusion --help                    the fusion server (same as voxelwatch-fusion)
 """
@@ -545,6 +546,8 @@ def _register_demo(sub) -> None:
                    help="with --world random: 'mixed' makes one camera a depth camera and one a thermal camera")
     p.add_argument("--secure", action="store_true",
                    help="TLS with mutual authentication and the site's access control (certificates made in OUT/certs)")
+    p.add_argument("--view", nargs="?", const="127.0.0.1:8080", default=None, metavar="HOST:PORT",
+                   help="also serve the live view (default 127.0.0.1:8080); its token goes to OUT/view.token")
     p.set_defaults(handler=_demo)
 
 
@@ -558,7 +561,7 @@ def _demo(args: argparse.Namespace) -> int:
         print("voxelwatch demo: --sensors is for --world random", file=sys.stderr)
         return 2
     return run_demo(scenario=args.scenario, world=args.world, out_dir=args.out, seed=args.seed, frames=args.frames, port=args.port,
-                    secure=args.secure, sensors=args.sensors)
+                    secure=args.secure, sensors=args.sensors, view=args.view)
 
 
 def _register_bench(sub) -> None:
@@ -596,10 +599,15 @@ def _bench(args: argparse.Namespace) -> int:
     return 0
 
 
+from common.notify.cli import register as _register_notify  # noqa: E402 - its own package, argparse only
+from common.view.cli import register as _register_view  # noqa: E402 - its own package, argparse only
+
 _SUBCOMMANDS: list[Callable] = [
     _register_demo,
+    _register_view,
     _register_bench,
     _register_synth, _register_replay, _register_enrol, _register_eval, _register_site, _register_router, _register_certs,
+    _register_notify,
     _register_calibrate,
     _register_passthrough,
 ]

@@ -6,7 +6,13 @@ zenoh on loopback with multicast scouting off: this process is the zenoh
 router the others connect to as clients, and it subscribes to the events and
 tracks like any user would. It prints events as they happen with a progress
 line, and ends with a summary, the tracks and events files, a score against
-the scenario's ground truth and an annotated plan view.
+the scenario's ground truth and an annotated plan view (``run/plan.svg``,
+drawn by :func:`common.plan.plan_svg`; also ``run/plan.png`` when matplotlib
+is installed).
+
+With ``view``, the demo also runs ``voxelwatch view`` as one more process of
+the system, with a random token written to ``OUT/view.token``, and prints the
+page's address with the token in it.
 
 With ``secure``, the demo makes the site's certificates in its output folder
 (``certs/``), writes a ``[zenoh.tls]`` section into the demo's site file, and
@@ -62,11 +68,13 @@ def run_demo(
     port: int | None = None,
     secure: bool = False,
     sensors: str = "colour",
+    view: str | None = None,
     stream: TextIO = sys.stdout,
 ) -> int:
     """Run the scenario (or ``world="random"``: the randomised world of ``seed``, each worker
     rendering its own camera of it; ``sensors="mixed"``: its rig with a depth and a thermal
-    camera) end to end; returns the process exit code."""
+    camera) end to end; returns the process exit code. ``view``: ``HOST:PORT`` where the live
+    view is served as well (None: no view)."""
     import zenoh
 
     from common import keys, messages, synth
@@ -136,6 +144,8 @@ def run_demo(
             session.declare_subscriber(keys.status_key(site.prefix), lambda s: _on_status(s, live)),
         ]
         try:
+            if view is not None:
+                procs["view"] = _start_view(view, site_path, out, zenoh_args, logs, stream)
             procs["fusion"] = _spawn(
                 ["voxelwatch-fusion", "--site", str(site_path), "--out", str(run_dir), "--store", str(run_dir / "events.sqlite"),
                  "--cache-dir", str(out / "cache"), "--exit-after-idle", "4", *zenoh_args],
@@ -244,6 +254,28 @@ def _on_status(sample, live: _Live) -> None:
 # ---------------------------------------------------------------- processes
 
 
+def _start_view(listen: str, site_path: Path, out: Path, zenoh_args: list[str], logs: Path,
+                stream: TextIO) -> subprocess.Popen:
+    """``voxelwatch view`` on ``listen`` with a fresh random token in ``out/view.token`` (owner only)."""
+    import secrets
+    from urllib.parse import quote
+
+    host, sep, port = listen.rpartition(":")
+    if not sep or not host or not port.isdigit():
+        raise ValueError(f"--view: expected HOST:PORT, e.g. 127.0.0.1:8080, got {listen!r}")
+    token = secrets.token_urlsafe(18)
+    token_file = out / "view.token"
+    token_file.unlink(missing_ok=True)
+    fd = os.open(token_file, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+    with os.fdopen(fd, "w") as fh:
+        fh.write(token + "\n")
+    proc = _spawn(["voxelwatch", "view", "--site", str(site_path), "--listen", listen, "--token-file", str(token_file),
+                   *zenoh_args], logs / "view.log")
+    shown = "localhost" if host in ("0.0.0.0", "::") else host
+    print(f"live view: http://{shown}:{port}/?token={quote(token)}  (token in {token_file})", file=stream, flush=True)
+    return proc
+
+
 def _spawn(cmd: list[str], log_path: Path) -> subprocess.Popen:
     exe = Path(sys.executable).parent / cmd[0]
     argv = [str(exe) if exe.exists() else cmd[0], *cmd[1:]]
@@ -327,12 +359,22 @@ def _summary(out: Path, run_dir: Path, live: _Live, procs, stream: TextIO) -> in
     except Exception as exc:  # the summary must not hide the files already written
         print(f"(could not score against ground truth: {exc})", file=stream)
     try:
-        from common.evaluation import plots
+        from common.evaluation import io
+        from common.plan import plan_svg
         from common.site import load_site
 
-        plots.plan_view(run_dir, load_site(out / "site" / "site.toml"), run_dir / "plan.png", truth_dir=out / "truth")
-        print(f"plan view: {run_dir / 'plan.png'}", file=stream)
-    except ImportError as exc:
+        site = load_site(out / "site" / "site.toml")
+        truth = io.read_truth_tracks(out / "truth") if (out / "truth").is_dir() else None
+        svg = plan_svg(site, io.read_run_tracks(run_dir), io.read_run_events(run_dir, required=False), truth=truth)
+        (run_dir / "plan.svg").write_text(svg, encoding="utf-8")
+        print(f"plan view: {run_dir / 'plan.svg'}", file=stream)
+        try:
+            from common.evaluation import plots
+
+            plots.plan_view(run_dir, site, run_dir / "plan.png", truth_dir=out / "truth")
+        except ImportError:
+            pass  # the PNG needs matplotlib; the SVG does not
+    except Exception as exc:  # the summary must not hide the files already written
         print(f"(no plan view: {exc})", file=stream)
     print(f"tracks: {run_dir / TRACKS_FILE}\nevents: {run_dir / EVENTS_FILE}", file=stream)
     return 1 if failed else 0

@@ -75,12 +75,13 @@ Schema (all lengths in metres, world frame Z up, floor at Z = 0)::
     password_file = ""           # or password = "..."
     tls_ca = ""                  # the broker's authority: connect with TLS
     topic_prefix = ""            # default voxelwatch/<name>
-    discovery = true             # people and cameras appear as Home Assistant sensors
+    discovery = true             # people and cameras as Home Assistant sensors, alarms as event entities
     discovery_prefix = "homeassistant"
     [[notify.webhooks]]          # JSON POST of each event, retried with back-off
     url = "https://example.org/hook"
     kinds = ["fall"]             # optional: this channel's own kinds
     headers = { Authorization = "Bearer ..." }
+    timeout_s = 10.0             # per attempt; 2xx delivered, 408/429/5xx retried, other 4xx given up
     [notify.email]
     host = "smtp.example.org"
     port = 587

@@ -212,6 +212,14 @@ def _console_scripts() -> dict[str, str]:
 
 
 def _parser(script: str):
+    if script == "voxelwatch":  # the umbrella command with every subcommand
+        import argparse
+
+        parser = argparse.ArgumentParser(prog="voxelwatch")
+        sub = parser.add_subparsers(dest="command")
+        for register in vw_cli._SUBCOMMANDS:
+            register(sub)
+        return parser
     if script == "voxelwatch-fusion":
         return fusion_cli.build_parser()
     if script == "voxelwatch-camera":
@@ -236,6 +244,8 @@ ENV = _env_file(ENV_FILE.read_text(encoding="utf-8"))
 EXAMPLE_EXTRAS = {
     "VOXELWATCH_CAMERA_ARGS": "--source /dev/video2",
     "VOXELWATCH_FUSION_ARGS": "--out /var/lib/voxelwatch/files",
+    "VOXELWATCH_NOTIFY_ARGS": "--reader kitchen-tablet",
+    "VOXELWATCH_VIEW_ARGS": "--listen 0.0.0.0:8080",
 }
 
 
@@ -246,7 +256,8 @@ def test_env_file_names_the_site_and_documents_the_extras():
         assert key in ENV and f'{key}="{example}"' in text
 
 
-@pytest.mark.parametrize("unit", ["voxelwatch-camera@.service", "voxelwatch-fusion.service", "voxelwatch-router.service"])
+@pytest.mark.parametrize("unit", ["voxelwatch-camera@.service", "voxelwatch-fusion.service", "voxelwatch-router.service",
+                                  "voxelwatch-notify.service", "voxelwatch-view.service"])
 def test_unit_runs_as_a_dedicated_user_and_restarts(unit):
     values = _unit(UNITS / unit)
     assert values["User"] == ["voxelwatch"] and values["Group"] == ["voxelwatch"]
@@ -290,6 +301,35 @@ def test_fusion_unit_command_is_accepted_by_the_fusion_parser(extras):
         assert args.out == Path("/var/lib/voxelwatch/files")
 
 
+@pytest.mark.parametrize("extras", [False, True], ids=["plain", "with-extras"])
+def test_notify_unit_command_is_accepted_by_the_notify_parser(extras):
+    values = _unit(UNITS / "voxelwatch-notify.service")
+    env = {**ENV, **(EXAMPLE_EXTRAS if extras else {})}
+    argv = _exec_argv(values["ExecStart"][0], env, "")
+    assert Path(argv[0]).name == "voxelwatch" and argv[1] == "notify"
+    args = _parse("voxelwatch", argv[1:])
+    assert str(args.site) == "/etc/voxelwatch/site.toml"
+    # the outbox lives where systemd makes it writable
+    assert values["StateDirectory"] == ["voxelwatch"] and args.outbox.parent == Path("/var/lib/voxelwatch")
+    assert args.connect == ["tcp/127.0.0.1:7447"]  # the router on the same host
+    assert "voxelwatch-router.service" in values["After"][0]
+    if extras:
+        assert args.reader == "kitchen-tablet"
+
+
+@pytest.mark.parametrize("extras", [False, True], ids=["plain", "with-extras"])
+def test_view_unit_command_is_accepted_by_the_view_parser(extras):
+    values = _unit(UNITS / "voxelwatch-view.service")
+    env = {**ENV, **(EXAMPLE_EXTRAS if extras else {})}
+    argv = _exec_argv(values["ExecStart"][0], env, "")
+    assert Path(argv[0]).name == "voxelwatch" and argv[1] == "view"
+    args = _parse("voxelwatch", argv[1:])
+    assert str(args.site) == "/etc/voxelwatch/site.toml"
+    assert args.connect == ["tcp/127.0.0.1:7447"] and args.mode == "client"  # the router on the same host
+    assert args.listen == ("0.0.0.0:8080" if extras else None)  # else the site's [view] listen
+    assert "voxelwatch-router.service" in values["After"][0]
+
+
 def test_units_pass_systemd_analyze_verify(tmp_path):
     analyze = shutil.which("systemd-analyze")
     if analyze is None:
@@ -298,7 +338,8 @@ def test_units_pass_systemd_analyze_verify(tmp_path):
     for unit in UNITS.glob("*.service"):
         text = unit.read_text().replace("/opt/voxelwatch/venv/bin", str(bin_dir))
         (tmp_path / unit.name).write_text(text)
-    names = ["voxelwatch-router.service", "voxelwatch-fusion.service", "voxelwatch-camera@cam1.service"]
+    names = ["voxelwatch-router.service", "voxelwatch-fusion.service", "voxelwatch-camera@cam1.service",
+             "voxelwatch-notify.service", "voxelwatch-view.service"]
     run = subprocess.run([analyze, "verify", "--man=no", *names], cwd=tmp_path, capture_output=True, text=True,
                          timeout=120)
     assert run.returncode == 0, run.stderr
@@ -520,7 +561,7 @@ def _compose_services() -> dict[str, dict]:
 
 def test_compose_has_the_router_the_fusion_server_and_one_worker_per_camera(site):
     services = _compose_services()
-    assert set(services) == {"router", "fusion", *site.camera_ids}
+    assert set(services) == {"router", "fusion", "notify", "view", *site.camera_ids}
     hosts = []
     for cam_id in site.camera_ids:
         devices = services[cam_id]["devices"]
@@ -537,8 +578,18 @@ def test_compose_commands_are_accepted_by_the_real_parsers(site):
     for name, service in services.items():
         argv = service["command"]
         assert argv and argv[0] in scripts, f"{name}: {argv}"
-        if argv[0] == "voxelwatch":
+        if argv[:2] == ["voxelwatch", "view"]:
+            args = _parse("voxelwatch", argv[1:])
+            assert str(args.site) == "/etc/voxelwatch/site.toml" and args.connect == ["tcp/router:7447"]
+            assert args.listen == "0.0.0.0:8080"  # inside its container; published on the host's loopback only
+            continue
+        if argv[:2] == ["voxelwatch", "router"]:
             assert argv[1:] == ["router", "--site", "/etc/voxelwatch/site.toml", "--listen", "tcp/0.0.0.0:7447"]
+            continue
+        if argv[:2] == ["voxelwatch", "notify"]:
+            args = _parse("voxelwatch", argv[1:])
+            assert str(args.site) == "/etc/voxelwatch/site.toml" and args.connect == ["tcp/router:7447"]
+            assert args.outbox.parent == Path("/var/lib/voxelwatch")  # in the notify-state volume
             continue
         args = _parse(argv[0], argv[1:])
         assert str(args.site) == "/etc/voxelwatch/site.toml"

@@ -1,0 +1,52 @@
+"""``voxelwatch notify``: its command line (:func:`register` adds it to the umbrella command)."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+
+def register(sub) -> None:
+    """Add the ``notify`` subcommand to the umbrella command's subparsers."""
+    p = sub.add_parser("notify", help="deliver alarms to MQTT (Home Assistant), webhooks and e-mail, "
+                                      "kept on disk until each is delivered")
+    p.add_argument("--site", type=Path, required=True, help="the site TOML file (its [notify] section: channels, kinds)")
+    p.add_argument("--outbox", type=Path, default=None,
+                   help="the outbox file (default: [notify] outbox, relative to the site file)")
+    p.add_argument("--listen", action="append", default=None, help="zenoh endpoint to listen on (repeatable), overrides the site")
+    p.add_argument("--connect", action="append", default=None, help="zenoh endpoint to connect to (repeatable), overrides the site")
+    p.add_argument("--mode", choices=["peer", "client"], default=None, help="zenoh mode, overrides the site")
+    p.add_argument("--reader", default=None, metavar="NAME",
+                   help="the reader certificate to use with [zenoh.tls] (default: the site's first reader)")
+    p.add_argument("--tls-cert", type=Path, default=None, help="this host's certificate (default: <reader>.pem in the site's certs folder)")
+    p.add_argument("--tls-key", type=Path, default=None, help="this host's private key (default: <reader>-key.pem beside it)")
+    p.add_argument("--status-every", type=float, default=60.0, metavar="SECONDS",
+                   help="log a status line per channel this often (default 60)")
+    p.set_defaults(handler=_notify)
+
+
+def _notify(args: argparse.Namespace) -> int:
+    from common import keys
+    from common.notify.service import build_channels, run_forever
+    from common.site import load_site
+    from common.transport import site_config
+
+    site = load_site(args.site)
+    if not args.status_every > 0:
+        raise ValueError(f"--status-every must be a positive number of seconds, got {args.status_every}")
+    tls = site.zenoh.tls
+    reader = args.reader or (tls.readers[0] if tls is not None else "reader")
+    keys.validate_chunk(reader, "--reader")
+    if tls is not None and reader not in tls.readers:
+        raise ValueError(f"--reader {reader}: not one of the site's readers {tls.readers} ([zenoh.tls] readers)")
+
+    def make_config():
+        return site_config(site, host=reader, mode=args.mode, listen=args.listen, connect=args.connect,
+                           tls_cert=args.tls_cert, tls_key=args.tls_key, connect_timeout_ms=1000)
+
+    make_config()  # a bad endpoint or a missing certificate stops here, with its message
+    channels = build_channels(site)
+    outbox = args.outbox if args.outbox is not None else site.resolve(site.notify.outbox)
+    endpoints = list(args.connect if args.connect is not None else site.zenoh.connect)
+    return run_forever(site, outbox_path=outbox, make_config=make_config, endpoints=endpoints, channels=channels,
+                       status_every_s=args.status_every)

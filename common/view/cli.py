@@ -1,0 +1,158 @@
+"""``voxelwatch view``: the command line and the process around :class:`common.view.server.View`.
+
+:func:`register` adds the subcommand to ``voxelwatch``; :func:`run_view`
+opens the zenoh session (retrying while the router is away, like every
+voxelwatch process), serves the page until SIGINT/SIGTERM and always closes
+the session. Without a token (``[view] token`` or ``token_file`` in the site
+file, or ``--token-file``) it refuses to start.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import logging
+import signal
+import sys
+import threading
+from pathlib import Path
+from typing import TextIO
+
+log = logging.getLogger("voxelwatch.view")
+
+
+def register(sub) -> None:
+    p = sub.add_parser("view", help="the live web page: plan, people, alarms, events, timeline, cameras",
+                       description="Serve the live view of a home: the floor plan with people and their "
+                                   "postures, an alarm banner until acknowledged, the event history, a "
+                                   "timeline of the day, camera health, and an installer's page per camera. "
+                                   "The page asks for the site's [view] token once.")
+    p.add_argument("--site", required=True, type=Path, help="the site TOML file")
+    p.add_argument("--listen", default=None, metavar="HOST:PORT",
+                   help="where the page is served (default: the site's [view] listen, 127.0.0.1:8080)")
+    p.add_argument("--token-file", type=Path, default=None,
+                   help="a file holding the access token (default: the site's [view] token or token_file)")
+    p.add_argument("--prefix", default=None, help="zenoh key prefix (default from the site: voxelwatch/<site name>)")
+    p.add_argument("--connect", action="append", default=None,
+                   help="zenoh endpoint to connect to (repeatable), overrides the site")
+    p.add_argument("--mode", choices=["peer", "client"], default=None, help="zenoh mode, overrides the site")
+    p.add_argument("--tls-cert", type=Path, default=None,
+                   help="this host's certificate (default: the first [zenoh.tls] reader's, e.g. reader.pem)")
+    p.add_argument("--tls-key", type=Path, default=None, help="this host's private key (default: beside it)")
+    p.set_defaults(handler=_view)
+
+
+def _view(args: argparse.Namespace) -> int:
+    from common.site import load_site
+
+    site = load_site(args.site)
+    listen = args.listen or site.view.listen
+    host, port = _host_port(listen)
+    token = _token(site, args.token_file)
+    return run_view(site, host=host, port=port, token=token, prefix=args.prefix, mode=args.mode,
+                    connect=args.connect, tls_cert=args.tls_cert, tls_key=args.tls_key)
+
+
+def run_view(site, *, host: str, port: int, token: str, prefix: str | None = None, mode: str | None = None,
+             connect: list[str] | None = None, tls_cert: Path | None = None, tls_key: Path | None = None,
+             stream: TextIO = sys.stdout) -> int:
+    """Serve the view of ``site`` on ``host:port`` until SIGINT/SIGTERM; the exit code."""
+    from common import keys
+    from common.transport import open_session, site_config, watch_links
+
+    if prefix is not None:
+        try:
+            keys.validate_prefix(prefix)
+        except ValueError as exc:
+            raise ValueError(f"--prefix: {exc}") from None
+    tls = site.zenoh.tls
+    reader = tls.readers[0] if tls is not None and tls.readers else "reader"
+    endpoints = list(connect if connect is not None else site.zenoh.connect)
+
+    def make_config():
+        return site_config(site, host=reader, mode=mode, connect=connect, tls_cert=tls_cert, tls_key=tls_key,
+                           connect_timeout_ms=1000)
+
+    make_config()  # a bad setting stops here with its message, before any retrying
+    stop = threading.Event()
+    previous = {sig: signal.signal(sig, lambda *_: stop.set()) for sig in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        session = open_session(make_config, stop, who="view", endpoints=endpoints, log=log)
+        if session is None:
+            return 0
+        try:
+            watch_links(session, stop, who="view", endpoints=endpoints, log=log)
+            return asyncio.run(_serve(session, site, host=host, port=port, token=token, prefix=prefix,
+                                      stop=stop, stream=stream))
+        finally:
+            stop.set()
+            session.close()
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+
+
+async def _serve(session, site, *, host: str, port: int, token: str, prefix: str | None, stop: threading.Event,
+                 stream: TextIO) -> int:
+    from aiohttp import web
+
+    from common.view.server import View, make_app
+
+    view = View(session, site, token=token, prefix=prefix)
+    # handler_cancellation: a page that goes away ends its stream at once (not at the next write)
+    runner = web.AppRunner(make_app(view), handle_signals=False, access_log=None, shutdown_timeout=2.0,
+                           handler_cancellation=True)
+    await runner.setup()
+    try:
+        try:
+            await web.TCPSite(runner, host, port).start()
+        except OSError as exc:
+            raise ValueError(f"cannot serve on {host}:{port}: {exc.strerror or exc}") from None
+        where = f"[{host}]" if ":" in host else host
+        print(f"voxelwatch view: http://{where}:{port}/ (site {site.name}, prefix {view.prefix}; "
+              f"the page asks for the view token)", file=stream, flush=True)
+        loop = asyncio.get_running_loop()
+        done = asyncio.Event()
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            loop.add_signal_handler(sig, done.set)
+        threading.Thread(target=_relay, args=(stop, loop, done), daemon=True).start()
+        await done.wait()
+    finally:
+        await runner.cleanup()
+    return 0
+
+
+def _relay(stop: threading.Event, loop: asyncio.AbstractEventLoop, done: asyncio.Event) -> None:
+    """``stop`` (a signal before the loop ran, a lost session) ends the loop's wait."""
+    stop.wait()
+    try:
+        loop.call_soon_threadsafe(done.set)
+    except RuntimeError:  # the loop has already ended
+        pass
+
+
+def _host_port(listen: str) -> tuple[str, int]:
+    host, sep, port = listen.rpartition(":")
+    if not sep or not host or not port.isdigit() or not 0 < int(port) < 65536:
+        raise ValueError(f"--listen: expected HOST:PORT, e.g. 127.0.0.1:8080, got {listen!r}")
+    return host.strip("[]"), int(port)
+
+
+def _token(site, token_file: Path | None) -> str:
+    from common.site import SiteError
+
+    if token_file is not None:
+        try:
+            token = token_file.read_text(encoding="utf-8").strip()
+        except OSError as exc:
+            raise ValueError(f"--token-file {token_file}: cannot read: {exc.strerror or exc}") from None
+        where = f"--token-file {token_file}"
+    else:
+        token = site.secret(site.view.token, site.view.token_file, "view.token_file")
+        where = f"site file {site.source}: [view] token"
+    if not token:
+        raise SiteError(f"no access token for the view: set [view] token or token_file in the site file "
+                        f"{site.source}, or give --token-file")
+    if len(token) < 12:
+        raise ValueError(f"{where}: the token must be at least 12 characters")
+    return token
