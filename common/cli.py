@@ -96,12 +96,6 @@ def _register_passthrough(sub) -> None:
     sub.add_parser("fusion", help="run the fusion server (voxelwatch-fusion)", add_help=False)
 
 
-def _register_calibrate(sub) -> None:
-    from common.calibrate.command import register
-
-    register(sub)
-
-
 def _register_site(sub) -> None:
     p = sub.add_parser("site", help="check a site file, its calibrations and enrolled residents")
     p.add_argument("action", choices=["check"],
@@ -601,6 +595,7 @@ def _bench(args: argparse.Namespace) -> int:
 
 from common.notify.cli import register as _register_notify  # noqa: E402 - its own package, argparse only
 from common.view.cli import register as _register_view  # noqa: E402 - its own package, argparse only
+from common.calibrate.command import register as _register_calibrate  # noqa: E402 - its own package, argparse only
 
 _SUBCOMMANDS: list[Callable] = [
     _register_demo,
