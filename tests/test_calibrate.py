@@ -336,8 +336,10 @@ def test_lab_floor_calibration_fits_the_board(lab4cam, tmp_path, capsys):
         old = _shipped_board_error(shipped[s.cam_id], s.corners)
         print(f"{s.cam_id}: new {err.mean():.2f} px mean (median {np.median(err):.2f}), shipped {old:.2f} px mean")
         assert old > 5.0
-        assert np.median(err) < 1.0 and err.mean() < 1.5
-    assert out.count("stray left out") == 4
+        assert np.median(err) < 0.5 and err.mean() < 1.0
+    for n in range(1, 5):
+        line = next(x for x in out.splitlines() if x.startswith(f"  camera cam{n}: reprojection"))
+        assert float(line.split("reprojection ")[1].split(" px")[0]) < 1.0, line
 
 
 def _lab_masks(lab4cam: Path, frames: range, mask_scale: float) -> list[dict[str, np.ndarray]]:

@@ -40,8 +40,10 @@ GUESSED_PITCHES_DEG = (20.0, 35.0, 50.0, 65.0)
 """Downward pitches tried for a camera whose pose is unknown (level cameras to steep corner ones)."""
 NADIR_REACH_DEG = 84.0
 """A floor view from above covers the floor within this angle of straight down from the camera."""
-VIEW_MAX_PX = 900
-"""Longest side of a floor view from above, pixels."""
+VIEW_SIZES_PX = (600, 900, 1400)
+"""Longest sides of the floor views from above, pixels."""
+GOOD_FIT_PX = 0.25
+"""Corners found from above that fit a flat board this well are taken without looking further."""
 
 
 @dataclass(frozen=True)
@@ -177,22 +179,47 @@ def _subpix_window(corners: np.ndarray, board: Board) -> int:
 
 
 def _find_from_above(gray, board: Board, camera: Camera, rough_pose) -> np.ndarray | None:
-    windows = _candidate_windows(gray)
+    """Corners found in views from above at a few sizes; the detectors' sub-pixel accuracy varies from
+    one resampling to the next, so the set that best fits a flat board (:func:`planar_residual_px`)
+    is kept (the first one under :data:`GOOD_FIT_PX` at once)."""
+    best, best_fit = None, math.inf
     for R_view in _downward_rotations(camera, rough_pose):
-        for window in windows:
-            maps = _view_from_above(camera, R_view, window)
-            if maps is None:
-                continue
-            mx, my = maps
-            view = cv2.remap(gray, mx, my, cv2.INTER_CUBIC, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
-            corners = _find_direct(view, board, exhaustive=False)
-            if corners is None:
-                continue
-            uv = np.stack([_bilinear(mx, corners), _bilinear(my, corners)], axis=1)
-            if not np.all(np.isfinite(uv)) or np.any(uv < 0):
-                continue
-            return uv
-    return None
+        for window in _candidate_windows(gray):
+            for size in VIEW_SIZES_PX:
+                maps = _view_from_above(camera, R_view, window, size)
+                if maps is None:
+                    continue
+                mx, my = maps
+                view = cv2.remap(gray, mx, my, cv2.INTER_CUBIC, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+                corners = _find_direct(view, board, exhaustive=False)
+                if corners is None:
+                    continue
+                uv = np.stack([_bilinear(mx, corners), _bilinear(my, corners)], axis=1)
+                if not np.all(np.isfinite(uv)) or np.any(uv < 0):
+                    continue
+                fit = planar_residual_px(uv, board, camera)
+                if fit < best_fit:
+                    best, best_fit = uv, fit
+                if best_fit < GOOD_FIT_PX:
+                    return best
+    return best
+
+
+def planar_residual_px(corners: np.ndarray, board: Board, camera: Camera) -> float:
+    """Mean distance (pixels) between ``corners`` (N, 2, in detector order) and the best flat grid
+    through them: a homography from the grid to the lens's undistorted coordinates, projected back."""
+    rays = camera.rays_cam(corners)
+    if not np.all(np.isfinite(rays)):
+        return math.inf
+    norm = rays[:, :2] / rays[:, 2:3]
+    H, _ = cv2.findHomography(_grid_xy(board), norm, 0)
+    if H is None:
+        return math.inf
+    g = np.concatenate([_grid_xy(board), np.ones((board.n, 1))], axis=1) @ H.T
+    uv, valid = camera.project_cam(g / g[:, 2:3])
+    if not valid.all():
+        return math.inf
+    return float(np.linalg.norm(uv - corners, axis=1).mean())
 
 
 def _candidate_windows(gray: np.ndarray, count: int = 2) -> list[tuple[int, int, int, int]]:
@@ -241,9 +268,9 @@ def _downward_rotations(camera: Camera, rough_pose):
         yield np.array([[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]])
 
 
-def _view_from_above(camera: Camera, R_view: np.ndarray, window):
+def _view_from_above(camera: Camera, R_view: np.ndarray, window, size_px: int):
     """(map_x, map_y) float32 of a pinhole view with rotation ``R_view`` (camera -> view) framing
-    what the camera sees in ``window`` (x0, y0, x1, y1), at most :data:`VIEW_MAX_PX` across; None
+    what the camera sees in ``window`` (x0, y0, x1, y1), ``size_px`` across; None
     when the window looks too far from straight down."""
     x0, y0, x1, y1 = window
     v, u = np.mgrid[y0:y1:4, x0:x1:4].astype(np.float64)
@@ -253,7 +280,7 @@ def _view_from_above(camera: Camera, R_view: np.ndarray, window):
         return None
     xy = rays[ok, :2] / rays[ok, 2:3]
     lo, hi = xy.min(axis=0), xy.max(axis=0)
-    f = VIEW_MAX_PX / max(hi[0] - lo[0], hi[1] - lo[1], 1e-9)
+    f = size_px / max(hi[0] - lo[0], hi[1] - lo[1], 1e-9)
     W, H = int((hi[0] - lo[0]) * f) + 1, int((hi[1] - lo[1]) * f) + 1
     if min(W, H) < 32:
         return None
