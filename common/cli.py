@@ -30,6 +30,7 @@ examples:
   voxelwatch eval --suite                     the whole scenario library
   voxelwatch bench                            speed and size of every stage on this machine
   voxelwatch site check deploy/site.toml      validate a site file and its calibrations
+  voxelwatch calibrate floor --site deploy/site.toml --clip cam1=board1.avi ...   camera poses from a board on the floor
   voxelwatch router --listen tcp/0.0.0.0:7447  a zenoh router for client-mode hosts
   voxelwatch certs --site deploy/site.toml    the site's authority and one TLS certificate per host
   voxelwatch router --site deploy/site.toml   the router with the site's TLS and access control
@@ -594,6 +595,7 @@ def _bench(args: argparse.Namespace) -> int:
 
 from common.notify.cli import register as _register_notify  # noqa: E402 - its own package, argparse only
 from common.view.cli import register as _register_view  # noqa: E402 - its own package, argparse only
+from common.calibrate.command import register as _register_calibrate  # noqa: E402 - its own package, argparse only
 
 _SUBCOMMANDS: list[Callable] = [
     _register_demo,
@@ -601,5 +603,6 @@ _SUBCOMMANDS: list[Callable] = [
     _register_bench,
     _register_synth, _register_replay, _register_enrol, _register_eval, _register_site, _register_router, _register_certs,
     _register_notify,
+    _register_calibrate,
     _register_passthrough,
 ]

@@ -1,0 +1,152 @@
+"""``voxelwatch calibrate``: the command line of the calibration tools (argument parsing and
+printing only; the work is in :mod:`.intrinsics`, :mod:`.floor` and :mod:`.write`)."""
+
+from __future__ import annotations
+
+import argparse
+import math
+from pathlib import Path
+
+
+def register(sub) -> None:
+    """Add ``calibrate intrinsics`` and ``calibrate floor`` to the umbrella command's subparsers."""
+    p = sub.add_parser("calibrate", help="calibrate cameras from a chessboard: intrinsics, and poses from the floor")
+    actions = p.add_subparsers(dest="action", metavar="ACTION", required=True)
+    i = actions.add_parser("intrinsics", help="a camera's lens from a clip of a board moved in front of it")
+    i.add_argument("--camera", required=True, help="the camera id (written into the file)")
+    i.add_argument("--clip", required=True, help="video file, image folder, or device index / stream URL")
+    _board_args(i)
+    i.add_argument("--model", choices=("pinhole", "fisheye"), default="pinhole", help="lens model [pinhole]")
+    i.add_argument("--out", default=None, help="the intrinsics file: .toml (voxelwatch) or .xml/.yaml/.json (OpenCV) "
+                                                "[ID-intrinsics.toml]")
+    i.set_defaults(handler=_intrinsics)
+    f = actions.add_parser("floor", help="every camera's pose from a board laid on the floor; writes the site's "
+                                         "calibration files")
+    f.add_argument("--site", required=True, help="the site TOML file")
+    f.add_argument("--clip", action="append", default=[], metavar="CAM=FILE",
+                   help="a camera's clip of the board on the floor (default: the camera's source); all clips recorded together")
+    f.add_argument("--intrinsics", action="append", default=[], metavar="CAM=FILE",
+                   help="a camera's intrinsics file (default: the site's calibration file of the camera)")
+    _board_args(f)
+    f.add_argument("--plan-points", default=None, metavar="FILE",
+                   help="TOML file of board-frame <-> room floor points placing the board in the room")
+    f.add_argument("--dry-run", action="store_true", help="print the result, write nothing")
+    f.set_defaults(handler=_floor)
+
+
+def _board_args(p) -> None:
+    p.add_argument("--board", default="8x6", help="inner corners, COLSxROWS [8x6]")
+    p.add_argument("--square-mm", type=float, default=115.0, help="square size, millimetres [115]")
+
+
+def _intrinsics(args: argparse.Namespace) -> int:
+    from common.calibrate.board import Board
+    from common.calibrate.intrinsics import calibrate_intrinsics
+    from common.calibrate.write import write_intrinsics
+
+    board = Board.parse(args.board, args.square_mm)
+    out = Path(args.out or f"{args.camera}-intrinsics.toml")
+    if out.suffix.lower() not in (".toml", ".xml", ".yaml", ".yml", ".json"):
+        raise ValueError(f"--out {out}: expected a .toml (voxelwatch) or .xml/.yaml/.json (OpenCV) file name")
+    res = calibrate_intrinsics(args.clip, args.camera, board, model=args.model)
+    cam = res.camera
+    print(f"camera {args.camera}: {cam.model} {cam.width}x{cam.height}, RMS reprojection error {res.rms_px:.3f} px "
+          f"over {res.views_used} views")
+    print(f"  board found in {res.views_found} of {res.frames_searched} frames searched; left out: "
+          f"{res.skipped_small} too small, {res.skipped_blurred} blurred, {res.skipped_duplicate} repeats, "
+          f"{res.dropped_outliers} outliers")
+    K = cam.K
+    print(f"  fx {K[0, 0]:.2f}  fy {K[1, 1]:.2f}  cx {K[0, 2]:.2f}  cy {K[1, 2]:.2f} px; distortion "
+          f"[{', '.join(f'{v:.5f}' for v in cam.dist)}]")
+    if res.rms_px > 1.0:
+        print("  WARNING: above 1 px: the board may be bent, blurred or badly lit; record again")
+    write_intrinsics(cam, out)
+    print(f"wrote {out}")
+    return 0
+
+
+def _floor(args: argparse.Namespace) -> int:
+    from common.calibrate.board import Board
+    from common.calibrate.floor import calibrate_floor, find_sightings, read_plan_points
+    from common.calibrate.write import WRITABLE, write_site_calibrations
+    from common.calibration import CalibrationError, load_calibration
+    from common.site import load_site
+
+    board = Board.parse(args.board, args.square_mm)
+    site = load_site(args.site)
+    clips = _pairs(args.clip, "--clip", site)
+    given = _pairs(args.intrinsics, "--intrinsics", site)
+    plan = read_plan_points(args.plan_points) if args.plan_points else None
+    for cam_id in site.camera_ids:
+        spec = site.camera(cam_id)
+        if cam_id not in clips:
+            if not spec.source or spec.source.startswith("synthetic"):
+                raise ValueError(f"camera {cam_id}: no clip: give --clip {cam_id}=FILE")
+            clips[cam_id] = str(site.resolve(spec.source)) if not spec.source.isdigit() and "://" not in spec.source \
+                else spec.source
+        if spec.format not in WRITABLE and not args.dry_run:
+            raise ValueError(f"site file {site.source}: camera {cam_id}: {spec.format} calibrations cannot be "
+                             f"written; switch it to one of {', '.join(WRITABLE)}")
+    intrinsics, rough = {}, {}
+    for cam_id in site.camera_ids:
+        try:
+            rough[cam_id] = site.load_camera(cam_id)
+        except CalibrationError:
+            if cam_id not in given:
+                raise
+            rough[cam_id] = None
+        if cam_id in given:
+            path = Path(given[cam_id])
+            spec = site.camera(cam_id)
+            fmt = "voxelwatch" if path.suffix.lower() == ".toml" else (
+                "opencv-fisheye" if spec.format == "opencv-fisheye" else "opencv")
+            intrinsics[cam_id] = load_calibration(path, fmt, cam_id, image_size=spec.resolution)
+        else:
+            intrinsics[cam_id] = rough[cam_id]
+        if rough[cam_id] is not None and not _plausible(rough[cam_id]):
+            rough[cam_id] = None
+    first = site.cameras[0]
+    sightings = find_sightings(clips, intrinsics, board, rough)
+    result = calibrate_floor(sightings, intrinsics, board, rough=rough, plan_points=plan,
+                             placement=(first.origin_m, first.yaw_deg), volume=(site.volume.min_m, site.volume.max_m))
+    print(f"site {site.name}: board {board.describe()}, {result.positions} board position(s), "
+          f"{len(site.camera_ids)} cameras")
+    ox, oy, _ = result.origin_m
+    where = "from the plan points" if plan is not None else "from the site's first camera entry"
+    print(f"  board frame in the room ({where}): origin ({ox:.3f}, {oy:.3f}) m, yaw {result.yaw_deg:.2f} deg"
+          + (f", plan points fit to {100 * result.plan_residual_m:.1f} cm" if result.plan_residual_m is not None else ""))
+    worst = 0.0
+    for cam_id, rep in result.reports.items():
+        x, y, z = rep.centre_m
+        print(f"  camera {cam_id}: reprojection {rep.mean_px:.2f} px mean, {rep.max_px:.2f} px max over {rep.corners} "
+              f"corners ({rep.corners_found - rep.corners} stray left out) in {rep.positions} position(s); "
+              f"at ({x:.2f}, {y:.2f}) m, height {z:.2f} m; sees {100 * rep.seen_share:.0f} % of the volume")
+        worst = max(worst, rep.mean_px)
+    for note in result.notes:
+        print(f"  note: {note}")
+    if worst > 1.0:
+        print("  WARNING: a mean error above 1 px: check the intrinsics and that the board lies flat")
+    if args.dry_run:
+        print("dry run: nothing written")
+        return 0
+    for path, backup in write_site_calibrations(site, result.cameras):
+        print(f"wrote {path}" + (f" (the old file kept as {backup.name})" if backup else ""))
+    return 0
+
+
+def _pairs(items, flag: str, site) -> dict[str, str]:
+    out = {}
+    for item in items:
+        cam_id, sep, value = item.partition("=")
+        if not sep or not value:
+            raise ValueError(f"{flag} {item!r}: expected CAM=FILE")
+        site.camera(cam_id)   # a SiteError naming the cameras when unknown
+        if cam_id in out:
+            raise ValueError(f"{flag}: camera {cam_id} given twice")
+        out[cam_id] = value
+    return out
+
+
+def _plausible(cam) -> bool:
+    """A rough pose worth using: the camera above the floor, not the identity of an intrinsics file."""
+    return bool(cam.center[2] > 0.2 and math.isfinite(cam.center[2]) and cam.R[2, 2] < 0.99)

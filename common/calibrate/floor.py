@@ -1,0 +1,433 @@
+"""Floor calibration: every camera's pose from a board laid on the floor.
+
+The board lies still at one place or more, seen by every camera at once or by a few at a time;
+the clips are recorded together (they start at the same moment, at the same rate), so the still
+stretches of different cameras that overlap in time show the same board position
+(:mod:`common.calibrate.clips`).
+
+1. Per camera and still stretch: the board's corners (:func:`~common.calibrate.board.find_board`,
+   with the floor seen from above through the camera's rough pose when the site has one).
+2. Orientation: corners are named the same way in every camera (:mod:`common.calibrate.board`);
+   a board that looks the same turned half round is oriented in each camera by the cameras'
+   rough poses (the site's present calibrations), which only need to be right to within a
+   quarter turn; without them such a board is refused when two cameras must share it.
+3. Per sighting: ``solvePnP`` (IPPE, then iterative) on the corners' normalised lens
+   coordinates, so pinhole, fisheye and Tsai lenses are handled alike by their own model.
+4. Chaining: the first board position is the floor frame (origin at its first inner corner, X
+   along its rows, Z up out of the floor); cameras and board positions are placed in turn through
+   the sightings they share (breadth first). Cameras that no chain reaches are named.
+5. Bundle adjustment (``scipy.optimize.least_squares``, soft-L1 loss with a 1 px scale) over
+   every camera pose (6 values) and every other board position, which lies on the same floor
+   (x, y, yaw), minimising the corners' reprojection error in pixels through each lens model.
+6. Placement in the room: floor-plan points (board-frame floor coordinates <-> room coordinates,
+   two or more) give a rotation about Z and a shift (least squares, no scale); without them the
+   board frame sits where the site's first camera's ``origin_m``/``yaw_deg`` put its calibration frame.
+"""
+
+from __future__ import annotations
+
+import math
+import tomllib
+from collections import deque
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import cv2
+import numpy as np
+from scipy.optimize import least_squares
+
+from common.calibrate.board import Board, board_area_fraction, find_board
+from common.calibrate.clips import read_gray, still_stretches
+from common.camera import Camera, matrix_to_rodrigues, rodrigues_to_matrix
+
+MIN_FLOOR_AREA = 0.0015
+"""A board on the floor must cover at least this share of the image (0.15 %, about 22 x 22 px at 640 x 480)."""
+CLIP_SPREAD = 900
+STRAY_PX = 1.5
+"""A corner that misses the board's own best pose by more than this and by four times the sighting's
+median error is a stray detection (a corner snapped to a neighbouring edge) and is left out."""
+ROUGH_BOARD_Z_M = 0.6
+ROUGH_AGREE_M = 1.2
+
+
+class FloorError(ValueError):
+    """Clips that cannot give the cameras' poses; the message says why and what to do."""
+
+
+@dataclass(frozen=True)
+class Sighting:
+    """One camera's view of one board position: (N, 2) corners in board order, the frames it covers."""
+
+    cam_id: str
+    start: int
+    stop: int
+    corners: np.ndarray
+    area: float
+    position: int = -1
+    keep: np.ndarray | None = None
+    """(N,) bool: corners used (None: all)."""
+
+    @property
+    def kept(self) -> np.ndarray:
+        return np.ones(len(self.corners), dtype=bool) if self.keep is None else self.keep
+
+
+@dataclass(frozen=True)
+class CameraReport:
+    """What the calibration says about one camera (room frame, metres)."""
+
+    cam_id: str
+    positions: int
+    corners: int
+    """Corners used (all but stray ones, see :data:`STRAY_PX`)."""
+    corners_found: int
+    mean_px: float
+    max_px: float
+    mean_all_px: float
+    """Mean error over every corner found, stray ones included."""
+    centre_m: tuple[float, float, float]
+    seen_share: float
+
+
+@dataclass
+class FloorResult:
+    """cameras: camera id -> camera in the room frame. board_cameras: the same in the board frame."""
+
+    cameras: dict[str, Camera]
+    board_cameras: dict[str, Camera]
+    reports: dict[str, CameraReport]
+    positions: int
+    origin_m: tuple[float, float, float]
+    yaw_deg: float
+    plan_residual_m: float | None = None
+    notes: list[str] = field(default_factory=list)
+    sightings: list[Sighting] = field(default_factory=list)
+
+
+def find_sightings(clips: dict[str, str], intrinsics: dict[str, Camera], board: Board,
+                   rough: dict[str, Camera | None]) -> list[Sighting]:
+    """Every camera's board sightings, one per still stretch of its clip in which the board is found;
+    FloorError when a camera never sees it or sees it too small; ClipError for a clip that cannot be read."""
+    out: list[Sighting] = []
+    for cam_id, clip in clips.items():
+        cam = intrinsics[cam_id]
+        frames, index = read_gray(clip, spread=CLIP_SPREAD)
+        h, w = frames[0].shape[:2]
+        if (w, h) != (cam.width, cam.height):
+            raise FloorError(f"clip {clip}: frames are {w}x{h} but camera {cam_id} is calibrated for "
+                             f"{cam.width}x{cam.height}")
+        pose = None if rough.get(cam_id) is None else (rough[cam_id].R, rough[cam_id].t)
+        found, small = [], []
+        for still in still_stretches(frames, index):
+            corners = find_board(still.gray, board, camera=cam, thorough=True, rough_pose=pose)
+            if corners is None:
+                continue
+            area = board_area_fraction(corners, w, h)
+            (found if area >= MIN_FLOOR_AREA else small).append(Sighting(cam_id, still.start, still.stop, corners, area))
+        if not found and small:
+            raise FloorError(f"clip {clip}: the board is too small in camera {cam_id} "
+                             f"({100 * max(s.area for s in small):.2f} % of the image, need {100 * MIN_FLOOR_AREA:g} %): "
+                             "lay it nearer to the camera or use bigger squares")
+        if not found:
+            raise FloorError(f"clip {clip}: board {board.describe()} not found by camera {cam_id} "
+                             "(check --board and --square-mm; the whole board must be in view, lying still, evenly lit)")
+        out.extend(found)
+    return out
+
+
+def calibrate_floor(sightings: list[Sighting], intrinsics: dict[str, Camera], board: Board, *,
+                    rough: dict[str, Camera | None] | None = None, plan_points=None,
+                    placement: tuple[tuple[float, float, float], float] = ((0.0, 0.0, 0.0), 0.0),
+                    volume: tuple[tuple[float, float, float], tuple[float, float, float]] | None = None) -> FloorResult:
+    """Camera poses from the sightings (see the module text).
+
+    intrinsics: camera id -> camera whose lens model is used (pose ignored). rough: camera id -> the
+    camera's rough pose (room frame), or None. plan_points: (K, 4) rows ``board_x, board_y, room_x,
+    room_y`` (metres), K >= 2, or None. placement: ``(origin_m, yaw_deg)`` of the board frame in the
+    room without plan points. volume: ``(min_m, max_m)``, for the share of it each camera sees.
+    """
+    rough = rough or {}
+    cam_ids = list(intrinsics)
+    sightings = _number_positions(sightings)
+    notes: list[str] = []
+    sightings = _orient(sightings, intrinsics, board, rough, notes)
+    obj = board.object_points()
+    poses = {id(s): _pnp(intrinsics[s.cam_id], obj, s.corners) for s in sightings}
+    sightings = [_drop_stray_corners(s, intrinsics[s.cam_id], obj, poses.pop(id(s)), poses) for s in sightings]
+    cams0, boards0 = _chain(sightings, poses, cam_ids)
+    cams_bf, boards = _adjust(sightings, intrinsics, obj, cams0, boards0)
+    board_cameras = {c: intrinsics[c].with_pose(*cams_bf[c]) for c in cam_ids}
+    residual = None
+    if plan_points is not None:
+        (origin, yaw_deg), residual = fit_plan(plan_points)
+    else:
+        origin, yaw_deg = placement
+    R_place = _rz(yaw_deg)
+    cameras = {c: cam.with_world(R_place, np.asarray(origin, dtype=np.float64)) for c, cam in board_cameras.items()}
+    reports = {}
+    for c in cam_ids:
+        errs, kept = _errors(sightings, c, board_cameras[c], boards, obj)
+        centre = tuple(float(v) for v in cameras[c].center)
+        share = _seen_share(cameras[c], volume) if volume is not None else float("nan")
+        reports[c] = CameraReport(c, len({s.position for s in sightings if s.cam_id == c}), int(kept.sum()), kept.size,
+                                  float(errs[kept].mean()), float(errs[kept].max()), float(errs.mean()), centre, share)
+    n_pos = len({s.position for s in sightings})
+    return FloorResult(cameras=cameras, board_cameras=board_cameras, reports=reports, positions=n_pos,
+                       origin_m=tuple(float(v) for v in origin), yaw_deg=float(yaw_deg), plan_residual_m=residual,
+                       notes=notes, sightings=sightings)
+
+
+def fit_plan(points) -> tuple[tuple[tuple[float, float, float], float], float]:
+    """``((origin_m, yaw_deg), rms residual m)`` of the rotation about Z and shift taking board-frame
+    floor points to room points: (K, 4) rows ``board_x, board_y, room_x, room_y``, K >= 2."""
+    p = np.asarray(points, dtype=np.float64).reshape(-1, 4)
+    a, b = p[:, :2], p[:, 2:]
+    ca, cb = a.mean(axis=0), b.mean(axis=0)
+    A, B = a - ca, b - cb
+    yaw = math.atan2(float(np.sum(A[:, 0] * B[:, 1] - A[:, 1] * B[:, 0])), float(np.sum(A * B)))
+    R = _rz(math.degrees(yaw))[:2, :2]
+    t = cb - R @ ca
+    residual = float(np.sqrt(np.mean(np.sum((a @ R.T + t - b) ** 2, axis=1))))
+    return ((float(t[0]), float(t[1]), 0.0), math.degrees(yaw)), residual
+
+
+def read_plan_points(path: str | Path) -> np.ndarray:
+    """A floor-plan points file (TOML)::
+
+        # the first board position's floor coordinates (metres, board frame) -> the room's
+        points = [
+          { board = [0.0, 0.0], room = [2.10, 1.35] },
+          { board = [0.805, 0.0], room = [2.91, 1.35] },
+        ]
+
+    Returns (K, 4) float64; ValueError naming the file and the entry."""
+    path = Path(path)
+    try:
+        doc = tomllib.loads(path.read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise ValueError(f"plan points file {path}: not found") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise ValueError(f"plan points file {path}: cannot read: {exc}") from None
+    except tomllib.TOMLDecodeError as exc:
+        raise ValueError(f"plan points file {path}: not valid TOML: {exc}") from None
+    points = doc.get("points")
+    if not isinstance(points, list) or len(points) < 2:
+        raise ValueError(f"plan points file {path}: points: expected a list of at least 2 {{ board = [x, y], room = [x, y] }}")
+    rows = []
+    for i, item in enumerate(points):
+        try:
+            row = [float(v) for v in (*item["board"], *item["room"])]
+            if len(row) != 4 or not all(math.isfinite(v) for v in row) or any(isinstance(v, bool) for v in row):
+                raise ValueError
+        except (TypeError, KeyError, ValueError):
+            raise ValueError(f"plan points file {path}: points[{i}]: expected {{ board = [x, y], room = [x, y] }} "
+                             f"in metres, got {item!r}") from None
+        rows.append(row)
+    arr = np.array(rows)
+    if np.ptp(arr[:, :2], axis=0).max() < 0.2:
+        raise ValueError(f"plan points file {path}: points: the board points must lie at least 0.2 m apart")
+    return arr
+
+
+# ---------------------------------------------------------------------- steps
+
+
+def _number_positions(sightings: list[Sighting]) -> list[Sighting]:
+    """Sightings of different cameras that overlap in time show one board position; positions are
+    numbered by their first frame. A camera with two stretches in one position keeps the longer."""
+    order = sorted(range(len(sightings)), key=lambda i: (sightings[i].start, sightings[i].cam_id))
+    parent = list(range(len(sightings)))
+
+    def root(i):
+        while parent[i] != i:
+            parent[i] = parent[parent[i]]
+            i = parent[i]
+        return i
+
+    for a in range(len(sightings)):
+        for b in range(a + 1, len(sightings)):
+            sa, sb = sightings[a], sightings[b]
+            if sa.cam_id != sb.cam_id and min(sa.stop, sb.stop) - max(sa.start, sb.start) > 0:
+                parent[root(a)] = root(b)
+    groups: dict[int, list[int]] = {}
+    for i in order:
+        groups.setdefault(root(i), []).append(i)
+    out = []
+    for pos, members in enumerate(sorted(groups.values(), key=lambda m: min(sightings[i].start for i in m))):
+        best: dict[str, Sighting] = {}
+        for i in members:
+            s = sightings[i]
+            if s.cam_id not in best or s.stop - s.start > best[s.cam_id].stop - best[s.cam_id].start:
+                best[s.cam_id] = s
+        out.extend(Sighting(s.cam_id, s.start, s.stop, s.corners, s.area, pos) for s in best.values())
+    return out
+
+
+def _orient(sightings, intrinsics, board: Board, rough, notes: list[str]) -> list[Sighting]:
+    """Name a symmetric board's corners from the same end in every camera that shares a position."""
+    if not board.symmetric:
+        return sightings
+    obj = board.object_points()
+    out = []
+    for pos in sorted({s.position for s in sightings}):
+        group = [s for s in sightings if s.position == pos]
+        if len(group) == 1 and group[0].cam_id not in {c for c, r in rough.items() if r is not None}:
+            out.extend(group)
+            continue
+        missing = [s.cam_id for s in group if rough.get(s.cam_id) is None]
+        if missing:
+            raise FloorError(
+                f"board {board.cols}x{board.rows} looks the same turned half round, and camera(s) "
+                f"{', '.join(missing)} have no rough pose to tell its ends apart: use a board with one odd count "
+                f"(e.g. {board.cols + 1}x{board.rows}), or give the site calibrations that place the cameras roughly")
+        axes, centres = [], []
+        for s in group:
+            R, t = _pnp(intrinsics[s.cam_id], obj, s.corners)
+            r = rough[s.cam_id]
+            R_wb = r.R.T @ R               # board -> rough world
+            centre_b = obj.mean(axis=0)
+            centres.append(r.R.T @ (R @ centre_b + t - r.t))
+            axes.append(R_wb[:, 0])
+        centres = np.array(centres)
+        bad = [s.cam_id for s, c in zip(group, centres) if abs(c[2]) > ROUGH_BOARD_Z_M
+               or np.linalg.norm(c[:2] - np.median(centres[:, :2], axis=0)) > ROUGH_AGREE_M]
+        if bad:
+            raise FloorError(
+                f"board {board.cols}x{board.rows} looks the same turned half round, and the site's present calibration "
+                f"of {', '.join(bad)} is too far off to tell its ends apart (the board would not lie on the floor "
+                f"where the other cameras see it): use a board with one odd count (e.g. {board.cols + 1}x{board.rows})")
+        # the first camera's board X axis nearest the room's +X; the others follow it
+        first = axes[0] if axes[0][0] >= 0 else -axes[0]
+        for s, a in zip(group, axes):
+            if np.dot(a, first) < 0:
+                s = Sighting(s.cam_id, s.start, s.stop, board.half_turn(s.corners), s.area, s.position)
+            out.append(s)
+    notes.append("the symmetric board's ends were told apart by the site's present calibrations")
+    return out
+
+
+def _drop_stray_corners(s: Sighting, cam: Camera, obj, pose, poses) -> Sighting:
+    """The sighting without stray corners (see :data:`STRAY_PX`), its pose solved again into ``poses``."""
+    R, t = pose
+    uv, _ = cam.project_cam(obj @ R.T + t)
+    err = np.nan_to_num(np.linalg.norm(uv - s.corners, axis=1), nan=1e3)
+    keep = err <= max(STRAY_PX, 4.0 * float(np.median(err)))
+    if keep.sum() < 0.75 * len(keep):
+        keep[:] = True   # not a few strays: keep everything and let the errors show it
+    if not keep.all():
+        pose = _pnp(cam, obj[keep], s.corners[keep])
+    out = Sighting(s.cam_id, s.start, s.stop, s.corners, s.area, s.position, None if keep.all() else keep)
+    poses[id(out)] = pose
+    return out
+
+
+def _pnp(cam: Camera, obj: np.ndarray, corners: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Board -> camera (R, t) from corners, through the camera's own lens model."""
+    rays = cam.rays_cam(corners)
+    if not np.all(np.isfinite(rays)):
+        raise FloorError(f"camera {cam.id}: board corners lie where its lens model has no rays (check the intrinsics)")
+    norm = (rays[:, :2] / rays[:, 2:3]).reshape(-1, 1, 2)
+    o = obj.reshape(-1, 1, 3)
+    ok, rvec, tvec = cv2.solvePnP(o, norm, np.eye(3), None, flags=cv2.SOLVEPNP_IPPE)
+    if not ok:
+        raise FloorError(f"camera {cam.id}: the board's pose cannot be solved from its corners")
+    ok, rvec, tvec = cv2.solvePnP(o, norm, np.eye(3), None, rvec, tvec, useExtrinsicGuess=True,
+                                  flags=cv2.SOLVEPNP_ITERATIVE)
+    return rodrigues_to_matrix(rvec.ravel()), tvec.ravel()
+
+
+def _chain(sightings, poses, cam_ids):
+    """Initial camera poses (board frame -> camera (R, t)) and board positions ((x, y, yaw_rad)) by
+    breadth-first placement from position 0; FloorError naming the cameras no chain reaches."""
+    seen = {s.cam_id for s in sightings}
+    missing = [c for c in cam_ids if c not in seen]
+    if missing:
+        raise FloorError(f"camera(s) {', '.join(missing)}: no board sighting")
+    cams: dict[str, tuple[np.ndarray, np.ndarray]] = {}
+    boards: dict[int, tuple[np.ndarray, np.ndarray]] = {0: (np.eye(3), np.zeros(3))}   # board -> world
+    queue = deque([("pos", 0)])
+    while queue:
+        kind, key = queue.popleft()
+        for s in sightings:
+            R_cb, t_cb = poses[id(s)]
+            if kind == "pos" and s.position == key and s.cam_id not in cams:
+                R_wb, t_wb = boards[key]
+                R = R_cb @ R_wb.T
+                cams[s.cam_id] = (R, t_cb - R @ t_wb)
+                queue.append(("cam", s.cam_id))
+            elif kind == "cam" and s.cam_id == key and s.position not in boards:
+                R_cw, t_cw = cams[key]
+                R_wb = R_cw.T @ R_cb
+                t_wb = R_cw.T @ (t_cb - t_cw)
+                yaw = math.atan2(R_wb[1, 0], R_wb[0, 0])   # onto the floor: keep the turn about Z
+                boards[s.position] = (_rz(math.degrees(yaw)), np.array([t_wb[0], t_wb[1], 0.0]))
+                queue.append(("pos", s.position))
+    cut = [c for c in cam_ids if c not in cams]
+    if cut:
+        linked = sorted(cams)
+        raise FloorError(f"camera(s) {', '.join(cut)} share no board position with {', '.join(linked)} (the cameras "
+                         "that see the first one): lay the board where one of them and one of these see it at once")
+    return cams, boards
+
+
+def _adjust(sightings, intrinsics, obj, cams0, boards0):
+    cam_ids = sorted(cams0)
+    pos_ids = sorted(p for p in boards0 if p != 0)
+    x0 = []
+    for c in cam_ids:
+        R, t = cams0[c]
+        x0 += [*matrix_to_rodrigues(R), *t]
+    for p in pos_ids:
+        R, t = boards0[p]
+        x0 += [t[0], t[1], math.atan2(R[1, 0], R[0, 0])]
+    x0 = np.array(x0)
+    ci = {c: 6 * k for k, c in enumerate(cam_ids)}
+    pi = {p: 6 * len(cam_ids) + 3 * k for k, p in enumerate(pos_ids)}
+    groups = [(ci[s.cam_id], pi.get(s.position), intrinsics[s.cam_id], s.corners[s.kept], obj[s.kept]) for s in sightings]
+
+    def unpack_board(x, j):
+        if j is None:
+            return np.eye(3), np.zeros(3)
+        return _rz(math.degrees(x[j + 2])), np.array([x[j], x[j + 1], 0.0])
+
+    def residuals(x):
+        out = []
+        for c, j, cam, uv, pts in groups:
+            R_wb, t_wb = unpack_board(x, j)
+            R_cw = rodrigues_to_matrix(x[c:c + 3])
+            pc = (pts @ R_wb.T + t_wb) @ R_cw.T + x[c + 3:c + 6]
+            proj, _ = cam.project_cam(pc)
+            out.append(np.nan_to_num(proj - uv, nan=1e3).ravel())
+        return np.concatenate(out)
+
+    sol = least_squares(residuals, x0, method="trf", loss="soft_l1", f_scale=1.0, x_scale="jac", max_nfev=200)
+    x = sol.x
+    cams = {c: (rodrigues_to_matrix(x[ci[c]:ci[c] + 3]), x[ci[c] + 3:ci[c] + 6].copy()) for c in cam_ids}
+    boards = {0: (np.eye(3), np.zeros(3)), **{p: unpack_board(x, pi[p]) for p in pos_ids}}
+    return cams, boards
+
+
+def _errors(sightings, cam_id, cam: Camera, boards, obj) -> tuple[np.ndarray, np.ndarray]:
+    """Every corner's error (px) and whether it was used."""
+    errs, kept = [], []
+    for s in sightings:
+        if s.cam_id == cam_id:
+            R_wb, t_wb = boards[s.position]
+            uv, _ = cam.project(obj @ R_wb.T + t_wb)
+            errs.append(np.nan_to_num(np.linalg.norm(uv - s.corners, axis=1), nan=1e3))
+            kept.append(s.kept)
+    return np.concatenate(errs), np.concatenate(kept)
+
+
+def _seen_share(cam: Camera, volume) -> float:
+    lo, hi = (np.asarray(v, dtype=np.float64) for v in volume)
+    step = max(float(np.max(hi - lo)) / 40.0, 0.05)
+    axes = [np.arange(a + step / 2, b, step) for a, b in zip(lo, hi)]
+    pts = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
+    _, valid = cam.project(pts)
+    return float(valid.mean()) if len(pts) else float("nan")
+
+
+def _rz(yaw_deg: float) -> np.ndarray:
+    a = math.radians(yaw_deg)
+    return np.array([[math.cos(a), -math.sin(a), 0.0], [math.sin(a), math.cos(a), 0.0], [0.0, 0.0, 1.0]])
