@@ -1,0 +1,174 @@
+"""The moved-camera alarm: a camera turned or shifted mid-run (rendered from its new place while the
+site keeps the old calibration) is found; untouched cameras are not.
+
+Fast tests feed :class:`ConsistencyMonitor` the rendered masks of a randomised world at its own
+measuring rate, with the true people in place of the tracker (tuning seed 37: five cameras high in
+the corners, one person). Slow tests run whole worlds through the fusion node as the replay does.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from common.site import load_site
+from common.synth.degrade import CameraMove
+from common.synth.world import iter_masks, random_world, with_camera_moved, write_world_site
+from fusion_server.consistency import AlarmRule, ConsistencyMonitor, ConsistencyParams, Measurement
+from fusion_server.pipeline import build_carver
+from fusion_server.tracker import TrackEstimate
+
+SEED = 37
+FPS = 15.0
+MOVED = "cam2"
+FAST = ConsistencyParams(baseline_count=10, baseline_s=10.0, alarm_count=6, alarm_s=4.0)
+"""The rule with a baseline of 10 s (the default takes 40 s): the fast tests see 50 s of people."""
+
+
+@pytest.fixture(scope="module")
+def world():
+    return random_world(SEED, duration_s=50.0)
+
+
+@pytest.fixture(scope="module")
+def site_and_carver(world, tmp_path_factory):
+    out = tmp_path_factory.mktemp("moved")
+    site = load_site(write_world_site(world, out / "world").site)
+    cameras = site.load_cameras()
+    return site, cameras, build_carver(site, cameras, cache_dir=out / "cache")
+
+
+def _truth_bodies(world, i: int) -> list[TrackEstimate]:
+    """The people inside the volume at frame ``i`` as confident track estimates."""
+    sc = world.scenario
+    out = []
+    for k, st in enumerate(sc.states):
+        xy = st["xy"][i]
+        if not (st["present"][i] and world.room.inside_volume(xy[None])[0]):
+            continue
+        out.append(TrackEstimate(id=k + 1, x=float(xy[0]), y=float(xy[1]), z_top_m=float(st["z_top"][i]),
+                                 volume_m3=0.2, reliability=1.0, confirmed=True, age_frames=100, vx=0.0, vy=0.0,
+                                 height_profile=np.zeros(1, np.int32), blob=None, still=False))
+    return out
+
+
+def _run(world, carver, cameras, params, frames):
+    """Feed the monitor the true silhouettes of ``frames``; returns its measurements and alarms."""
+    monitor = ConsistencyMonitor(carver, cameras, params)
+    masks = {c: iter_masks(world, c, frames, faults=False) for c in world.cameras}
+    measured, alarms = [], []
+    for i in frames:
+        got, raised = monitor.step({c: next(m) for c, m in masks.items()}, _truth_bodies(world, i),
+                                   world.scenario.stamp_ns(i))
+        measured += got
+        alarms += raised
+    return monitor, measured, alarms
+
+
+def _every_half_second(n: int) -> list[int]:
+    return list(range(0, n, int(FPS / 2)))
+
+
+def test_a_camera_move_turns_and_shifts_it_as_asked(world):
+    cam = world.cameras[MOVED]
+    point = cam.center + 4.0 * cam.forward  # 4 m in front, on the optical axis
+    turned = CameraMove(first=0, rotation_deg=2.0).apply(cam)
+    assert np.allclose(turned.center, cam.center)
+    (u0, v0), (u1, v1) = cam.project(point[None])[0][0], turned.project(point[None])[0][0]
+    # panning by 2 degrees slides the image sideways by f tan(2 deg), not up or down
+    assert abs(abs(u1 - u0) - cam.K[0, 0] * math.tan(math.radians(2.0))) < 1.0
+    assert abs(v1 - v0) < 0.5
+    shifted = CameraMove(first=0, shift_m=(0.1, 0.0, 0.0)).apply(cam)
+    assert np.allclose(shifted.center - cam.center, (0.1, 0.0, 0.0))
+    assert np.allclose(shifted.R, cam.R)
+    with pytest.raises(ValueError, match="first"):
+        CameraMove(first=-1)
+
+
+def test_moved_camera_renders_from_its_new_place(world):
+    frames = range(0, world.scenario.n_frames, int(2 * FPS))
+    i, before = next((i, m) for i, m in zip(frames, iter_masks(world, MOVED, frames, faults=False)) if m.any())
+    moved = with_camera_moved(world, MOVED, CameraMove(first=i, rotation_deg=2.0))
+    after = next(iter_masks(moved, MOVED, [i], faults=False))
+    untouched = next(iter_masks(moved, "cam1", [i], faults=False))
+    assert not np.array_equal(before, after)
+    assert np.array_equal(untouched, next(iter_masks(world, "cam1", [i], faults=False)))
+    assert moved.summary()["faults"][MOVED][-1] == f"moved at frame {i} (turned 2 deg)"
+
+
+def test_untouched_cameras_agree_and_keep_their_baseline(world, site_and_carver):
+    _, cameras, carver = site_and_carver
+    monitor, measured, alarms = _run(world, carver, cameras, FAST, _every_half_second(world.scenario.n_frames))
+    assert not alarms
+    by_cam = {c: [m for m in measured if m.cam == c] for c in world.cameras}
+    assert all(len(ms) >= FAST.baseline_count for ms in by_cam.values()), {c: len(v) for c, v in by_cam.items()}
+    for cam in world.cameras:
+        assert monitor.baseline(cam) is not None and monitor.baseline(cam) > 0.4
+        assert monitor.figure(cam) >= FAST.recover_ratio * monitor.baseline(cam)
+        # the true silhouette sits where the others carve the person: no offset beyond a few pixels
+        offsets = np.array([m.offset_px for m in by_cam[cam]])
+        assert np.hypot(*np.median(offsets, axis=0)) < 4.0
+
+
+@pytest.mark.parametrize("change", [CameraMove(first=int(25 * FPS), rotation_deg=2.0),
+                                    CameraMove(first=int(25 * FPS), rotation_deg=2.0, axis=(1.0, 0.0, 0.0))],
+                         ids=["panned", "tilted"])
+def test_a_turned_camera_raises_one_alarm_and_the_others_none(world, site_and_carver, change):
+    _, cameras, carver = site_and_carver
+    moved = with_camera_moved(world, MOVED, change)
+    monitor, measured, alarms = _run(moved, carver, cameras, FAST, _every_half_second(world.scenario.n_frames))
+    assert [a.cam for a in alarms] == [MOVED]
+    alarm = alarms[0]
+    delay_s = (alarm.stamp_ns - world.scenario.stamp_ns(change.first)) / 1e9
+    assert 0 < delay_s <= 20.0
+    assert alarm.figure < FAST.drop_ratio * alarm.baseline
+    # the offset points the way the view turned: a pan moves people sideways, a tilt up or down
+    dx, dy = alarm.offset_px
+    f = cameras[MOVED].K[0, 0] * math.tan(math.radians(2.0))
+    along, across = (dx, dy) if change.axis[1] else (dy, dx)
+    assert abs(along) > 0.4 * f and abs(along) > 2 * abs(across), alarm.offset_px
+    assert monitor.figure(MOVED) < monitor.baseline(MOVED) * FAST.drop_ratio
+
+
+def test_the_rule_waits_for_a_lasting_drop_and_alarms_once_until_back():
+    params = ConsistencyParams(baseline_count=10, baseline_s=10.0, window=5, alarm_count=6, alarm_s=5.0)
+    rule = AlarmRule(["a"], params)
+    t = iter(range(10**6))
+
+    def feed(values, offset=(1.0, 0.0)):
+        out = []
+        for v in values:
+            alarm = rule.add(Measurement(cam="a", stamp_ns=int(next(t) * 0.5e9), agreement=v, offset_px=offset))
+            out += [alarm] if alarm else []
+        return out
+
+    assert feed([0.6, 0.55, 0.62] * 8) == [] and abs(rule.baseline("a") - 0.6) < 0.03
+    assert feed([0.0] * 5 + [0.6] * 10) == []  # a camera dark for a few views: no alarm
+    alarms = feed([0.3] * 16, offset=(9.0, 1.0))  # a lasting drop: one alarm, figure, baseline and offset
+    assert len(alarms) == 1 and alarms[0].figure == pytest.approx(0.3)
+    assert alarms[0].offset_px == (8.0, 1.0)  # against the offset the camera showed while it was right
+    assert alarms[0].down_s >= 5.0 and alarms[0].details()["offset_norm_px"] == pytest.approx(8.1, abs=0.1)
+    assert feed([0.3] * 30) == []  # at most once until it recovers
+    assert feed([0.6] * 10) == [] and feed([0.3] * 16) != []  # back, then moved again
+
+
+def test_the_rule_refuses_bad_settings():
+    with pytest.raises(ValueError, match="recover_ratio"):
+        ConsistencyParams(drop_ratio=0.8, recover_ratio=0.7)
+    with pytest.raises(ValueError, match="window"):
+        ConsistencyParams(window=0)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("move", ["rotate", "shift"])
+def test_whole_world_through_the_node_alarms_for_the_moved_camera_only(tmp_path, move):
+    from fusion_server.moved_suite import run_moved_world
+
+    result = run_moved_world(SEED, tmp_path, duration_s=110.0, move_at_s=50.0, move=move, faults=False,
+                             cache_dir=tmp_path / "cache")
+    own = [a for a in result["alarms"] if a["cam"] == result["moved"]]
+    assert [a["cam"] for a in result["alarms"]] == [result["moved"]], result["alarms"]
+    assert 0 < own[0]["t_s"] - result["move_at_s"] <= 60.0
+    assert own[0]["consistency"] < own[0]["baseline"]
