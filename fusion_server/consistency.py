@@ -59,6 +59,7 @@ Pure: no clock (time is the frame sets' capture stamps), no I/O.
 
 from __future__ import annotations
 
+import math
 import statistics
 from collections import deque
 from collections.abc import Mapping, Sequence
@@ -73,7 +74,8 @@ from fusion_server.carving.distance import FOREGROUND_THRESHOLD, mask_pixels, ne
 from fusion_server.carving.lut import RADIUS_UNITS_PER_PX
 from fusion_server.tracker import TrackEstimate
 
-__all__ = ["AlarmRule", "CameraMoved", "ConsistencyMonitor", "ConsistencyParams", "Measurement", "measure_person"]
+__all__ = ["AlarmRule", "CameraMoved", "ConsistencyMonitor", "ConsistencyParams", "Measurement", "measure_person",
+           "shifted_fit"]
 
 VOXEL_M = 0.1
 """The octree level nearest this voxel edge is re-voted (a body is some 400 such voxels)."""
@@ -98,14 +100,17 @@ class ConsistencyParams:
     window: int = 15
     baseline_count: int = 20
     baseline_s: float = 40.0
-    drop_ratio: float = 0.7
+    remeasure_m: float = 0.3
+    remeasure_s: float = 10.0
+    offset_share: float = 0.04
+    drop_ratio: float = 0.6
     recover_ratio: float = 0.85
     alarm_count: int = 10
     alarm_s: float = 10.0
     flood_share: float = 0.5
 
     def __post_init__(self) -> None:
-        for name in ("every_s", "baseline_s", "alarm_s"):
+        for name in ("every_s", "baseline_s", "alarm_s", "remeasure_m", "remeasure_s"):
             value = getattr(self, name)
             if not (isinstance(value, (int, float)) and np.isfinite(value) and value >= 0):
                 raise ValueError(f"{name} must be a number of seconds >= 0, got {value!r}")
@@ -113,7 +118,7 @@ class ConsistencyParams:
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or value < 1:
                 raise ValueError(f"{name} must be an int >= 1, got {value!r}")
-        for name in ("min_reliability", "drop_ratio", "recover_ratio", "flood_share"):
+        for name in ("min_reliability", "offset_share", "drop_ratio", "recover_ratio", "flood_share"):
             value = getattr(self, name)
             if not (isinstance(value, (int, float)) and 0.0 < value <= 1.0):
                 raise ValueError(f"{name} must lie in (0, 1], got {value!r}")
@@ -125,10 +130,11 @@ class ConsistencyParams:
 class Measurement:
     """One view of one person by one camera against the others' carve.
 
-    agreement: intersection over union of the predicted silhouette and the camera's foreground in
-    the window around it (0..1). offset_px: (dx, dy) foreground centroid less predicted centroid,
-    pixels of the camera's full image (None when the mask was flooded). height_px: the predicted
-    silhouette's height, same pixels.
+    agreement: the fit of the predicted silhouette where it stands over its best fit nearby
+    (:func:`shifted_fit`; 0..1, 0 for a flooded mask). offset_px: (dx, dy) the best fit's shift,
+    where the camera sees the person relative to where the others put them, pixels of the camera's
+    full image (None when the mask was flooded). height_px: the predicted silhouette's height, same
+    pixels. pixel_px: one mask pixel, same pixels (the offset's resolution).
     """
 
     cam: str
@@ -136,6 +142,7 @@ class Measurement:
     agreement: float
     offset_px: tuple[float, float] | None = None
     height_px: float = 0.0
+    pixel_px: float = 1.0
 
 
 @dataclass(frozen=True)
@@ -164,7 +171,7 @@ class CameraMoved:
 
 @dataclass
 class _CameraRecord:
-    recent: deque  # the last ``window`` measurements
+    recent: deque  # whether each of the last ``window`` measurements fit
     down: deque  # the last ``window`` measurements of the current down streak
     baseline_values: list = field(default_factory=list)
     baseline_start_ns: int | None = None
@@ -195,6 +202,7 @@ class ConsistencyMonitor:
         self.voxel_m = float(sizes[self.level])
         self.rule = AlarmRule(carver.camera_ids, params)
         self._next_ns: int | None = None
+        self._last_seen: dict[int, tuple[float, float, int]] = {}  # body id -> where and when last measured
         self._turn = 0
 
     # ------------------------------------------------------------------ public
@@ -235,7 +243,10 @@ class ConsistencyMonitor:
             if share > self.params.flood_share and others < 0.1 * self.params.flood_share:
                 flooded.add(c)
                 out.append(Measurement(cam=c, stamp_ns=stamp_ns, agreement=0.0))
-        confident = [b for b in bodies if b.confirmed and b.reliability >= self.params.min_reliability]
+        live = {b.id for b in bodies}
+        self._last_seen = {k: v for k, v in self._last_seen.items() if k in live}
+        confident = [b for b in bodies if b.confirmed and b.reliability >= self.params.min_reliability
+                     and self._due(b, stamp_ns)]
         if not confident:
             return out
         k = min(self.params.max_people, len(confident))
@@ -243,12 +254,24 @@ class ConsistencyMonitor:
         self._turn += k
         chosen = [confident[(start + i) % len(confident)] for i in range(k)]
         for body in chosen:
+            self._last_seen[body.id] = (body.x, body.y, stamp_ns)
             others = [b for b in bodies if b is not body]
             for m in measure_person(self.carver, self.level, masks, self._sized(masks), body, others, stamp_ns,
                                     min_voxels=self.params.min_voxels, full_width=self.full_width):
                 if m.cam not in flooded:
                     out.append(m)
         return out
+
+    def _due(self, body: TrackEstimate, stamp_ns: int) -> bool:
+        """A body is measured again once it has moved ``remeasure_m`` or ``remeasure_s`` have passed:
+        the same view of someone standing still says nothing new, and would weigh their pose (whose
+        hull may sit a few pixels off in some camera) as many measurements."""
+        last = self._last_seen.get(body.id)
+        if last is None:
+            return True
+        x, y, then = last
+        return (math.hypot(body.x - x, body.y - y) >= self.params.remeasure_m
+                or stamp_ns - then >= self.params.remeasure_s * 1e9)
 
     def _sized(self, masks: Mapping[str, np.ndarray]) -> dict[str, Camera]:
         """Camera id -> the camera resized to its mask (built once per size)."""
@@ -272,35 +295,44 @@ class AlarmRule:
                          for c in camera_ids}
 
     def figure(self, cam: str) -> float | None:
-        """The camera's running figure (median of its recent measurements), None until measured."""
+        """The camera's running figure: the share of its recent views that fit (0..1), None until
+        its baseline is taken."""
         rec = self._records.get(cam)
-        if rec is None or len(rec.recent) < max(1, self.params.window // 2):
+        if rec is None or rec.baseline is None or len(rec.recent) < max(1, self.params.window // 2):
             return None
-        return float(statistics.median(m.agreement for m in rec.recent))
+        return sum(rec.recent) / len(rec.recent)
 
     def baseline(self, cam: str) -> float | None:
         """The camera's own baseline figure, None until its first minutes are measured."""
         rec = self._records.get(cam)
         return None if rec is None else rec.baseline
 
+    def fits(self, m: Measurement, reference_px: tuple[float, float]) -> bool:
+        """Whether the camera sees the person where the others put them: its offset within
+        ``offset_share`` of the silhouette's height (plus one mask pixel) of ``reference_px``."""
+        if m.offset_px is None:
+            return False
+        off = float(np.hypot(m.offset_px[0] - reference_px[0], m.offset_px[1] - reference_px[1]))
+        return off <= self.params.offset_share * m.height_px + m.pixel_px
+
     def add(self, m: Measurement) -> CameraMoved | None:
         """Take one measurement; the alarm it raises, if any (module text)."""
         p = self.params
         rec = self._records[m.cam]
-        rec.recent.append(m)
         if rec.baseline is None:
             if rec.baseline_start_ns is None:
                 rec.baseline_start_ns = m.stamp_ns
             rec.baseline_values.append(m)
             if len(rec.baseline_values) >= p.baseline_count and \
                     m.stamp_ns - rec.baseline_start_ns >= p.baseline_s * 1e9:
-                rec.baseline = float(statistics.median(b.agreement for b in rec.baseline_values))
                 rec.baseline_offset = _median_offset(rec.baseline_values) or (0.0, 0.0)
+                fits = [self.fits(b, rec.baseline_offset) for b in rec.baseline_values]
+                rec.baseline = sum(fits) / len(fits)
+                rec.recent.extend(fits)
                 rec.baseline_values = []
             return None
+        rec.recent.append(self.fits(m, rec.baseline_offset))
         figure = self.figure(m.cam)
-        if figure is None:
-            return None
         if figure >= p.recover_ratio * rec.baseline:
             rec.alarmed = False
         if figure >= p.drop_ratio * rec.baseline:
@@ -363,30 +395,51 @@ def measure_person(carver: Carver, level: int, masks: Mapping[str, np.ndarray], 
         r = max(1, int(round(0.6 * float(np.median(radius[loo, col])) * scale / RADIUS_UNITS_PER_PX)))
         v, u = np.divmod(px[c][loo], w)
         bx0, bx1, by0, by1 = int(u.min()) - r, int(u.max()) + r + 1, int(v.min()) - r, int(v.max()) + r + 1
-        mx, my = max(3, (bx1 - bx0) // 2), max(3, (by1 - by0) // 6)
-        x0, x1, y0, y1 = bx0 - mx, bx1 + mx, by0 - my, by1 + my
+        sx, sy = max(3, (bx1 - bx0) // 2), max(3, (by1 - by0) // 4)
+        x0, x1, y0, y1 = bx0 - sx, bx1 + sx, by0 - sy, by1 + sy
         if x0 < 0 or y0 < 0 or x1 > w or y1 > h:
             continue  # the person (or a moved view of them) may run off the image
-        if any(_overlaps(_image_box(cameras[c], o), (x0, y0, x1, y1)) for o in others):
+        if any(_overlaps(_image_box(cameras[c], o), (x0 - sx, y0 - sy, x1 + sx, y1 + sy)) for o in others):
             continue
         pred = np.zeros((y1 - y0, x1 - x0), dtype=np.uint8)
         pred[v - y0, u - x0] = 1
-        pred = cv2.dilate(pred, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))) > 0
-        seen_fg = fg[c][y0:y1, x0:x1]
-        n_pred = np.count_nonzero(pred)
-        if np.count_nonzero(seen_fg) < BLIND_SHARE * n_pred:
+        pred = cv2.dilate(pred, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1)))
+        n_pred = int(np.count_nonzero(pred))
+        if np.count_nonzero(fg[c][y0:y1, x0:x1]) < BLIND_SHARE * n_pred:
             continue  # the camera shows nobody there at all: dark or covered, not moved
-        both = np.count_nonzero(pred & seen_fg)
-        union = np.count_nonzero(pred | seen_fg)
+        agreement, (dx, dy) = shifted_fit(fg[c], pred, (x0, y0), (sx, sy))
         k = (full_width or {}).get(c, w) / w
-        offset = None
-        if seen_fg.any():
-            fy, fx = np.nonzero(seen_fg)
-            py, px_ = np.nonzero(pred)
-            offset = (k * float(fx.mean() - px_.mean()), k * float(fy.mean() - py.mean()))
-        out.append(Measurement(cam=c, stamp_ns=int(stamp_ns), agreement=both / union if union else 0.0,
-                               offset_px=offset, height_px=k * float(by1 - by0)))
+        out.append(Measurement(cam=c, stamp_ns=int(stamp_ns), agreement=agreement, offset_px=(k * dx, k * dy),
+                               height_px=k * float(by1 - by0), pixel_px=k))
     return out
+
+
+def shifted_fit(fg: np.ndarray, pred: np.ndarray, corner: tuple[int, int],
+                search: tuple[int, int]) -> tuple[float, tuple[int, int]]:
+    """How well a predicted silhouette fits a mask where it is, against how well it fits anywhere near.
+
+    fg: (H, W) bool mask. pred: (h, w) uint8 0/1 predicted silhouette whose top-left pixel lies at
+    ``corner`` (x, y) of the mask. search: (sx, sy) largest shifts tried, pixels. For each shift the
+    fit is the intersection over union of the shifted prediction and the mask's foreground in the
+    prediction's shifted box. Returns the fit without shift over the best fit (1: nothing fits better;
+    0 when nothing fits at all) and the best shift (dx, dy), mask pixels: where the camera sees the
+    person relative to where the others put them.
+    """
+    (x0, y0), (sx, sy) = corner, search
+    h, w = pred.shape
+    region = np.zeros((h + 2 * sy, w + 2 * sx), dtype=np.float32)
+    H, W = fg.shape
+    ax0, ay0, ax1, ay1 = max(0, x0 - sx), max(0, y0 - sy), min(W, x0 + w + sx), min(H, y0 + h + sy)
+    region[ay0 - (y0 - sy):ay1 - (y0 - sy), ax0 - (x0 - sx):ax1 - (x0 - sx)] = fg[ay0:ay1, ax0:ax1]
+    template = pred.astype(np.float32)
+    both = cv2.matchTemplate(region, template, cv2.TM_CCORR)
+    seen = cv2.matchTemplate(region, np.ones_like(template), cv2.TM_CCORR)
+    iou = both / np.maximum(float(template.sum()) + seen - both, 1.0)
+    best = float(iou.max())
+    if best <= 0.0:
+        return 0.0, (0, 0)
+    j, i = np.unravel_index(int(np.argmax(iou)), iou.shape)
+    return float(iou[sy, sx]) / best, (int(i) - sx, int(j) - sy)
 
 
 # ---------------------------------------------------------------------- helpers

@@ -2,8 +2,8 @@
 site keeps the old calibration) is found; untouched cameras are not.
 
 Fast tests feed :class:`ConsistencyMonitor` the rendered masks of a randomised world at its own
-measuring rate, with the true people in place of the tracker (tuning seed 37: five cameras high in
-the corners, one person). Slow tests run whole worlds through the fusion node as the replay does.
+measuring rate, with the true people in place of the tracker (tuning seed 3: six cameras level on
+the walls of a 4 x 6 m room, one person walking). Slow tests run whole worlds through the fusion node as the replay does.
 """
 
 from __future__ import annotations
@@ -20,16 +20,16 @@ from fusion_server.consistency import AlarmRule, ConsistencyMonitor, Consistency
 from fusion_server.pipeline import build_carver
 from fusion_server.tracker import TrackEstimate
 
-SEED = 37
+SEED = 3
 FPS = 15.0
-MOVED = "cam2"
-FAST = ConsistencyParams(baseline_count=10, baseline_s=10.0, alarm_count=6, alarm_s=4.0)
-"""The rule with a baseline of 10 s (the default takes 40 s): the fast tests see 50 s of people."""
+MOVED = "cam1"
+FAST = ConsistencyParams(baseline_count=8, baseline_s=10.0, window=9, alarm_count=5, alarm_s=4.0)
+"""The rule with a baseline of 10 s (the default takes 40 s): the fast tests see 60 s of people."""
 
 
 @pytest.fixture(scope="module")
 def world():
-    return random_world(SEED, duration_s=50.0)
+    return random_world(SEED, duration_s=60.0)
 
 
 @pytest.fixture(scope="module")
@@ -92,10 +92,11 @@ def test_moved_camera_renders_from_its_new_place(world):
     i, before = next((i, m) for i, m in zip(frames, iter_masks(world, MOVED, frames, faults=False)) if m.any())
     moved = with_camera_moved(world, MOVED, CameraMove(first=i, rotation_deg=2.0))
     after = next(iter_masks(moved, MOVED, [i], faults=False))
-    untouched = next(iter_masks(moved, "cam1", [i], faults=False))
+    untouched = next(iter_masks(moved, "cam2", [i], faults=False))
     assert not np.array_equal(before, after)
-    assert np.array_equal(untouched, next(iter_masks(world, "cam1", [i], faults=False)))
+    assert np.array_equal(untouched, next(iter_masks(world, "cam2", [i], faults=False)))
     assert moved.summary()["faults"][MOVED][-1] == f"moved at frame {i} (turned 2 deg)"
+    assert len(moved.summary()["faults"]) == len(world.summary()["faults"]) + (MOVED not in world.summary()["faults"])
 
 
 def test_untouched_cameras_agree_and_keep_their_baseline(world, site_and_carver):
@@ -103,13 +104,14 @@ def test_untouched_cameras_agree_and_keep_their_baseline(world, site_and_carver)
     monitor, measured, alarms = _run(world, carver, cameras, FAST, _every_half_second(world.scenario.n_frames))
     assert not alarms
     by_cam = {c: [m for m in measured if m.cam == c] for c in world.cameras}
-    assert all(len(ms) >= FAST.baseline_count for ms in by_cam.values()), {c: len(v) for c, v in by_cam.items()}
-    for cam in world.cameras:
-        assert monitor.baseline(cam) is not None and monitor.baseline(cam) > 0.4
+    judged = [c for c in world.cameras if monitor.baseline(c) is not None]
+    assert len(judged) >= 4, {c: len(v) for c, v in by_cam.items()}
+    for cam in judged:
+        assert monitor.baseline(cam) > 0.8
         assert monitor.figure(cam) >= FAST.recover_ratio * monitor.baseline(cam)
         # the true silhouette sits where the others carve the person: no offset beyond a few pixels
         offsets = np.array([m.offset_px for m in by_cam[cam]])
-        assert np.hypot(*np.median(offsets, axis=0)) < 4.0
+        assert np.hypot(*np.median(offsets, axis=0)) <= 2 * by_cam[cam][0].pixel_px
 
 
 @pytest.mark.parametrize("change", [CameraMove(first=int(25 * FPS), rotation_deg=2.0),
@@ -137,21 +139,24 @@ def test_the_rule_waits_for_a_lasting_drop_and_alarms_once_until_back():
     rule = AlarmRule(["a"], params)
     t = iter(range(10**6))
 
-    def feed(values, offset=(1.0, 0.0)):
+    def feed(offsets):
+        """Views of a 100-pixel-tall person, two a second, seen at these offsets (None: flooded)."""
         out = []
-        for v in values:
-            alarm = rule.add(Measurement(cam="a", stamp_ns=int(next(t) * 0.5e9), agreement=v, offset_px=offset))
-            out += [alarm] if alarm else []
+        for off in offsets:
+            m = Measurement(cam="a", stamp_ns=int(next(t) * 0.5e9), agreement=1.0, offset_px=off, height_px=100.0)
+            out += [a] if (a := rule.add(m)) else []
         return out
 
-    assert feed([0.6, 0.55, 0.62] * 8) == [] and abs(rule.baseline("a") - 0.6) < 0.03
-    assert feed([0.0] * 5 + [0.6] * 10) == []  # a camera dark for a few views: no alarm
-    alarms = feed([0.3] * 16, offset=(9.0, 1.0))  # a lasting drop: one alarm, figure, baseline and offset
-    assert len(alarms) == 1 and alarms[0].figure == pytest.approx(0.3)
+    right = [(1.0, 0.0), (0.0, 0.0), (2.0, 1.0)]  # where the camera sees people while it is right
+    assert feed(right * 8) == [] and rule.baseline("a") == 1.0 and rule.figure("a") == 1.0
+    assert feed([None] * 5 + right * 4) == []  # a camera flooded for a few views: no alarm
+    alarms = feed([(9.0, 1.0)] * 16)  # people 8 px away from where they were, lastingly: one alarm
+    assert len(alarms) == 1 and alarms[0].figure == 0.0 and alarms[0].baseline == 1.0
     assert alarms[0].offset_px == (8.0, 1.0)  # against the offset the camera showed while it was right
     assert alarms[0].down_s >= 5.0 and alarms[0].details()["offset_norm_px"] == pytest.approx(8.1, abs=0.1)
-    assert feed([0.3] * 30) == []  # at most once until it recovers
-    assert feed([0.6] * 10) == [] and feed([0.3] * 16) != []  # back, then moved again
+    assert feed([(9.0, 1.0)] * 30) == []  # at most once until it recovers
+    assert feed(right * 4) == [] and rule.figure("a") == 1.0
+    assert len(feed([(1.0, 7.0)] * 16)) == 1  # back, then moved again
 
 
 def test_the_rule_refuses_bad_settings():
