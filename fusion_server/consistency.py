@@ -10,49 +10,57 @@ anyway.
 **One measurement** (:func:`measure_person`): for a person tracked
 confidently (confirmed, reliability at least ``min_reliability``), the 10 cm
 voxels of the octree in a cylinder around them are voted again *without*
-camera ``c`` (leave one out), each other camera testing the voxel's centre
-against its mask (the carver's own lookup tables, so the site's occluders
-count: a voxel a camera sees only through furniture is not seen by it), by the
-carver's own rule (``min_cameras``, ``min_ratio``). What the others carve is
-projected into ``c`` (each voxel splatted at its projected half-size) and
-compared with ``c``'s mask in a window around it: ``agreement`` is the
-intersection over union of the predicted silhouette and the foreground in
-the window; ``offset`` is the foreground's centroid less the prediction's, in
-pixels of the camera's full image. A camera that has not moved agrees as well
-as the hull is tight (a visual hull is larger than the body; mask noise,
-shadows and holes cost more); one that has moved sees the person a few to a
-few tens of pixels away from where the others put them, and the agreement
-falls. Only clear views count: the person must be seen whole by ``c`` (every
-voxel in the image, none behind an occluder), their window inside the image
-and free of every other tracked body's box (nobody in front of or beside
-them in that view), and at least two other cameras must carve them.
+camera ``c`` (leave one out): each other camera tests the voxel's centre
+against its mask through the carver's own lookup tables (so the site's
+occluders count: a voxel a camera sees only through furniture is not seen by
+it), under the carver's own rule (``min_cameras``, ``min_ratio``). What the
+others carve is projected into ``c`` (each voxel splatted at its projected
+half-size) and slid over ``c``'s mask (:func:`shifted_fit`): the fit at each
+shift is the intersection over union of the prediction and the foreground in
+its box. The **offset** is the shift that fits best: where ``c`` sees the
+person relative to where the others put them, in pixels of ``c``'s full
+image; the **agreement** is the fit where the prediction stands over the best
+fit (1: nothing fits better). Sliding makes both independent of how loose the
+hull is (a visual hull is larger than the body) and of the person's pose.
+Only clear views count: the person seen whole by ``c`` (every voxel in its
+image, none behind an occluder), their window and search range inside the
+image and clear of every other tracked body's box, at least two other cameras
+carving them, and foreground in the window (a camera showing nobody where the
+others carve someone is dark or covered, not moved). A person standing still
+is measured again only once they have moved ``remeasure_m`` or after
+``remeasure_s``: the same view repeated would weigh one pose (whose hull can
+sit a few pixels off in some camera) as many measurements.
 
-**The background as a whole.** A camera that is knocked makes its own
-background model see a changed room: its mask floods with foreground until
-the model learns the new view. A camera whose mask is more than
-``flood_share`` foreground while the other cameras' median is under a tenth
-of that counts, on a measured frame, as one measurement of agreement 0 (its
-mask agrees with nothing the others carve).
+**The background as a whole.** A knocked camera's own background model sees
+a changed room: its mask floods with foreground until the model learns the
+new view. A camera whose mask is more than ``flood_share`` foreground while
+the other cameras' median is under a tenth of that counts, on a measured
+frame, as one view that does not fit.
 
-**Cheap.** Measurements are taken on one frame set every ``every_s`` seconds
-of capture time, for at most ``max_people`` people a time (taken in turn), so
-the cost is a few milliseconds a second whatever the crowd.
+**Cheap.** One frame set every ``every_s`` seconds of capture time, at most
+``max_people`` people a time (taken in turn): a few milliseconds a second
+whatever the crowd.
 
-**The running figure and the decision rule.** Per camera the figure is the
-median agreement of its last ``window`` measurements (``consistency`` in the
-status; None until ``window // 2`` measurements exist). The baseline is the
-camera's own: the median of its first ``baseline_count`` measurements, taken
-once they span at least ``baseline_s`` seconds (its first minutes of people
-walking), so a loose rig, a noisy camera or a room full of shadows sets its
-own standard and no threshold is fitted to one scene. A camera is *down* when
-its figure is under ``drop_ratio`` of its baseline; a ``camera_moved`` alarm
-is raised when it has been down for ``alarm_count`` measurements in a row
-spanning at least ``alarm_s`` seconds (a few bad views, or a camera dark for
-a few seconds, never do), with the figure, the baseline and the median
-offset of the down measurements (pixels) in its details. It is raised once;
-the camera is re-armed only when its figure is back above
-``recover_ratio`` of its baseline (put back, or recalibrated and the server
-restarted, which takes a new baseline).
+**The figure, the baseline and the decision rule.** A view *fits* when its
+offset lies within ``offset_share`` of the silhouette's height, plus one mask
+pixel, of the camera's own baseline offset (2 degrees of turn move a person 3
+m away by some 6 % of their height in the image, a 10 cm shift sideways by 6
+% at any distance). The baseline is the camera's own: its first
+``baseline_count`` views, once they span at least ``baseline_s`` seconds (its
+first minutes of people walking), give the baseline offset (their median: a
+camera whose masks carry shadows or lag sees people a little off, and that is
+its normal) and the baseline figure (the share of them that fit). The running
+figure, ``consistency`` in the status (None until the baseline is taken), is
+the share of the last ``window`` views that fit. A camera is *down* when its
+figure is under ``drop_ratio`` of its baseline; a ``camera_moved`` alarm is
+raised when it has been down for ``alarm_count`` views in a row spanning at
+least ``alarm_s`` seconds (a few odd views, a camera dark or flooded for a few
+seconds, never do), with the figure, the baseline and the median offset of the
+down views against the baseline offset in its details. It is raised once; the
+camera is re-armed when its figure is back to ``recover_ratio`` of its
+baseline (put back, or recalibrated and the server restarted, which takes a
+new baseline). No threshold is fitted to a scene: the tolerance is a share of
+the person's own image size, and each camera is judged against itself.
 
 Pure: no clock (time is the frame sets' capture stamps), no I/O.
 """
@@ -203,6 +211,8 @@ class ConsistencyMonitor:
         self.rule = AlarmRule(carver.camera_ids, params)
         self._next_ns: int | None = None
         self._last_seen: dict[int, tuple[float, float, int]] = {}  # body id -> where and when last measured
+        self.history: list[Measurement] | None = None
+        """Set to a list to keep every measurement (offline checks); None keeps none."""
         self._turn = 0
 
     # ------------------------------------------------------------------ public
@@ -226,6 +236,8 @@ class ConsistencyMonitor:
         self._next_ns = stamp_ns + int(self.params.every_s * 1e9)
         masks = {c: m for c, m in masks.items() if c in self.full_width}
         measurements = self.measure(masks, bodies, stamp_ns)
+        if self.history is not None:
+            self.history.extend(measurements)
         alarms = [a for m in measurements if (a := self.rule.add(m)) is not None]
         return measurements, alarms
 
