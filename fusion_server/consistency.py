@@ -172,7 +172,8 @@ class CameraMoved:
         out = {"consistency": round(self.figure, 3), "baseline": round(self.baseline, 3),
                "down_measurements": self.down_measurements, "down_s": round(self.down_s, 1)}
         if self.offset_px is not None:
-            out["offset_px"] = [round(self.offset_px[0], 1), round(self.offset_px[1], 1)]
+            out["offset_dx_px"] = round(self.offset_px[0], 1)
+            out["offset_dy_px"] = round(self.offset_px[1], 1)
             out["offset_norm_px"] = round(float(np.hypot(*self.offset_px)), 1)
         return out
 

@@ -13,6 +13,7 @@ import math
 import numpy as np
 import pytest
 
+from common.messages import Event
 from common.site import load_site
 from common.synth.degrade import CameraMove
 from common.synth.world import iter_masks, random_world, with_camera_moved, write_world_site
@@ -158,7 +159,10 @@ def test_the_rule_waits_for_a_lasting_drop_and_alarms_once_until_back():
     alarms = feed([(9.0, 1.0)] * 16)  # people 8 px away from where they were, lastingly: one alarm
     assert len(alarms) == 1 and alarms[0].figure == 0.0 and alarms[0].baseline == 1.0
     assert alarms[0].offset_px == (8.0, 1.0)  # against the offset the camera showed while it was right
-    assert alarms[0].down_s >= 5.0 and alarms[0].details()["offset_norm_px"] == pytest.approx(8.1, abs=0.1)
+    details = alarms[0].details()
+    assert alarms[0].down_s >= 5.0 and details["offset_norm_px"] == pytest.approx(8.1, abs=0.1)
+    Event(id="e", kind="camera_moved", track=-1, stamp_ns=1, frame=0, x=0.0, y=0.0,
+          details={"camera": "a", **details})  # the details travel in an event as they are
     assert feed([(9.0, 1.0)] * 30) == []  # at most once until it recovers
     assert feed(right * 4) == [] and rule.figure("a") == 1.0
     assert len(feed([(1.0, 7.0)] * 16)) == 1  # back, then moved again
