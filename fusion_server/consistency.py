@@ -22,9 +22,9 @@ person relative to where the others put them, in pixels of ``c``'s full
 image; the **agreement** is the fit where the prediction stands over the best
 fit (1: nothing fits better). Sliding makes both independent of how loose the
 hull is (a visual hull is larger than the body) and of the person's pose.
-Only clear views count: the person seen whole by ``c`` (every voxel in its
-image, none behind an occluder), their window and search range inside the
-image and clear of every other tracked body's box, at least two other cameras
+Only clear views count: the person seen by ``c`` (at least ``MIN_SEEN`` of
+the voxels in its image and not behind an occluder), their window and search
+range inside the image, the window clear of every other tracked body's box, at least two other cameras
 carving them, and foreground in the window (a camera showing nobody where the
 others carve someone is dark or covered, not moved). A person standing still
 is measured again only once they have moved ``remeasure_m`` or after
@@ -89,6 +89,8 @@ VOXEL_M = 0.1
 """The octree level nearest this voxel edge is re-voted (a body is some 400 such voxels)."""
 BODY_RADIUS_M = 0.45
 """Voxels within this floor distance of a person's position are theirs."""
+MIN_SEEN = 0.95
+"""A camera is measured on a person only when it sees this share of the others' voxels clearly."""
 BLIND_SHARE = 0.1
 """A camera whose window holds less foreground than this share of the predicted silhouette is not
 measured: it shows nobody where the others carve someone (dark, covered, a person it has learnt into
@@ -101,14 +103,14 @@ OTHER_HALF_M = 0.45
 class ConsistencyParams:
     """Settings of :class:`ConsistencyMonitor` (module text); checked once."""
 
-    every_s: float = 0.5
+    every_s: float = 0.25
     max_people: int = 2
     min_reliability: float = 0.8
     min_voxels: int = 40
     window: int = 15
     baseline_count: int = 20
     baseline_s: float = 40.0
-    remeasure_m: float = 0.3
+    remeasure_m: float = 0.2
     remeasure_s: float = 10.0
     offset_share: float = 0.04
     drop_ratio: float = 0.6
@@ -399,8 +401,9 @@ def measure_person(carver: Carver, level: int, masks: Mapping[str, np.ndarray], 
         found_o = found - hit[c]
         seeing_o = seeing - seen[c]
         loo = (seeing_o >= 2) & (found_o >= need[seeing_o])
-        if np.count_nonzero(loo) < min_voxels or not seen[c][loo].all():
+        if np.count_nonzero(loo) < min_voxels or np.count_nonzero(seen[c][loo]) < MIN_SEEN * np.count_nonzero(loo):
             continue
+        loo &= seen[c]  # a few voxels behind furniture or off the image are left out of the prediction
         col = carver.camera_ids.index(c)
         h, w = fg[c].shape
         lut_w, lut_h = carver.lut_sizes[c]
@@ -412,7 +415,7 @@ def measure_person(carver: Carver, level: int, masks: Mapping[str, np.ndarray], 
         x0, x1, y0, y1 = bx0 - sx, bx1 + sx, by0 - sy, by1 + sy
         if x0 < 0 or y0 < 0 or x1 > w or y1 > h:
             continue  # the person (or a moved view of them) may run off the image
-        if any(_overlaps(_image_box(cameras[c], o), (x0 - sx, y0 - sy, x1 + sx, y1 + sy)) for o in others):
+        if any(_overlaps(_image_box(cameras[c], o), (x0, y0, x1, y1)) for o in others):
             continue
         pred = np.zeros((y1 - y0, x1 - x0), dtype=np.uint8)
         pred[v - y0, u - x0] = 1
