@@ -55,7 +55,10 @@ the share of the last ``window`` views that fit. A camera is *down* when its
 figure is under ``drop_ratio`` of its baseline; a ``camera_moved`` alarm is
 raised when it has been down for ``alarm_count`` views in a row spanning at
 least ``alarm_s`` seconds (a few odd views, a camera dark or flooded for a few
-seconds, never do), with the figure, the baseline and the median offset of the
+seconds, never do) and no other camera's figure has dropped further against its
+own baseline (a moved camera spoils the others' carve a little, and its own
+fit most: when several drop together, the one that dropped most is blamed),
+with the figure, the baseline and the median offset of the
 down views against the baseline offset in its details. It is raised once; the
 camera is re-armed when its figure is back to ``recover_ratio`` of its
 baseline (put back, or recalibrated and the server restarted, which takes a
@@ -322,6 +325,15 @@ class AlarmRule:
         rec = self._records.get(cam)
         return None if rec is None else rec.baseline
 
+    def _ratios(self) -> dict[str, float]:
+        """Camera id -> its figure over its baseline, for the cameras with both (and a baseline above 0)."""
+        out = {}
+        for cam, rec in self._records.items():
+            figure = self.figure(cam)
+            if figure is not None and rec.baseline:
+                out[cam] = figure / rec.baseline
+        return out
+
     def fits(self, m: Measurement, reference_px: tuple[float, float]) -> bool:
         """Whether the camera sees the person where the others put them: its offset within
         ``offset_share`` of the silhouette's height (plus one mask pixel) of ``reference_px``."""
@@ -361,6 +373,8 @@ class AlarmRule:
         down_s = (m.stamp_ns - rec.down_since_ns) / 1e9
         if rec.alarmed or rec.down_count < p.alarm_count or down_s < p.alarm_s:
             return None
+        if figure / rec.baseline > min(self._ratios().values()):
+            return None  # another camera dropped further: it is the one moved, and spoils this one's carve
         rec.alarmed = True
         offset = _median_offset(rec.down)
         if offset is not None:

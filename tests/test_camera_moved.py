@@ -168,6 +168,23 @@ def test_the_rule_waits_for_a_lasting_drop_and_alarms_once_until_back():
     assert len(feed([(1.0, 7.0)] * 16)) == 1  # back, then moved again
 
 
+def test_when_two_cameras_drop_together_the_one_that_dropped_most_is_blamed():
+    params = ConsistencyParams(baseline_count=10, baseline_s=10.0, window=5, alarm_count=6, alarm_s=5.0)
+    rule = AlarmRule(["moved", "spoilt"], params)
+    alarms = []
+    for k in range(60):
+        for cam in ("moved", "spoilt"):
+            if k < 24:
+                off = (0.0, 0.0)  # both right while the baselines are taken
+            elif cam == "moved":
+                off = (9.0, 0.0)  # every view off
+            else:
+                off = (9.0, 0.0) if k % 3 else (0.0, 0.0)  # its carve spoilt by the moved camera: most views off
+            m = Measurement(cam=cam, stamp_ns=int(k * 0.5e9), agreement=1.0, offset_px=off, height_px=100.0)
+            alarms += [a.cam for a in [rule.add(m)] if a]
+    assert alarms == ["moved"]
+
+
 def test_the_rule_refuses_bad_settings():
     with pytest.raises(ValueError, match="recover_ratio"):
         ConsistencyParams(drop_ratio=0.8, recover_ratio=0.7)
