@@ -36,8 +36,11 @@ SHIFT_M = 0.1
 
 
 def run_moved_world(seed: int, out_dir: str | Path, *, duration_s: float = 120.0, move_at_s: float = 60.0,
-                    move: str = "rotate", faults: bool = True, cache_dir: str | Path | None = None) -> dict[str, Any]:
-    """One world: ``move`` is 'rotate', 'shift' or 'none'. Returns what happened (module text)."""
+                    move: str = "rotate", faults: bool = True, cache_dir: str | Path | None = None,
+                    sideways: bool = False) -> dict[str, Any]:
+    """One world: ``move`` is 'rotate', 'shift' or 'none'; a shift goes along the floor in a direction
+    drawn from the seed, or with ``sideways`` across the camera's view (a shift along its axis only
+    scales people by a few per cent). Returns what happened (module text)."""
     from common.site import load_site
     from common.synth.degrade import CameraMove
     from common.synth.world import _bodies_at, iter_masks, random_world, with_camera_moved, write_world_site
@@ -57,6 +60,9 @@ def run_moved_world(seed: int, out_dir: str | Path, *, duration_s: float = 120.0
         if move == "rotate":
             change = CameraMove(first=first, rotation_deg=ROTATION_DEG, axis=(np.sin(angle), np.cos(angle), 0.0))
         else:
+            if sideways:
+                fwd = world.cameras[moved_cam].forward
+                angle = float(np.arctan2(fwd[1], fwd[0])) + np.pi / 2
             change = CameraMove(first=first, shift_m=(SHIFT_M * np.cos(angle), SHIFT_M * np.sin(angle), 0.0))
         world = with_camera_moved(world, moved_cam, change)
     written = write_world_site(world, Path(out_dir) / world.name)

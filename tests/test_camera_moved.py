@@ -198,7 +198,7 @@ def test_whole_world_through_the_node_alarms_for_the_moved_camera_only(tmp_path,
     from fusion_server.moved_suite import run_moved_world
 
     result = run_moved_world(SEED, tmp_path, duration_s=110.0, move_at_s=50.0, move=move, faults=False,
-                             cache_dir=tmp_path / "cache")
+                             cache_dir=tmp_path / "cache", sideways=True)
     own = [a for a in result["alarms"] if a["cam"] == result["moved"]]
     assert [a["cam"] for a in result["alarms"]] == [result["moved"]], result["alarms"]
     assert 0 < own[0]["t_s"] - result["move_at_s"] <= 60.0
