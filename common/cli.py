@@ -101,6 +101,9 @@ def _register_site(sub) -> None:
     p.add_argument("action", choices=["check"],
                    help="check: validate the file, load every calibration and every enrolled resident's model")
     p.add_argument("path", help="the site TOML file")
+    p.add_argument("--clip", action="append", default=[], metavar="CAM=FILE",
+                   help="a clip of people walking from camera CAM (video, image or mask folder; all clips recorded "
+                        "together, 3 cameras or more): report how well each camera sees them where the others do")
     p.set_defaults(handler=_site_check)
 
 
@@ -124,6 +127,14 @@ def _site_check(args: argparse.Namespace) -> int:
         print(f"  enrolled {resident.name}: {_model_summary(resident.model)} ({site.resolve(spec.model)})")
     for line in _network_lines(site):
         print(f"  {line}")
+    if args.clip:
+        from fusion_server.calibration_check import check_clips
+
+        clips = dict(c.split("=", 1) for c in args.clip if "=" in c)
+        if len(clips) != len(args.clip):
+            raise ValueError("--clip takes CAM=FILE")
+        for check in check_clips(site, clips):
+            print(f"  {check.line()}")
     return 0
 
 

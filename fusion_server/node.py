@@ -584,6 +584,11 @@ class FusionNode:
             self.outputs.write_frame(fused.frame, fused.stamp_ns, tracks)
         for rec in fused.events:
             self._emit(rec)
+        for alarm in fused.moved:
+            log.warning("camera %s: its masks no longer agree with the other cameras' carve (%.2f against its "
+                        "baseline %.2f): moved or bumped?", alarm.cam, alarm.figure, alarm.baseline)
+            self._emit(camera_event("camera_moved", alarm.cam, int(fused.stamp_ns), int(fused.frame),
+                                    **alarm.details()))
         self._queue_holds(fused, mono)
         self._queue_looks(fused, mono)
         return fused
@@ -743,6 +748,7 @@ class FusionNode:
                 last_seen_ns=h.last_seen_ns,
                 clock_offset_ms=float(offset) if offset is not None else 0.0,
                 refused=h.refused,
+                consistency=self.pipeline.consistency.figure(cam),
             ))
         return Status(stamp_ns=int(now_ns), cameras=cams, frame_sets=self.c.frames_fused,
                       frame_sets_dropped=self.c.frame_sets_dropped, events_not_stored=self.c.events_not_stored,
@@ -811,7 +817,8 @@ def history_replies(store: EventStore, history_key: str, asked_key: str, paramet
 
 
 def camera_event(kind: str, cam: str, stamp_ns: int, frame: int, **details: Any) -> Event:
-    """A camera-health event (``camera_lost``, ``camera_back``, ``clock_skew``) at a server time."""
+    """A camera-health event (``camera_lost``, ``camera_back``, ``clock_skew``, ``camera_moved``) at a
+    server time (``camera_moved``: at its frame set's capture time)."""
     return Event(id=event_id(stamp_ns, f"{kind}-{cam}", -1), kind=kind, track=-1, stamp_ns=int(stamp_ns),
                  frame=int(frame), x=0.0, y=0.0, details={"camera": cam, **details})
 

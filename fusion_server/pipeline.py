@@ -26,6 +26,7 @@ from common.messages import Appearance, Event, PersonRegion
 from common.site import Site
 from fusion_server.carving import Carver
 from fusion_server.carving.occlusion import Occluder
+from fusion_server.consistency import CameraMoved, ConsistencyMonitor, ConsistencyParams
 from fusion_server.detection import Blob, detect_blobs
 from fusion_server.explain import BlobExplainer
 from fusion_server.events import EventReasoner, FallParams, InactivityParams
@@ -80,6 +81,8 @@ class FusedFrame:
     holds: dict[str, list[tuple[int, int, int, int]]]
     carve: CarveResult
     looks: dict[str, list[PersonRegion]] = field(default_factory=dict)
+    moved: list[CameraMoved] = field(default_factory=list)
+    """Cameras judged moved on this frame set (:mod:`fusion_server.consistency`)."""
 
 
 class FusionPipeline:
@@ -98,6 +101,8 @@ class FusionPipeline:
       decisions, viterbi_lag_s: how each track's posture is decided, frame by
         frame or by fixed-lag Viterbi decoding
         (:class:`~fusion_server.posture.PostureEstimator`).
+      consistency: the settings of the moved-camera check
+        (:class:`~fusion_server.consistency.ConsistencyMonitor`, attribute ``consistency``).
 
     posture_settings: the keyword arguments every track's posture estimator is made with.
     """
@@ -114,6 +119,7 @@ class FusionPipeline:
         identity: IdentityKeeper | None = None,
         decisions: str = "frame",
         viterbi_lag_s: float = 0.6,
+        consistency: ConsistencyParams = ConsistencyParams(),
     ) -> None:
         if hold_radius_m <= 0:
             raise ValueError(f"hold_radius_m must be positive, got {hold_radius_m}")
@@ -125,6 +131,7 @@ class FusionPipeline:
         self.min_cameras = int(min_cameras if min_cameras is not None else carver.min_cameras)
         self.camera_ids: tuple[str, ...] = carver.camera_ids
         self.explainer = BlobExplainer(self.cameras)
+        self.consistency = ConsistencyMonitor(carver, self.cameras, consistency)
         self.identity = identity if identity is not None else IdentityKeeper(self.cameras)
         self.posture_settings = dict(voxel_m=carver.grid.voxel_m, decisions=decisions, viterbi_lag_s=viterbi_lag_s)
         PostureEstimator(**self.posture_settings)  # validate once, up front
@@ -174,6 +181,7 @@ class FusionPipeline:
         carve = self.carver.carve(masks, stamp_ns, depths=depths)
         blobs = self.detect_people(carve, masks)
         bodies = self.tracker.step(carve, blobs, stamp_ns)
+        _, moved = self.consistency.step(masks, bodies, stamp_ns)
         estimates = self.label(bodies, looks or {}, stamp_ns)
         readings = self.update_postures(estimates, stamp_ns)
         standing = {b.id: float(e.z_top_m) for b, e in zip(bodies, estimates)
@@ -196,6 +204,7 @@ class FusionPipeline:
             holds=holds,
             carve=carve,
             looks=self.identity.regions(bodies, stamp_ns),
+            moved=moved,
         )
 
     def label(self, bodies: list[TrackEstimate], looks: Mapping[str, Iterable[Appearance]],

@@ -16,7 +16,12 @@ person mask:
   frame and the first frame back are all foreground (the background model
   sees everything change) and the frames between are empty;
 * a time offset: the camera's frame ``i`` shows the world at frame ``i - lag``
-  (applied where the silhouettes are rendered).
+  (applied where the silhouettes are rendered);
+* a moved camera (:class:`CameraMove`): from frame ``first`` on the camera
+  is rotated or shifted (a cleaner bumped it) while the site keeps its old
+  calibration; applied where the silhouettes are rendered (the renderer
+  draws through :meth:`CameraMove.apply`'s camera from then on). Never drawn
+  by :func:`random_faults`: a test or an evaluation sets it on purpose.
 
 Everything is a pure function of the faults, the frame index and the seed.
 """
@@ -47,6 +52,45 @@ class Clutter:
 
 
 @dataclass(frozen=True)
+class CameraMove:
+    """A camera knocked out of place from frame ``first`` on: turned by ``rotation_deg`` about
+    ``axis`` (camera frame: (0, 1, 0), the image's vertical axis, pans it; (1, 0, 0) tilts it)
+    about its optical centre, then its centre moved by ``shift_m`` (world frame, metres)."""
+
+    first: int
+    rotation_deg: float = 0.0
+    axis: tuple[float, float, float] = (0.0, 1.0, 0.0)
+    shift_m: tuple[float, float, float] = (0.0, 0.0, 0.0)
+
+    def __post_init__(self) -> None:
+        if isinstance(self.first, bool) or not isinstance(self.first, (int, np.integer)) or self.first < 0:
+            raise ValueError(f"first must be a frame index >= 0, got {self.first!r}")
+        axis = np.asarray(self.axis, dtype=np.float64)
+        if axis.shape != (3,) or not np.all(np.isfinite(axis)) or np.linalg.norm(axis) == 0:
+            raise ValueError(f"axis must be a non-zero 3-vector, got {self.axis!r}")
+        shift = np.asarray(self.shift_m, dtype=np.float64)
+        if shift.shape != (3,) or not np.all(np.isfinite(shift)) or not np.isfinite(self.rotation_deg):
+            raise ValueError(f"rotation_deg and shift_m must be finite, got {self.rotation_deg!r}, {self.shift_m!r}")
+
+    def apply(self, camera: Camera) -> Camera:
+        """``camera`` as it stands after the move (same intrinsics, new pose)."""
+        axis = np.asarray(self.axis, dtype=np.float64)
+        rvec = axis / np.linalg.norm(axis) * np.radians(self.rotation_deg)
+        turn, _ = cv2.Rodrigues(rvec.reshape(3, 1))
+        R = turn @ camera.R
+        centre = camera.center + np.asarray(self.shift_m, dtype=np.float64)
+        return camera.with_pose(R, -R @ centre)
+
+    def describe(self) -> str:
+        parts = []
+        if self.rotation_deg:
+            parts.append(f"turned {self.rotation_deg:g} deg")
+        if any(self.shift_m):
+            parts.append(f"shifted {100 * float(np.linalg.norm(self.shift_m)):.0f} cm")
+        return f"moved at frame {self.first} ({', '.join(parts) or 'not at all'})"
+
+
+@dataclass(frozen=True)
 class MaskFaults:
     """What goes wrong in one camera's masks (see the module text)."""
 
@@ -57,6 +101,7 @@ class MaskFaults:
     clutter: tuple[Clutter, ...] = ()
     dark: tuple[int, int] | None = None
     lag_frames: int = 0
+    moved: CameraMove | None = None
 
     def describe(self) -> list[str]:
         """Short names of the faults present, for reports."""
@@ -73,6 +118,8 @@ class MaskFaults:
             out.append("dark")
         if self.lag_frames:
             out.append(f"lag {self.lag_frames}")
+        if self.moved is not None:
+            out.append(self.moved.describe())
         return out
 
 

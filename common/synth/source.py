@@ -17,6 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from common.camera import Camera
+from common.synth.degrade import CameraMove
 from common.synth.render import MODALITIES, CameraRenderer, frame_for
 from common.synth.scenario import Scenario, ScenarioSpec
 from common.synth.scenarios import DEFAULT_SCENARIO, get_scenario
@@ -40,6 +41,9 @@ class SyntheticCamera:
         default camera for fast tests.
     noise_std: sensor noise, grey levels. shadows: draw cast shadows.
     modality: 'colour' (default), 'infrared', 'thermal' or 'depth'.
+    moved: the camera knocked out of place mid-run (:class:`common.synth.degrade.CameraMove`):
+        from its frame on, frames are rendered through the moved camera (the calibration
+        anyone reads from the site stays the old one). The background clip is before it.
     """
 
     def __init__(
@@ -54,6 +58,7 @@ class SyntheticCamera:
         shadows: bool = True,
         background_s: float = BACKGROUND_S,
         modality: str = "colour",
+        moved: CameraMove | None = None,
     ) -> None:
         if modality not in MODALITIES:
             raise ValueError(f"modality must be one of {', '.join(MODALITIES)}, got {modality!r}")
@@ -68,6 +73,10 @@ class SyntheticCamera:
         self.cam_id = cam_id
         self.renderer = CameraRenderer(camera, self.scenario.room, seed=self.seed, noise_std=noise_std, shadows=shadows,
                                        colour=modality in ("colour", "infrared"))
+        self.moved = moved
+        self._moved_renderer: CameraRenderer | None = None
+        self._renderer_args = dict(seed=self.seed, noise_std=noise_std, shadows=shadows,
+                                   colour=modality in ("colour", "infrared"))
         self.n_background_frames = int(round(background_s * self.scenario.fps))
 
     @property
@@ -100,9 +109,10 @@ class SyntheticCamera:
         """Frame ``index``: BGR (H, W, 3) uint8 and the visible person id per pixel (H, W) uint8 (0 = nobody)."""
         self._check(index, self.n_frames)
         sc = self.scenario
+        renderer = self._renderer_at(int(index))
         if self.modality == "colour":
-            return self.renderer.render(sc.bodies(index), sc.gain(index), (_FRAME_STREAM, int(index)))
-        return frame_for(self.renderer, self.modality, sc.bodies(index), (_FRAME_STREAM, int(index)),
+            return renderer.render(sc.bodies(index), sc.gain(index), (_FRAME_STREAM, int(index)))
+        return frame_for(renderer, self.modality, sc.bodies(index), (_FRAME_STREAM, int(index)),
                          gain=sc.gain(index), ambient_c=ambient_c(self.seed, index / self.fps))
 
     def background_frame(self, index: int) -> np.ndarray:
@@ -121,6 +131,15 @@ class SyntheticCamera:
         for i in range(start, stop):
             bgr, mask = self.frame(i)
             yield i, self.stamp_ns(i), bgr, mask
+
+    def _renderer_at(self, index: int) -> CameraRenderer:
+        """The renderer of frame ``index``: the moved camera's from the move on."""
+        if self.moved is None or index < self.moved.first:
+            return self.renderer
+        if self._moved_renderer is None:
+            self._moved_renderer = CameraRenderer(self.moved.apply(self.camera), self.scenario.room,
+                                                  **self._renderer_args)
+        return self._moved_renderer
 
     @staticmethod
     def _check(index, n: int) -> None:

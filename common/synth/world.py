@@ -65,7 +65,7 @@ from common.calibration import save_voxelwatch
 from common.camera import Camera
 from common.synth.body import SHIRT_COLOURS, TROUSER_COLOURS, pose_body
 from common.synth.crowd import Cast, random_people
-from common.synth.degrade import MaskFaults, degrade, random_faults
+from common.synth.degrade import CameraMove, MaskFaults, degrade, random_faults
 from common.synth.house import open_video_writer
 from common.synth.render import CameraRenderer, frame_for
 from common.synth.rigs import CalibrationRef, real_rig, random_rig
@@ -201,10 +201,13 @@ class World:
         return counts
 
 
-def random_world(seed: int, *, data_dir: str | Path | None = None, sensors: str = "colour") -> World:
+def random_world(seed: int, *, data_dir: str | Path | None = None, sensors: str = "colour",
+                 duration_s: float | None = None) -> World:
     """The world of ``seed`` (deterministic). The real rigs need the recordings' calibrations in
     ``data_dir`` (default :func:`default_data_dir`): ValueError naming the missing file otherwise.
-    ``sensors``: 'colour' or 'mixed' (see the module text; the same world either way)."""
+    ``sensors``: 'colour' or 'mixed' (see the module text; the same world either way).
+    ``duration_s``: the scenario's length instead of the drawn 30-50 s (the same room, rig and
+    people, who then do more; for checks that need minutes, like the moved-camera alarm's)."""
     if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)):
         raise ValueError(f"seed must be an int, got {seed!r}")
     if sensors not in SENSOR_RIGS:
@@ -217,6 +220,10 @@ def random_world(seed: int, *, data_dir: str | Path | None = None, sensors: str 
     band = PEOPLE_BANDS[int(rng.choice(len(PEOPLE_BANDS), p=_BAND_P))]
     count = int(rng.integers(band[0], band[1] + 1))
     duration = float(np.round(rng.uniform(30.0, 50.0)))
+    if duration_s is not None:
+        if not (isinstance(duration_s, (int, float)) and math.isfinite(duration_s) and 5.0 <= duration_s <= 3600.0):
+            raise ValueError(f"duration_s must lie in 5..3600 s, got {duration_s!r}")
+        duration = float(duration_s)
     residents = int(rng.integers(1, 3))
     fisheye = False
     open_edges = False
@@ -268,6 +275,17 @@ def random_world(seed: int, *, data_dir: str | Path | None = None, sensors: str 
                  modalities=modalities, sensor_notes=notes)
 
 
+def with_camera_moved(world: World, cam_id: str, move: CameraMove) -> World:
+    """``world`` with camera ``cam_id`` knocked out of place as ``move`` says (its masks and
+    videos are rendered through the moved camera from ``move.first``; the site file keeps the
+    calibration of the camera as it was)."""
+    if cam_id not in world.cameras:
+        raise ValueError(f"no camera {cam_id!r} in {world.name}; cameras are {sorted(world.cameras)}")
+    faults = dict(world.faults)
+    faults[cam_id] = dataclasses.replace(faults.get(cam_id, MaskFaults()), moved=move)
+    return dataclasses.replace(world, faults=faults)
+
+
 @dataclass(frozen=True)
 class WorldOutput:
     """What :func:`write_world` wrote (absolute paths)."""
@@ -316,7 +334,8 @@ def write_world_site(world: World, out_dir: str | Path, *, frames: int | None = 
 
 def render_masks(world: World, cam_id: str, frames, *, faults: bool = True) -> list[np.ndarray]:
     """The masks (H, W) uint8 0/255 of camera ``cam_id`` for frame indices ``frames``, at the site's
-    mask size; ``faults=False`` gives the true silhouettes (furniture and people occlude)."""
+    mask size; ``faults=False`` gives the true silhouettes (furniture and people occlude) of the
+    camera as it stands (a :class:`~common.synth.degrade.CameraMove` is kept: it is no mask fault)."""
     return list(iter_masks(world, cam_id, frames, faults=faults))
 
 
@@ -324,11 +343,13 @@ def iter_masks(world: World, cam_id: str, frames, *, faults: bool = True, bodies
     """Yield the masks of :func:`render_masks` one by one; ``bodies``: the people of every frame
     (``bodies[i]`` for frame ``i``), when already posed."""
     sc = world.scenario
-    renderer = CameraRenderer(world.cameras[cam_id].scaled(world.mask_scale), world.room, colour=False)
-    f = world.faults.get(cam_id, MaskFaults()) if faults else MaskFaults()
+    f = world.faults.get(cam_id, MaskFaults())
+    f = f if faults else MaskFaults(moved=f.moved)  # a moved camera sees from its new place either way
+    renderers = _Renderers(world, cam_id, f, colour=False)
     posed = (lambda i: bodies[i]) if bodies is not None else (lambda i: _bodies_at(sc, i))
     for i in frames:
         i = int(i)
+        renderer = renderers.at(i)
         labels = renderer.labels(posed(max(0, i - f.lag_frames)))
         yield _mask(world, cam_id, renderer.camera, labels, f, i, posed(i), faults=faults)
 
@@ -404,6 +425,29 @@ def _mask(world: World, cam_id: str, camera: Camera, labels: np.ndarray, f: Mask
     return np.where(labels > 0, np.uint8(255), np.uint8(0))
 
 
+class _Renderers:
+    """The renderer of one camera's masks (at the mask size), and of the camera as it stands
+    after its :class:`~common.synth.degrade.CameraMove`, from that move's frame on."""
+
+    def __init__(self, world: World, cam_id: str, faults: MaskFaults, *, colour: bool) -> None:
+        self.world, self.cam_id, self.move, self.colour = world, cam_id, faults.moved, colour
+        self.before = self._renderer(world.cameras[cam_id])
+        self.after: CameraRenderer | None = None
+
+    def at(self, i: int) -> CameraRenderer:
+        if self.move is None or i < self.move.first:
+            return self.before
+        if self.after is None:
+            self.after = self._renderer(self.move.apply(self.world.cameras[self.cam_id]))
+        return self.after
+
+    def _renderer(self, camera: Camera) -> CameraRenderer:
+        cam = camera.scaled(self.world.mask_scale)
+        if self.colour:
+            return CameraRenderer(cam, self.world.room, seed=self.world.seed, shadows=False)
+        return CameraRenderer(cam, self.world.room, colour=False)
+
+
 def _cam_seed(seed: int, cam_id: str) -> int:
     return seed * 1000 + sum(cam_id.encode("utf-8"))
 
@@ -468,17 +512,18 @@ def _write_masks(world: World, cam_id: str, folder: Path, colour_path: Path, bod
     for old in folder.glob("*.png"):
         old.unlink()
     sc = world.scenario
-    cam = world.cameras[cam_id].scaled(world.mask_scale)
-    renderer = CameraRenderer(cam, world.room, seed=world.seed, shadows=False)
     f = world.faults.get(cam_id, MaskFaults())
+    renderers = _Renderers(world, cam_id, f, colour=True)
+    cam = renderers.at(0).camera
     recent: dict[int, np.ndarray] = {}  # person ids of the last frames, for a late camera
     writer = open_video_writer(colour_path, "MJPG", WORLD_FPS, (cam.width, cam.height))
     try:
         for i, people in enumerate(bodies):
+            renderer = renderers.at(i)
             bgr, recent[i] = renderer.render(people, sc.gain(i), (_COLOUR_STREAM, i))
             recent.pop(i - f.lag_frames - 1, None)
             writer.write(bgr)
-            mask = _mask(world, cam_id, cam, recent[max(0, i - f.lag_frames)], f, i, people, faults=True)
+            mask = _mask(world, cam_id, renderer.camera, recent[max(0, i - f.lag_frames)], f, i, people, faults=True)
             cv2.imwrite(str(folder / f"{i:06d}.png"), mask)
     finally:
         writer.release()
@@ -544,7 +589,8 @@ def _write_sensor(world: World, cam_id: str, modality: str, folder: Path, bodies
 
 def _write_video(world: World, cam_id: str, cam: Camera, folder: Path, n: int) -> None:
     folder.mkdir(parents=True, exist_ok=True)
-    source = SyntheticCamera(world.scenario, cam_id, world.seed, camera=cam, background_s=BACKGROUND_S)
+    source = SyntheticCamera(world.scenario, cam_id, world.seed, camera=cam, background_s=BACKGROUND_S,
+                             moved=world.faults.get(cam_id, MaskFaults()).moved)
     size = (cam.width, cam.height)
     writer = open_video_writer(folder / "background.avi", "MJPG", WORLD_FPS, size)
     try:

@@ -286,6 +286,12 @@ class Carver:
         return CarveResult(ijk=ijk, grid=self.grid, floor=floor_maps(ijk, self.grid), stamp_ns=int(stamp_ns),
                            cameras=dists.camera_ids)
 
+    def tables(self, level: int, index: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The lookup-table rows of voxels ``index`` (M,) int64 of ``level``: ``(pixel, radius_q)``,
+        each (M, C) over all cameras in ``camera_ids`` order (:mod:`.lut`: -1 or ``HIDDEN`` where the
+        camera does not see the centre clearly; radii in 1/32 pixel of the table's size, ``lut_sizes``)."""
+        return np.take(self._pixel[level], index, axis=0), np.take(self._radius[level], index, axis=0)
+
     def seeing_counts(self, level: int = -1) -> np.ndarray:
         """(N_L,) int: how many cameras see each voxel centre of ``level`` (all cameras)."""
         return np.count_nonzero(self._pixel[level] >= 0, axis=1)

@@ -1,0 +1,225 @@
+"""The moved-camera alarm: a camera turned or shifted mid-run (rendered from its new place while the
+site keeps the old calibration) is found; untouched cameras are not.
+
+Fast tests feed :class:`ConsistencyMonitor` the rendered masks of a randomised world at its own
+measuring rate, with the true people in place of the tracker (tuning seed 3: six cameras level on
+the walls of a 4 x 6 m room, one person walking). Slow tests run whole worlds through the fusion node as the replay does.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from common.messages import Event
+from common.site import load_site
+from common.synth.degrade import CameraMove
+from common.synth.world import iter_masks, random_world, with_camera_moved, write_world_site
+from fusion_server.consistency import AlarmRule, ConsistencyMonitor, ConsistencyParams, Measurement
+from fusion_server.pipeline import build_carver
+from fusion_server.tracker import TrackEstimate
+
+SEED = 3
+FPS = 15.0
+MOVED = "cam1"
+FAST = ConsistencyParams(baseline_count=8, baseline_s=10.0, window=9, alarm_count=5, alarm_s=4.0)
+"""The rule with a baseline of 10 s (the default takes 40 s): the fast tests see 60 s of people."""
+
+
+@pytest.fixture(scope="module")
+def world():
+    return random_world(SEED, duration_s=60.0)
+
+
+@pytest.fixture(scope="module")
+def site_and_carver(world, tmp_path_factory):
+    out = tmp_path_factory.mktemp("moved")
+    site = load_site(write_world_site(world, out / "world").site)
+    cameras = site.load_cameras()
+    return site, cameras, build_carver(site, cameras, cache_dir=out / "cache")
+
+
+def _truth_bodies(world, i: int) -> list[TrackEstimate]:
+    """The people inside the volume at frame ``i`` as confident track estimates."""
+    sc = world.scenario
+    out = []
+    for k, st in enumerate(sc.states):
+        xy = st["xy"][i]
+        if not (st["present"][i] and world.room.inside_volume(xy[None])[0]):
+            continue
+        out.append(TrackEstimate(id=k + 1, x=float(xy[0]), y=float(xy[1]), z_top_m=float(st["z_top"][i]),
+                                 volume_m3=0.2, reliability=1.0, confirmed=True, age_frames=100, vx=0.0, vy=0.0,
+                                 height_profile=np.zeros(1, np.int32), blob=None, still=False))
+    return out
+
+
+def _run(world, carver, cameras, params, frames):
+    """Feed the monitor the true silhouettes of ``frames``; returns its measurements and alarms."""
+    monitor = ConsistencyMonitor(carver, cameras, params)
+    masks = {c: iter_masks(world, c, frames, faults=False) for c in world.cameras}
+    measured, alarms = [], []
+    for i in frames:
+        got, raised = monitor.step({c: next(m) for c, m in masks.items()}, _truth_bodies(world, i),
+                                   world.scenario.stamp_ns(i))
+        measured += got
+        alarms += raised
+    return monitor, measured, alarms
+
+
+def _every_half_second(n: int) -> list[int]:
+    return list(range(0, n, int(FPS / 2)))
+
+
+def test_a_camera_move_turns_and_shifts_it_as_asked(world):
+    cam = world.cameras[MOVED]
+    point = cam.center + 4.0 * cam.forward  # 4 m in front, on the optical axis
+    turned = CameraMove(first=0, rotation_deg=2.0).apply(cam)
+    assert np.allclose(turned.center, cam.center)
+    (u0, v0), (u1, v1) = cam.project(point[None])[0][0], turned.project(point[None])[0][0]
+    # panning by 2 degrees slides the image sideways by f tan(2 deg), not up or down
+    assert abs(abs(u1 - u0) - cam.K[0, 0] * math.tan(math.radians(2.0))) < 1.0
+    assert abs(v1 - v0) < 0.5
+    shifted = CameraMove(first=0, shift_m=(0.1, 0.0, 0.0)).apply(cam)
+    assert np.allclose(shifted.center - cam.center, (0.1, 0.0, 0.0))
+    assert np.allclose(shifted.R, cam.R)
+    with pytest.raises(ValueError, match="first"):
+        CameraMove(first=-1)
+
+
+def test_moved_camera_renders_from_its_new_place(world):
+    frames = range(0, world.scenario.n_frames, int(2 * FPS))
+    i, before = next((i, m) for i, m in zip(frames, iter_masks(world, MOVED, frames, faults=False)) if m.any())
+    moved = with_camera_moved(world, MOVED, CameraMove(first=i, rotation_deg=2.0))
+    after = next(iter_masks(moved, MOVED, [i], faults=False))
+    untouched = next(iter_masks(moved, "cam2", [i], faults=False))
+    assert not np.array_equal(before, after)
+    assert np.array_equal(untouched, next(iter_masks(world, "cam2", [i], faults=False)))
+    assert moved.summary()["faults"][MOVED][-1] == f"moved at frame {i} (turned 2 deg)"
+    assert len(moved.summary()["faults"]) == len(world.summary()["faults"]) + (MOVED not in world.summary()["faults"])
+
+
+def test_untouched_cameras_agree_and_keep_their_baseline(world, site_and_carver):
+    _, cameras, carver = site_and_carver
+    monitor, measured, alarms = _run(world, carver, cameras, FAST, _every_half_second(world.scenario.n_frames))
+    assert not alarms
+    by_cam = {c: [m for m in measured if m.cam == c] for c in world.cameras}
+    judged = [c for c in world.cameras if monitor.baseline(c) is not None]
+    assert len(judged) >= 4, {c: len(v) for c, v in by_cam.items()}
+    for cam in judged:
+        assert monitor.baseline(cam) > 0.8
+        assert monitor.figure(cam) >= FAST.recover_ratio * monitor.baseline(cam)
+        # the true silhouette sits where the others carve the person: no offset beyond a few pixels
+        offsets = np.array([m.offset_px for m in by_cam[cam]])
+        assert np.hypot(*np.median(offsets, axis=0)) <= 2 * by_cam[cam][0].pixel_px
+
+
+MOVES = [CameraMove(first=int(20 * FPS), rotation_deg=2.0),
+         pytest.param(CameraMove(first=int(20 * FPS), rotation_deg=2.0, axis=(1.0, 0.0, 0.0)), marks=pytest.mark.slow),
+         pytest.param(CameraMove(first=int(20 * FPS), shift_m=(0.0, 0.1, 0.0)), marks=pytest.mark.slow)]
+
+
+@pytest.mark.parametrize("change", MOVES, ids=["panned", "tilted", "shifted"])
+def test_a_moved_camera_raises_one_alarm_and_the_others_none(world, site_and_carver, change):
+    _, cameras, carver = site_and_carver
+    moved = with_camera_moved(world, MOVED, change)
+    monitor, measured, alarms = _run(moved, carver, cameras, FAST, _every_half_second(world.scenario.n_frames))
+    assert [a.cam for a in alarms] == [MOVED]
+    alarm = alarms[0]
+    delay_s = (alarm.stamp_ns - world.scenario.stamp_ns(change.first)) / 1e9
+    assert 0 < delay_s <= 40.0  # all the run has after the move (the person stands still half of it)
+    assert alarm.figure < FAST.drop_ratio * alarm.baseline
+    if not change.rotation_deg:
+        return
+    # the offset points the way the view turned: a pan moves people sideways, a tilt up or down
+    dx, dy = alarm.offset_px
+    f = cameras[MOVED].K[0, 0] * math.tan(math.radians(2.0))
+    along, across = (dx, dy) if change.axis[1] else (dy, dx)
+    assert abs(along) > 0.4 * f and abs(along) > 2 * abs(across), alarm.offset_px
+    assert monitor.figure(MOVED) < monitor.baseline(MOVED) * FAST.drop_ratio
+
+
+def test_the_rule_waits_for_a_lasting_drop_and_alarms_once_until_back():
+    params = ConsistencyParams(baseline_count=10, baseline_s=10.0, window=5, alarm_count=6, alarm_s=5.0)
+    rule = AlarmRule(["a"], params)
+    t = iter(range(10**6))
+
+    def feed(offsets):
+        """Views of a 100-pixel-tall person, two a second, seen at these offsets (None: flooded)."""
+        out = []
+        for off in offsets:
+            m = Measurement(cam="a", stamp_ns=int(next(t) * 0.5e9), agreement=1.0, offset_px=off, height_px=100.0)
+            out += [a] if (a := rule.add(m)) else []
+        return out
+
+    right = [(1.0, 0.0), (0.0, 0.0), (2.0, 1.0)]  # where the camera sees people while it is right
+    assert feed(right * 8) == [] and rule.baseline("a") == 1.0 and rule.figure("a") == 1.0
+    assert feed([None] * 5 + right * 4) == []  # a camera flooded for a few views: no alarm
+    alarms = feed([(9.0, 1.0)] * 16)  # people 8 px away from where they were, lastingly: one alarm
+    assert len(alarms) == 1 and alarms[0].figure == 0.0 and alarms[0].baseline == 1.0
+    assert alarms[0].offset_px == (8.0, 1.0)  # against the offset the camera showed while it was right
+    details = alarms[0].details()
+    assert alarms[0].down_s >= 5.0 and details["offset_norm_px"] == pytest.approx(8.1, abs=0.1)
+    Event(id="e", kind="camera_moved", track=-1, stamp_ns=1, frame=0, x=0.0, y=0.0,
+          details={"camera": "a", **details})  # the details travel in an event as they are
+    assert feed([(9.0, 1.0)] * 30) == []  # at most once until it recovers
+    assert feed(right * 4) == [] and rule.figure("a") == 1.0
+    assert len(feed([(1.0, 7.0)] * 16)) == 1  # back, then moved again
+
+
+def test_when_two_cameras_drop_together_the_one_that_dropped_most_is_blamed():
+    params = ConsistencyParams(baseline_count=10, baseline_s=10.0, window=5, alarm_count=6, alarm_s=5.0)
+    rule = AlarmRule(["moved", "spoilt"], params)
+    alarms = []
+    for k in range(60):
+        for cam in ("moved", "spoilt"):
+            if k < 24:
+                off = (0.0, 0.0)  # both right while the baselines are taken
+            elif cam == "moved":
+                off = (9.0, 0.0)  # every view off
+            else:
+                off = (9.0, 0.0) if k % 3 else (0.0, 0.0)  # its carve spoilt by the moved camera: most views off
+            m = Measurement(cam=cam, stamp_ns=int(k * 0.5e9), agreement=1.0, offset_px=off, height_px=100.0)
+            alarms += [a.cam for a in [rule.add(m)] if a]
+    assert alarms == ["moved"]
+
+
+def test_the_rule_refuses_bad_settings():
+    with pytest.raises(ValueError, match="recover_ratio"):
+        ConsistencyParams(drop_ratio=0.8, recover_ratio=0.7)
+    with pytest.raises(ValueError, match="window"):
+        ConsistencyParams(window=0)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("move", ["rotate", "shift"])
+def test_whole_world_through_the_node_alarms_for_the_moved_camera_only(tmp_path, move):
+    from fusion_server.moved_suite import run_moved_world
+
+    result = run_moved_world(SEED, tmp_path, duration_s=110.0, move_at_s=50.0, move=move, faults=False,
+                             cache_dir=tmp_path / "cache", sideways=True)
+    own = [a for a in result["alarms"] if a["cam"] == result["moved"]]
+    assert [a["cam"] for a in result["alarms"]] == [result["moved"]], result["alarms"]
+    assert 0 < own[0]["t_s"] - result["move_at_s"] <= 60.0
+    assert own[0]["consistency"] < own[0]["baseline"]
+    figure, baseline = result["figures"][result["moved"]]  # the status's consistency, and the baseline
+    assert figure is not None and figure < baseline
+    assert all(f is None or b is None or f >= 0.6 * b for c, (f, b) in result["figures"].items() if c != result["moved"])
+
+
+@pytest.mark.slow
+def test_site_check_from_clips_reports_the_moved_camera(tmp_path, capsys):
+    from common.cli import main
+    from common.synth.world import write_world
+
+    world = with_camera_moved(random_world(SEED, duration_s=60.0), MOVED, CameraMove(first=0, rotation_deg=2.0))
+    written = write_world(world, tmp_path / "world", frames=int(40 * FPS))
+    clips = [f"--clip={c}={written.out_dir / c}" for c in world.cameras]
+    assert main(["site", "check", str(written.site), *clips]) == 0
+    lines = {line.split(":")[0].split()[-1]: line for line in capsys.readouterr().out.splitlines()
+             if line.strip().startswith("camera ") and "views" in line}
+    share = {c: int(line.split("views, ")[1].split("%")[0]) for c, line in lines.items()}
+    assert share[MOVED] < 50, lines[MOVED]
+    right = [c for c in share if c != MOVED]
+    assert len(right) >= 4 and sorted(share[c] for c in right)[len(right) // 2] >= 70, lines
