@@ -53,6 +53,7 @@ def check_report(report: dict, counts: tuple[int, ...]) -> None:
         assert part["total"]["tracking"]["gt"] == gt
 
 
+@pytest.mark.slow  # a long scenario replay; the default run keeps the others
 def test_eval_suite_command_prints_a_row_per_scenario_and_writes_json(tmp_path):
     """Two camera counts: a table for each, one row per scenario and a total row."""
     if not VOXELWATCH.is_file():

@@ -157,7 +157,7 @@ def demo(tmp_path_factory, alerts):
         if alerts is not None:
             wait_for(lambda: "zenoh router" in proc.output(), 60, "the demo's router", procs=[proc])
             alerts.start_notifier(f"tcp/127.0.0.1:{router}")
-            wait_for(lambda: ("online", True) in alerts.watcher.on(f"{PREFIX}/availability"), 60,
+            wait_for(lambda: any(p == "online" for p, _ in alerts.watcher.on(f"{PREFIX}/availability")), 60,
                      "the notifier online on the broker", procs=[proc, alerts.notifier])
             alerts.broker.stop()
         text = wait_for(lambda: re.search(r"live view: (http://127\.0\.0\.1:\d+/)\?token=(\S+)", proc.output())
