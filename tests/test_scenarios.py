@@ -271,6 +271,7 @@ def test_two_people_passing_close_are_counted_and_keep_their_identities(replayed
     assert run.tracking["idf1"] >= 0.95
 
 
+@pytest.mark.slow  # a long scenario replay; the default run keeps the others
 def test_two_people_side_by_side_keep_their_identities(replayed):
     """No identity switch. (Whether both are counted: the next test.)"""
     run = replayed("side_by_side", SHORT["side_by_side"])
