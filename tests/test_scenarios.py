@@ -278,6 +278,7 @@ def test_two_people_side_by_side_keep_their_identities(replayed):
     assert run.tracking["id_switches"] == 0
 
 
+@pytest.mark.slow  # a long scenario replay; the default run keeps the others
 def test_two_people_side_by_side_are_both_counted(replayed):
     run = replayed("side_by_side", SHORT["side_by_side"])
     check_counts_and_positions(run, min_count_accuracy=0.9)
