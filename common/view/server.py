@@ -359,6 +359,13 @@ class View:
 
     # ------------------------------------------------------------------ the loop's side
 
+    def _push(self, slot: str, text: str) -> None:
+        """Hand ``text`` to every page as its newest ``slot`` (status, fusion, frame or alarms: a page
+        keeps only the newest of each) and wake it."""
+        for c in self.clients:
+            setattr(c, slot, text)
+            c.wake.set()
+
     def _drain(self) -> None:
         assert self.inbox is not None
         tracks, status, alive, events = self.inbox.take()
@@ -375,16 +382,10 @@ class View:
             except WireError as exc:
                 self._unreadable("status", exc)
             else:
-                text = json.dumps(self.state.on_status(st), separators=(",", ":"))
-                for c in self.clients:
-                    c.status = text
-                    c.wake.set()
+                self._push("status", json.dumps(self.state.on_status(st), separators=(",", ":")))
         if alive is not None:
             was, self.fusion_alive = self.fusion_alive, alive
-            text = json.dumps({"alive": alive})
-            for c in self.clients:
-                c.fusion = text
-                c.wake.set()
+            self._push("fusion", json.dumps({"alive": alive}))
             if alive and not was and not self._seeded:
                 asyncio.get_running_loop().create_task(self._seed())
         if tracks is not None:
@@ -393,10 +394,7 @@ class View:
             except WireError as exc:
                 self._unreadable("tracks", exc)
             else:
-                text = json.dumps(self.state.on_tracks(frame), separators=(",", ":"))
-                for c in self.clients:
-                    c.frame = text
-                    c.wake.set()
+                self._push("frame", json.dumps(self.state.on_tracks(frame), separators=(",", ":")))
 
     def apply_event(self, event: Event) -> None:
         """An event into the state and out to every page (once per id, however it came)."""
@@ -416,10 +414,7 @@ class View:
         return (now + offset) // DAY_NS * DAY_NS - offset
 
     def _broadcast_alarms(self) -> None:
-        text = json.dumps(self.state.alarm_list(), separators=(",", ":"))
-        for c in self.clients:
-            c.alarms = text
-            c.wake.set()
+        self._push("alarms", json.dumps(self.state.alarm_list(), separators=(",", ":")))
 
     def _unreadable(self, what: str, exc: Exception) -> None:
         self.undecodable += 1
