@@ -214,6 +214,7 @@ def _kitchen_visit() -> ScenarioSpec:
     )
 
 
+@pytest.mark.slow  # a long scene; the sofa visit covers dwelling and visits in the default run
 def test_dwelling_and_a_visit_at_the_kitchen_counter(house):
     scene = run_scene(_kitchen_visit(), house)
     check_events_match_truth(scene, ("enter", "dwell_start", "dwell_end", "visit"))
