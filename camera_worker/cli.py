@@ -80,6 +80,12 @@ def build_parser() -> argparse.ArgumentParser:
                    help="drop foreground blobs smaller than this, in pixels of a 640x480 frame (scaled to the "
                         "camera's size; default 400)")
     g.add_argument("--no-shadows", action="store_true", help="switch the shadow test off (shadows become foreground)")
+    g.add_argument("--view-reference", metavar="PNG",
+                   help="keep the reference picture of the room in this file, so that a camera moved while its "
+                        "worker was down is still noticed (default: the camera's 'view_reference'; delete the "
+                        "file after re-aiming and recalibrating the camera)")
+    g.add_argument("--no-view-check", action="store_true",
+                   help="do not check whether the camera's view has moved")
     g.add_argument("--codec", choices=maskcodec.CODECS, default=maskcodec.DEFAULT_CODEC,
                    help=f"mask codec (default {maskcodec.DEFAULT_CODEC})")
 
@@ -179,6 +185,8 @@ def _configure(args: argparse.Namespace):
         stats_period_s=args.stats_period,
         expected_size=tuple(spec.resolution) if spec.resolution else None,
         modality=spec.modality,
+        view_check=not args.no_view_check,
+        view_reference=_view_reference(args, site, spec),
     )
     # build the segmenter once here so that a bad value stops start-up with its name
     from camera_worker.segmenters import segmenter_for
@@ -191,6 +199,22 @@ def _configure(args: argparse.Namespace):
     conf()  # a bad endpoint or a missing certificate stops start-up here, with its name
     connect = list(args.connect if args.connect is not None else site.zenoh.connect)
     return settings, conf, connect
+
+
+def _view_reference(args: argparse.Namespace, site, spec):
+    """The reference picture's file (None: none), checked to be a picture when it exists."""
+    from pathlib import Path
+
+    from camera_worker.viewcheck import load_reference
+
+    if args.view_reference is not None:
+        path = Path(args.view_reference)
+    elif spec.view_reference:
+        path = site.resolve(spec.view_reference)
+    else:
+        return None
+    load_reference(path)  # ValueError names the file
+    return path
 
 
 def _from_site(site, spec: str) -> str:

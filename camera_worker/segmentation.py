@@ -196,6 +196,11 @@ class SegmenterBase:
         return self._frames
 
     @property
+    def learned(self) -> bool:
+        """Whether the model knows the room: a background clip was learned, or a whole window of live frames."""
+        return self._settled or self._frames >= self.window_frames
+
+    @property
     def full_size(self) -> tuple[int, int] | None:
         """``(width, height)`` of the input frames, None before the first frame."""
         return self._full_size

@@ -55,6 +55,7 @@ import numpy as np
 from camera_worker.looks import LookAnswerer
 from camera_worker.segmentation import Box, ForegroundSegmenter, SegmentStats, window_frames_for
 from camera_worker.segmenters import MODALITIES, Segmenter, foreground_depth, segmenter_for
+from camera_worker.viewcheck import ViewCheck, load_reference, save_reference
 from camera_worker.sources import (
     Frame,
     FrameSource,
@@ -106,6 +107,11 @@ class WorkerSettings:
     :class:`ForegroundSegmenter` (the thermal and depth segmenters take the common ones). ``max_frames``: stop after this many frames
     (None: no limit). ``expected_size``: the ``(width, height)`` the site
     states for this camera; frames of another size are reported once.
+    ``view_check``: register the frames against a reference picture of the room
+    about once a second and send the view's shift with the masks (colour and
+    infrared cameras; :mod:`camera_worker.viewcheck`). ``view_reference``: a PNG
+    file keeping that picture across restarts (read at start when it exists,
+    written when the picture is first taken; None: a new one each start).
     """
 
     cam: str
@@ -130,6 +136,8 @@ class WorkerSettings:
     look_queue: int = 4
     expected_size: tuple[int, int] | None = None
     modality: str = "colour"
+    view_check: bool = True
+    view_reference: Path | None = None
 
     def __post_init__(self) -> None:
         keys.validate_chunk(self.cam, "camera id")
@@ -234,10 +242,12 @@ def build_mask_frame(
     fg_fraction: float | None = None,
     looks: Sequence[Appearance] = (),
     depth_mm: np.ndarray | None = None,
+    view_shift_px: float | None = None,
 ) -> MaskFrame:
     """The wire message of one mask. ``mask``: ``(h, w) uint8`` 0/255; ``src_size``: capture ``(W, H)``;
     ``looks``: the colour descriptors answering a look request on this frame; ``depth_mm``: a
-    depth camera's foreground range, ``(h, w) uint16`` millimetres (sent at the mask's pixels)."""
+    depth camera's foreground range, ``(h, w) uint16`` millimetres (sent at the mask's pixels);
+    ``view_shift_px``: the view's latest measured shift (:mod:`camera_worker.viewcheck`)."""
     h, w = mask.shape
     if fg_fraction is None:
         fg_fraction = float(np.count_nonzero(mask)) / mask.size
@@ -247,6 +257,7 @@ def build_mask_frame(
         data=maskcodec.encode_mask(mask, codec), fg_fraction=min(1.0, max(0.0, float(fg_fraction))),
         looks=list(looks),
         depth=maskcodec.encode_depth(depth_mm, mask) if depth_mm is not None else b"",
+        view_shift_px=None if view_shift_px is None else round(float(view_shift_px), 2),
     )
 
 
@@ -313,6 +324,7 @@ def run(session: Any, settings: WorkerSettings, *, stop: threading.Event | None 
     try:
         if settings.background:
             _learn_background(segmenter, settings, start_ns, stop)
+        view = _view_check(settings, segmenter)
     except (SourceError, ValueError) as exc:
         log.error("camera %s: %s", settings.cam, exc)
         source.close()
@@ -326,7 +338,7 @@ def run(session: Any, settings: WorkerSettings, *, stop: threading.Event | None 
                                           zenoh.handlers.RingChannel(settings.hold_queue))
     look_sub = session.declare_subscriber(keys.look_key(settings.prefix, settings.cam),
                                           zenoh.handlers.RingChannel(settings.look_queue))
-    loop = _Loop(settings, segmenter, source, publisher, hold_sub, look_sub, counters, stop)
+    loop = _Loop(settings, segmenter, source, publisher, hold_sub, look_sub, counters, stop, view)
     code = 1
     try:
         code = loop.run()
@@ -363,7 +375,7 @@ class _Loop:
 
     def __init__(self, settings: WorkerSettings, segmenter: Segmenter, source: FrameSource,
                  publisher: Any, hold_sub: Any, look_sub: Any, counters: WorkerCounters,
-                 stop: threading.Event) -> None:
+                 stop: threading.Event, view: ViewCheck | None = None) -> None:
         self.s = settings
         self.segmenter = segmenter
         self.source = source
@@ -375,6 +387,7 @@ class _Loop:
         self.stop = stop
         self.holds = HoldBook(settings.cam)
         self.answerer = LookAnswerer()
+        self.view = view
         self.reader: LiveReader | None = None
         self.seq_offset = 0          # added to a recorded source's index: sequence numbers go on when looping
         self.last_seq = -1
@@ -411,13 +424,14 @@ class _Loop:
                 continue
             t2 = time.perf_counter()
             looks = self._answer_looks(frame, mask)
+            view_px = self._check_view(frame, mask, stats)
             t3 = time.perf_counter()
             h, w = frame.image.shape[:2]
             self.last_seq = self.seq_offset + frame.index
             msg = build_mask_frame(mask, cam=self.s.cam, seq=self.last_seq,
                                    stamp_ns=frame.stamp_ns, src_size=(w, h), codec=self.s.codec,
                                    fg_fraction=stats.fg_fraction, looks=looks,
-                                   depth_mm=foreground_depth(self.segmenter))
+                                   depth_mm=foreground_depth(self.segmenter), view_shift_px=view_px)
             payload = messages.encode(msg)
             t4 = time.perf_counter()
             try:
@@ -573,6 +587,27 @@ class _Loop:
         self.c.looks_answered, self.c.looks_expired = self.answerer.answered, self.answerer.expired
         return looks
 
+    def _check_view(self, frame: Frame, mask: np.ndarray, stats: SegmentStats) -> float | None:
+        """The view's latest shift (:mod:`camera_worker.viewcheck`); the reference picture is the
+        background model's, taken once the model has learned the room (a background clip, or a
+        window of live frames) on a frame that is mostly room."""
+        if self.view is None:
+            return None
+        if not self.view.has_reference:
+            seg = self.segmenter
+            if not seg.learned or stats.fg_fraction > 0.2 or stats.relearning:
+                return None
+            picture = seg.background_image()
+            self.view.set_reference(picture)
+            log.info("camera %s: took the reference view of the room", self.s.cam)
+            if self.s.view_reference is not None:
+                try:
+                    save_reference(self.s.view_reference, picture)
+                except OSError as exc:
+                    log.warning("camera %s: %s (the view is checked against this run's picture only)",
+                                self.s.cam, exc)
+        return self.view.observe(frame.image, mask, frame.stamp_ns)
+
     def _source_event(self, text: str) -> None:
         log.warning("camera %s: %s", self.s.cam, text)
 
@@ -586,6 +621,24 @@ class _Loop:
         if self.reader is not None:
             self.reader.stop()
         self.source.close()
+
+
+def _view_check(settings: WorkerSettings, segmenter: Segmenter) -> ViewCheck | None:
+    """The view check of a colour or infrared camera (None: off, or another kind of camera), with the
+    reference picture kept at ``settings.view_reference`` when there is one (SourceError when that
+    file is not a picture)."""
+    if not settings.view_check or not isinstance(segmenter, ForegroundSegmenter):
+        return None
+    check = ViewCheck()
+    if settings.view_reference is not None:
+        try:
+            picture = load_reference(settings.view_reference)
+        except ValueError as exc:
+            raise SourceError(f"view reference {exc}") from None
+        if picture is not None:
+            check.set_reference(picture)
+            log.info("camera %s: checking the view against %s", settings.cam, settings.view_reference)
+    return check
 
 
 def _learn_background(segmenter: Segmenter, settings: WorkerSettings, start_ns: int,

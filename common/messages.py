@@ -157,6 +157,10 @@ class MaskFrame(_Message):
     range at the mask's foreground pixels (``maskcodec.decode_depth(depth,
     mask)``: uint16 millimetres from the camera centre along each pixel's
     ray, 0 where nothing was measured); empty for other cameras.
+    ``view_shift_px``: how far the camera's view of the room has moved since the
+    worker took its reference picture, in pixels of the capture frame (root
+    mean square over the image, :mod:`camera_worker.viewcheck`); None until
+    measured, and from cameras that do not check (thermal, depth).
     """
 
     TYPE: ClassVar[str] = "mask"
@@ -174,6 +178,7 @@ class MaskFrame(_Message):
     fg_fraction: Fraction
     looks: list[Appearance] = Field(default_factory=list, max_length=MAX_TRACKS)
     depth: bytes = b""
+    view_shift_px: Annotated[float, Field(ge=0.0, le=float(maskcodec.MAX_MASK_SIDE))] | None = None
 
     @model_validator(mode="after")
     def _consistent(self) -> MaskFrame:
@@ -397,6 +402,8 @@ class CameraStatus(BaseModel):
     estimated camera clock minus server clock. ``consistency``: how well the
     camera's recent masks agree with the people the other cameras carve (0..1;
     None until it has been measured); a camera that was moved or bumped drops.
+    ``view_deg``: how far the camera's view has turned against its worker's
+    reference picture of the room, in degrees (None until it reports one).
     """
 
     model_config = _CONFIG
@@ -413,6 +420,7 @@ class CameraStatus(BaseModel):
     clock_offset_ms: float
     refused: NonNegInt = 0
     consistency: Fraction | None = None
+    view_deg: Annotated[float, Field(ge=0.0)] | None = None
 
 
 class Status(_Message):

@@ -104,6 +104,7 @@ Schema (all lengths in metres, world frame Z up, floor at Z = 0)::
     fps = 15.0
     source = ""                  # default source for this camera's worker
     background = ""              # clip of the empty room to learn from first
+    view_reference = ""          # PNG keeping the worker's reference view of the room (moved-camera check)
 
     [[hotspots]]
     name = "dinner table"
@@ -474,6 +475,7 @@ class CameraSpec(_Model):
     fps: float = Field(default=15.0, gt=0.0, le=240.0)
     source: str = ""
     background: str = ""
+    view_reference: str = ""
 
     @field_validator("resolution")
     @classmethod

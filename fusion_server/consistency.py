@@ -65,6 +65,19 @@ baseline (put back, or recalibrated and the server restarted, which takes a
 new baseline). No threshold is fitted to a scene: the tolerance is a share of
 the person's own image size, and each camera is judged against itself.
 
+**The view as the camera itself sees it.** Colour and infrared workers
+register their live picture against a reference picture of the room and
+send how far the view has moved with their masks (``view_shift_px``,
+:mod:`camera_worker.viewcheck`); :meth:`ConsistencyMonitor.report_view` turns
+it into degrees through the camera's focal length. This needs no people at
+all, so it decides in a crowd, in an empty room, and for a shift along the
+camera's axis, which people barely show. A camera whose view has turned by
+``view_deg`` or more (0.3 degree: the tolerance a calibration is held to;
+an untouched camera reads under 0.1) for ``view_s`` seconds of its reports
+raises ``camera_moved`` (details: ``view_deg``), once until its view is back
+within half of that. One alarm per move, whichever evidence comes first:
+either latch silences the other until both are clear.
+
 Pure: no clock (time is the frame sets' capture stamps), no I/O.
 """
 
@@ -121,9 +134,13 @@ class ConsistencyParams:
     alarm_count: int = 10
     alarm_s: float = 10.0
     flood_share: float = 0.5
+    view_deg: float = 0.3
+    view_s: float = 10.0
 
     def __post_init__(self) -> None:
-        for name in ("every_s", "baseline_s", "alarm_s", "remeasure_m", "remeasure_s"):
+        if not (isinstance(self.view_deg, (int, float)) and 0.0 < self.view_deg <= 45.0):
+            raise ValueError(f"view_deg must lie in (0, 45] degrees, got {self.view_deg!r}")
+        for name in ("every_s", "baseline_s", "alarm_s", "remeasure_m", "remeasure_s", "view_s"):
             value = getattr(self, name)
             if not (isinstance(value, (int, float)) and np.isfinite(value) and value >= 0):
                 raise ValueError(f"{name} must be a number of seconds >= 0, got {value!r}")
@@ -160,27 +177,52 @@ class Measurement:
 
 @dataclass(frozen=True)
 class CameraMoved:
-    """A camera judged moved at ``stamp_ns``: its running ``figure`` against its ``baseline``, the
-    median ``offset_px`` (dx, dy, full-image pixels; None when unknown) of its down measurements,
-    and how many measurements and seconds it has been down."""
+    """A camera judged moved at ``stamp_ns``. From the people (``evidence`` 'people'): its running
+    ``figure`` against its ``baseline``, the median ``offset_px`` (dx, dy, full-image pixels; None
+    when unknown) of its down measurements, and how many measurements and seconds it has been down.
+    From its own picture (``evidence`` 'view'): ``view_deg``, how far its view has turned, held for
+    ``down_s`` seconds."""
 
     cam: str
     stamp_ns: int
-    figure: float
-    baseline: float
+    figure: float | None
+    baseline: float | None
     offset_px: tuple[float, float] | None
     down_measurements: int
     down_s: float
+    view_deg: float | None = None
+
+    @property
+    def evidence(self) -> str:
+        return "view" if self.view_deg is not None else "people"
+
+    def describe(self) -> str:
+        """One line for the log."""
+        if self.view_deg is not None:
+            return (f"its view has moved by {self.view_deg:.2f} degrees for {self.down_s:.0f} s against its "
+                    f"reference picture: moved or bumped?")
+        return (f"its masks no longer agree with the other cameras' carve ({self.figure:.2f} against its "
+                f"baseline {self.baseline:.2f}): moved or bumped?")
 
     def details(self) -> dict:
         """The event's details (the camera id is added by the event itself)."""
-        out = {"consistency": round(self.figure, 3), "baseline": round(self.baseline, 3),
+        if self.view_deg is not None:
+            return {"evidence": "view", "view_deg": round(self.view_deg, 2), "down_s": round(self.down_s, 1)}
+        out = {"evidence": "people", "consistency": round(self.figure, 3), "baseline": round(self.baseline, 3),
                "down_measurements": self.down_measurements, "down_s": round(self.down_s, 1)}
         if self.offset_px is not None:
             out["offset_dx_px"] = round(self.offset_px[0], 1)
             out["offset_dy_px"] = round(self.offset_px[1], 1)
             out["offset_norm_px"] = round(float(np.hypot(*self.offset_px)), 1)
         return out
+
+
+@dataclass
+class _ViewRecord:
+    deg: float | None = None  # the latest reported turn
+    stamp_ns: int = 0
+    above_since_ns: int | None = None
+    alarmed: bool = False
 
 
 @dataclass
@@ -215,6 +257,7 @@ class ConsistencyMonitor:
         self.level = min(range(len(sizes)), key=lambda L: abs(sizes[L] - VOXEL_M))
         self.voxel_m = float(sizes[self.level])
         self.rule = AlarmRule(carver.camera_ids, params)
+        self._views = {c: _ViewRecord() for c in cameras}
         self._next_ns: int | None = None
         self._last_seen: dict[int, tuple[float, float, int]] = {}  # body id -> where and when last measured
         self.history: list[Measurement] | None = None
@@ -231,21 +274,69 @@ class ConsistencyMonitor:
         """The camera's own baseline figure, None until its first minutes are measured."""
         return self.rule.baseline(cam)
 
+    def view_deg(self, cam: str) -> float | None:
+        """How far the camera's view has turned by its own latest report (degrees), None before one."""
+        rec = self._views.get(cam)
+        return None if rec is None else rec.deg
+
+    def report_view(self, cam: str, shift_px: float, stamp_ns: int, src_width: int) -> None:
+        """Camera ``cam``'s worker measured its view moved by ``shift_px`` pixels of its ``src_width``
+        wide capture on its frame stamped ``stamp_ns`` (module text); decided on in :meth:`step`."""
+        rec = self._views.get(cam)
+        if rec is None or not (math.isfinite(shift_px) and src_width > 0):
+            return
+        cam_obj = self.cameras[cam]
+        focal_px = float(cam_obj.K[0, 0]) * src_width / cam_obj.width
+        rec.deg, rec.stamp_ns = math.degrees(float(shift_px) / focal_px), max(rec.stamp_ns, int(stamp_ns))
+
     def step(self, masks: Mapping[str, np.ndarray], bodies: Sequence[TrackEstimate],
              stamp_ns: int) -> tuple[list[Measurement], list[CameraMoved]]:
-        """Measure on this frame set if one is due; returns the measurements taken and the alarms
-        raised. masks: camera id -> (H, W) uint8 masks of the frame set (absent cameras are not
-        measured). bodies: the tracker's estimates this frame."""
+        """Decide on the views reported, and measure on this frame set if one is due; returns the
+        measurements taken and the alarms raised. masks: camera id -> (H, W) uint8 masks of the frame
+        set (absent cameras are not measured). bodies: the tracker's estimates this frame."""
         stamp_ns = int(stamp_ns)
+        alarms = self._view_alarms()
         if self._next_ns is not None and stamp_ns < self._next_ns:
-            return [], []
+            return [], alarms
         self._next_ns = stamp_ns + int(self.params.every_s * 1e9)
         masks = {c: m for c, m in masks.items() if c in self.full_width}
         measurements = self.measure(masks, bodies, stamp_ns)
         if self.history is not None:
             self.history.extend(measurements)
-        alarms = [a for m in measurements if (a := self.rule.add(m)) is not None]
+        for m in measurements:
+            alarm = self.rule.add(m)
+            if alarm is None:
+                continue
+            view = self._views[m.cam]
+            if not view.alarmed:   # the view has not said so already
+                alarms.append(alarm)
+            view.alarmed = True
         return measurements, alarms
+
+    def _view_alarms(self) -> list[CameraMoved]:
+        """The cameras whose own view has stayed turned by ``view_deg`` for ``view_s`` (module text)."""
+        p = self.params
+        out = []
+        for cam, rec in self._views.items():
+            if rec.deg is None:
+                continue
+            if rec.deg < p.view_deg:
+                rec.above_since_ns = None
+                if rec.deg < 0.5 * p.view_deg and not self.rule.is_alarmed(cam):
+                    rec.alarmed = False
+                continue
+            if rec.above_since_ns is None:
+                rec.above_since_ns = rec.stamp_ns
+            held_s = (rec.stamp_ns - rec.above_since_ns) / 1e9
+            if rec.alarmed or held_s < p.view_s:
+                continue
+            rec.alarmed = True
+            if self.rule.latch(cam):   # the people said so already
+                continue
+            out.append(CameraMoved(cam=cam, stamp_ns=rec.stamp_ns, figure=self.rule.figure(cam),
+                                   baseline=self.rule.baseline(cam), offset_px=None, down_measurements=0,
+                                   down_s=held_s, view_deg=rec.deg))
+        return out
 
     def measure(self, masks: Mapping[str, np.ndarray], bodies: Sequence[TrackEstimate],
                 stamp_ns: int) -> list[Measurement]:
@@ -324,6 +415,19 @@ class AlarmRule:
         """The camera's own baseline figure, None until its first minutes are measured."""
         rec = self._records.get(cam)
         return None if rec is None else rec.baseline
+
+    def is_alarmed(self, cam: str) -> bool:
+        """Whether the camera has been judged moved and not yet re-armed."""
+        rec = self._records.get(cam)
+        return rec is not None and rec.alarmed
+
+    def latch(self, cam: str) -> bool:
+        """Mark the camera judged moved (by other evidence); returns whether it already was."""
+        rec = self._records.get(cam)
+        if rec is None:
+            return False
+        was, rec.alarmed = rec.alarmed, True
+        return was
 
     def _ratios(self) -> dict[str, float]:
         """Camera id -> its figure over its baseline, for the cameras with both (and a baseline above 0)."""

@@ -8,7 +8,11 @@ image plane, or shifted by 10 cm along the floor, alternately by seed, or not
 at all with ``--move none`` -- renders every camera's masks (the world's own
 mask faults included; the site keeps the old calibration), and fuses them
 through the live server's own :class:`~fusion_server.node.FusionNode` as the
-offline replay does, in memory (no colour frames, no files but the site).
+offline replay does, in memory (no files but the site). Each colour or
+infrared camera's worker-side view check (:mod:`camera_worker.viewcheck`)
+runs on its colour frames, rendered once a second through the camera as it
+stands, against the empty room's picture, and reports to the node as a
+worker's masks would (``--no-view``: the people's evidence alone).
 It reports per world the ``camera_moved`` events, and in total:
 
 * false alarms per hour of untouched cameras (every camera but the moved one,
@@ -37,10 +41,13 @@ SHIFT_M = 0.1
 
 def run_moved_world(seed: int, out_dir: str | Path, *, duration_s: float = 120.0, move_at_s: float = 60.0,
                     move: str = "rotate", faults: bool = True, cache_dir: str | Path | None = None,
-                    sideways: bool = False) -> dict[str, Any]:
+                    sideways: bool = False, view: bool = True) -> dict[str, Any]:
     """One world: ``move`` is 'rotate', 'shift' or 'none'; a shift goes along the floor in a direction
     drawn from the seed, or with ``sideways`` across the camera's view (a shift along its axis only
-    scales people by a few per cent). Returns what happened (module text)."""
+    scales people by a few per cent); ``view``: run the cameras' own view checks. Returns what
+    happened (module text)."""
+    from camera_worker.viewcheck import ViewCheck
+    from common.synth.source import SyntheticCamera
     from common.site import load_site
     from common.synth.degrade import CameraMove
     from common.synth.world import _bodies_at, iter_masks, random_world, with_camera_moved, write_world_site
@@ -73,11 +80,27 @@ def run_moved_world(seed: int, out_dir: str | Path, *, duration_s: float = 120.0
     n = sc.n_frames
     bodies = [_bodies_at(sc, i) for i in range(n)]
     masks = {c: iter_masks(world, c, range(n), faults=faults, bodies=bodies) for c in cams}
+    sources, checks = {}, {}
+    if view:
+        for c in cams:
+            if world.modality(c) in ("colour", "infrared"):
+                sources[c] = SyntheticCamera(sc, c, world.seed, camera=world.cameras[c], modality=world.modality(c),
+                                             moved=world.faults[c].moved if c in world.faults else None)
+                checks[c] = ViewCheck(reference=sources[c].background_frame(0))
+    every = int(round(15.0 * checks[next(iter(checks))].params.every_s)) if checks else 0
+    shifts: dict[str, list[float]] = {c: [] for c in checks}  # the turn read at each report, degrees
     alarms = []
     t0 = time.perf_counter()
     for i in range(n):
         stamp = sc.stamp_ns(i)
-        fs = FrameSet(stamp_ns=stamp, payloads={c: next(masks[c]) for c in cams}, stamps_ns={c: stamp for c in cams},
+        payloads = {c: next(masks[c]) for c in cams}
+        if every and i % every == 0:
+            for c, check in checks.items():
+                shift = check.observe(sources[c].frame(i)[0], payloads[c], stamp)
+                if shift is not None:
+                    node.pipeline.consistency.report_view(c, shift, stamp, sources[c].width)
+                    shifts[c].append(node.pipeline.consistency.view_deg(c))
+        fs = FrameSet(stamp_ns=stamp, payloads=payloads, stamps_ns={c: stamp for c in cams},
                       seqs={c: i for c in cams})
         node.fuse(fs, stamp, time.perf_counter())
         for _, text in node.take().events:
@@ -94,6 +117,9 @@ def run_moved_world(seed: int, out_dir: str | Path, *, duration_s: float = 120.0
         "duration_s": n / 15.0, "moved": moved_cam, "move": move, "move_at_s": first / 15.0 if moved_cam else None,
         "alarms": alarms, "fuse_s": time.perf_counter() - t0,
         "figures": {c: [status[c], mon.baseline(c)] for c in cams},
+        "view_deg_max": {c: [max((v for k, v in enumerate(shifts[c]) if k * every < first), default=None),
+                             max((v for k, v in enumerate(shifts[c]) if k * every >= first), default=None)]
+                         for c in shifts},
     }
 
 
@@ -132,11 +158,12 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--move-at", type=float, default=60.0)
     p.add_argument("--jobs", type=int, default=1)
     p.add_argument("--json", type=Path, default=None)
+    p.add_argument("--no-view", action="store_true", help="leave the cameras' own view checks out")
     args = p.parse_args(argv)
     seeds = parse_seeds(args.seeds)
     kinds = {s: (("rotate", "shift")[k % 2] if args.move == "alternate" else args.move) for k, s in enumerate(seeds)}
     tasks = [dict(seed=s, out_dir=args.out, duration_s=args.duration, move_at_s=args.move_at, move=kinds[s],
-                  cache_dir=args.out / "cache") for s in seeds]
+                  cache_dir=args.out / "cache", view=not args.no_view) for s in seeds]
     results = []
     if args.jobs <= 1:
         for t in tasks:
@@ -163,8 +190,8 @@ def _run(task: dict) -> dict:
 
 
 def _report(r: dict) -> dict:
-    own = [round(a["t_s"], 1) for a in r["alarms"] if a["cam"] == r["moved"]]
-    other = [(a["cam"], round(a["t_s"], 1)) for a in r["alarms"] if a["cam"] != r["moved"]]
+    own = [(round(a["t_s"], 1), a.get("evidence")) for a in r["alarms"] if a["cam"] == r["moved"]]
+    other = [(a["cam"], round(a["t_s"], 1), a.get("evidence")) for a in r["alarms"] if a["cam"] != r["moved"]]
     print(f"  world {r['seed']}: {r['rig']}, {r['cameras']} cameras, {r['people']} people, {r['move']} "
           f"{r['moved']} at {r['move_at_s']} s: alarmed at {own}; other alarms {other}; fused in {r['fuse_s']:.0f} s",
           file=sys.stderr, flush=True)

@@ -398,6 +398,8 @@ class FusionNode:
             return
         if msg.looks:
             self.add_looks(cam, msg.stamp_ns, msg.looks)
+        if msg.view_shift_px is not None:
+            self.pipeline.consistency.report_view(cam, msg.view_shift_px, msg.stamp_ns, msg.src_width)
         if depth is not None:
             self._depths[(cam, int(msg.stamp_ns))] = depth
             while len(self._depths) > _MAX_PENDING_DEPTHS:   # sets dropped unfused leave theirs behind
@@ -585,8 +587,7 @@ class FusionNode:
         for rec in fused.events:
             self._emit(rec)
         for alarm in fused.moved:
-            log.warning("camera %s: its masks no longer agree with the other cameras' carve (%.2f against its "
-                        "baseline %.2f): moved or bumped?", alarm.cam, alarm.figure, alarm.baseline)
+            log.warning("camera %s: %s", alarm.cam, alarm.describe())
             self._emit(camera_event("camera_moved", alarm.cam, int(fused.stamp_ns), int(fused.frame),
                                     **alarm.details()))
         self._queue_holds(fused, mono)
@@ -749,6 +750,7 @@ class FusionNode:
                 clock_offset_ms=float(offset) if offset is not None else 0.0,
                 refused=h.refused,
                 consistency=self.pipeline.consistency.figure(cam),
+                view_deg=self.pipeline.consistency.view_deg(cam),
             ))
         return Status(stamp_ns=int(now_ns), cameras=cams, frame_sets=self.c.frames_fused,
                       frame_sets_dropped=self.c.frame_sets_dropped, events_not_stored=self.c.events_not_stored,

@@ -45,6 +45,9 @@
       const v = typeof s.consistency === "number" ? s.consistency.toFixed(2) : JSON.stringify(s.consistency);
       row("consistency", v);
     }
+    if (typeof s.view_deg === "number") {
+      row("view moved", s.view_deg.toFixed(2) + " degrees since its reference picture");
+    }
   }
 
   function nextMask() {
