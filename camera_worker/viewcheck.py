@@ -17,7 +17,9 @@ least ``TILE_ROOM`` of it: the current mask's people, dilated, are left out,
 and so is what the reference shows nothing of, such as a fisheye's corners
 outside its image circle) and has texture is lined up on its own: phase
 correlation's translation, refined by OpenCV's enhanced correlation
-coefficient (ECC) over the tile's room pixels; a tile whose fit stays under
+coefficient (ECC) over the tile's room pixels (a mask that floods, as the
+background model's does right after a move, shows no people and is not
+used: ``FLOODED``); a tile whose fit stays under
 ``min_fit`` is dropped. Both measures ignore the light's brightness and
 contrast, so lights and daylight do not read as movement. An affine warp is
 then fitted to the tiles' translations by least median of squares, so that
@@ -52,6 +54,9 @@ EDGE_PX = 3
 """How far (small-picture pixels) from what shows nothing, and from a person, a pixel must be to count."""
 GRID = 5
 """The shift is measured on a GRID x GRID lattice of points over the picture."""
+FLOODED = 0.5
+"""A mask with more foreground than this share is not people but the background model seeing a changed
+view (as right after a move, until it has learned the new one): the picture is measured without it."""
 TILES = (6, 4)
 """Tiles across and down, each lined up on its own."""
 TILE_ROOM = 0.7
@@ -152,7 +157,7 @@ class ViewCheck:
         if small.shape != self._reference.shape:
             small = cv2.resize(small, self._reference.shape[::-1], interpolation=cv2.INTER_AREA)
         room = self._room.copy()
-        if mask is not None:
+        if mask is not None and np.count_nonzero(mask) <= FLOODED * np.size(mask):
             people = cv2.resize(np.asarray(mask, dtype=np.uint8), small.shape[::-1], interpolation=cv2.INTER_AREA)
             room[cv2.dilate((people > 0).astype(np.uint8), _disc(EDGE_PX)) > 0] = 0
         p = self.params
@@ -246,6 +251,7 @@ def _small_grey(picture: np.ndarray, width_px: int) -> np.ndarray:
         raise ValueError(f"a picture must be (H, W) or (H, W, 3) uint8, got {picture.shape} {picture.dtype}")
     grey = cv2.cvtColor(picture, cv2.COLOR_BGR2GRAY) if picture.ndim == 3 else picture
     h, w = grey.shape
+    width_px = min(width_px, w)
     size = (width_px, max(8, int(round(h * width_px / w))))
     return cv2.resize(grey, size, interpolation=cv2.INTER_AREA).astype(np.float32)
 

@@ -76,7 +76,8 @@ camera's axis, which people barely show. A camera whose view has turned by
 an untouched camera reads under 0.1) for ``view_s`` seconds of its reports
 raises ``camera_moved`` (details: ``view_deg``), once until its view is back
 within half of that. One alarm per move, whichever evidence comes first:
-either latch silences the other until both are clear.
+either latch silences the other (the view's alarm latches the people's rule
+until the view is back).
 
 Pure: no clock (time is the frame sets' capture stamps), no I/O.
 """
@@ -223,6 +224,7 @@ class _ViewRecord:
     stamp_ns: int = 0
     above_since_ns: int | None = None
     alarmed: bool = False
+    latched_rule: bool = False  # this view's alarm latched the people's rule
 
 
 @dataclass
@@ -322,8 +324,11 @@ class ConsistencyMonitor:
                 continue
             if rec.deg < p.view_deg:
                 rec.above_since_ns = None
-                if rec.deg < 0.5 * p.view_deg and not self.rule.is_alarmed(cam):
+                if rec.deg < 0.5 * p.view_deg and rec.alarmed:   # back where it was: re-armed
                     rec.alarmed = False
+                    if rec.latched_rule:
+                        self.rule.unlatch(cam)
+                        rec.latched_rule = False
                 continue
             if rec.above_since_ns is None:
                 rec.above_since_ns = rec.stamp_ns
@@ -331,7 +336,8 @@ class ConsistencyMonitor:
             if rec.alarmed or held_s < p.view_s:
                 continue
             rec.alarmed = True
-            if self.rule.latch(cam):   # the people said so already
+            rec.latched_rule = not self.rule.latch(cam)
+            if not rec.latched_rule:   # the people said so already
                 continue
             out.append(CameraMoved(cam=cam, stamp_ns=rec.stamp_ns, figure=self.rule.figure(cam),
                                    baseline=self.rule.baseline(cam), offset_px=None, down_measurements=0,
@@ -416,11 +422,6 @@ class AlarmRule:
         rec = self._records.get(cam)
         return None if rec is None else rec.baseline
 
-    def is_alarmed(self, cam: str) -> bool:
-        """Whether the camera has been judged moved and not yet re-armed."""
-        rec = self._records.get(cam)
-        return rec is not None and rec.alarmed
-
     def latch(self, cam: str) -> bool:
         """Mark the camera judged moved (by other evidence); returns whether it already was."""
         rec = self._records.get(cam)
@@ -428,6 +429,12 @@ class AlarmRule:
             return False
         was, rec.alarmed = rec.alarmed, True
         return was
+
+    def unlatch(self, cam: str) -> None:
+        """Re-arm the camera (the other evidence that latched it is clear)."""
+        rec = self._records.get(cam)
+        if rec is not None:
+            rec.alarmed = False
 
     def _ratios(self) -> dict[str, float]:
         """Camera id -> its figure over its baseline, for the cameras with both (and a baseline above 0)."""

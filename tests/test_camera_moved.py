@@ -190,6 +190,54 @@ def test_the_rule_refuses_bad_settings():
         ConsistencyParams(drop_ratio=0.8, recover_ratio=0.7)
     with pytest.raises(ValueError, match="window"):
         ConsistencyParams(window=0)
+    with pytest.raises(ValueError, match="view_deg"):
+        ConsistencyParams(view_deg=0.0)
+
+
+def test_a_view_turned_past_the_tolerance_for_ten_seconds_alarms_once_until_back(site_and_carver):
+    """The workers' own view reports, in pixels of their capture, read as degrees through each
+    camera's focal length: 0.3 degree held for 10 s of reports alarms, once; back under half of it re-arms."""
+    _, cameras, carver = site_and_carver
+    monitor = ConsistencyMonitor(carver, cameras)
+    cam = cameras[MOVED]
+    f = float(cam.K[0, 0])
+    s = int(1e9)
+
+    def report(deg: float, t_s: float, width: int = cam.width) -> list:
+        px = math.radians(deg) * f * width / cam.width
+        monitor.report_view(MOVED, px, int(t_s * s), width)
+        monitor.report_view("cam2", math.radians(0.05) * cameras["cam2"].K[0, 0], int(t_s * s), cameras["cam2"].width)
+        return monitor.step({}, [], int(t_s * s))[1]
+
+    assert monitor.view_deg(MOVED) is None
+    assert sum((report(0.25, t) for t in range(0, 30)), []) == []  # under the tolerance: never
+    assert monitor.view_deg(MOVED) == pytest.approx(0.25)
+    assert sum((report(0.5, t) for t in range(30, 39)), []) == []  # past it, but only 9 s
+    assert sum((report(0.1, t) for t in range(39, 41)), []) == []  # a dip starts the wait again
+    raised = [(t, a) for t in range(41, 80) for a in report(0.5, t, width=cam.width // 2)]  # a half-size capture
+    assert [t for t, _ in raised] == [51]
+    alarm = raised[0][1]
+    assert alarm.cam == MOVED and alarm.evidence == "view" and alarm.view_deg == pytest.approx(0.5)
+    assert alarm.details() == {"evidence": "view", "view_deg": 0.5, "down_s": 10.0}
+    Event(id="e", kind="camera_moved", track=-1, stamp_ns=1, frame=0, x=0.0, y=0.0,
+          details={"camera": MOVED, **alarm.details()})
+    assert "moved by 0.50 degrees for 10 s" in alarm.describe()
+    assert sum((report(0.2, t) for t in range(80, 100)), []) == []  # between half and whole: still latched
+    assert sum((report(0.1, t) for t in range(100, 102)), []) == []  # back: re-armed
+    assert [a.cam for t in range(102, 120) for a in report(1.0, t)] == [MOVED]  # moved again
+    assert monitor.view_deg("cam2") == pytest.approx(0.05)
+
+
+def test_one_move_raises_one_alarm_whichever_evidence_comes_first(site_and_carver):
+    _, cameras, carver = site_and_carver
+    monitor = ConsistencyMonitor(carver, cameras, ConsistencyParams(view_s=5.0))
+    assert monitor.rule.latch(MOVED) is False  # as when the people's evidence raised it first
+    f = float(cameras[MOVED].K[0, 0])
+    alarms = []
+    for t in range(30):
+        monitor.report_view(MOVED, math.radians(2.0) * f, t * int(1e9), cameras[MOVED].width)
+        alarms += monitor.step({}, [], t * int(1e9))[1]
+    assert alarms == []  # the view agrees, and says nothing more
 
 
 @pytest.mark.slow

@@ -335,6 +335,33 @@ def test_a_worker_that_says_it_stops_reads_stopped_and_raises_no_camera_lost(rig
     assert r.kinds() == ["camera_stopped", "camera_lost"]
 
 
+def test_a_view_turned_by_its_worker_reads_in_the_status_and_raises_camera_moved_once(rig):
+    """The shift a worker sends with its masks reaches the status in degrees (its pixels over the
+    camera's focal length) and, held past the tolerance, one stored and published camera_moved."""
+    import math
+
+    r = rig()
+    cam = r.cams["c2"]
+    turned_px = math.radians(1.0) * cam.K[0, 0]
+    period_s = PERIOD_NS / 1e9
+    seqs = range(int(15 / period_s))   # 15 s of frames
+    first_ns = r.clock.ns
+    for seq in seqs:
+        for cid in r.cams:
+            shift = turned_px if cid == "c2" and seq * period_s >= 2.0 else 0.0
+            r.put(cid, encode(mask_frame(r.cams[cid], seq, r.clock.ns, r.masks[cid], view_shift_px=shift)))
+        r.take(r.node.tick(r.clock.ns, r.clock.mono))
+        r.clock.advance(period_s)
+    r.take(r.node.report(r.clock.ns, r.clock.mono))
+    status = {c.cam: c for c in r.status[-1].cameras}
+    assert status["c2"].view_deg == pytest.approx(1.0, abs=0.01)
+    assert status["c1"].view_deg == 0.0
+    moved = [e for _, e in r.events if e.kind == "camera_moved"]
+    assert len(moved) == 1 and moved[0].details["camera"] == "c2" and moved[0].details["evidence"] == "view"
+    assert 11.5 <= (moved[0].stamp_ns - first_ns) / 1e9 <= 12.5   # turned at 2 s, held for 10 s
+    assert [e.id for e in r.store.query() if e.kind == "camera_moved"] == [moved[0].id]
+
+
 def test_an_alarm_is_acknowledged_once_stored_and_published(rig):
     r = rig()
     r.frames(range(5))

@@ -376,6 +376,31 @@ def test_worker_process_publishes_decodable_masks_in_order(tmp_path, listener):
     assert listener.alive[0] == ("SampleKind.PUT", alive_key)
 
 
+def test_worker_process_sends_how_far_its_view_moved(tmp_path, listener):
+    """The room's picture slides 6 px sideways at frame 50 of 150 (the camera panned): masks before
+    say the view has not moved, masks from a second after the pan on say 6 px."""
+    rng = np.random.default_rng(5)
+    room = np.clip(120 + 60 * cv2.resize(rng.normal(0, 1, (H // 8, W // 8 + 5, 3)).astype(np.float32),
+                                          (W + 40, H)), 0, 255).astype(np.uint8)
+    turn, shift = 50, 6
+    for name, frames in (("bg.avi", 15), ("clip.avi", 150)):
+        writer = cv2.VideoWriter(str(tmp_path / name), cv2.VideoWriter_fourcc(*"MJPG"), FPS, (W, H))
+        for i in range(frames):
+            x = 20 + (shift if name == "clip.avi" and i >= turn else 0)
+            writer.write(np.ascontiguousarray(room[:, x:x + W]))
+        writer.release()
+    site = _write_site(tmp_path)
+    proc = _start(site, listener, "--start-ns", str(time.time_ns() + 500_000_000))
+    out, err = proc.communicate(timeout=60)
+    assert proc.returncode == 0, err
+    masks = listener.masks()
+    before = [m.view_shift_px for m in masks if m.seq < turn and m.view_shift_px is not None]
+    after = [m.view_shift_px for m in masks if m.seq >= turn + FPS]
+    assert before and max(before) < 0.5, before
+    assert after and all(v == pytest.approx(shift, abs=1.0) for v in after), after
+    assert "took the reference view of the room" in err
+
+
 def test_worker_process_stops_cleanly_on_sigterm_while_looping(tmp_path, listener):
     _write_clips(tmp_path, n=30)
     site = _write_site(tmp_path)
