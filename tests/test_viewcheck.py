@@ -82,17 +82,18 @@ def test_a_ceiling_fisheye_is_judged_on_its_image_circle_only():
     assert still < 0.2 * f_tan and turned > 0.7 * f_tan, (still, turned, f_tan)
 
 
-def test_measures_once_a_second_and_a_crowd_keeps_the_last_reading(world):
+def test_measures_once_a_second_and_a_dark_room_keeps_the_last_reading(world):
     src = _camera(world, "cam1")
     check = ViewCheck(reference=src.background_frame(0))
     frame, people = src.frame(30)
     s = int(1e9)
     assert check.observe(frame, people, 10 * s) is not None and check.measured == 1
     assert check.observe(frame, people, 10 * s + s // 2) == check.shift_px and check.measured == 1  # not due
-    crowd = np.full_like(people, 255)
-    crowd[:, : people.shape[1] // 5] = 0   # a fifth of the room in view: too few tiles
     last = check.shift_px
-    assert check.observe(frame, crowd, 11 * s) == last and check.skipped == 1 and check.measured == 1
+    dark = np.full_like(frame, 3)   # lights out: no tile shows anything to line up
+    assert check.observe(dark, None, 11 * s) == last and check.skipped == 1 and check.measured == 1
+    flooded = np.full_like(people, 255)   # the model seeing a changed view: measured past the mask
+    assert check.measure(frame, flooded).shift_px < 0.6
     assert ViewCheck().observe(frame, people, 0) is None  # no reference: nothing to say
 
 
