@@ -280,6 +280,8 @@ def test_camera_unit_command_is_accepted_by_the_camera_parser(extras):
     args = _parse("voxelwatch-camera", argv[1:])
     assert str(args.site) == "/etc/voxelwatch/site.toml"
     assert args.camera == "cam3"
+    # the moved-camera check's reference picture survives restarts, one per camera, in the unit's state
+    assert values["StateDirectory"] == ["voxelwatch"] and args.view_reference == "/var/lib/voxelwatch/view-cam3.png"
     if extras:
         assert str(args.source) == "/dev/video2"
 
