@@ -271,3 +271,59 @@ def test_site_check_from_clips_reports_the_moved_camera(tmp_path, capsys):
     assert share[MOVED] < 50, lines[MOVED]
     right = [c for c in share if c != MOVED]
     assert len(right) >= 4 and sorted(share[c] for c in right)[len(right) // 2] >= 70, lines
+
+
+@pytest.mark.slow
+def test_live_workers_and_server_over_zenoh_raise_camera_moved_for_the_turned_camera(tmp_path):
+    """Real processes on loopback: a zenoh router, the fusion server and one camera worker per camera
+    of tuning world 5 (four cameras, two people), each playing its rendered video at its rate from a
+    shared start; cam2's video is rendered through the camera turned by 2 degrees from 8 s on. The
+    worker's view check reports it, the server raises camera_moved for cam2 once (10 s later) and
+    for no other camera, and its status carries each camera's view; the workers keep their reference
+    pictures in the files given."""
+    import dataclasses
+    import sys
+    import time
+
+    from common.synth.world import write_world
+    from procs import Listener, Proc, Router, start_fusion, stop_all, wait_for
+
+    world = random_world(5, duration_s=26.0)
+    world = dataclasses.replace(world, media="video", faults={})
+    assert len(world.cameras) == 4
+    moved_at_s, turned = 8.0, "cam2"
+    world = with_camera_moved(world, turned, CameraMove(first=int(moved_at_s * FPS), rotation_deg=2.0))
+    written = write_world(world, tmp_path / "world")
+    site = load_site(written.site)
+    logs = tmp_path / "logs"
+    logs.mkdir()
+    procs = []
+    with Router() as router:
+        listener = Listener(router.session, site.prefix)
+        try:
+            fusion = start_fusion(written.site, endpoint=router.endpoint, store=tmp_path / "events.sqlite", out=None,
+                                  cache_dir=tmp_path / "cache", log_dir=logs)
+            procs.append(fusion)
+            listener.wait_fusion(fusion)
+            start_ns = time.time_ns() + int(4e9)
+            for cam in site.camera_ids:
+                argv = [sys.executable, "-m", "camera_worker.cli", "--site", str(written.site), "--camera", cam,
+                        "--start-ns", str(start_ns), "--view-reference", str(tmp_path / f"view-{cam}.png"),
+                        "--mode", "client", "--connect", router.endpoint, "-q"]
+                procs.append(Proc(cam, argv, logs / f"{cam}.log"))
+            workers = procs[1:]
+            wait_for(lambda: listener.events_of("camera_moved"), 4 + 26 + 30, "a camera_moved event", procs=procs)
+            for worker in workers:
+                assert worker.popen.wait(timeout=60) == 0, worker.tail()
+            wait_for(lambda: listener.camera_state(turned) == "stopped", 20, "the workers' stop", procs=[fusion])
+            status = {c.cam: c for c in listener.latest_status().cameras}
+            moved = listener.events_of("camera_moved")
+        finally:
+            stop_all(procs)
+            listener.close()
+    assert [e.details["camera"] for e in moved] == [turned]
+    assert moved[0].details["evidence"] == "view" and moved[0].details["view_deg"] > 1.0
+    assert moved[0].stamp_ns - start_ns >= (moved_at_s + 10.0) * 1e9 - 2e9
+    assert status[turned].view_deg > 1.0
+    assert all(status[c].view_deg < 0.1 for c in site.camera_ids if c != turned), status
+    assert all((tmp_path / f"view-{c}.png").is_file() for c in site.camera_ids)
