@@ -132,6 +132,19 @@ class ViewCheck:
         self._room = cv2.erode(room, _disc(EDGE_PX))
         self.shift_px, self.last, self._next_ns = None, None, None
 
+    def follow(self, segmenter, image: np.ndarray, mask: np.ndarray, fg_fraction: float, relearning: bool,
+               stamp_ns: int) -> float | None:
+        """:meth:`observe` for a camera segmented by ``segmenter`` (a
+        :class:`~camera_worker.segmentation.ForegroundSegmenter`): without a reference yet, the
+        model's background image becomes it once the model has learned the room (a background clip,
+        or a window of live frames) on a frame that is mostly room (``fg_fraction`` at most 0.2, not
+        ``relearning`` after a light change). Returns the latest shift, None until measured."""
+        if self._reference is None:
+            if not segmenter.learned or fg_fraction > 0.2 or relearning:
+                return None
+            self.set_reference(segmenter.background_image())
+        return self.observe(image, mask, stamp_ns)
+
     def observe(self, image: np.ndarray, mask: np.ndarray | None, stamp_ns: int) -> float | None:
         """The frame captured at ``stamp_ns`` with its foreground ``mask`` (any size; None: nobody):
         measured when one is due. Returns the latest shift (capture pixels), None until measured."""

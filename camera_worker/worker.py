@@ -588,25 +588,22 @@ class _Loop:
         return looks
 
     def _check_view(self, frame: Frame, mask: np.ndarray, stats: SegmentStats) -> float | None:
-        """The view's latest shift (:mod:`camera_worker.viewcheck`); the reference picture is the
-        background model's, taken once the model has learned the room (a background clip, or a
-        window of live frames) on a frame that is mostly room."""
+        """The view's latest shift (:mod:`camera_worker.viewcheck`); a reference picture taken on the
+        way is kept in the settings' file."""
         if self.view is None:
             return None
-        if not self.view.has_reference:
-            seg = self.segmenter
-            if not seg.learned or stats.fg_fraction > 0.2 or stats.relearning:
-                return None
-            picture = seg.background_image()
-            self.view.set_reference(picture)
+        had = self.view.has_reference
+        shift = self.view.follow(self.segmenter, frame.image, mask, stats.fg_fraction, stats.relearning,
+                                 frame.stamp_ns)
+        if not had and self.view.has_reference:
             log.info("camera %s: took the reference view of the room", self.s.cam)
             if self.s.view_reference is not None:
                 try:
-                    save_reference(self.s.view_reference, picture)
+                    save_reference(self.s.view_reference, self.segmenter.background_image())
                 except OSError as exc:
                     log.warning("camera %s: %s (the view is checked against this run's picture only)",
                                 self.s.cam, exc)
-        return self.view.observe(frame.image, mask, frame.stamp_ns)
+        return shift
 
     def _source_event(self, text: str) -> None:
         log.warning("camera %s: %s", self.s.cam, text)

@@ -6,7 +6,10 @@ fused by the live server's own :class:`~fusion_server.node.FusionNode`
 (which writes the tracks and events files as the live server does), and the hold
 regions of still people go back to the segmenters for the next frame, as
 the live server sends them over zenoh; so do its look requests, answered on
-the next frame with the camera worker's own colour descriptors.
+the next frame with the camera worker's own colour descriptors. Colour and
+infrared cameras check their own view against the room as their workers do
+(:mod:`camera_worker.viewcheck`), so a camera knocked during a recording
+raises ``camera_moved`` in its replay too.
 
 Inputs per camera, under ``INPUT/<camera id>/``:
 
@@ -42,6 +45,7 @@ from camera_worker.looks import LookAnswerer
 from camera_worker.segmentation import ForegroundSegmenter, window_frames_for
 from camera_worker.segmenters import foreground_depth, segmenter_for
 from camera_worker.sources import FrameSource, SourceError, open_source
+from camera_worker.viewcheck import ViewCheck
 from common.messages import LookRequest
 from common.site import Site
 from fusion_server.node import FusionNode, FusionSettings
@@ -121,6 +125,8 @@ class _SegmentedCamera:
         self.segmenter = segmenter_for(modality, mask_scale=mask_scale, window_frames=window_frames_for(fps))
         # only a colour camera's frames can answer a look request
         self.colour = isinstance(self.segmenter, ForegroundSegmenter) and modality == "colour"
+        # the worker's own check of its view (colour and infrared), as a live worker runs it
+        self.view = ViewCheck() if isinstance(self.segmenter, ForegroundSegmenter) else None
         if background is not None:
             with background:
                 while (frame := background.read()) is not None:
@@ -180,13 +186,16 @@ def replay(
                 t0 = time.perf_counter()
                 images: dict[str, np.ndarray] | None = {} if overlay_every else None
                 depths: dict[str, np.ndarray] = {}
-                masks, stamp_ns, frame_index, t_segment = _next_masks(inputs, holds, images, asked, depths)
+                views: dict[str, tuple[float, int, int]] = {}
+                masks, stamp_ns, frame_index, t_segment = _next_masks(inputs, holds, images, asked, depths, views)
                 if masks is None:
                     break
                 t1 = time.perf_counter()
                 for cam, answerer in asked.items():
                     if answerer.last:
                         node.add_looks(cam, stamp_ns, answerer.last)
+                for cam, (shift, shift_ns, width) in views.items():
+                    pipeline.consistency.report_view(cam, shift, shift_ns, width)
                 frame_set = FrameSet(stamp_ns=stamp_ns, payloads=masks, stamps_ns={cam: stamp_ns for cam in masks},
                                      seqs={cam: frame_index for cam in masks})
                 fused = node.fuse(frame_set, stamp_ns, t1, depths=depths or None)
@@ -258,12 +267,13 @@ def _open_inputs(site, cam_ids, input_dir, synthetic, seed, background_frames) -
 
 
 def _next_masks(inputs: dict, holds: dict, images: dict | None = None, asked: dict | None = None,
-                depths: dict | None = None):
+                depths: dict | None = None, views: dict | None = None):
     """The next frame set: (masks, stamp_ns, frame index, seconds spent segmenting),
     or (None, ...) when any camera's recording has ended. ``images`` receives
     each segmented camera's frame; ``asked`` (camera id -> LookAnswerer) has each
     camera answer its pending look request on its frame (into ``answerer.last``);
-    ``depths`` receives each depth camera's foreground range (``(h, w) uint16`` mm).
+    ``depths`` receives each depth camera's foreground range (``(h, w) uint16`` mm); ``views``
+    each checking camera's latest view shift ``(pixels, stamp_ns, capture width)``.
     The stamp given to the answerers is the frame's own (the set's is the median)."""
     masks: dict[str, np.ndarray] = {}
     stamps: list[int] = []
@@ -286,7 +296,12 @@ def _next_masks(inputs: dict, holds: dict, images: dict | None = None, asked: di
         if frame is None:
             return None, 0, 0, t_segment
         t = time.perf_counter()
-        masks[cam], _ = item.segmenter.apply(frame.image, holds=holds.get(cam, ()))
+        masks[cam], stats = item.segmenter.apply(frame.image, holds=holds.get(cam, ()))
+        if item.view is not None and views is not None:
+            shift = item.view.follow(item.segmenter, frame.image, masks[cam], stats.fg_fraction, stats.relearning,
+                                     frame.stamp_ns)
+            if shift is not None:
+                views[cam] = (shift, frame.stamp_ns, frame.image.shape[1])
         depth = foreground_depth(item.segmenter)
         if depth is not None and depths is not None:
             depths[cam] = depth

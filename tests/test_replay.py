@@ -190,3 +190,40 @@ def test_replay_of_the_house_with_a_thermal_and_a_depth_camera(tmp_path):
     assert np.all(late_masks["cam2"][late_depths["cam2"] > 0] > 0)
     tracks = read_tracks(tmp_path / "run" / "tracks.csv")
     assert len(tracks) > 0
+
+
+def test_a_camera_whose_recorded_view_pans_raises_camera_moved_in_the_replay(tmp_path):
+    """Three cameras of the tiny site recording a textured empty room (videos with their empty-room
+    clips); c2's picture slides 8 px sideways 2 s in, as if the camera had been panned by about
+    5 degrees (its focal length is 95 px). The replay's view checks, run as the workers run them,
+    raise one camera_moved for c2, 10 s of capture after the pan, and none for the others."""
+    import json
+    import math
+
+    from common.site import load_site
+    from fusion_server.replay import replay
+    from tinysite import FPS, H, W, write_site
+
+    site_file, cams = write_site(tmp_path)
+    site = load_site(site_file)
+    rng = np.random.default_rng(7)
+    rooms = {c: np.clip(120 + 60 * cv2.resize(rng.normal(0, 1, (H // 8, W // 8 + 5, 3)).astype(np.float32),
+                                               (W + 40, H)), 0, 255).astype(np.uint8) for c in cams}
+    pan_at, n = int(2 * FPS), int(14 * FPS)
+    for cam, room in rooms.items():
+        folder = tmp_path / "input" / cam
+        folder.mkdir(parents=True)
+        for name, frames in (("background.avi", 15), ("video.avi", n)):
+            writer = cv2.VideoWriter(str(folder / name), cv2.VideoWriter_fourcc(*"MJPG"), FPS, (W, H))
+            for i in range(frames):
+                x = 20 + (8 if cam == "c2" and name == "video.avi" and i >= pan_at else 0)
+                writer.write(np.ascontiguousarray(room[:, x:x + W]))
+            writer.release()
+    replay(site, tmp_path / "out", input_dir=tmp_path / "input")
+    events = [json.loads(line) for line in (tmp_path / "out" / "events.jsonl").read_text().splitlines()]
+    moved = [e for e in events if e["kind"] == "camera_moved"]
+    assert [e["details"]["camera"] for e in moved] == ["c2"], events
+    assert moved[0]["details"]["evidence"] == "view"
+    turned_deg = math.degrees(8 / cams["c2"].K[0, 0])
+    assert moved[0]["details"]["view_deg"] == pytest.approx(turned_deg, rel=0.15)
+    assert 10.0 <= moved[0]["stamp_ns"] / 1e9 - 2.0 <= 11.5  # measured once a second, held 10 s
