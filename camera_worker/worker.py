@@ -83,7 +83,7 @@ __all__ = [
 
 log = logging.getLogger("voxelwatch.camera")
 
-STAGES = ("read", "segment", "looks", "encode", "publish")
+STAGES = ("read", "segment", "looks", "view", "encode", "publish")
 _STOP_NOTICE_S = 0.2
 """The timed stages of one frame, in order (``looks``: answering a look request, nearly
 nothing on the frames without one)."""
@@ -424,8 +424,9 @@ class _Loop:
                 continue
             t2 = time.perf_counter()
             looks = self._answer_looks(frame, mask)
-            view_px = self._check_view(frame, mask, stats)
             t3 = time.perf_counter()
+            view_px = self._check_view(frame, mask, stats)
+            t3v = time.perf_counter()
             h, w = frame.image.shape[:2]
             self.last_seq = self.seq_offset + frame.index
             msg = build_mask_frame(mask, cam=self.s.cam, seq=self.last_seq,
@@ -445,7 +446,7 @@ class _Loop:
                 self.c.light_changes += 1
                 log.info("camera %s: sudden light change at frame %d: re-learning the background",
                          self.s.cam, msg.seq)
-            for name, dt in zip(STAGES, (t1 - t0, t2 - t1, t3 - t2, t4 - t3, t5 - t4)):
+            for name, dt in zip(STAGES, (t1 - t0, t2 - t1, t3 - t2, t3v - t3, t4 - t3v, t5 - t4)):
                 self.c.stage_s[name] += dt
             self.c.timed += 1
             frames += 1
@@ -702,7 +703,9 @@ def measure_worker(
     decode; the empty room is learned first, untimed. Each frame is segmented (with a hold box over the first figure
     when ``holds``), answers a look request naming every figure when ``looks``
     (the worst case: the fusion server asks about each person a few times a
-    second, not every frame), is encoded as a MaskFrame, and put on a zenoh publisher
+    second, not every frame), has its view checked against the empty room (a
+    registration once a second of the clip's 15 frames/s, so ``view`` is that
+    cost spread over the frames), is encoded as a MaskFrame, and put on a zenoh publisher
     (``session``, or a private peer session with no network). OpenCV runs
     with one thread for the measurement.
 
@@ -733,6 +736,7 @@ def measure_worker(
             room, figures = _write_clip(path, n_frames, width, height, n_people, rng)
             for _ in range(30):   # the empty room first, as a background clip would give it (not timed)
                 segmenter.learn(np.clip(room + rng.normal(0, 2.0, room.shape), 0, 255).astype(np.uint8))
+            view = ViewCheck(reference=segmenter.background_image())
             stage_s = {s: 0.0 for s in STAGES}
             sizes: list[int] = []
             msg_sizes: list[int] = []
@@ -754,15 +758,17 @@ def measure_worker(
                     t2 = time.perf_counter()
                     described = answerer.answer(frame.image, mask, frame.stamp_ns) if answerer.pending else []
                     t3 = time.perf_counter()
+                    shift = view.observe(frame.image, mask, frame.stamp_ns)
+                    t3v = time.perf_counter()
                     msg = build_mask_frame(mask, cam="bench", seq=i, stamp_ns=frame.stamp_ns,
                                            src_size=(width, height), codec=codec, fg_fraction=stats.fg_fraction,
-                                           looks=described)
+                                           looks=described, view_shift_px=shift)
                     payload = messages.encode(msg)
                     t4 = time.perf_counter()
                     publisher.put(payload)
                     t5 = time.perf_counter()
                     if i >= 5:   # the first frames initialise the model and the codec
-                        for name, dt in zip(STAGES, (t1 - t0, t2 - t1, t3 - t2, t4 - t3, t5 - t4)):
+                        for name, dt in zip(STAGES, (t1 - t0, t2 - t1, t3 - t2, t3v - t3, t4 - t3v, t5 - t4)):
                             stage_s[name] += dt
                         sizes.append(len(msg.data))
                         msg_sizes.append(len(payload))

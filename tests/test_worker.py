@@ -185,7 +185,7 @@ def test_worker_settings_name_bad_values():
 def test_measure_worker_reports_every_stage():
     result = measure_worker(n_frames=20, width=W, height=H)
     assert result["frames"] == 15 and (result["width"], result["height"]) == (W, H)
-    assert set(result["ms"]) == {"read", "segment", "looks", "encode", "publish", "total"}
+    assert set(result["ms"]) == {"read", "segment", "looks", "view", "encode", "publish", "total"}
     assert all(v > 0 for v in result["ms"].values())
     assert result["fps"]["total"] == pytest.approx(1e3 / result["ms"]["total"])
     assert 0 < result["mask_bytes_median"] <= result["message_bytes_median"]
