@@ -21,10 +21,12 @@ coefficient (ECC) over the tile's room pixels (a mask that floods, as the
 background model's does right after a move, shows no people and is not
 used: ``FLOODED``); a tile whose fit stays under
 ``min_fit`` is dropped. Both measures ignore the light's brightness and
-contrast, so lights and daylight do not read as movement. An affine warp is
-then fitted to the tiles' translations by least median of squares, so that
-a few tiles that changed for another reason (a chair moved, a person the
-background model has absorbed) cannot pull it. The **shift** is the root
+contrast, so lights and daylight do not read as movement. A similarity warp
+(a shift, a turn about the picture's axis, a scale: what moving a camera
+does to a distant room; nothing shears it) is then fitted to the tiles'
+translations by least median of squares, so that a few tiles that changed
+for another reason (a chair moved, a person the background model has
+absorbed or the mask missed) cannot pull it. The **shift** is the root
 mean square of how far that warp moves a 5x5 grid of points over the image,
 in pixels of the capture frame: a turn moves every point alike (by about the
 focal length times the angle), a shift along the camera's axis moves the
@@ -32,10 +34,11 @@ edges (the warp's scale), a roll moves the corners. With fewer than
 ``min_tiles`` tiles to go on (a dark room, a covered lens, a crowd in front
 of the camera) there is no measurement and the previous one stands.
 
-On the tuning worlds an untouched camera reads under 0.05 degree, a 2 degree
-turn 1.5-2.4 degrees and a 10 cm shift 0.6-3.5 (the nearer the room, the
-more); the lab recording's untouched cameras read under 0.15 degree (README,
-"Keeping cameras calibrated").
+On the tuning worlds an untouched camera reads under 0.13 degree, also in
+crowds of 11-12 people (with the masks' own faults), a 2 degree turn 1.5-2.4
+degrees and a 10 cm shift 0.6-3.5 (the nearer the room, the more); the lab
+recording's untouched cameras read under 0.16 degree (README, "Keeping
+cameras calibrated").
 
 Pure apart from OpenCV; no clock (time is the frames' capture stamps).
 """
@@ -91,7 +94,7 @@ class ViewCheckParams:
 @dataclass(frozen=True)
 class Registration:
     """One measurement: ``shift_px`` (capture pixels, root mean square over the lattice), the
-    ``warp`` (2x3 affine, small-picture pixels, reference onto current picture), the ``tiles``
+    ``warp`` (2x3 similarity, small-picture pixels, reference onto current picture), the ``tiles``
     lined up and the ``agreeing`` ones (the fit's inliers)."""
 
     shift_px: float
@@ -186,7 +189,7 @@ class ViewCheck:
 
 def register(reference: np.ndarray, current: np.ndarray, room: np.ndarray, *, min_fit: float = 0.7,
              min_tiles: int = 6, iterations: int = 50) -> tuple[np.ndarray, int, int] | None:
-    """The affine warp taking ``reference`` onto ``current`` (float32 grey pictures of one size),
+    """The similarity warp (2x3) taking ``reference`` onto ``current`` (float32 grey pictures of one size),
     from the translations of the tiles that show the room (``room``: uint8, nonzero where a pixel
     counts) (module text): ``(warp, tiles lined up, tiles agreeing with the warp)``, None with fewer
     than ``min_tiles``."""
@@ -219,11 +222,11 @@ def register(reference: np.ndarray, current: np.ndarray, room: np.ndarray, *, mi
             moved.append((cx + warp[0, 2], cy + warp[1, 2]))
     if len(centres) < min_tiles:
         return None
-    affine, inliers = cv2.estimateAffine2D(np.array(centres, np.float32), np.array(moved, np.float32),
-                                           method=cv2.LMEDS)
-    if affine is None or not np.all(np.isfinite(affine)):
+    warp, inliers = cv2.estimateAffinePartial2D(np.array(centres, np.float32), np.array(moved, np.float32),
+                                                  method=cv2.LMEDS)
+    if warp is None or not np.all(np.isfinite(warp)):
         return None
-    return affine, len(centres), int(np.count_nonzero(inliers))
+    return warp, len(centres), int(np.count_nonzero(inliers))
 
 
 def lattice_shift(warp: np.ndarray, shape: tuple[int, int]) -> float:
