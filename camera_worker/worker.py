@@ -182,6 +182,7 @@ class WorkerCounters:
     source_failures: int = 0
     reconnects: int = 0
     light_changes: int = 0
+    view_errors: int = 0
     state: str = "ok"
     stage_s: dict[str, float] = field(default_factory=lambda: {s: 0.0 for s in STAGES})
     timed: int = 0
@@ -397,6 +398,7 @@ class _Loop:
         self.pace_origin: tuple[float, int] | None = None   # (monotonic s, stamp_ns) of the paced start
         self._bad_holds = RateLimitedLog(log, 5.0)
         self._bad_looks = RateLimitedLog(log, 5.0)
+        self._view_log = RateLimitedLog(log, 60.0)
         self._next_stats = time.monotonic() + settings.stats_period_s
 
     def run(self) -> int:
@@ -594,8 +596,14 @@ class _Loop:
         if self.view is None:
             return None
         had = self.view.has_reference
-        shift = self.view.follow(self.segmenter, frame.image, mask, stats.fg_fraction, stats.relearning,
-                                 frame.stamp_ns)
+        try:
+            shift = self.view.follow(self.segmenter, frame.image, mask, stats.fg_fraction, stats.relearning,
+                                     frame.stamp_ns)
+        except Exception as exc:  # noqa: BLE001 - the check must never stop the camera's masks
+            self.c.view_errors += 1
+            self._view_log.warn(f"camera {self.s.cam}", "view", f"view check failed ({type(exc).__name__}: {exc}); "
+                                "the masks go on without it", time.monotonic())
+            return None
         if not had and self.view.has_reference:
             log.info("camera %s: took the reference view of the room", self.s.cam)
             if self.s.view_reference is not None:

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import dataclasses
 import itertools
+import logging
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -35,6 +36,8 @@ from fusion_server.hotspots import Hotspot
 from fusion_server.identity import IdentityKeeper, IdentityParams, Resident
 from fusion_server.posture import PostureEstimator, PostureReading
 from fusion_server.tracker import PopulationParams, TrackEstimate, Tracker
+
+log = logging.getLogger("voxelwatch.fusion")
 
 
 NEW_TARGET_MIN_VOLUME_M3 = 0.05
@@ -132,6 +135,8 @@ class FusionPipeline:
         self.camera_ids: tuple[str, ...] = carver.camera_ids
         self.explainer = BlobExplainer(self.cameras)
         self.consistency = ConsistencyMonitor(carver, self.cameras, consistency)
+        self.consistency_errors = 0
+        """Frame sets on which the moved-camera check failed (they are fused all the same)."""
         self.identity = identity if identity is not None else IdentityKeeper(self.cameras)
         self.posture_settings = dict(voxel_m=carver.grid.voxel_m, decisions=decisions, viterbi_lag_s=viterbi_lag_s)
         PostureEstimator(**self.posture_settings)  # validate once, up front
@@ -181,7 +186,14 @@ class FusionPipeline:
         carve = self.carver.carve(masks, stamp_ns, depths=depths)
         blobs = self.detect_people(carve, masks)
         bodies = self.tracker.step(carve, blobs, stamp_ns)
-        _, moved = self.consistency.step(masks, bodies, stamp_ns)
+        try:
+            _, moved = self.consistency.step(masks, bodies, stamp_ns)
+        except Exception as exc:  # noqa: BLE001 - the check must never cost a frame set its tracks
+            self.consistency_errors += 1
+            moved = []
+            if self.consistency_errors == 1 or self.consistency_errors % 1000 == 0:
+                log.warning("moved-camera check failed %d time(s), last on the frame set at %d: %s: %s",
+                            self.consistency_errors, stamp_ns, type(exc).__name__, exc)
         estimates = self.label(bodies, looks or {}, stamp_ns)
         readings = self.update_postures(estimates, stamp_ns)
         standing = {b.id: float(e.z_top_m) for b, e in zip(bodies, estimates)

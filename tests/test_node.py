@@ -362,6 +362,23 @@ def test_a_view_turned_by_its_worker_reads_in_the_status_and_raises_camera_moved
     assert [e.id for e in r.store.query() if e.kind == "camera_moved"] == [moved[0].id]
 
 
+def test_a_failing_moved_camera_check_costs_no_frame_set(rig, caplog):
+    """The check is a side job of the fusion step: when it fails, the set is fused and tracked all the
+    same, the failures are counted, and the log says so once (not once per frame set)."""
+    r = rig()
+
+    def broken(masks, bodies, stamp_ns):
+        raise FloatingPointError("a broken measurement")
+
+    r.node.pipeline.consistency.step = broken
+    r.frames(range(20))
+    assert r.node.c.frames_fused == 20 and r.node.c.pipeline_errors == 0
+    assert r.tracks and r.tracks[-1].tracks and _near_box(r.tracks[-1])
+    assert r.node.pipeline.consistency_errors == 20
+    lines = [rec.getMessage() for rec in caplog.records if "moved-camera check failed" in rec.getMessage()]
+    assert len(lines) == 1 and "FloatingPointError: a broken measurement" in lines[0]
+
+
 def test_an_alarm_is_acknowledged_once_stored_and_published(rig):
     r = rig()
     r.frames(range(5))
