@@ -1,6 +1,7 @@
-"""Calibrating cameras from a printed chessboard (``voxelwatch calibrate``).
+"""Calibrating cameras from a printed board (``voxelwatch calibrate``).
 
-* :mod:`.board`: the board, finding it in an image, naming its corners alike in every camera;
+* :mod:`.board`: the chessboard, finding it in an image, naming its corners alike in every camera;
+* :mod:`.charuco`: the ChArUco board (markers name its corners), for lenses from partial views;
 * :mod:`.clips`: reading clips, cutting floor clips into still stretches;
 * :mod:`.intrinsics`: a lens from a board moved in front of the camera;
 * :mod:`.floor`: every camera's pose from a board laid on the floor (chaining, bundle adjustment,

@@ -10,12 +10,22 @@ from pathlib import Path
 
 def register(sub) -> None:
     """Add ``calibrate intrinsics`` and ``calibrate floor`` to the umbrella command's subparsers."""
-    p = sub.add_parser("calibrate", help="calibrate cameras from a chessboard: intrinsics, and poses from the floor")
+    p = sub.add_parser("calibrate", help="calibrate cameras from a board: intrinsics (chessboard or ChArUco), and "
+                                         "poses from a chessboard on the floor")
     actions = p.add_subparsers(dest="action", metavar="ACTION", required=True)
-    i = actions.add_parser("intrinsics", help="a camera's lens from a clip of a board moved in front of it")
+    i = actions.add_parser("intrinsics", help="a camera's lens from a clip of a board (chessboard or ChArUco) moved "
+                                              "in front of it")
     i.add_argument("--camera", required=True, help="the camera id (written into the file)")
     i.add_argument("--clip", required=True, help="video file, image folder, or device index / stream URL")
-    _board_args(i)
+    i.add_argument("--board", default="8x6", help="COLSxROWS: a chessboard's inner corners, or with --charuco the "
+                                                  "ChArUco board's squares (as OpenCV and board generators count "
+                                                  "them: a 7x5 ChArUco board has 6x4 inner corners) [8x6]")
+    i.add_argument("--square-mm", type=float, default=115.0, help="square size, millimetres [115]")
+    i.add_argument("--charuco", default=None, metavar="DICT",
+                   help="the board is a ChArUco board with markers from this OpenCV dictionary, e.g. 5x5_100 "
+                        "(DICT_5X5_100); its views may show only part of it")
+    i.add_argument("--marker-mm", type=float, default=None,
+                   help="ChArUco marker side, millimetres, smaller than the square [0.75 x --square-mm]")
     i.add_argument("--model", choices=("pinhole", "fisheye"), default="pinhole", help="lens model [pinhole]")
     i.add_argument("--out", default=None, help="the intrinsics file: .toml (voxelwatch) or .xml/.yaml/.json (OpenCV) "
                                                 "[ID-intrinsics.toml]")
@@ -41,10 +51,16 @@ def _board_args(p) -> None:
 
 def _intrinsics(args: argparse.Namespace) -> int:
     from common.calibrate.board import Board
+    from common.calibrate.charuco import CharucoBoard
     from common.calibrate.intrinsics import calibrate_intrinsics
     from common.calibrate.write import write_intrinsics
 
-    board = Board.parse(args.board, args.square_mm)
+    if args.charuco is not None:
+        board = CharucoBoard.parse(args.board, args.square_mm, args.marker_mm, args.charuco)
+    elif args.marker_mm is not None:
+        raise ValueError("--marker-mm is for a ChArUco board: give --charuco DICT too")
+    else:
+        board = Board.parse(args.board, args.square_mm)
     out = Path(args.out or f"{args.camera}-intrinsics.toml")
     if out.suffix.lower() not in (".toml", ".xml", ".yaml", ".yml", ".json"):
         raise ValueError(f"--out {out}: expected a .toml (voxelwatch) or .xml/.yaml/.json (OpenCV) file name")

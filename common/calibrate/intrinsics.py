@@ -1,25 +1,30 @@
 """Intrinsic calibration from a clip of a board moved in front of one camera.
 
-Up to :data:`MAX_CANDIDATES` frames, spread evenly over the clip, are searched for the board
-(:func:`~common.calibrate.board.find_board`).
+Up to :data:`MAX_CANDIDATES` frames, spread evenly over the clip, are searched for the board: a
+chessboard, which must be seen whole (:func:`~common.calibrate.board.find_board`), or a ChArUco
+board, of which any part showing enough corners counts (:class:`~common.calibrate.charuco.CharucoFinder`),
+so that its views may reach past the image's edges, where a lens bends most.
 Views are then picked, sharpest first: a view is skipped when it is blurred (the variance of the
 Laplacian over the board below :data:`BLUR_SHARE` of the clip's median) or when it repeats one
-already picked (its four outer corners within :data:`DUPLICATE_SHARE` of the image diagonal of
-that view's), so that a board held still for a while counts once and the picked views spread
-over positions, distances and tilts. At most :data:`MAX_VIEWS` are kept. OpenCV then fits a
-pinhole model (``calibrateCamera``: fx, fy, cx, cy, k1, k2, p1, p2, k3) or the fisheye model
-(``fisheye.calibrate``: k1..k4); views whose error is far above the others' are dropped and
-the fit repeated once.
+already picked (its outline within :data:`DUPLICATE_SHARE` of the image diagonal of that view's:
+a chessboard's four outer corners, the bounding box of the corners of a ChArUco view, which may
+show any part of the board), so that a board held still for a while counts once and the picked
+views spread over positions, distances and tilts. At most :data:`MAX_VIEWS` are kept. OpenCV
+then fits a pinhole model (``calibrateCamera``: fx, fy, cx, cy, k1, k2, p1, p2, k3) or the
+fisheye model (``fisheye.calibrate``: k1..k4) to the views' corners, each view with its own
+number of corners; views whose error is far above the others' are dropped and the fit repeated once.
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import cv2
 import numpy as np
 
 from common.calibrate.board import Board, board_area_fraction, find_board, sharpness
+from common.calibrate.charuco import CharucoBoard, CharucoFinder
 from common.calibrate.clips import read_gray
 from common.camera import Camera
 
@@ -57,7 +62,8 @@ class IntrinsicsResult:
     dropped_outliers: int
 
 
-def calibrate_intrinsics(clip: str, cam_id: str, board: Board, *, model: str = "pinhole") -> IntrinsicsResult:
+def calibrate_intrinsics(clip: str, cam_id: str, board: Board | CharucoBoard, *,
+                         model: str = "pinhole") -> IntrinsicsResult:
     """Fit ``model`` ('pinhole' or 'fisheye') to the board views of ``clip``; IntrinsicsError or
     ClipError naming the clip when it cannot."""
     if model not in ("pinhole", "fisheye"):
@@ -66,32 +72,34 @@ def calibrate_intrinsics(clip: str, cam_id: str, board: Board, *, model: str = "
     if len(frames) > MAX_CANDIDATES:
         frames = [frames[k] for k in np.linspace(0, len(frames) - 1, MAX_CANDIDATES).astype(int)]
     H, W = frames[0].shape[:2]
+    find = _finder(board)
     views = []
     for gray in frames:
-        corners = find_board(gray, board)
-        if corners is not None:
-            views.append((corners, sharpness(gray, corners), board_area_fraction(corners, W, H)))
+        found = find(gray)
+        if found is not None:
+            ids, corners = found
+            views.append(_View(ids, corners, sharpness(gray, corners), board_area_fraction(corners, W, H)))
     if not views:
         raise IntrinsicsError(f"clip {clip}: board {board.describe()} not found in any of {len(frames)} frames "
-                              "(check --board, light the board evenly, show all of it)")
-    big = [v for v in views if v[2] >= MIN_AREA]
+                              f"({_NOT_FOUND_HINT[type(board)]})")
+    big = [v for v in views if v.area >= MIN_AREA]
     small = len(views) - len(big)
     if not big:
         raise IntrinsicsError(f"clip {clip}: the board is too small in the image (at most "
-                              f"{100 * max(v[2] for v in views):.1f} % of it; bring it nearer, to {100 * MIN_AREA:g} % or more)")
-    median_sharp = float(np.median([v[1] for v in big]))
-    sharp = [v for v in big if v[1] >= BLUR_SHARE * median_sharp]
+                              f"{100 * max(v.area for v in views):.1f} % of it; bring it nearer, to {100 * MIN_AREA:g} % or more)")
+    median_sharp = float(np.median([v.sharpness for v in big]))
+    sharp = [v for v in big if v.sharpness >= BLUR_SHARE * median_sharp]
     blurred = len(big) - len(sharp)
-    picked: list[np.ndarray] = []
+    picked: list[_View] = []
     diag = float(np.hypot(W, H))
     duplicates = 0
-    for corners, _, _ in sorted(sharp, key=lambda v: -v[1]):
-        outer = _outer(corners, board)
-        if any(np.linalg.norm(outer - _outer(p, board), axis=1).mean() < DUPLICATE_SHARE * diag for p in picked):
+    for view in sorted(sharp, key=lambda v: -v.sharpness):
+        outline = _outline(view, board)
+        if any(np.linalg.norm(outline - _outline(p, board), axis=1).mean() < DUPLICATE_SHARE * diag for p in picked):
             duplicates += 1
             continue
         if len(picked) < MAX_VIEWS:
-            picked.append(corners)
+            picked.append(view)
     if len(picked) < MIN_VIEWS:
         raise IntrinsicsError(f"clip {clip}: the board was found in only {len(picked)} distinct sharp views "
                               f"(need {MIN_VIEWS}): move it slowly to other places, distances and tilts")
@@ -107,17 +115,52 @@ def calibrate_intrinsics(clip: str, cam_id: str, board: Board, *, model: str = "
                             skipped_small=small, dropped_outliers=dropped)
 
 
-def _outer(corners: np.ndarray, board: Board) -> np.ndarray:
-    g = corners.reshape(board.rows, board.cols, 2)
+@dataclass(frozen=True)
+class _View:
+    """One frame's board: ids (N,) int into the board's object points, corners (N, 2) float64 pixels,
+    the sharpness of the board's box and the share of the image its corners' hull covers."""
+
+    ids: np.ndarray
+    corners: np.ndarray
+    sharpness: float
+    area: float
+
+
+_NOT_FOUND_HINT = {
+    Board: "check --board, light the board evenly, show all of it",
+    CharucoBoard: "check --board (squares), --charuco and --marker-mm; light the board evenly",
+}
+
+
+def _finder(board: Board | CharucoBoard) -> Callable[[np.ndarray], tuple[np.ndarray, np.ndarray] | None]:
+    """A function of a grey frame giving the board's ids and corners found in it, or None."""
+    if isinstance(board, CharucoBoard):
+        return CharucoFinder(board).find
+    every = np.arange(board.n)
+
+    def find(gray: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+        corners = find_board(gray, board)
+        return None if corners is None else (every, corners)
+
+    return find
+
+
+def _outline(view: _View, board: Board | CharucoBoard) -> np.ndarray:
+    """(4, 2) pixels saying where a view lies: a chessboard's outer corners; the bounding box of a
+    ChArUco view's corners."""
+    if isinstance(board, CharucoBoard):
+        (x0, y0), (x1, y1) = view.corners.min(axis=0), view.corners.max(axis=0)
+        return np.array([[x0, y0], [x1, y0], [x0, y1], [x1, y1]])
+    g = view.corners.reshape(board.rows, board.cols, 2)
     return np.array([g[0, 0], g[0, -1], g[-1, 0], g[-1, -1]])
 
 
-def _fit(views: list[np.ndarray], board: Board, cam_id: str, W: int, H: int, model: str):
+def _fit(views: list[_View], board: Board | CharucoBoard, cam_id: str, W: int, H: int, model: str):
     """(camera, rms, per-view mean error px)."""
-    obj = board.object_points().astype(np.float32)
+    every = board.object_points()
     if model == "pinhole":
-        objs = [obj.reshape(-1, 1, 3) for _ in views]
-        imgs = [v.astype(np.float32).reshape(-1, 1, 2) for v in views]
+        objs = [every[v.ids].astype(np.float32).reshape(-1, 1, 3) for v in views]
+        imgs = [v.corners.astype(np.float32).reshape(-1, 1, 2) for v in views]
         # k3 only when it clearly helps: with few views it trades against k1, k2 and the focal length
         rms, K, dist, rvecs, tvecs = cv2.calibrateCamera(objs, imgs, (W, H), None, None, flags=cv2.CALIB_FIX_K3)
         if rms > K3_RMS_PX:
@@ -126,25 +169,32 @@ def _fit(views: list[np.ndarray], board: Board, cam_id: str, W: int, H: int, mod
                 rms, K, dist, rvecs, tvecs = fit
         dist = dist.ravel()[:5]
         errs = []
-        for v, r, t in zip(views, rvecs, tvecs):
-            uv, _ = cv2.projectPoints(obj, r, t, K, dist)
-            errs.append(np.linalg.norm(uv.reshape(-1, 2) - v, axis=1).mean())
+        for o, v, r, t in zip(objs, views, rvecs, tvecs):
+            uv, _ = cv2.projectPoints(o, r, t, K, dist)
+            errs.append(np.linalg.norm(uv.reshape(-1, 2) - v.corners, axis=1).mean())
     else:
-        objs = [obj.reshape(1, -1, 3).astype(np.float64) for _ in views]
-        imgs = [v.reshape(1, -1, 2).astype(np.float64) for v in views]
-        flags = cv2.fisheye.CALIB_RECOMPUTE_EXTRINSIC | cv2.fisheye.CALIB_FIX_SKEW
+        # OpenCV 5's fisheye fit takes (1, N, 3) and (1, N, 2) views only
+        objs = [every[v.ids].reshape(1, -1, 3) for v in views]
+        imgs = [v.corners.reshape(1, -1, 2) for v in views]
+        # OpenCV 5 moved the fisheye flags (with other values) from cv2.fisheye to cv2
+        names = cv2.fisheye if hasattr(cv2.fisheye, "CALIB_FIX_SKEW") else cv2
+        flags = names.CALIB_RECOMPUTE_EXTRINSIC | names.CALIB_FIX_SKEW | names.CALIB_USE_INTRINSIC_GUESS
+        # OpenCV 4's own start: an equidistant lens seeing 180 degrees across the longer side, centred
+        # (with OpenCV 5's own start the fit failed on synthetic fisheye clips it solves from this one)
+        f = max(W, H) / np.pi
+        K0 = np.array([[f, 0.0, (W - 1) / 2], [0.0, f, (H - 1) / 2], [0.0, 0.0, 1.0]])
         criteria = (cv2.TERM_CRITERIA_COUNT + cv2.TERM_CRITERIA_EPS, 200, 1e-9)
         try:
-            rms, K, dist, rvecs, tvecs = cv2.fisheye.calibrate(objs, imgs, (W, H), np.eye(3), np.zeros(4), flags=flags,
+            rms, K, dist, rvecs, tvecs = cv2.fisheye.calibrate(objs, imgs, (W, H), K0, np.zeros(4), flags=flags,
                                                                criteria=criteria)
         except cv2.error as exc:
             raise IntrinsicsError(f"the fisheye fit failed ({str(exc).strip().splitlines()[-1]}): "
                                   "show the board in more places, nearer the image's edges") from None
         dist = dist.ravel()
         errs = []
-        for v, r, t in zip(views, rvecs, tvecs):
-            uv, _ = cv2.fisheye.projectPoints(obj.reshape(1, -1, 3).astype(np.float64), r, t, K, dist)
-            errs.append(np.linalg.norm(uv.reshape(-1, 2) - v, axis=1).mean())
+        for o, v, r, t in zip(objs, views, rvecs, tvecs):
+            uv, _ = cv2.fisheye.projectPoints(o, r, t, K, dist)
+            errs.append(np.linalg.norm(uv.reshape(-1, 2) - v.corners, axis=1).mean())
     K = np.asarray(K, dtype=np.float64)
     K[1, 0] = 0.0
     K[2] = (0.0, 0.0, 1.0)

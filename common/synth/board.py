@@ -1,18 +1,23 @@
-"""Calibration boards in the synthetic worlds: a chessboard moved in front of a camera (for its
-intrinsics) or laid on the floor at a few places (for the floor calibration), rendered into any
-camera of the house or of a random world, so that the calibration commands can be checked
-against the cameras' true calibrations.
+"""Calibration boards in the synthetic worlds: a chessboard or a ChArUco board moved in front of a
+camera (for its intrinsics), or a chessboard laid on the floor at a few places (for the floor
+calibration), rendered into any camera of the house or of a random world, so that the
+calibration commands can be checked against the cameras' true calibrations.
 
 Rendering (:class:`BoardRenderer`): each pixel is sampled at ``supersample x supersample``
 points whose world rays come from the camera's own lens model (computed once per camera); a
 sample shows the board where its ray meets the board's plane inside the printed sheet (the
 squares and a white border half a square wide) before the empty room's surface behind it
 (:class:`common.synth.render.CameraRenderer`), else the room. The samples are averaged, so edges
-are anti-aliased as a real sensor sees them, and sensor noise is added.
+are anti-aliased as a real sensor sees them, and sensor noise is added. A chessboard's squares
+are drawn exactly; a ChArUco sheet is OpenCV's own image of the board
+(``CharucoBoard.generateImage``, :data:`SHEET_PX_PER_SQUARE` pixels a square, so that the squares'
+edges fall on its pixels' edges) looked up where each sample lands.
 
-Board frame (:class:`common.calibrate.board.Board`): inner corner ``(col, row)`` at
-``(col, row, 0) * square_m``; the outer square next to corner ``(0, 0)`` is black. Poses are
-``(R_wb, t_wb)``: ``X_world = R_wb X_board + t_wb``.
+Board frames: a chessboard's (:class:`common.calibrate.board.Board`) has inner corner
+``(col, row)`` at ``(col, row, 0) * square_m``, the outer square next to corner ``(0, 0)``
+black, and Z out of the printed face; a ChArUco board's
+(:class:`common.calibrate.charuco.CharucoBoard`) is OpenCV's, origin at the sheet's first outer
+corner, Y down the sheet and Z into it. Poses are ``(R_wb, t_wb)``: ``X_world = R_wb X_board + t_wb``.
 """
 
 from __future__ import annotations
@@ -24,6 +29,7 @@ import cv2
 import numpy as np
 
 from common.calibrate.board import Board
+from common.calibrate.charuco import CharucoBoard
 from common.camera import Camera
 from common.synth.render import SURF_FLOOR, CameraRenderer, raycast_room
 from common.synth.scene import Room
@@ -32,6 +38,8 @@ BLACK, WHITE = 28.0, 220.0
 FLOOR_MIN_AREA = 0.006
 """A floor position counts as seen by a camera when the board covers at least this share of its image."""
 FLOOR_MAX_SLANT_DEG = 78.0
+SHEET_PX_PER_SQUARE = 64
+"""Pixels a square of a ChArUco sheet's image (its markers' bits are a few pixels wide at least)."""
 
 
 class BoardRenderer:
@@ -56,21 +64,28 @@ class BoardRenderer:
             self.background = np.full((H, W), 110.0, dtype=np.float32)
             self.bg_depth = np.full((H, W), np.inf, dtype=np.float32)
         self.seed = seed
+        self._sheets: dict[CharucoBoard, np.ndarray] = {}
 
-    def _box(self, board: Board, pose):
-        """Pixel box (x0, y0, x1, y1) around the printed sheet, from its edges projected; None when out of view."""
+    def _box(self, board: Board | CharucoBoard, pose):
+        """Pixel box (x0, y0, x1, y1) around the printed sheet, from its edges projected; the whole image when
+        part of an edge lies beyond the lens's view (the sheet's visible part may then reach anywhere in
+        it); None when out of view."""
         c = _sheet_corners(board, pose)
         edge = np.concatenate([c[k] + np.linspace(0, 1, 40)[:, None] * (c[(k + 1) % 4] - c[k]) for k in range(4)])
         uv, _ = self.camera.project(edge)
-        uv = uv[np.all(np.isfinite(uv), axis=1)]
-        if not len(uv):
-            return None
+        finite = np.all(np.isfinite(uv), axis=1)
         W, H = self.camera.width, self.camera.height
+        if not finite.any():
+            return None
+        if not finite.all():
+            return (0, 0, W, H)
+        uv = np.clip(uv, -W - H, 2 * (W + H))   # far outside the image: kept from overflowing the int cast
         x0, y0 = np.clip(np.floor(uv.min(axis=0)).astype(int) - 3, 0, [W, H])
         x1, y1 = np.clip(np.ceil(uv.max(axis=0)).astype(int) + 4, 0, [W, H])
         return None if x1 <= x0 or y1 <= y0 else (int(x0), int(y0), int(x1), int(y1))
 
-    def render(self, board: Board | None, pose=None, *, key: int = 0, noise_std: float = 2.0) -> np.ndarray:
+    def render(self, board: Board | CharucoBoard | None, pose=None, *, key: int = 0,
+               noise_std: float = 2.0) -> np.ndarray:
         """(H, W) uint8 grey frame with the board at ``pose`` (None: the empty room); ``key`` picks the noise."""
         img = self.background.copy()
         box = None if board is None else self._box(board, pose)
@@ -80,16 +95,20 @@ class BoardRenderer:
             R_wb, t_wb = (np.asarray(a, dtype=np.float64) for a in pose)
             n = R_wb[:, 2]
             denom = rays @ n.astype(np.float32)
-            with np.errstate(divide="ignore", invalid="ignore"):
+            with np.errstate(divide="ignore", invalid="ignore"):   # a fisheye's rays are NaN outside its circle
                 s = np.float32(n @ (t_wb - self.centre)) / denom
+                p = (s[..., None] * rays + (self.centre - t_wb).astype(np.float32)) @ R_wb.astype(np.float32)
             ok = np.isfinite(s) & (s > 0) & (s <= self.bg_depth[y0:y1, x0:x1, None] + 0.01)
-            p = (s[..., None] * rays + (self.centre - t_wb).astype(np.float32)) @ R_wb.astype(np.float32)
             sq = board.square_m
             bx, by = p[..., 0] / sq, p[..., 1] / sq
-            on = ok & (bx >= -1.5) & (bx <= board.cols + 0.5) & (by >= -1.5) & (by <= board.rows + 0.5)
-            i, j = np.floor(bx) + 1, np.floor(by) + 1
-            squares = (i >= 0) & (i <= board.cols) & (j >= 0) & (j <= board.rows)
-            value = np.where(squares & (np.mod(i + j, 2) == 0), BLACK, WHITE)
+            if isinstance(board, CharucoBoard):
+                on, value = self._charuco_value(board, bx, by)
+                on &= ok
+            else:
+                on = ok & (bx >= -1.5) & (bx <= board.cols + 0.5) & (by >= -1.5) & (by <= board.rows + 0.5)
+                i, j = np.floor(bx) + 1, np.floor(by) + 1
+                squares = (i >= 0) & (i <= board.cols) & (j >= 0) & (j <= board.rows)
+                value = np.where(squares & (np.mod(i + j, 2) == 0), BLACK, WHITE)
             share = on.mean(axis=2)
             board_value = np.where(on, value, 0.0).sum(axis=2) / np.maximum(on.sum(axis=2), 1)
             img[y0:y1, x0:x1] = img[y0:y1, x0:x1] * (1.0 - share) + board_value * share
@@ -97,20 +116,41 @@ class BoardRenderer:
         img = img + rng.normal(0.0, noise_std, size=img.shape)
         return np.clip(np.rint(img), 0, 255).astype(np.uint8)
 
+    def _charuco_value(self, board: CharucoBoard, bx: np.ndarray, by: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(on the sheet, grey level) at board positions ``(bx, by)`` in squares (any shape)."""
+        if board not in self._sheets:
+            self._sheets[board] = _charuco_sheet(board)
+        sheet = self._sheets[board]
+        col = np.floor((bx + 0.5) * SHEET_PX_PER_SQUARE)
+        row = np.floor((by + 0.5) * SHEET_PX_PER_SQUARE)
+        on = (col >= 0) & (col < sheet.shape[1]) & (row >= 0) & (row < sheet.shape[0])
+        value = sheet[np.where(on, row, 0).astype(np.intp), np.where(on, col, 0).astype(np.intp)]
+        return on, value
 
-def corners_world(board: Board, pose) -> np.ndarray:
+
+def corners_world(board: Board | CharucoBoard, pose) -> np.ndarray:
     """(N, 3) the board's inner corners in the world for ``pose``."""
     R, t = pose
     return board.object_points() @ np.asarray(R).T + np.asarray(t)
 
 
-def intrinsics_poses(camera: Camera, board: Board, count: int, rng: np.random.Generator) -> list:
+def intrinsics_poses(camera: Camera, board: Board | CharucoBoard, count: int, rng: np.random.Generator, *,
+                     min_in_view: float = 1.0) -> list:
     """``count`` world poses of the board held in front of ``camera``: spread over the image (a 3x3
-    grid of aims, then random), covering 25-60 % of its width, tilted up to 40 degrees; every corner
-    in view with a margin of 4 % of the image."""
+    grid of aims, then random), covering 25-60 % of its width, tilted up to 40 degrees, the printed
+    face towards the camera.
+
+    min_in_view 1: every corner in view with a margin of 4 % of the image, the board square to the
+    optical axis before it is tilted. Below 1 (partial views, for a ChArUco board): the random
+    aims reach the image's edges and at least this share of the corners is in view with that
+    margin; the board is square to the aim's ray before it is tilted and its distance is taken
+    along that ray, as a person holds it up to a fisheye that sees 90 degrees aside."""
+    if not 0.0 < min_in_view <= 1.0:
+        raise ValueError(f"min_in_view must lie in (0, 1], got {min_in_view!r}")
+    partial = min_in_view < 1.0
     W, H = camera.width, camera.height
-    width_m = (board.cols + 1) * board.square_m
-    centre_b = np.array([(board.cols - 1) / 2, (board.rows - 1) / 2, 0.0]) * board.square_m
+    width_m, centre_b, facing = _held(board)
+    obj = board.object_points()
     poses = []
     tries = 0
     while len(poses) < count and tries < 200 * count:
@@ -119,6 +159,8 @@ def intrinsics_poses(camera: Camera, board: Board, count: int, rng: np.random.Ge
         if k < 9:
             u = W * (0.25 + 0.25 * (k % 3)) + rng.normal(0, 0.04 * W)
             v = H * (0.25 + 0.25 * (k // 3)) + rng.normal(0, 0.04 * H)
+        elif partial:
+            u, v = rng.uniform(0.0, 1.0) * W, rng.uniform(0.0, 1.0) * H
         else:
             u, v = rng.uniform(0.15, 0.85) * W, rng.uniform(0.15, 0.85) * H
         ray = camera.rays_cam(np.array([[u, v]]))[0]
@@ -128,13 +170,17 @@ def intrinsics_poses(camera: Camera, board: Board, count: int, rng: np.random.Ge
         dist = camera.K[0, 0] * width_m / (fill * W)
         tilt = _rot(0, math.radians(rng.uniform(-40, 40))) @ _rot(1, math.radians(rng.uniform(-40, 40))) @ \
             _rot(2, math.radians(rng.uniform(-20, 20)))
-        R_cb = tilt @ np.diag([1.0, -1.0, -1.0])      # the printed face towards the camera
-        t_cb = ray / ray[2] * dist - R_cb @ centre_b
-        pts_c = board.object_points() @ R_cb.T + t_cb
-        uv, valid = camera.project_cam(pts_c)
+        if partial:
+            R_cb = _towards(ray) @ tilt @ facing
+            t_cb = ray * dist - R_cb @ centre_b
+        else:
+            R_cb = tilt @ facing
+            t_cb = ray / ray[2] * dist - R_cb @ centre_b
+        uv, valid = camera.project_cam(obj @ R_cb.T + t_cb)
         m = 0.04 * min(W, H)
-        if not valid.all() or uv[:, 0].min() < m or uv[:, 1].min() < m or uv[:, 0].max() > W - 1 - m \
-                or uv[:, 1].max() > H - 1 - m:
+        with np.errstate(invalid="ignore"):
+            inside = valid & (uv[:, 0] >= m) & (uv[:, 1] >= m) & (uv[:, 0] <= W - 1 - m) & (uv[:, 1] <= H - 1 - m)
+        if inside.mean() < min_in_view or (not partial and not valid.all()):
             continue
         R_wb = camera.R.T @ R_cb
         poses.append((R_wb, camera.R.T @ (t_cb - camera.t)))
@@ -230,13 +276,47 @@ def floor_clip(renderer: BoardRenderer, board: Board, poses, *, still_frames: in
             k += 1
 
 
-def _sheet_corners(board: Board, pose) -> np.ndarray:
+def _sheet_corners(board: Board | CharucoBoard, pose) -> np.ndarray:
     """(4, 3) world corners of the printed sheet (squares and border)."""
     R, t = pose
     sq = board.square_m
-    lo, hx, hy = -1.5 * sq, (board.cols + 0.5) * sq, (board.rows + 0.5) * sq
+    lo = (-0.5 if isinstance(board, CharucoBoard) else -1.5) * sq
+    hx, hy = (board.cols + 0.5) * sq, (board.rows + 0.5) * sq
     sheet = np.array([[lo, lo, 0.0], [hx, lo, 0.0], [hx, hy, 0.0], [lo, hy, 0.0]])
     return sheet @ np.asarray(R).T + np.asarray(t)
+
+
+def _charuco_sheet(board: CharucoBoard) -> np.ndarray:
+    """(rows + 1, cols + 1) squares' worth of float32 grey levels: OpenCV's image of the board, black and
+    white mapped to the renderer's, with a white border half a square wide; row 0 at Y = -square / 2."""
+    px = SHEET_PX_PER_SQUARE
+    size = ((board.cols + 1) * px, (board.rows + 1) * px)
+    img = board.opencv().generateImage(size, marginSize=px // 2, borderBits=1)
+    return (BLACK + (WHITE - BLACK) * img.astype(np.float32) / 255.0).astype(np.float32)
+
+
+def _held(board: Board | CharucoBoard) -> tuple[float, np.ndarray, np.ndarray]:
+    """(width of the squares, metres; (3,) centre of the squares in the board frame; rotation board ->
+    camera of the board held square to the optical axis, its printed face towards the camera)."""
+    sq = board.square_m
+    if isinstance(board, CharucoBoard):
+        # OpenCV's frame: X right and Y down the sheet as the camera sees it, Z away from the camera
+        return board.cols * sq, np.array([board.cols / 2, board.rows / 2, 0.0]) * sq, np.eye(3)
+    return (board.cols + 1) * sq, np.array([(board.cols - 1) / 2, (board.rows - 1) / 2, 0.0]) * sq, \
+        np.diag([1.0, -1.0, -1.0])
+
+
+def _towards(ray: np.ndarray) -> np.ndarray:
+    """The rotation turning the optical axis (0, 0, 1) onto the unit ``ray`` (camera frame) about the
+    axis square to both (the shortest turn, which adds no roll of its own)."""
+    z = np.array([0.0, 0.0, 1.0])
+    axis = np.cross(z, ray)
+    s, c = float(np.linalg.norm(axis)), float(ray @ z)
+    if s < 1e-12:
+        return np.eye(3)
+    a = axis / s
+    A = np.array([[0.0, -a[2], a[1]], [a[2], 0.0, -a[0]], [-a[1], a[0], 0.0]])
+    return np.eye(3) + s * A + (1.0 - c) * A @ A
 
 
 def _rot(axis: int, a: float) -> np.ndarray:
