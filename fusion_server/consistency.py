@@ -77,7 +77,9 @@ an untouched camera reads under 0.1) for ``view_s`` seconds of its reports
 raises ``camera_moved`` (details: ``view_deg``), once until its view is back
 within half of that. One alarm per move, whichever evidence comes first:
 either latch silences the other (the view's alarm latches the people's rule
-until the view is back).
+until the view is back). A camera judged moved, by either evidence, no longer
+votes in the carve the others are measured against (it is still measured
+itself): its own changed view would otherwise make them look moved in turn.
 
 Pure: no clock (time is the frame sets' capture stamps), no I/O.
 """
@@ -87,7 +89,7 @@ from __future__ import annotations
 import math
 import statistics
 from collections import deque
-from collections.abc import Mapping, Sequence
+from collections.abc import Collection, Mapping, Sequence
 from dataclasses import dataclass, field
 
 import cv2
@@ -276,6 +278,10 @@ class ConsistencyMonitor:
         """The camera's own baseline figure, None until its first minutes are measured."""
         return self.rule.baseline(cam)
 
+    def moved_cameras(self) -> set[str]:
+        """The cameras judged moved and not yet re-armed, by either evidence."""
+        return {c for c, rec in self._views.items() if rec.alarmed} | self.rule.alarmed()
+
     def view_deg(self, cam: str) -> float | None:
         """How far the camera's view has turned by its own latest report (degrees), None before one."""
         rec = self._views.get(cam)
@@ -372,7 +378,8 @@ class ConsistencyMonitor:
             self._last_seen[body.id] = (body.x, body.y, stamp_ns)
             others = [b for b in bodies if b is not body]
             for m in measure_person(self.carver, self.level, masks, self._sized(masks), body, others, stamp_ns,
-                                    min_voxels=self.params.min_voxels, full_width=self.full_width):
+                                    min_voxels=self.params.min_voxels, full_width=self.full_width,
+                                    distrusted=self.moved_cameras()):
                 if m.cam not in flooded:
                     out.append(m)
         return out
@@ -421,6 +428,10 @@ class AlarmRule:
         """The camera's own baseline figure, None until its first minutes are measured."""
         rec = self._records.get(cam)
         return None if rec is None else rec.baseline
+
+    def alarmed(self) -> set[str]:
+        """The cameras judged moved and not yet re-armed."""
+        return {c for c, rec in self._records.items() if rec.alarmed}
 
     def latch(self, cam: str) -> bool:
         """Mark the camera judged moved (by other evidence); returns whether it already was."""
@@ -496,14 +507,16 @@ class AlarmRule:
 
 def measure_person(carver: Carver, level: int, masks: Mapping[str, np.ndarray], cameras: Mapping[str, Camera],
                    body: TrackEstimate, others: Sequence[TrackEstimate], stamp_ns: int, *, min_voxels: int = 40,
-                   full_width: Mapping[str, int] | None = None) -> list[Measurement]:
+                   full_width: Mapping[str, int] | None = None, distrusted: Collection[str] = ()) -> list[Measurement]:
     """Per camera in ``masks`` with a clear view of ``body``, its agreement with the voxels the other
     cameras carve around it (module text). ``level``: the octree level re-voted; ``cameras``: camera
     id -> camera at its mask's size; ``others``: every other body, whose image boxes must stay clear
     of the measured window; ``full_width``: camera id -> full image width, to give offsets in
-    full-image pixels (default: mask pixels)."""
+    full-image pixels (default: mask pixels); ``distrusted``: cameras already judged moved, measured
+    but left out of the others' carve (a moved camera would make the others look moved)."""
     present = [c for c in carver.camera_ids if c in masks]
-    if len(present) < 3:
+    voters = [c for c in present if c not in distrusted]
+    if len(present) < 3 or len(voters) < 2:
         return []
     linear, centres = _cylinder(carver, level, body)
     if linear.size == 0:
@@ -518,13 +531,17 @@ def measure_person(carver: Carver, level: int, masks: Mapping[str, np.ndarray], 
         px[c] = mask_pixels(pixel[:, col], carver.lut_sizes[c], (w, h))
         seen[c] = px[c] >= 0
         hit[c] = seen[c] & fg[c].ravel()[np.maximum(px[c], 0)]
-    found = np.sum([hit[c] for c in present], axis=0)
-    seeing = np.sum([seen[c] for c in present], axis=0)
-    need = needed_votes(len(present) - 1, min(carver.min_cameras, len(present) - 1), carver.min_ratio)
+    found = np.sum([hit[c] for c in voters], axis=0)
+    seeing = np.sum([seen[c] for c in voters], axis=0)
     out = []
     for c in present:
-        found_o = found - hit[c]
-        seeing_o = seeing - seen[c]
+        voting = c in voters
+        n_others = len(voters) - voting
+        if n_others < 2:
+            continue
+        need = needed_votes(n_others, min(carver.min_cameras, n_others), carver.min_ratio)
+        found_o = found - hit[c] if voting else found
+        seeing_o = seeing - seen[c] if voting else seeing
         loo = (seeing_o >= 2) & (found_o >= need[seeing_o])
         if np.count_nonzero(loo) < min_voxels or np.count_nonzero(seen[c][loo]) < MIN_SEEN * np.count_nonzero(loo):
             continue

@@ -327,3 +327,37 @@ def test_live_workers_and_server_over_zenoh_raise_camera_moved_for_the_turned_ca
     assert status[turned].view_deg > 1.0
     assert all(status[c].view_deg < 0.1 for c in site.camera_ids if c != turned), status
     assert all((tmp_path / f"view-{c}.png").is_file() for c in site.camera_ids)
+
+
+def test_a_camera_judged_moved_is_measured_but_no_longer_votes_for_the_others(tmp_path):
+    """Four cameras around a 3 x 3 m room and a standing box; c2 has turned, so its mask shows the box
+    12 px to the right of where its calibration puts it. Voting with the others, it narrows the carve
+    each of them is measured against (three of three needed), so they seem to see the box off where
+    the others put it; once judged moved it no longer votes, and the others read no offset while it
+    still reads its own 12 px."""
+    from common.camera import Camera, look_at
+    from fusion_server.carving import Carver
+    from fusion_server.consistency import measure_person
+    from tinysite import box_mask
+
+    centres = {"c1": (-0.5, -0.5, 2.5), "c2": (3.5, -0.5, 2.5), "c3": (3.5, 3.5, 2.5), "c4": (-0.5, 3.5, 2.5)}
+    cams = {c: Camera.pinhole(c, 320, 240, hfov_deg=70.0, R=look_at(xyz, (1.5, 1.5, 0.8))[0],
+                              t=look_at(xyz, (1.5, 1.5, 0.8))[1]) for c, xyz in centres.items()}
+    carver = Carver(cameras=cams, volume_min_m=(0, 0, 0), volume_max_m=(3, 3, 2), voxel_sizes_m=[0.4, 0.2, 0.1],
+                    min_cameras=2, min_ratio=0.75, cache_dir=tmp_path)
+    body = TrackEstimate(id=1, x=1.5, y=1.4, z_top_m=1.7, volume_m3=0.3, reliability=1.0, confirmed=True,
+                         age_frames=100, vx=0.0, vy=0.0, height_profile=np.zeros(1, np.int32), blob=None, still=False)
+    masks = {c: box_mask(cam, 1.5, 1.4) for c, cam in cams.items()}
+    masks["c2"] = np.roll(masks["c2"], 12, axis=1)
+    rule = AlarmRule(list(cams))
+
+    def fitting(distrusted):
+        """Camera -> whether its view fits where the others put the box (the alarm rule's tolerance:
+        4 % of the silhouette's height plus a pixel, against no offset)."""
+        got = measure_person(carver, 2, masks, cams, body, [], 0, min_voxels=10, distrusted=distrusted)
+        return {m.cam: rule.fits(m, (0.0, 0.0)) for m in got}, {m.cam: m.offset_px for m in got}
+
+    (trusting, _), (distrusting, offset) = fitting(()), fitting({"c2"})
+    assert distrusting == {"c1": True, "c2": False, "c3": True, "c4": True}, offset
+    assert offset["c2"][0] == pytest.approx(12, abs=2) and abs(offset["c2"][1]) <= 2
+    assert not all(trusting[c] for c in ("c1", "c3", "c4")), trusting  # c2's vote spoils another's carve
