@@ -77,7 +77,12 @@ an untouched camera reads under 0.1) for ``view_s`` seconds of its reports
 raises ``camera_moved`` (details: ``view_deg``), once until its view is back
 within half of that. One alarm per move, whichever evidence comes first:
 either latch silences the other (the view's alarm latches the people's rule
-until the view is back). A camera judged moved, by either evidence, no longer
+until the view is back). The camera's own picture outranks the people: a
+people's alarm for a camera whose latest view reads under half of
+``view_deg`` is not raised (counted in ``vetoed``): the masks disagree for
+another reason (lag, a part of a person missed), and the camera has not
+moved. The people decide alone for cameras that send no view (thermal,
+depth). A camera judged moved, by either evidence, no longer
 votes in the carve the others are measured against (it is still measured
 itself): its own changed view would otherwise make them look moved in turn.
 
@@ -262,6 +267,9 @@ class ConsistencyMonitor:
         self.voxel_m = float(sizes[self.level])
         self.rule = AlarmRule(carver.camera_ids, params)
         self._views = {c: _ViewRecord() for c in cameras}
+        self._vetoed: set[str] = set()   # people's alarms the camera's own view contradicted
+        self.vetoed = 0
+        """People's alarms not raised because the camera's own view said it had not moved."""
         self._next_ns: int | None = None
         self._last_seen: dict[int, tuple[float, float, int]] = {}  # body id -> where and when last measured
         self.history: list[Measurement] | None = None
@@ -280,7 +288,7 @@ class ConsistencyMonitor:
 
     def moved_cameras(self) -> set[str]:
         """The cameras judged moved and not yet re-armed, by either evidence."""
-        return {c for c, rec in self._views.items() if rec.alarmed} | self.rule.alarmed()
+        return {c for c, rec in self._views.items() if rec.alarmed} | (self.rule.alarmed() - self._vetoed)
 
     def view_deg(self, cam: str) -> float | None:
         """How far the camera's view has turned by its own latest report (degrees), None before one."""
@@ -311,11 +319,16 @@ class ConsistencyMonitor:
         measurements = self.measure(masks, bodies, stamp_ns)
         if self.history is not None:
             self.history.extend(measurements)
+        self._vetoed &= self.rule.alarmed()   # re-armed: a later alarm is judged afresh
         for m in measurements:
             alarm = self.rule.add(m)
             if alarm is None:
                 continue
             view = self._views[m.cam]
+            if view.deg is not None and view.deg < 0.5 * self.params.view_deg:
+                self._vetoed.add(m.cam)   # its own picture says it has not moved: the people misled
+                self.vetoed += 1
+                continue
             if not view.alarmed:   # the view has not said so already
                 alarms.append(alarm)
             view.alarmed = True
@@ -342,8 +355,10 @@ class ConsistencyMonitor:
             if rec.alarmed or held_s < p.view_s:
                 continue
             rec.alarmed = True
-            rec.latched_rule = not self.rule.latch(cam)
-            if not rec.latched_rule:   # the people said so already
+            said = self.rule.latch(cam) and cam not in self._vetoed
+            rec.latched_rule = not said
+            self._vetoed.discard(cam)
+            if said:   # the people said so already
                 continue
             out.append(CameraMoved(cam=cam, stamp_ns=rec.stamp_ns, figure=self.rule.figure(cam),
                                    baseline=self.rule.baseline(cam), offset_px=None, down_measurements=0,

@@ -361,3 +361,26 @@ def test_a_camera_judged_moved_is_measured_but_no_longer_votes_for_the_others(tm
     assert distrusting == {"c1": True, "c2": False, "c3": True, "c4": True}, offset
     assert offset["c2"][0] == pytest.approx(12, abs=2) and abs(offset["c2"][1]) <= 2
     assert not all(trusting[c] for c in ("c1", "c3", "c4")), trusting  # c2's vote spoils another's carve
+
+
+def test_the_cameras_own_view_outranks_the_people(world, site_and_carver):
+    """Tuning world 3, cam1's masks turned by 2 degrees 20 s in (as in the people's test above), but
+    its worker says its view is where it was: the people's alarm is not raised, only counted. When
+    the view then reads the turn, its alarm is raised after all, once."""
+    _, cameras, carver = site_and_carver
+    moved = with_camera_moved(world, MOVED, MOVES[0])
+    monitor = ConsistencyMonitor(carver, cameras, FAST)
+    frames = _every_half_second(world.scenario.n_frames)
+    masks = {c: iter_masks(moved, c, frames, faults=False) for c in world.cameras}
+    f = float(cameras[MOVED].K[0, 0])
+    alarms = []
+    for i in frames:
+        stamp = world.scenario.stamp_ns(i)
+        turned = i >= int(45 * FPS)   # the view check notices late (say, the room was dark)
+        monitor.report_view(MOVED, math.radians(2.0 if turned else 0.02) * f, stamp, cameras[MOVED].width)
+        got, raised = monitor.step({c: next(m) for c, m in masks.items()}, _truth_bodies(world, i), stamp)
+        alarms += [(a.cam, a.evidence, round((a.stamp_ns - world.scenario.stamp_ns(0)) / 1e9)) for a in raised]
+        if not turned:
+            assert not raised
+    assert monitor.vetoed >= 1
+    assert [(c, e) for c, e, _ in alarms] == [(MOVED, "view")] and 55 <= alarms[0][2] <= 56  # 10 s after 45 s
