@@ -9,7 +9,10 @@ it had, the share of them that fit where the other cameras carve the person
 (offset within 4 % of the silhouette's height plus a mask pixel of zero: a
 calibration check has no baseline but the calibration itself), the median
 offset in pixels and the median fit. A camera whose share is low and whose
-offset points one way has moved since it was calibrated.
+offset points one way has moved since it was calibrated. For a camera whose
+site entry names a ``view_reference`` picture (its worker's reference view
+of the room), a video clip is also registered against it
+(:mod:`camera_worker.viewcheck`): how far the view has turned, in degrees.
 """
 
 from __future__ import annotations
@@ -28,20 +31,24 @@ __all__ = ["CameraCheck", "check_clips"]
 @dataclass(frozen=True)
 class CameraCheck:
     """One camera's figures: ``views`` measured, ``fit_share`` of them within tolerance of zero offset
-    (None without views), ``offset_px`` median (dx, dy) full-image pixels, ``fit`` median agreement."""
+    (None without views), ``offset_px`` median (dx, dy) full-image pixels, ``fit`` median agreement;
+    ``view_deg``: how far the clip's view has turned from the camera's ``view_reference`` picture
+    (None when the site names none, or the clip is not a video)."""
 
     cam: str
     views: int
     fit_share: float | None
     offset_px: tuple[float, float] | None
     fit: float | None
+    view_deg: float | None = None
 
     def line(self) -> str:
+        view = "" if self.view_deg is None else f"; view {self.view_deg:.2f} deg from its reference picture"
         if not self.views:
-            return f"camera {self.cam}: no clear view of anyone the other cameras carve"
+            return f"camera {self.cam}: no clear view of anyone the other cameras carve{view}"
         dx, dy = self.offset_px
         return (f"camera {self.cam}: {self.views} views, {100 * self.fit_share:.0f}% where the others put people, "
-                f"median offset ({dx:+.1f}, {dy:+.1f}) px, median fit {self.fit:.2f}")
+                f"median offset ({dx:+.1f}, {dy:+.1f}) px, median fit {self.fit:.2f}{view}")
 
 
 def check_clips(site: Site, clips: Mapping[str, str | Path], *, cache_dir: str | Path | None = None,
@@ -79,15 +86,17 @@ def check_clips(site: Site, clips: Mapping[str, str | Path], *, cache_dir: str |
         replay(site, root / "run", input_dir=root / "input", cameras=cams, max_frames=max_frames, pipeline=pipeline)
         measured = pipeline.consistency.history
     rule = AlarmRule(cams, pipeline.consistency.params)
+    referenced = {c for c in cams if site.camera(c).view_reference}
     out = []
     for cam in cams:
+        view_deg = pipeline.consistency.view_deg(cam) if cam in referenced else None
         views = [m for m in measured if m.cam == cam and m.offset_px is not None]
         if not views:
-            out.append(CameraCheck(cam, 0, None, None, None))
+            out.append(CameraCheck(cam, 0, None, None, None, view_deg))
             continue
         fits = [rule.fits(m, (0.0, 0.0)) for m in views]
         out.append(CameraCheck(cam, len(views), sum(fits) / len(fits),
                                (statistics.median(m.offset_px[0] for m in views),
                                 statistics.median(m.offset_px[1] for m in views)),
-                               statistics.median(m.agreement for m in views)))
+                               statistics.median(m.agreement for m in views), view_deg))
     return out

@@ -9,7 +9,9 @@ the live server sends them over zenoh; so do its look requests, answered on
 the next frame with the camera worker's own colour descriptors. Colour and
 infrared cameras check their own view against the room as their workers do
 (:mod:`camera_worker.viewcheck`), so a camera knocked during a recording
-raises ``camera_moved`` in its replay too.
+raises ``camera_moved`` in its replay too; against the camera's
+``view_reference`` picture when the site names one that is there, else
+against the room as its background model learns it.
 
 Inputs per camera, under ``INPUT/<camera id>/``:
 
@@ -45,7 +47,7 @@ from camera_worker.looks import LookAnswerer
 from camera_worker.segmentation import ForegroundSegmenter, window_frames_for
 from camera_worker.segmenters import foreground_depth, segmenter_for
 from camera_worker.sources import FrameSource, SourceError, open_source
-from camera_worker.viewcheck import ViewCheck
+from camera_worker.viewcheck import ViewCheck, load_reference
 from common.messages import LookRequest
 from common.site import Site
 from fusion_server.node import FusionNode, FusionSettings
@@ -117,7 +119,7 @@ class _SegmentedCamera:
     """A frame source and its segmenter."""
 
     def __init__(self, source: FrameSource, background: FrameSource | None, *, mask_scale: float, default_fps: float,
-                 modality: str = "colour") -> None:
+                 modality: str = "colour", view_reference: np.ndarray | None = None) -> None:
         self.source = source
         self.last_stamp_ns = 0
         source.open()
@@ -126,7 +128,7 @@ class _SegmentedCamera:
         # only a colour camera's frames can answer a look request
         self.colour = isinstance(self.segmenter, ForegroundSegmenter) and modality == "colour"
         # the worker's own check of its view (colour and infrared), as a live worker runs it
-        self.view = ViewCheck() if isinstance(self.segmenter, ForegroundSegmenter) else None
+        self.view = ViewCheck(reference=view_reference) if isinstance(self.segmenter, ForegroundSegmenter) else None
         if background is not None:
             with background:
                 while (frame := background.read()) is not None:
@@ -258,12 +260,21 @@ def _open_inputs(site, cam_ids, input_dir, synthetic, seed, background_frames) -
             background = _find_video(folder, "background")
             source = open_source(str(video or folder), cam_id=cam, fps=None if video else spec.fps)
             back = open_source(str(background), cam_id=cam) if background else None
-            inputs[cam] = _SegmentedCamera(source, back, modality=spec.modality, **seg_args)
+            inputs[cam] = _SegmentedCamera(source, back, modality=spec.modality,
+                                           view_reference=_view_reference(site, spec), **seg_args)
     except BaseException:
         for item in inputs.values():
             item.close()
         raise
     return inputs
+
+
+def _view_reference(site: Site, spec) -> np.ndarray | None:
+    """The camera's reference picture of the room from the site (``view_reference``), when the file is
+    there; ValueError when it is there but is not a picture."""
+    if not spec.view_reference:
+        return None
+    return load_reference(site.resolve(spec.view_reference))
 
 
 def _next_masks(inputs: dict, holds: dict, images: dict | None = None, asked: dict | None = None,

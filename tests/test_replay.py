@@ -192,6 +192,29 @@ def test_replay_of_the_house_with_a_thermal_and_a_depth_camera(tmp_path):
     assert len(tracks) > 0
 
 
+def _panning_room(folder: Path, *, pan_at_s: float, length_s: float, shift_px: int = 8) -> tuple[Path, dict, dict]:
+    """The tiny site's three cameras recording a textured empty room (``INPUT/<cam>/video.avi`` and
+    ``background.avi``); c2's picture slides ``shift_px`` sideways at ``pan_at_s``, as if panned.
+    Returns (site file, cameras, each camera's picture of the room before any pan)."""
+    from tinysite import FPS, H, W, write_site
+
+    site_file, cams = write_site(folder)
+    rng = np.random.default_rng(7)
+    rooms = {c: np.clip(120 + 60 * cv2.resize(rng.normal(0, 1, (H // 8, W // 8 + 5, 3)).astype(np.float32),
+                                               (W + 40, H)), 0, 255).astype(np.uint8) for c in cams}
+    pan_at, n = int(pan_at_s * FPS), int(length_s * FPS)
+    for cam, room in rooms.items():
+        sub = folder / "input" / cam
+        sub.mkdir(parents=True)
+        for name, frames in (("background.avi", 15), ("video.avi", n)):
+            writer = cv2.VideoWriter(str(sub / name), cv2.VideoWriter_fourcc(*"MJPG"), FPS, (W, H))
+            for i in range(frames):
+                x = 20 + (shift_px if cam == "c2" and name == "video.avi" and i >= pan_at else 0)
+                writer.write(np.ascontiguousarray(room[:, x:x + W]))
+            writer.release()
+    return site_file, cams, {c: np.ascontiguousarray(room[:, 20:20 + W]) for c, room in rooms.items()}
+
+
 def test_a_camera_whose_recorded_view_pans_raises_camera_moved_in_the_replay(tmp_path):
     """Three cameras of the tiny site recording a textured empty room (videos with their empty-room
     clips); c2's picture slides 8 px sideways 2 s in, as if the camera had been panned by about
@@ -202,24 +225,9 @@ def test_a_camera_whose_recorded_view_pans_raises_camera_moved_in_the_replay(tmp
 
     from common.site import load_site
     from fusion_server.replay import replay
-    from tinysite import FPS, H, W, write_site
 
-    site_file, cams = write_site(tmp_path)
-    site = load_site(site_file)
-    rng = np.random.default_rng(7)
-    rooms = {c: np.clip(120 + 60 * cv2.resize(rng.normal(0, 1, (H // 8, W // 8 + 5, 3)).astype(np.float32),
-                                               (W + 40, H)), 0, 255).astype(np.uint8) for c in cams}
-    pan_at, n = int(2 * FPS), int(14 * FPS)
-    for cam, room in rooms.items():
-        folder = tmp_path / "input" / cam
-        folder.mkdir(parents=True)
-        for name, frames in (("background.avi", 15), ("video.avi", n)):
-            writer = cv2.VideoWriter(str(folder / name), cv2.VideoWriter_fourcc(*"MJPG"), FPS, (W, H))
-            for i in range(frames):
-                x = 20 + (8 if cam == "c2" and name == "video.avi" and i >= pan_at else 0)
-                writer.write(np.ascontiguousarray(room[:, x:x + W]))
-            writer.release()
-    replay(site, tmp_path / "out", input_dir=tmp_path / "input")
+    site_file, cams, _ = _panning_room(tmp_path, pan_at_s=2.0, length_s=14.0)
+    replay(load_site(site_file), tmp_path / "out", input_dir=tmp_path / "input")
     events = [json.loads(line) for line in (tmp_path / "out" / "events.jsonl").read_text().splitlines()]
     moved = [e for e in events if e["kind"] == "camera_moved"]
     assert [e["details"]["camera"] for e in moved] == ["c2"], events
@@ -227,3 +235,30 @@ def test_a_camera_whose_recorded_view_pans_raises_camera_moved_in_the_replay(tmp
     turned_deg = math.degrees(8 / cams["c2"].K[0, 0])
     assert moved[0]["details"]["view_deg"] == pytest.approx(turned_deg, rel=0.15)
     assert 10.0 <= moved[0]["stamp_ns"] / 1e9 - 2.0 <= 11.5  # measured once a second, held 10 s
+
+
+def test_site_check_reads_each_clips_view_against_the_cameras_reference_picture(tmp_path, capsys):
+    """The site names each camera's reference picture of the room (as its worker keeps it); clips
+    taken after c2 was panned by 8 px: site check says how far each view has turned."""
+    import math
+    import re
+
+    from camera_worker.viewcheck import save_reference
+    from common.cli import main
+
+    site_file, cams, pictures = _panning_room(tmp_path, pan_at_s=0.0, length_s=3.0)
+    text = site_file.read_text()
+    for cam, picture in pictures.items():
+        save_reference(tmp_path / "views" / f"{cam}.png", picture)
+        text = text.replace(f'calibration = "{cam}.toml"\n',
+                            f'calibration = "{cam}.toml"\nview_reference = "views/{cam}.png"\n')
+    site_file.write_text(text)
+    clips = [f"--clip={c}={tmp_path / 'input' / c / 'video.avi'}" for c in cams]
+    assert main(["site", "check", str(site_file), *clips]) == 0
+    lines = {line.split(":")[0].split()[-1]: line for line in capsys.readouterr().out.splitlines()
+             if line.strip().startswith("camera ") and "reference picture" in line}
+    read = {c: float(re.search(r"view ([0-9.]+) deg from its reference picture", line).group(1))
+            for c, line in lines.items()}
+    assert set(read) == set(cams), lines
+    assert read["c2"] == pytest.approx(math.degrees(8 / cams["c2"].K[0, 0]), rel=0.15)
+    assert read["c1"] < 0.1 and read["c3"] < 0.1
