@@ -121,6 +121,7 @@ def test_enrol_refuses_a_clip_with_two_people_and_one_with_nobody(house, cache, 
     assert "--name: a name must not be empty" in capsys.readouterr().err
 
 
+@pytest.mark.slow
 def test_the_resident_is_named_on_their_track_and_nobody_else_is(enrolled, cache, tmp_path):
     from common import synth
     from fusion_server.replay import replay

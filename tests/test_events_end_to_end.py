@@ -189,6 +189,7 @@ def _sofa_visit() -> ScenarioSpec:
     )
 
 
+@pytest.mark.slow
 def test_dwelling_and_a_visit_at_the_sofa(house):
     scene = run_scene(_sofa_visit(), house)
     check_events_match_truth(scene, ("dwell_start", "dwell_end", "visit"))
@@ -214,7 +215,7 @@ def _kitchen_visit() -> ScenarioSpec:
     )
 
 
-@pytest.mark.slow  # a long scene; the sofa visit covers dwelling and visits in the default run
+@pytest.mark.slow  # a long scene (hot-spot dwelling itself is tested in test_hotspots.py)
 def test_dwelling_and_a_visit_at_the_kitchen_counter(house):
     scene = run_scene(_kitchen_visit(), house)
     check_events_match_truth(scene, ("enter", "dwell_start", "dwell_end", "visit"))

@@ -284,6 +284,7 @@ def test_two_people_side_by_side_are_both_counted(replayed):
     check_counts_and_positions(run, min_count_accuracy=0.9)
 
 
+@pytest.mark.slow
 @pytest.mark.xfail(strict=True, reason="three people shoulder to shoulder carve as one or two blobs: counted "
                    "right on 38 of 90 frames")
 def test_three_people_walking_abreast_are_counted_and_keep_their_identities(replayed):
@@ -327,6 +328,7 @@ def test_bending_and_kneeling_raise_no_fall(replayed):
     check_no_false_alarm(run)
 
 
+@pytest.mark.slow
 def test_entering_and_leaving_are_events(replayed):
     run = replayed("enter_exit", SHORT["enter_exit"])
     check_counts_and_positions(run, min_count_accuracy=0.98)

@@ -200,7 +200,7 @@ def test_walking_people_stay_off_the_furniture(seed):
         assert not out.any(), f"world {seed}: person {person.person_id} walks through a wall"
 
 
-@pytest.mark.parametrize("seed", (10, 24))
+@pytest.mark.parametrize("seed", (10, pytest.param(24, marks=pytest.mark.slow)))
 def test_true_silhouettes_match_rays_cast_at_the_bodies(seed):
     """Oracle: a pixel is a person in the true mask exactly when its ray meets a body (Body.intersect)
     before the room or its furniture (raycast_room), each computed on its own."""
@@ -219,7 +219,7 @@ def test_true_silhouettes_match_rays_cast_at_the_bodies(seed):
             assert differ <= 0.01 * both + 3, f"world {seed} {cam_id} frame {f}: {differ} pixels differ"
 
 
-@pytest.mark.parametrize("seed", SYNTHETIC_SEEDS)
+@pytest.mark.parametrize("seed", [pytest.param(s, marks=pytest.mark.slow) if s == 24 else s for s in SYNTHETIC_SEEDS])
 def test_every_person_projects_inside_the_mask_of_every_camera_that_sees_them(seed):
     """The middle of each person's trunk, where a camera's ray to it meets that body first (not a wall,
     furniture or somebody else), is foreground within a pixel in that camera: always in the true masks,
