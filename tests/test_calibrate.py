@@ -41,8 +41,9 @@ POSITION_M = 0.02          # the target for cameras that see the board well
 ANGLE_DEG = 0.3
 WORLD_POSITION_M = 0.05    # with lenses fitted from rendered clips (0.2-0.5 % focal error measured)
 WORLD_ANGLE_DEG = 0.6
-HOUSE_CAMERAS = ("cam2", "cam3", "cam4", "cam5")   # cam1 sees its board place only as a 4-px-high sliver
+HOUSE_CAMERAS = ("cam2", "cam3", "cam4", "cam5")
 HOUSE_MIN_AREA = 0.003
+WELL_SEEN = 0.5           # a camera whose views are all under half the largest it can have gets that place
 
 CHARUCO_SEED = 1          # tuning seed: its cam1 is a 640x480 pinhole (a 320x240 one sees the markers too small)
 FISHEYE_SEED = 5          # tuning seed: its cam4 is a 640x480 ceiling fisheye, f about 150 px
@@ -74,29 +75,31 @@ def _rough(cameras) -> dict:
     return {c: cam.with_world(turn, np.array([0.2, -0.1, 0.0])) for c, cam in cameras.items()}
 
 
-def _render_floor(world, board, poses, folder: Path, *, min_area: float = 0.006) -> dict[str, str]:
-    """Every camera's clip; where a camera sees only part of the board (or none), the empty floor."""
-    clips = {}
-    for cam_id, cam in world.cameras.items():
-        renderer = BoardRenderer(cam, world.room, seed=world.seed)
-        seen = [p if floor_sees(cam, world.room, board, p, min_area=min_area) else None for p in poses]
-        clips[cam_id] = str(write_frames(floor_clip(renderer, board, seen), folder / cam_id))
-    return clips
+def _render_floor(world, board, poses, folder: Path) -> dict[str, str]:
+    """Every camera's clip of the board at every place: each sees what its lens and the room let it see
+    (part of the board, a sliver far away, or nothing), as cameras recording together do."""
+    return {cam_id: str(write_frames(floor_clip(BoardRenderer(cam, world.room, seed=world.seed), board, poses),
+                                     folder / cam_id))
+            for cam_id, cam in world.cameras.items()}
 
 
 @pytest.mark.slow
 def test_floor_recovers_the_true_cameras_of_the_house(tmp_path):
-    """The house's cameras (640x480, four high in the corners and the ceiling fisheye), a 9x6 board
-    at three places on the floor, the lenses known: every camera within 2 cm and 0.3 degrees."""
+    """The house's cameras (640x480, high in the corners, and the ceiling fisheye), a 9x6 board laid as
+    an installer is told to (a chain of places seen by two cameras or more, and for a camera that saw
+    it only small a place it sees larger), every camera recording every place, the lenses known: every
+    camera within 2 cm and 0.3 degrees. cam1 is left out: it shares places with the others only where
+    it sees the board under 0.2 % of its image, and the calibration warns of it (test below)."""
     from types import SimpleNamespace
 
     from common.synth.scene import default_cameras, default_room
 
     room = default_room()
     cameras = {c: cam for c, cam in default_cameras().items() if c in HOUSE_CAMERAS}
-    poses = floor_positions(cameras, room, BOARD, np.random.default_rng(0), min_area=HOUSE_MIN_AREA)
+    poses = floor_positions(cameras, room, BOARD, np.random.default_rng(0), min_area=HOUSE_MIN_AREA,
+                            well_seen=WELL_SEEN)
     house = SimpleNamespace(cameras=cameras, room=room, seed=0)
-    clips = _render_floor(house, BOARD, poses, tmp_path, min_area=HOUSE_MIN_AREA)
+    clips = _render_floor(house, BOARD, poses, tmp_path)
     result = calibrate_floor(find_sightings(clips, cameras, BOARD, _rough(cameras)), cameras, BOARD,
                              plan_points=_plan_points(BOARD, poses[0]))
     assert result.positions == len(poses) >= 2
@@ -104,15 +107,16 @@ def test_floor_recovers_the_true_cameras_of_the_house(tmp_path):
         got = result.cameras[cam_id]
         err_m = float(np.linalg.norm(got.center - true.center))
         err_deg = _angle_deg(got.R, true.R)
-        print(f"house {cam_id} ({true.model}): position {100 * err_m:.2f} cm, angle {err_deg:.3f} deg, "
-              f"reprojection {result.reports[cam_id].mean_px:.2f} px")
+        rep = result.reports[cam_id]
+        print(f"house {cam_id} ({true.model}): position {100 * err_m:.2f} cm, angle {err_deg:.3f} deg "
+              f"(bounds {100 * rep.position_95_m:.2f} cm, {rep.angle_95_deg:.3f} deg), reprojection {rep.mean_px:.2f} px")
         assert err_m < POSITION_M and err_deg < ANGLE_DEG
 
 
 @pytest.mark.slow
 def test_floor_recovers_the_true_cameras_of_a_random_world(tmp_path):
     world = random_world(FLOOR_SEED)
-    poses = floor_positions(world.cameras, world.room, BOARD, np.random.default_rng(0))
+    poses = floor_positions(world.cameras, world.room, BOARD, np.random.default_rng(0), well_seen=WELL_SEEN)
     assert len(poses) >= 2
     clips = _render_floor(world, BOARD, poses, tmp_path)
     sightings = find_sightings(clips, world.cameras, BOARD, _rough(world.cameras))
@@ -249,7 +253,7 @@ def test_intrinsics_then_floor_recover_a_whole_rig(tmp_path):
         clip = write_frames(intrinsics_clip(BoardRenderer(true, None, seed=k), BOARD, poses, frames_per_pose=1),
                             tmp_path / f"in-{cam_id}")
         intrinsics[cam_id] = calibrate_intrinsics(str(clip), cam_id, BOARD, model=true.model).camera
-    poses = floor_positions(world.cameras, world.room, BOARD, np.random.default_rng(0))
+    poses = floor_positions(world.cameras, world.room, BOARD, np.random.default_rng(0), well_seen=WELL_SEEN)
     clips = _render_floor(world, BOARD, poses, tmp_path)
     result = calibrate_floor(find_sightings(clips, intrinsics, BOARD, _rough(world.cameras)), intrinsics, BOARD,
                              plan_points=_plan_points(BOARD, poses[0]))
@@ -258,7 +262,97 @@ def test_intrinsics_then_floor_recover_a_whole_rig(tmp_path):
         err_m = float(np.linalg.norm(got.center - true.center))
         err_deg = _angle_deg(got.R, true.R)
         print(f"seed {FLOOR_SEED} {cam_id}: own intrinsics: position {100 * err_m:.2f} cm, angle {err_deg:.3f} deg")
-        assert err_m < 2 * WORLD_POSITION_M and err_deg < 2 * WORLD_ANGLE_DEG
+        assert err_m < POSITION_M and err_deg < ANGLE_DEG
+
+
+# ---------------------------------------------------------------------- bounds and wrong views (no rendering)
+
+
+def _exact_sightings(world, poses, *, noise_px: float = 0.0, rng=None, min_area: float = 0.0015) -> list:
+    """Every camera's view of every place it sees whole: the true corners through its true lens, with
+    ``noise_px`` of Gaussian noise per coordinate; position k covers frames 10k..10k+5."""
+    from common.calibrate.board import board_area_fraction
+    from common.calibrate.floor import Sighting
+    from common.synth.board import floor_area
+
+    out = []
+    for k, pose in enumerate(poses):
+        for cam_id, cam in world.cameras.items():
+            if floor_area(cam, world.room, BOARD, pose) < min_area:
+                continue
+            uv, _ = cam.project(corners_world(BOARD, pose))
+            if noise_px:
+                uv = uv + rng.normal(0.0, noise_px, uv.shape)
+            out.append(Sighting(cam_id, 10 * k, 10 * k + 5, uv, board_area_fraction(uv, cam.width, cam.height)))
+    return out
+
+
+def test_the_bounds_cover_the_errors_of_noisy_corners():
+    """The 95 % bounds the calibration gives against its actual errors over repeated noisy recordings:
+    corners with 0.25 px of noise (the bounds' noise floor), 30 recordings of a random world's rig: the
+    errors' 95th percentile lies between half and one and a half times the median bound, per camera."""
+    world = random_world(FLOOR_SEED)
+    poses = floor_positions(world.cameras, world.room, BOARD, np.random.default_rng(0), well_seen=WELL_SEEN)
+    rng = np.random.default_rng(7)
+    errs = {c: [] for c in world.cameras}
+    bounds = {c: [] for c in world.cameras}
+    for _ in range(30):
+        res = calibrate_floor(_exact_sightings(world, poses, noise_px=0.25, rng=rng), world.cameras, BOARD,
+                              plan_points=_plan_points(BOARD, poses[0]))
+        for c, true in world.cameras.items():
+            errs[c].append(float(np.linalg.norm(res.cameras[c].center - true.center)))
+            bounds[c].append(res.reports[c].position_95_m)
+    for c in world.cameras:
+        seen = float(np.quantile(errs[c], 0.95))
+        said = float(np.median(bounds[c]))
+        print(f"{c}: errors' 95th percentile {100 * seen:.2f} cm, bound {100 * said:.2f} cm")
+        assert 0.5 * said < seen < 1.5 * said
+
+
+def test_a_camera_that_sees_the_board_only_far_away_is_warned_of(capsys):
+    """The house's cam1 and cam2 share board places with the other cameras only where they see the board
+    small (cam1 under 0.2 % of its image, cam2 under 0.5 %): their bounds exceed 2 cm or 0.3 degree (the
+    command warns of them); cam3, cam4 and cam5, which see a shared place at 0.9-2 %, are within them."""
+    from types import SimpleNamespace
+
+    from common.calibrate.command import ANGLE_TOLERANCE_DEG, POSITION_TOLERANCE_M
+    from common.synth.scene import default_cameras, default_room
+
+    house = SimpleNamespace(cameras=default_cameras(), room=default_room(), seed=0)
+    rng = np.random.default_rng(0)
+    poses = floor_positions(house.cameras, house.room, BOARD, rng, min_area=0.0015, well_seen=WELL_SEEN)
+    res = calibrate_floor(_exact_sightings(house, poses, noise_px=0.1, rng=rng), house.cameras, BOARD,
+                          plan_points=_plan_points(BOARD, poses[0]))
+    bounds = {c: (r.position_95_m, r.angle_95_deg) for c, r in res.reports.items()}
+    print({c: (round(100 * m, 2), round(d, 3)) for c, (m, d) in bounds.items()})
+    loose = {c for c, (m, d) in bounds.items() if m > POSITION_TOLERANCE_M or d > ANGLE_TOLERANCE_DEG}
+    assert loose == {"cam1", "cam2"}
+
+
+def test_a_view_found_a_square_off_is_left_out():
+    """One camera's view of the first place has its corners named one square along (a board partly
+    hidden can be found so): that view is left out, with a note naming it, and every camera is placed
+    within 2 cm by the views left. Tuning seed 2: eight cameras, four places, 29 views, so the others
+    outvote the wrong view (with two places and three cameras, as in seed 1, a view a square off
+    cannot be told from a camera 14 cm away: lay the board at more places)."""
+    world = random_world(2)
+    poses = floor_positions(world.cameras, world.room, BOARD, np.random.default_rng(0), well_seen=WELL_SEEN)
+    rng = np.random.default_rng(3)
+    sightings = _exact_sightings(world, poses, noise_px=0.1, rng=rng)
+    counts = {c: sum(1 for s in sightings if s.cam_id == c) for c in world.cameras}
+    victim = next(s for s in sightings if s.start == 0 and counts[s.cam_id] >= 2 and
+                  any(t.start == 0 and t.cam_id != s.cam_id for t in sightings))
+    grid = victim.corners.reshape(BOARD.rows, BOARD.cols, 2)
+    shifted = np.concatenate([grid[:, 1:], 2 * grid[:, -1:] - grid[:, -2:-1]], axis=1).reshape(-1, 2)
+    from common.calibrate.floor import Sighting
+
+    bad = [Sighting(s.cam_id, s.start, s.stop, shifted, s.area) if s is victim else s for s in sightings]
+    res = calibrate_floor(bad, world.cameras, BOARD, plan_points=_plan_points(BOARD, poses[0]))
+    assert any(victim.cam_id in n and "left out" in n for n in res.notes), res.notes
+    for c, true in world.cameras.items():
+        err_m = float(np.linalg.norm(res.cameras[c].center - true.center))
+        assert err_m < POSITION_M, f"{c}: {100 * err_m:.1f} cm off"
+        assert res.reports[c].mean_px < 0.5
 
 
 # ---------------------------------------------------------------------- the command and bad input
@@ -510,11 +604,14 @@ def _agreement(carver, cameras, masks: dict[str, np.ndarray], mask_scale: float)
 
 @pytest.mark.realdata
 @pytest.mark.slow
-def test_lab_carve_agrees_better_with_the_new_calibration(lab4cam, tmp_path, capsys):
-    """The seated person carved from a few frames with the shipped and with the new calibration. The
-    new world is smaller (the cameras come out about 0.7 times as far, see the README), so its voxels
-    are made smaller in proportion, for the same hull detail; the silhouette agreement (IoU of each
-    camera's mask and the carved hull's silhouette) does not depend on the world's scale."""
+def test_lab_carve_is_tighter_with_the_new_calibration(lab4cam, tmp_path, capsys):
+    """The seated person carved from a few frames with the shipped and with the new calibration. At the
+    same voxel size the new hull holds less than 60 % of the shipped one's volume (49 % measured: the
+    new poses put the 115 mm board where the cameras see it, and the person in a room of its true size).
+    The new world is smaller (the cameras come out about 0.7 times as far, see the README), so with
+    its voxels made smaller in proportion, for the same detail, its hull's silhouettes agree better
+    with the masks (IoU of each camera's mask and the hull's outline; that agreement does not depend
+    on the world's scale)."""
     from fusion_server.carving import Carver
 
     site_path = _lab_site(lab4cam, tmp_path)
@@ -528,14 +625,16 @@ def test_lab_carve_agrees_better_with_the_new_calibration(lab4cam, tmp_path, cap
     masks = _lab_masks(lab4cam, range(10, 16, 2), scale)
     ratio = float(np.median([np.linalg.norm(new[c].center) / np.linalg.norm(shipped[c].center) for c in new]))
     rows = {}
-    for name, cams, k in (("shipped", shipped, 1.0), ("new", new, ratio)):
+    for name, cams, k in (("shipped", shipped, 1.0), ("new", new, 1.0), ("new, proportional voxels", new, ratio)):
         carver = Carver(cameras=cams, volume_min_m=(-1.5, -2.0, 0.0), volume_max_m=(2.5, 2.0, 2.2), min_cameras=4,
                         min_ratio=0.75, mask_scale=scale, voxel_sizes_m=[0.4 * k, 0.2 * k, 0.1 * k, 0.05 * k],
                         cache_dir=tmp_path / f"cache-{name}")
-        rows[name] = [_agreement(carver, cams, m, scale) for m in masks]
+        rows[name] = ([_agreement(carver, cams, m, scale) for m in masks], 0.05 * k)
+    volume = {name: float(np.mean([v for v, _ in r])) * voxel_m ** 3 for name, (r, voxel_m) in rows.items()}
+    iou = {name: float(np.mean([a for _, a in r])) for name, (r, _) in rows.items()}
     with capsys.disabled():
-        for name, r in rows.items():
-            print(f"lab carve, {name} calibration (world scale {ratio if name == 'new' else 1.0:.3f}): "
-                  f"voxels {[v for v, _ in r]}, "
-                  f"silhouette IoU {np.mean([a for _, a in r]):.3f}")
-    assert np.mean([a for _, a in rows["new"]]) > np.mean([a for _, a in rows["shipped"]])
+        for name, (r, voxel_m) in rows.items():
+            print(f"lab carve, {name} calibration, {100 * voxel_m:.1f} cm voxels: hull {volume[name]:.3f} m^3, "
+                  f"silhouette IoU {iou[name]:.3f}")
+    assert volume["new"] < 0.6 * volume["shipped"]
+    assert iou["new, proportional voxels"] > iou["shipped"]

@@ -7,6 +7,11 @@ import argparse
 import math
 from pathlib import Path
 
+POSITION_TOLERANCE_M = 0.02
+"""A camera's calibrated centre should be within this of the truth (the fusion's targets rest on it)."""
+ANGLE_TOLERANCE_DEG = 0.3
+"""And its orientation within this (the moved-camera alarm's view tolerance)."""
+
 
 def register(sub) -> None:
     """Add ``calibrate intrinsics`` and ``calibrate floor`` to the umbrella command's subparsers."""
@@ -132,16 +137,24 @@ def _floor(args: argparse.Namespace) -> int:
     print(f"  board frame in the room ({where}): origin ({ox:.3f}, {oy:.3f}) m, yaw {result.yaw_deg:.2f} deg"
           + (f", plan points fit to {100 * result.plan_residual_m:.1f} cm" if result.plan_residual_m is not None else ""))
     worst = 0.0
+    loose = []
     for cam_id, rep in result.reports.items():
         x, y, z = rep.centre_m
         print(f"  camera {cam_id}: reprojection {rep.mean_px:.2f} px mean, {rep.max_px:.2f} px max over {rep.corners} "
               f"corners ({rep.corners_found - rep.corners} stray left out) in {rep.positions} position(s); "
-              f"at ({x:.2f}, {y:.2f}) m, height {z:.2f} m; sees {100 * rep.seen_share:.0f} % of the volume")
+              f"at ({x:.2f}, {y:.2f}) m, height {z:.2f} m, within {100 * rep.position_95_m:.1f} cm and "
+              f"{rep.angle_95_deg:.2f} deg (95 %); sees {100 * rep.seen_share:.0f} % of the volume")
         worst = max(worst, rep.mean_px)
+        if not (rep.position_95_m <= POSITION_TOLERANCE_M and rep.angle_95_deg <= ANGLE_TOLERANCE_DEG):
+            loose.append(cam_id)
     for note in result.notes:
         print(f"  note: {note}")
     if worst > 1.0:
         print("  WARNING: a mean error above 1 px: check the intrinsics and that the board lies flat")
+    for cam_id in loose:
+        print(f"  WARNING: camera {cam_id} may be off by more than {100 * POSITION_TOLERANCE_M:.0f} cm or "
+              f"{ANGLE_TOLERANCE_DEG} deg: it sees the board too small or too few times; record again with the board "
+              f"also laid nearer to it, where another camera sees it too")
     if args.dry_run:
         print("dry run: nothing written")
         return 0

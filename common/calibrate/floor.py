@@ -18,7 +18,11 @@ stretches of different cameras that overlap in time show the same board position
    the sightings they share (breadth first). Cameras that no chain reaches are named.
 5. Bundle adjustment (``scipy.optimize.least_squares``, soft-L1 loss with a 1 px scale) over
    every camera pose (6 values) and every other board position, which lies on the same floor
-   (x, y, yaw), minimising the corners' reprojection error in pixels through each lens model.
+   (x, y, yaw), minimising the corners' reprojection error in pixels through each lens model. A
+   camera's view of one position that the result misses by far more than its others (a board partly
+   hidden, found a square off) is left out and the chain adjusted again (:data:`WRONG_SIGHTING_PX`).
+   Each camera's 95 % bounds on its position and orientation come from the adjustment's covariance
+   (:func:`pose_uncertainty`): how precisely its views of the board pin it down.
 6. Placement in the room: floor-plan points (board-frame floor coordinates <-> room coordinates,
    two or more) give a rotation about Z and a shift (least squares, no scale); without them the
    board frame sits where the site's first camera's ``origin_m``/``yaw_deg`` put its calibration frame.
@@ -46,6 +50,13 @@ CLIP_SPREAD = 900
 STRAY_PX = 1.5
 """A corner that misses the board's own best pose by more than this and by four times the sighting's
 median error is a stray detection (a corner snapped to a neighbouring edge) and is left out."""
+WRONG_SIGHTING_PX = 2.0
+"""A camera's view of one board position that the adjusted poses miss by more than this on average
+(and by four times the median view) while the camera sees the board elsewhere is left out: a board
+partly hidden by furniture can be found with its corners a square off."""
+NOISE_FLOOR_PX = 0.25
+"""The least corner noise assumed for the calibration's error bounds (pixels): a fit that leaves less
+is not trusted to be that precise (a chessboard's corners are found to about a tenth of a pixel)."""
 ROUGH_BOARD_Z_M = 0.6
 ROUGH_AGREE_M = 1.2
 
@@ -87,6 +98,11 @@ class CameraReport:
     """Mean error over every corner found, stray ones included."""
     centre_m: tuple[float, float, float]
     seen_share: float
+    position_95_m: float = float("nan")
+    """How far the camera's centre may lie from the one found (95 % bound, metres, relative to the
+    first board position), from the bundle adjustment's covariance (see :func:`pose_uncertainty`)."""
+    angle_95_deg: float = float("nan")
+    """The same for its orientation (degrees)."""
 
 
 @dataclass
@@ -154,8 +170,21 @@ def calibrate_floor(sightings: list[Sighting], intrinsics: dict[str, Camera], bo
     obj = board.object_points()
     poses = {id(s): _pnp(intrinsics[s.cam_id], obj, s.corners) for s in sightings}
     sightings = [_drop_stray_corners(s, intrinsics[s.cam_id], obj, poses.pop(id(s)), poses) for s in sightings]
-    cams0, boards0 = _chain(sightings, poses, cam_ids)
-    cams_bf, boards = _adjust(sightings, intrinsics, obj, cams0, boards0)
+    while True:
+        cams0, boards0 = _chain(sightings, poses, cam_ids)
+        cams_bf, boards, spread = _adjust(sightings, intrinsics, obj, cams0, boards0)
+        wrong = _wrong_sighting(sightings, intrinsics, cams_bf, boards, obj)
+        if wrong is None:
+            break
+        rest = [s for s in sightings if s is not wrong]
+        try:
+            _chain(rest, poses, cam_ids)
+        except FloorError:
+            break   # the chain needs it: keep it, and let its camera's error show
+        notes.append(f"camera {wrong.cam_id}'s view of board position {wrong.position + 1} (frames {wrong.start}-"
+                     f"{wrong.stop}) disagreed with the others and was left out (the board partly hidden, or its "
+                     f"corners found a square off)")
+        sightings = rest
     board_cameras = {c: intrinsics[c].with_pose(*cams_bf[c]) for c in cam_ids}
     residual = None
     if plan_points is not None:
@@ -170,7 +199,8 @@ def calibrate_floor(sightings: list[Sighting], intrinsics: dict[str, Camera], bo
         centre = tuple(float(v) for v in cameras[c].center)
         share = _seen_share(cameras[c], volume) if volume is not None else float("nan")
         reports[c] = CameraReport(c, len({s.position for s in sightings if s.cam_id == c}), int(kept.sum()), kept.size,
-                                  float(errs[kept].mean()), float(errs[kept].max()), float(errs.mean()), centre, share)
+                                  float(errs[kept].mean()), float(errs[kept].max()), float(errs.mean()), centre, share,
+                                  *spread.get(c, (float("nan"), float("nan"))))
     n_pos = len({s.position for s in sightings})
     return FloorResult(cameras=cameras, board_cameras=board_cameras, reports=reports, positions=n_pos,
                        origin_m=tuple(float(v) for v in origin), yaw_deg=float(yaw_deg), plan_residual_m=residual,
@@ -306,6 +336,24 @@ def _orient(sightings, intrinsics, board: Board, rough, notes: list[str]) -> lis
     return out
 
 
+def _wrong_sighting(sightings, intrinsics, cams, boards, obj) -> Sighting | None:
+    """The sighting the adjusted poses explain worst, when it is wrong rather than noisy: its mean error
+    above :data:`WRONG_SIGHTING_PX` and four times the median sighting's, and its camera seen elsewhere."""
+    errs = []
+    for s in sightings:
+        R_wb, t_wb = boards[s.position]
+        R_cw, t_cw = cams[s.cam_id]
+        uv, _ = intrinsics[s.cam_id].project_cam((obj[s.kept] @ R_wb.T + t_wb) @ R_cw.T + t_cw)
+        errs.append(float(np.nan_to_num(np.linalg.norm(uv - s.corners[s.kept], axis=1), nan=1e3).mean()))
+    k = int(np.argmax(errs))
+    worst = sightings[k]
+    if errs[k] <= max(WRONG_SIGHTING_PX, 4.0 * float(np.median(errs))):
+        return None
+    if sum(1 for s in sightings if s.cam_id == worst.cam_id) < 2:
+        return None
+    return worst
+
+
 def _drop_stray_corners(s: Sighting, cam: Camera, obj, pose, poses) -> Sighting:
     """The sighting without stray corners (see :data:`STRAY_PX`), its pose solved again into ``poses``."""
     R, t = pose
@@ -404,7 +452,54 @@ def _adjust(sightings, intrinsics, obj, cams0, boards0):
     x = sol.x
     cams = {c: (rodrigues_to_matrix(x[ci[c]:ci[c] + 3]), x[ci[c] + 3:ci[c] + 6].copy()) for c in cam_ids}
     boards = {0: (np.eye(3), np.zeros(3)), **{p: unpack_board(x, pi[p]) for p in pos_ids}}
-    return cams, boards
+    spread = pose_uncertainty(np.asarray(sol.jac), np.asarray(sol.fun), x, {c: ci[c] for c in cam_ids},
+                              views=[2 * len(uv) for _, _, _, uv, _ in groups])
+    return cams, boards, spread
+
+
+def pose_uncertainty(jac: np.ndarray, residuals: np.ndarray, x: np.ndarray, offsets: dict[str, int], *,
+                     views: list[int] | None = None, noise_floor_px: float = NOISE_FLOOR_PX, samples: int = 400,
+                     seed: int = 0) -> dict[str, tuple[float, float]]:
+    """Per camera ``(position_95_m, angle_95_deg)``: how far its centre and its orientation may be from
+    the solution, 95 % of the time, when each view's corners carry the noise the fit left in that view
+    (the root mean square of its residuals, at least ``noise_floor_px``). The covariance is the
+    weighted Gauss-Newton one, ``(J^T W J)^-1`` with ``W`` one over each residual's noise squared, over
+    every parameter (the other cameras and the board positions are uncertain too), relative to the
+    first board position; it is sampled and each sample's camera centre and rotation compared with
+    the solution's. A camera that sees the board small, far, only edge-on or blurred gets a wide
+    bound: the bound says where to lay the board again. jac: (M, P) at ``x`` (P,); residuals: (M,)
+    pixels; views: the number of residuals of each view in order (None: one view); offsets: camera
+    id -> index of its Rodrigues vector and translation (6 values) in ``x``."""
+    m, n = jac.shape
+    if m <= n:
+        return {c: (float("inf"), float("inf")) for c in offsets}
+    sigma = np.empty(m)
+    start = 0
+    for size in (views or [m]):
+        part = residuals[start:start + size]
+        sigma[start:start + size] = max(noise_floor_px, float(np.sqrt(np.mean(part ** 2))) * math.sqrt(m / (m - n)))
+        start += size
+    jw = jac / sigma[:, None]
+    try:
+        cov = np.linalg.pinv(jw.T @ jw, rcond=1e-12, hermitian=True)
+    except np.linalg.LinAlgError:
+        return {c: (float("inf"), float("inf")) for c in offsets}
+    rng = np.random.default_rng(seed)
+    out = {}
+    for c, k in offsets.items():
+        block = cov[k:k + 6, k:k + 6]
+        w, v = np.linalg.eigh(0.5 * (block + block.T))
+        draws = rng.standard_normal((samples, 6)) * np.sqrt(np.clip(w, 0.0, None)) @ v.T + x[k:k + 6]
+        R0 = rodrigues_to_matrix(x[k:k + 3])
+        c0 = -R0.T @ x[k + 3:k + 6]
+        dist, turn = np.empty(samples), np.empty(samples)
+        for i, d in enumerate(draws):
+            R = rodrigues_to_matrix(d[:3])
+            dist[i] = np.linalg.norm(-R.T @ d[3:] - c0)
+            cosang = (np.trace(R @ R0.T) - 1.0) / 2.0
+            turn[i] = math.degrees(math.acos(max(-1.0, min(1.0, cosang))))
+        out[c] = (float(np.quantile(dist, 0.95)), float(np.quantile(turn, 0.95)))
+    return out
 
 
 def _errors(sightings, cam_id, cam: Camera, boards, obj) -> tuple[np.ndarray, np.ndarray]:

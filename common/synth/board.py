@@ -191,44 +191,43 @@ def intrinsics_poses(camera: Camera, board: Board | CharucoBoard, count: int, rn
 
 def floor_sees(camera: Camera, room: Room | None, board: Board, pose, *, min_area: float = FLOOR_MIN_AREA) -> bool:
     """Whether ``camera`` sees the whole board lying at ``pose`` on the floor, big enough and not edge-on."""
+    return floor_area(camera, room, board, pose) >= min_area
+
+
+def floor_area(camera: Camera, room: Room | None, board: Board, pose) -> float:
+    """The share of ``camera``'s image the board lying at ``pose`` covers (its inner corners' hull), or 0
+    when the camera does not see the whole board, sees it edge-on or something in the room hides it."""
     pts = _sheet_corners(board, pose)
     uv, valid = camera.project(pts)
     m = 6
     if not valid.all() or uv[:, 0].min() < m or uv[:, 1].min() < m or uv[:, 0].max() > camera.width - 1 - m \
             or uv[:, 1].max() > camera.height - 1 - m:
-        return False
-    inner, _ = camera.project(corners_world(board, pose))
-    hull = cv2.convexHull(inner.astype(np.float32).reshape(-1, 1, 2))
-    if cv2.contourArea(hull) < min_area * camera.width * camera.height:
-        return False
+        return 0.0
     d = pts - camera.center
     slant = np.degrees(np.arccos(np.clip(-d[:, 2] / np.linalg.norm(d, axis=1), -1, 1)))
     if slant.max() > FLOOR_MAX_SLANT_DEG:
-        return False
-    if room is not None:
+        return 0.0
+    inner_w = corners_world(board, pose)
+    if room is not None:   # nothing in the room (a chair, a table) stands on or in front of the sheet
+        d = np.concatenate([d, inner_w - camera.center])
         dist = np.linalg.norm(d, axis=1)
         hits = raycast_room(room, camera.center, d / dist[:, None])
         if not np.all((hits.surface == SURF_FLOOR) & (np.abs(hits.t - dist) < 0.02)):
-            return False
-    return True
+            return 0.0
+    inner, _ = camera.project(inner_w)
+    hull = cv2.convexHull(inner.astype(np.float32).reshape(-1, 1, 2))
+    return float(cv2.contourArea(hull)) / (camera.width * camera.height)
 
 
 def floor_positions(cameras: dict[str, Camera], room: Room, board: Board, rng: np.random.Generator, *,
-                    max_positions: int = 8, step_m: float = 0.4, min_area: float = FLOOR_MIN_AREA) -> list:
+                    max_positions: int = 8, step_m: float = 0.4, min_area: float = FLOOR_MIN_AREA,
+                    well_seen: float = 0.0) -> list:
     """Board poses on the floor (Z = 0) that chain every camera: the first is the place most cameras
     see, each next one is seen by a camera already chained and by the most cameras not yet chained.
-    ValueError naming the cameras left out when no such chain exists."""
-    (x0, y0), (x1, y1) = room.volume_rect_m
-    cands = []
-    for x in np.arange(x0 + 0.2, x1 - 0.2, step_m):
-        for y in np.arange(y0 + 0.2, y1 - 0.2, step_m):
-            yaw = rng.uniform(0, 2 * math.pi)
-            centre_b = np.array([(board.cols - 1) / 2, (board.rows - 1) / 2, 0.0]) * board.square_m
-            R = _rot(2, yaw)
-            t = np.array([x, y, 0.0]) - R @ centre_b
-            seen = {c for c, cam in cameras.items() if floor_sees(cam, room, board, (R, t), min_area=min_area)}
-            if seen:
-                cands.append(((R, t), seen))
+    With ``well_seen`` > 0, as an installer is told to: each camera whose views so far are all under
+    ``well_seen`` times the largest view it can have of a place another camera also sees gets that
+    place too. ValueError naming the cameras left out when no such chain exists."""
+    cands = _floor_candidates(cameras, room, board, rng, step_m, min_area)
     if not cands:
         raise ValueError("no floor position is seen by any camera")
     picked = [max(cands, key=lambda c: len(c[1]))]
@@ -241,7 +240,53 @@ def floor_positions(cameras: dict[str, Camera], room: Room, board: Board, rng: n
         chained |= best[1]
     if chained != set(cameras):
         raise ValueError(f"cameras {sorted(set(cameras) - chained)} share no floor position with the others")
-    return [p for p, _ in picked]
+    if well_seen > 0.0:
+        for c in cameras:
+            shared = [k for k in cands if c in k[1] and len(k[1]) >= 2]
+            if not shared:
+                continue
+            best = max(shared, key=lambda k: k[2][c])
+            if max(k[2][c] for k in picked) < well_seen * best[2][c] and len(picked) < max_positions:
+                picked.append(best)
+    return [p for p, _, _ in picked]
+
+
+def more_floor_positions(cameras: dict[str, Camera], room: Room, board: Board, rng: np.random.Generator,
+                         cam_id: str, taken: list, *, count: int = 2, step_m: float = 0.4,
+                         min_area: float = FLOOR_MIN_AREA, apart_m: float = 0.5) -> list:
+    """Up to ``count`` more board poses for camera ``cam_id``, as an installer lays the board again when the
+    calibration warns that it is not pinned down: the places it sees largest among those another camera
+    sees too, at least ``apart_m`` from the places ``taken`` and from each other."""
+    centres = [p[1] + p[0] @ _board_centre(board) for p in taken]
+    out = []
+    for pose, seen, areas in sorted(_floor_candidates(cameras, room, board, rng, step_m, min_area),
+                                    key=lambda k: -k[2][cam_id]):
+        if len(out) >= count:
+            break
+        centre = pose[1] + pose[0] @ _board_centre(board)
+        if cam_id in seen and len(seen) >= 2 and all(np.linalg.norm(centre[:2] - c[:2]) >= apart_m for c in centres):
+            out.append(pose)
+            centres.append(centre)
+    return out
+
+
+def _board_centre(board: Board) -> np.ndarray:
+    return np.array([(board.cols - 1) / 2, (board.rows - 1) / 2, 0.0]) * board.square_m
+
+
+def _floor_candidates(cameras, room, board, rng, step_m: float, min_area: float) -> list:
+    """``[(pose, cameras seeing it, camera -> area)]`` over a lattice of the room's floor, each at a random yaw."""
+    (x0, y0), (x1, y1) = room.volume_rect_m
+    cands = []
+    for x in np.arange(x0 + 0.2, x1 - 0.2, step_m):
+        for y in np.arange(y0 + 0.2, y1 - 0.2, step_m):
+            R = _rot(2, rng.uniform(0, 2 * math.pi))
+            t = np.array([x, y, 0.0]) - R @ _board_centre(board)
+            areas = {c: floor_area(cam, room, board, (R, t)) for c, cam in cameras.items()}
+            seen = {c for c, a in areas.items() if a >= min_area}
+            if seen:
+                cands.append(((R, t), seen, areas))
+    return cands
 
 
 def write_frames(frames, folder: str | Path) -> Path:
