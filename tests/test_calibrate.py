@@ -26,11 +26,14 @@ from common.calibrate.board import Board, find_board
 from common.calibrate.charuco import CharucoBoard, CharucoFinder
 from common.calibrate.floor import calibrate_floor, find_sightings
 from common.calibrate.intrinsics import calibrate_intrinsics
+from common.calibrate.suite import angle_between_deg as _angle_deg
+from common.calibrate.suite import plan_points as _plan_points
+from common.calibrate.suite import rough_cameras as _rough
 from common.calibration import WorldTransform, load_calibration
 from common.cli import main
 from common.site import load_site
 from common.synth.board import (
-    BoardRenderer, corners_world, floor_clip, floor_sees, floor_positions, intrinsics_clip, intrinsics_poses, write_frames,
+    BoardRenderer, corners_world, floor_clip, floor_positions, intrinsics_clip, intrinsics_poses, write_frames,
 )
 from common.synth.world import random_world, write_world_site
 
@@ -39,8 +42,7 @@ FLOOR_SEED = 1             # tuning seed: two high corner cameras and a ceiling 
 BOARD = Board(9, 6, 0.14)  # one odd count: the board's two ends differ
 POSITION_M = 0.02          # the target for cameras that see the board well
 ANGLE_DEG = 0.3
-WORLD_POSITION_M = 0.05    # with lenses fitted from rendered clips (0.2-0.5 % focal error measured)
-WORLD_ANGLE_DEG = 0.6
+WORLD_POSITION_M = 0.05    # the command test: a site written and read back through its files
 HOUSE_CAMERAS = ("cam2", "cam3", "cam4", "cam5")
 HOUSE_MIN_AREA = 0.003
 WELL_SEEN = 0.5           # a camera whose views are all under half the largest it can have gets that place
@@ -53,26 +55,6 @@ FISHEYE_REACH_DEG = 85.0      # the fisheye's fitted lens is compared out to thi
 
 LAB_BOARD = ("8x6", "115")
 LAB_SIZE = (644, 486)
-
-
-def _angle_deg(Ra: np.ndarray, Rb: np.ndarray) -> float:
-    c = (np.trace(Ra @ Rb.T) - 1.0) / 2.0
-    return math.degrees(math.acos(max(-1.0, min(1.0, c))))
-
-
-def _plan_points(board: Board, pose) -> np.ndarray:
-    """The first position's true corners: board-frame floor (x, y) -> room (x, y)."""
-    b = board.object_points()
-    w = corners_world(board, pose)
-    k = [0, board.cols - 1, board.n - board.cols, board.n - 1]
-    return np.concatenate([b[k, :2], w[k, :2]], axis=1)
-
-
-def _rough(cameras) -> dict:
-    """The cameras as a site's present, rough calibration might have them: 3 degrees and 22 cm off."""
-    a = math.radians(3.0)
-    turn = np.array([[math.cos(a), -math.sin(a), 0.0], [math.sin(a), math.cos(a), 0.0], [0.0, 0.0, 1.0]])
-    return {c: cam.with_world(turn, np.array([0.2, -0.1, 0.0])) for c, cam in cameras.items()}
 
 
 def _render_floor(world, board, poses, folder: Path) -> dict[str, str]:

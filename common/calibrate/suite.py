@@ -8,7 +8,8 @@
    (:func:`common.synth.board.intrinsics_poses`): a 9x6 chessboard of 140 mm through pinholes,
    16 views; a 7x5-square ChArUco board of 140 mm through fisheyes, 24 views, many only partly in
    the image (a chessboard bent that much by the lens is not found); without it the true lenses;
-2. the floor: a 9x6 chessboard of 140 mm laid at the places the installer's instructions lead to
+2. the floor: a 9x6 chessboard of 140 mm (or, where the command refuses it because no chain of
+   places reaches every camera, a floor mat of 250 mm squares) laid at the places the installer's instructions lead to
    (:func:`common.synth.board.floor_positions` with ``well_seen``: a chain of places seen by two
    cameras or more, plus, for each camera that saw the board only small, a place it sees as large
    as it can among those another camera also sees), every camera recording every place (a camera
@@ -51,6 +52,9 @@ image; the larger first, the smaller where no chain of larger ones reaches every
 the finder takes at least, :data:`common.calibrate.floor.MIN_FLOOR_AREA`, so that the views that
 chain the cameras are found). A world no chain of them reaches is reported as refused: its room is
 too large for the board."""
+FLOOR_SQUARES_M = (0.14, 0.25)
+"""The floor board's squares: an A0-sized 9x6 chessboard (1.4 x 1 m), and where the cameras cannot be
+chained with it (a large room, cameras far apart), a floor mat of 250 mm squares (2.5 x 1.75 m)."""
 LENS_VIEWS = {"pinhole": 16, "fisheye": 24}
 
 
@@ -97,18 +101,32 @@ def run_world(seed: int, work: Path, *, lenses: bool = False, heed: bool = True)
     """One world calibrated (module text); returns per camera its errors and bounds. ``heed``: when the
     calibration warns of a camera, lay the board at two more places it sees well and calibrate again."""
     from common.calibrate.board import Board
-    from common.calibrate.floor import FloorError
-    from common.synth.board import floor_positions, more_floor_positions
     from common.synth.world import random_world
 
     world = random_world(seed)
-    board = Board(9, 6, 0.14)
     t0 = time.perf_counter()
     intrinsics = dict(world.cameras)
     if lenses:
         for k, (c, true) in enumerate(world.cameras.items()):
             intrinsics[c] = fit_lens(true, work / f"lens-{c}", seed * 100 + k)
-    out: dict[str, Any] = {"seed": seed, "rig": world.rig, "cameras": {}, "warned_first": []}
+    refusals = []
+    for square_m in FLOOR_SQUARES_M:
+        out = _floor_world(world, intrinsics, Board(9, 6, square_m), work / f"{square_m:.2f}", heed=heed)
+        out["refused_with"] = refusals
+        if "error" not in out:
+            break
+        refusals.append(f"{1000 * square_m:.0f} mm squares: {out['error']}")
+    out["seconds"] = time.perf_counter() - t0
+    return out
+
+
+def _floor_world(world, intrinsics, board, work: Path, *, heed: bool) -> dict[str, Any]:
+    from common.calibrate.floor import FloorError
+    from common.synth.board import floor_positions, more_floor_positions
+
+    seed = world.seed
+    out: dict[str, Any] = {"seed": seed, "rig": world.rig, "square_mm": round(1000 * board.square_m), "cameras": {},
+                           "warned_first": []}
     poses = None
     for min_area in PLACE_AREAS:   # a large room, or far cameras: places seen smaller
         try:
@@ -131,7 +149,6 @@ def run_world(seed: int, work: Path, *, lenses: bool = False, heed: bool = True)
             result = _calibrate(world, intrinsics, board, poses, work / "floor-again")
     except FloorError as exc:
         out["error"] = str(exc)
-        out["seconds"] = time.perf_counter() - t0
         return out
     out["places"] = len(poses)
     for c, true in world.cameras.items():
@@ -143,7 +160,6 @@ def run_world(seed: int, work: Path, *, lenses: bool = False, heed: bool = True)
             "bound_cm": 100 * rep.position_95_m, "bound_deg": rep.angle_95_deg,
             "reprojection_px": rep.mean_px, "board_views": rep.positions,
         }
-    out["seconds"] = time.perf_counter() - t0
     return out
 
 
@@ -211,7 +227,8 @@ def _report(r: dict) -> None:
         print(f"  world {r['seed']} ({r['rig']}): refused: {r['error']}", flush=True)
         return
     again = f", board laid again for {', '.join(r['warned_first'])}" if r["warned_first"] else ""
-    print(f"  world {r['seed']} ({r['rig']}, {r['places']} board places{again}, {r['seconds']:.0f} s):", flush=True)
+    print(f"  world {r['seed']} ({r['rig']}, {r['square_mm']} mm squares, {r['places']} board places{again}, "
+          f"{r['seconds']:.0f} s):", flush=True)
     for c, v in r["cameras"].items():
         flag = "" if v["position_cm"] < 100 * POSITION_M and v["angle_deg"] < ANGLE_DEG else "  OUTSIDE"
         warn = "" if _within(v["bound_cm"], v["bound_deg"]) else "  (warned)"
