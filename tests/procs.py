@@ -355,6 +355,9 @@ def _client_main(argv: list[str]) -> int:
 
     conf = loopback_config(mode="client", connect=[args.connect])
     if args.cmd == "sub":
+        # as the stock program run from a terminal: Ctrl-C ends it, even when started with SIGINT ignored
+        # (a background job of a non-interactive shell)
+        signal.signal(signal.SIGINT, signal.default_int_handler)
         with zenoh.open(conf) as session:
             print(f"Declaring Subscriber on '{args.key}'...")
 

@@ -271,14 +271,14 @@ def _exact_sightings(world, poses, *, noise_px: float = 0.0, rng=None, min_area:
 
 def test_the_bounds_cover_the_errors_of_noisy_corners():
     """The 95 % bounds the calibration gives against its actual errors over repeated noisy recordings:
-    corners with 0.25 px of noise (the bounds' noise floor), 30 recordings of a random world's rig: the
+    corners with 0.25 px of noise (the bounds' noise floor), 20 recordings of a random world's rig: the
     errors' 95th percentile lies between half and one and a half times the median bound, per camera."""
     world = random_world(FLOOR_SEED)
     poses = floor_positions(world.cameras, world.room, BOARD, np.random.default_rng(0), well_seen=WELL_SEEN)
     rng = np.random.default_rng(7)
     errs = {c: [] for c in world.cameras}
     bounds = {c: [] for c in world.cameras}
-    for _ in range(30):
+    for _ in range(20):
         res = calibrate_floor(_exact_sightings(world, poses, noise_px=0.25, rng=rng), world.cameras, BOARD,
                               plan_points=_plan_points(BOARD, poses[0]))
         for c, true in world.cameras.items():

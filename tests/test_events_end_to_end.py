@@ -231,6 +231,7 @@ def _long_lie() -> ScenarioSpec:
     )
 
 
+@pytest.mark.slow  # a 40-s scene; the long lie after a fall is also held in test_events.py
 def test_long_lie_after_a_fall(house):
     scene = run_scene(_long_lie(), house)
     check_events_match_truth(scene, ("fall", "long_lie"))

@@ -327,6 +327,7 @@ def test_replay_reports_one_seated_person_and_no_event(half_run):
     assert all(not f.events for f in half_run.frames)
 
 
+@pytest.mark.slow  # the replay command on recorded inputs is also held in test_replay.py
 def test_voxelwatch_replay_command_writes_the_same_run(half_run, lab4cam, tmp_path):
     """The command line runs the same pipeline: same site, same seed, same rows."""
     command = Path(sys.executable).with_name("voxelwatch")

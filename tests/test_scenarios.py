@@ -314,6 +314,7 @@ def test_fall_forward_is_detected_and_the_lying_person_located(replayed):
     check_falls(run)
 
 
+@pytest.mark.slow  # sitting down and standing up are also held in test_events.py and test_posture.py
 def test_sitting_down_and_standing_up_are_events_not_falls(replayed):
     run = replayed("sit_stand", SHORT["sit_stand"])
     check_counts_and_positions(run, min_count_accuracy=0.98)

@@ -132,6 +132,7 @@ def test_worlds_span_the_rooms_rigs_and_people_asked_for():
     assert any(w["children"] for w in worlds)
 
 
+@pytest.mark.slow
 def test_one_world_in_four_dresses_every_adult_alike_and_changes_nothing_else():
     dress = [random_world(s).dress for s in range(60)]
     assert set(dress) == {"alike", "distinct"} and 8 <= dress.count("alike") <= 24
@@ -219,7 +220,7 @@ def test_true_silhouettes_match_rays_cast_at_the_bodies(seed):
             assert differ <= 0.01 * both + 3, f"world {seed} {cam_id} frame {f}: {differ} pixels differ"
 
 
-@pytest.mark.parametrize("seed", [pytest.param(s, marks=pytest.mark.slow) if s == 24 else s for s in SYNTHETIC_SEEDS])
+@pytest.mark.parametrize("seed", [s if s == 10 else pytest.param(s, marks=pytest.mark.slow) for s in SYNTHETIC_SEEDS])
 def test_every_person_projects_inside_the_mask_of_every_camera_that_sees_them(seed):
     """The middle of each person's trunk, where a camera's ray to it meets that body first (not a wall,
     furniture or somebody else), is foreground within a pixel in that camera: always in the true masks,

@@ -191,12 +191,13 @@ def intrinsics_poses(camera: Camera, board: Board | CharucoBoard, count: int, rn
 
 def floor_sees(camera: Camera, room: Room | None, board: Board, pose, *, min_area: float = FLOOR_MIN_AREA) -> bool:
     """Whether ``camera`` sees the whole board lying at ``pose`` on the floor, big enough and not edge-on."""
-    return floor_area(camera, room, board, pose) >= min_area
+    return floor_area(camera, room, board, pose, min_area=min_area) >= min_area
 
 
-def floor_area(camera: Camera, room: Room | None, board: Board, pose) -> float:
+def floor_area(camera: Camera, room: Room | None, board: Board, pose, *, min_area: float = 0.0) -> float:
     """The share of ``camera``'s image the board lying at ``pose`` covers (its inner corners' hull), or 0
-    when the camera does not see the whole board, sees it edge-on or something in the room hides it."""
+    when the camera does not see the whole board, sees it edge-on, something in the room hides it, or
+    it covers less than ``min_area`` (the room then not looked at)."""
     pts = _sheet_corners(board, pose)
     uv, valid = camera.project(pts)
     m = 6
@@ -208,15 +209,18 @@ def floor_area(camera: Camera, room: Room | None, board: Board, pose) -> float:
     if slant.max() > FLOOR_MAX_SLANT_DEG:
         return 0.0
     inner_w = corners_world(board, pose)
+    inner, _ = camera.project(inner_w)
+    hull = cv2.convexHull(inner.astype(np.float32).reshape(-1, 1, 2))
+    area = float(cv2.contourArea(hull)) / (camera.width * camera.height)
+    if area < min_area:
+        return 0.0
     if room is not None:   # nothing in the room (a chair, a table) stands on or in front of the sheet
         d = np.concatenate([d, inner_w - camera.center])
         dist = np.linalg.norm(d, axis=1)
         hits = raycast_room(room, camera.center, d / dist[:, None])
         if not np.all((hits.surface == SURF_FLOOR) & (np.abs(hits.t - dist) < 0.02)):
             return 0.0
-    inner, _ = camera.project(inner_w)
-    hull = cv2.convexHull(inner.astype(np.float32).reshape(-1, 1, 2))
-    return float(cv2.contourArea(hull)) / (camera.width * camera.height)
+    return area
 
 
 def floor_positions(cameras: dict[str, Camera], room: Room, board: Board, rng: np.random.Generator, *,
@@ -282,7 +286,7 @@ def _floor_candidates(cameras, room, board, rng, step_m: float, min_area: float)
         for y in np.arange(y0 + 0.2, y1 - 0.2, step_m):
             R = _rot(2, rng.uniform(0, 2 * math.pi))
             t = np.array([x, y, 0.0]) - R @ _board_centre(board)
-            areas = {c: floor_area(cam, room, board, (R, t)) for c, cam in cameras.items()}
+            areas = {c: floor_area(cam, room, board, (R, t), min_area=min_area) for c, cam in cameras.items()}
             seen = {c for c, a in areas.items() if a >= min_area}
             if seen:
                 cands.append(((R, t), seen, areas))
