@@ -103,7 +103,7 @@ def check_run(run: Path, tolerance_m: float) -> None:
     assert len(set(tracks.track_id.tolist())) == 1
 
 
-@pytest.mark.parametrize("kind", ["videos", "images", "masks"])
+@pytest.mark.parametrize("kind", ["videos", pytest.param("images", marks=pytest.mark.slow), "masks"])
 def test_replay_from_recorded_inputs(kind, house, inputs, cache, tmp_path):
     run = tmp_path / "run"
     done = voxelwatch(
@@ -132,7 +132,7 @@ def test_replay_a_camera_subset_from_videos(house, inputs, cache, tmp_path):
     assert len(set(tracks.track_id.tolist())) == 1
 
 
-@pytest.mark.parametrize("missing", ["input folder", "camera folder"])
+@pytest.mark.parametrize("missing", ["input folder", pytest.param("camera folder", marks=pytest.mark.slow)])
 def test_missing_input_is_one_clear_message(missing, house, inputs, cache, tmp_path):
     if missing == "input folder":
         source = tmp_path / "nowhere"

@@ -472,7 +472,8 @@ def test_a_recorded_file_worker_restarted_mid_run_joins_the_shared_clock(site, t
 # --------------------------------------------------------------------------- clean failure
 
 
-@pytest.mark.parametrize("endpoint, sig", [("free port", "SIGTERM"), ("tcp/router.invalid:7447", "SIGINT")])
+@pytest.mark.parametrize("endpoint, sig", [pytest.param("free port", "SIGTERM", marks=pytest.mark.slow),
+                                           ("tcp/router.invalid:7447", "SIGINT")])
 def test_a_server_whose_router_is_unreachable_says_so_once_and_stops_on_a_signal(site, tmp_path, endpoint, sig):
     """Client mode, nothing listening at the router's address (or a name that does not resolve): one
     warning line, retries with back-off, and a clean exit within 2 s of SIGTERM or SIGINT."""

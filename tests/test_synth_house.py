@@ -51,6 +51,7 @@ def test_write_scenario_lays_out_a_replayable_folder(tmp_path):
     assert [e.kind for e in read_truth_events(out.out_dir)] == ["enter"]
 
 
+@pytest.mark.slow
 def test_lossless_videos_from_parallel_workers_equal_the_frame_source(tmp_path):
     out = write_scenario("two_pass", tmp_path / "h", frames=4, cameras=["cam1", "cam3"], codec="FFV1", workers=2)
     for cid in ("cam1", "cam3"):

@@ -110,6 +110,7 @@ def test_mask_worlds_write_the_colour_of_the_people_beside_masks_left_as_they_we
     assert not (out.out_dir / "cam1" / "video.avi").exists()
 
 
+@pytest.mark.slow
 def test_worlds_span_the_rooms_rigs_and_people_asked_for():
     worlds = [random_world(s).summary() for s in range(40)]
     rigs = {w["rig"] for w in worlds}

@@ -426,6 +426,7 @@ def test_the_fall_reaches_the_webhook_and_mqtt_once_the_broker_is_back(demo, ale
     assert delivered == {"fall"}, delivered
 
 
+@pytest.mark.slow  # waits for the demo's end; the plan's drawing is held in test_plan.py
 def test_the_demo_ends_with_a_plan_svg_of_the_run(demo):
     import xml.etree.ElementTree as ET
 

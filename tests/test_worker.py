@@ -491,6 +491,7 @@ def test_worker_process_plays_the_synthetic_house(tmp_path, listener):
     assert "frames are 640x480 but the site file says 160x120" in err
 
 
+@pytest.mark.slow  # the range's coding and the depth segmenter are held in process by faster tests
 def test_worker_process_of_a_depth_camera_sends_the_range_with_its_masks(tmp_path, listener):
     """The site's camera is a range camera: the synthetic house renders it as one, the worker
     segments it with the range segmenter and every mask with a person carries its range."""
