@@ -120,7 +120,6 @@ def run_moved_world(seed: int, out_dir: str | Path, *, duration_s: float = 120.0
         "view_deg_max": {c: [max((v for k, v in enumerate(shifts[c]) if k * every < first), default=None),
                              max((v for k, v in enumerate(shifts[c]) if k * every >= first), default=None)]
                          for c in shifts},
-        "view_deg": {c: [None if v is None else round(v, 4) for v in shifts[c]] for c in shifts},
     }
 
 

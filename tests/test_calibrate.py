@@ -297,7 +297,7 @@ def test_a_camera_that_sees_the_board_only_far_away_is_warned_of(capsys):
     command warns of them); cam3, cam4 and cam5, which see a shared place at 0.9-2 %, are within them."""
     from types import SimpleNamespace
 
-    from common.calibrate.command import ANGLE_TOLERANCE_DEG, POSITION_TOLERANCE_M
+    from common.calibrate.floor import ANGLE_TOLERANCE_DEG, POSITION_TOLERANCE_M
     from common.synth.scene import default_cameras, default_room
 
     house = SimpleNamespace(cameras=default_cameras(), room=default_room(), seed=0)

@@ -7,11 +7,6 @@ import argparse
 import math
 from pathlib import Path
 
-POSITION_TOLERANCE_M = 0.02
-"""A camera's calibrated centre should be within this of the truth (the fusion's targets rest on it)."""
-ANGLE_TOLERANCE_DEG = 0.3
-"""And its orientation within this (the moved-camera alarm's view tolerance)."""
-
 
 def register(sub) -> None:
     """Add ``calibrate intrinsics`` and ``calibrate floor`` to the umbrella command's subparsers."""
@@ -88,7 +83,9 @@ def _intrinsics(args: argparse.Namespace) -> int:
 
 def _floor(args: argparse.Namespace) -> int:
     from common.calibrate.board import Board
-    from common.calibrate.floor import calibrate_floor, find_sightings, read_plan_points
+    from common.calibrate.floor import (
+        ANGLE_TOLERANCE_DEG, POSITION_TOLERANCE_M, calibrate_floor, find_sightings, read_plan_points,
+    )
     from common.calibrate.write import WRITABLE, write_site_calibrations
     from common.calibration import CalibrationError, load_calibration
     from common.site import load_site
@@ -145,7 +142,7 @@ def _floor(args: argparse.Namespace) -> int:
               f"at ({x:.2f}, {y:.2f}) m, height {z:.2f} m, within {100 * rep.position_95_m:.1f} cm and "
               f"{rep.angle_95_deg:.2f} deg (95 %); sees {100 * rep.seen_share:.0f} % of the volume")
         worst = max(worst, rep.mean_px)
-        if not (rep.position_95_m <= POSITION_TOLERANCE_M and rep.angle_95_deg <= ANGLE_TOLERANCE_DEG):
+        if not rep.pinned:
             loose.append(cam_id)
     for note in result.notes:
         print(f"  note: {note}")

@@ -56,7 +56,12 @@ WRONG_SIGHTING_PX = 2.0
 partly hidden by furniture can be found with its corners a square off."""
 NOISE_FLOOR_PX = 0.25
 """The least corner noise assumed for the calibration's error bounds (pixels): a fit that leaves less
-is not trusted to be that precise (a chessboard's corners are found to about a tenth of a pixel)."""
+is not trusted to be that precise (a corner error a view's corners share moves its pose without showing
+in the residuals; with this floor the bounds covered the tuning worlds' rendered boards)."""
+POSITION_TOLERANCE_M = 0.02
+"""A camera's calibrated centre should be within this of the truth (the fusion's targets rest on it)."""
+ANGLE_TOLERANCE_DEG = 0.3
+"""And its orientation within this (the moved-camera alarm's view tolerance)."""
 ROUGH_BOARD_Z_M = 0.6
 ROUGH_AGREE_M = 1.2
 
@@ -103,6 +108,11 @@ class CameraReport:
     first board position), from the bundle adjustment's covariance (see :func:`pose_uncertainty`)."""
     angle_95_deg: float = float("nan")
     """The same for its orientation (degrees)."""
+
+    @property
+    def pinned(self) -> bool:
+        """Whether its bounds lie within :data:`POSITION_TOLERANCE_M` and :data:`ANGLE_TOLERANCE_DEG`."""
+        return self.position_95_m <= POSITION_TOLERANCE_M and self.angle_95_deg <= ANGLE_TOLERANCE_DEG
 
 
 @dataclass
@@ -172,8 +182,8 @@ def calibrate_floor(sightings: list[Sighting], intrinsics: dict[str, Camera], bo
     sightings = [_drop_stray_corners(s, intrinsics[s.cam_id], obj, poses.pop(id(s)), poses) for s in sightings]
     while True:
         cams0, boards0 = _chain(sightings, poses, cam_ids)
-        cams_bf, boards, spread = _adjust(sightings, intrinsics, obj, cams0, boards0)
-        wrong = _wrong_sighting(sightings, intrinsics, cams_bf, boards, obj)
+        cams_bf, boards, spread, view_err = _adjust(sightings, intrinsics, obj, cams0, boards0)
+        wrong = _wrong_sighting(sightings, view_err)
         if wrong is None:
             break
         rest = [s for s in sightings if s is not wrong]
@@ -336,15 +346,10 @@ def _orient(sightings, intrinsics, board: Board, rough, notes: list[str]) -> lis
     return out
 
 
-def _wrong_sighting(sightings, intrinsics, cams, boards, obj) -> Sighting | None:
+def _wrong_sighting(sightings, errs: list[float]) -> Sighting | None:
     """The sighting the adjusted poses explain worst, when it is wrong rather than noisy: its mean error
-    above :data:`WRONG_SIGHTING_PX` and four times the median sighting's, and its camera seen elsewhere."""
-    errs = []
-    for s in sightings:
-        R_wb, t_wb = boards[s.position]
-        R_cw, t_cw = cams[s.cam_id]
-        uv, _ = intrinsics[s.cam_id].project_cam((obj[s.kept] @ R_wb.T + t_wb) @ R_cw.T + t_cw)
-        errs.append(float(np.nan_to_num(np.linalg.norm(uv - s.corners[s.kept], axis=1), nan=1e3).mean()))
+    (``errs``, px, one per sighting) above :data:`WRONG_SIGHTING_PX` and four times the median sighting's,
+    and its camera seen elsewhere."""
     k = int(np.argmax(errs))
     worst = sightings[k]
     if errs[k] <= max(WRONG_SIGHTING_PX, 4.0 * float(np.median(errs))):
@@ -452,9 +457,11 @@ def _adjust(sightings, intrinsics, obj, cams0, boards0):
     x = sol.x
     cams = {c: (rodrigues_to_matrix(x[ci[c]:ci[c] + 3]), x[ci[c] + 3:ci[c] + 6].copy()) for c in cam_ids}
     boards = {0: (np.eye(3), np.zeros(3)), **{p: unpack_board(x, pi[p]) for p in pos_ids}}
-    spread = pose_uncertainty(np.asarray(sol.jac), np.asarray(sol.fun), x, {c: ci[c] for c in cam_ids},
-                              views=[2 * len(uv) for _, _, _, uv, _ in groups])
-    return cams, boards, spread
+    sizes = [2 * len(uv) for _, _, _, uv, _ in groups]
+    spread = pose_uncertainty(np.asarray(sol.jac), np.asarray(sol.fun), x, {c: ci[c] for c in cam_ids}, views=sizes)
+    # each view's mean corner error (px) at the solution, from the residuals the fit already has
+    view_err = [float(np.hypot(*part.reshape(-1, 2).T).mean()) for part in np.split(sol.fun, np.cumsum(sizes)[:-1])]
+    return cams, boards, spread, view_err
 
 
 def pose_uncertainty(jac: np.ndarray, residuals: np.ndarray, x: np.ndarray, offsets: dict[str, int], *,

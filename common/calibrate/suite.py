@@ -42,8 +42,8 @@ from typing import Any
 
 import numpy as np
 
-POSITION_M = 0.02
-ANGLE_DEG = 0.3
+from common.calibrate.floor import ANGLE_TOLERANCE_DEG, POSITION_TOLERANCE_M
+
 WELL_SEEN = 0.5
 """A camera whose views of the board are all under this share of the largest it can have gets that place."""
 PLACE_AREAS = (0.006, 0.003)
@@ -139,7 +139,7 @@ def _floor_world(world, intrinsics, board, work: Path, *, heed: bool) -> dict[st
         if poses is None:
             raise FloorError(f"no chain of board places: {why}")
         result = _calibrate(world, intrinsics, board, poses, work / "floor")
-        warned = [c for c, rep in result.reports.items() if not _within(100 * rep.position_95_m, rep.angle_95_deg)]
+        warned = [c for c, rep in result.reports.items() if not rep.pinned]
         out["warned_first"] = warned
         if warned and heed:
             rng = np.random.default_rng([seed, 1])
@@ -158,7 +158,7 @@ def _floor_world(world, intrinsics, board, work: Path, *, heed: bool) -> dict[st
             "position_cm": 100 * float(np.linalg.norm(got.center - true.center)),
             "angle_deg": angle_between_deg(got.R, true.R),
             "bound_cm": 100 * rep.position_95_m, "bound_deg": rep.angle_95_deg,
-            "reprojection_px": rep.mean_px, "board_views": rep.positions,
+            "reprojection_px": rep.mean_px, "board_views": rep.positions, "warned": not rep.pinned,
         }
     return out
 
@@ -174,15 +174,16 @@ def _calibrate(world, intrinsics, board, poses, folder: Path):
                            board, plan_points=plan_points(board, poses[0]))
 
 
-def _within(cm: float, deg: float) -> bool:
-    return cm <= 100 * POSITION_M and deg <= ANGLE_DEG
+def _on_target(v: dict) -> bool:
+    """Whether a camera's figures lie within 2 cm and 0.3 degree of the truth."""
+    return v["position_cm"] < 100 * POSITION_TOLERANCE_M and v["angle_deg"] < ANGLE_TOLERANCE_DEG
 
 
 def summarise(results: list[dict]) -> dict[str, Any]:
     """Cameras within the targets, the worst errors, and whether the bounds warned of every miss."""
     cams = [c for r in results for c in r["cameras"].values()]
-    within = [c for c in cams if c["position_cm"] < 100 * POSITION_M and c["angle_deg"] < ANGLE_DEG]
-    warned = [c for c in cams if not _within(c["bound_cm"], c["bound_deg"])]
+    within = [c for c in cams if _on_target(c)]
+    warned = [c for c in cams if c["warned"]]
     missed_unwarned = [c for c in cams if c not in within and c not in warned]
     return {
         "worlds": len(results), "refused_worlds": sum(1 for r in results if "error" in r),
@@ -230,8 +231,8 @@ def _report(r: dict) -> None:
     print(f"  world {r['seed']} ({r['rig']}, {r['square_mm']} mm squares, {r['places']} board places{again}, "
           f"{r['seconds']:.0f} s):", flush=True)
     for c, v in r["cameras"].items():
-        flag = "" if v["position_cm"] < 100 * POSITION_M and v["angle_deg"] < ANGLE_DEG else "  OUTSIDE"
-        warn = "" if _within(v["bound_cm"], v["bound_deg"]) else "  (warned)"
+        flag = "" if _on_target(v) else "  OUTSIDE"
+        warn = "  (warned)" if v["warned"] else ""
         print(f"    {c} {v['model']} {v['size']}: position {v['position_cm']:.2f} cm, angle {v['angle_deg']:.3f} deg; "
               f"bounds {v['bound_cm']:.2f} cm, {v['bound_deg']:.3f} deg; {v['reprojection_px']:.2f} px over "
               f"{v['board_views']} place(s){flag}{warn}", flush=True)
