@@ -207,8 +207,12 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--no-heed", action="store_true", help="do not lay the board again for cameras the calibration "
                                                            "warns of")
     args = p.parse_args(argv)
+    try:
+        seeds = parse_seeds(args.seeds)
+    except ValueError as exc:
+        p.error(str(exc))
     results = []
-    for seed in parse_seeds(args.seeds):
+    for seed in seeds:
         with tempfile.TemporaryDirectory() as tmp:
             work = (args.out / f"seed-{seed}") if args.out else Path(tmp)
             r = run_world(seed, work, lenses=args.lenses, heed=not args.no_heed)
