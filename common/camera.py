@@ -292,6 +292,19 @@ class Camera:
         """The same intrinsics with a new world->camera pose ``(R, t)`` (metres)."""
         return self._replace(R=R, t=t)
 
+    def with_focal_scale(self, scale: float) -> "Camera":
+        """The same camera with its focal length (``fx``, ``fy`` and the skew) times ``scale``, the principal
+        point kept: every pixel moves ``scale`` times as far from it. Not for ``tsai`` lenses."""
+        if scale == 1.0:
+            return self
+        if self.model == "tsai":
+            raise ValueError(f"camera {self.id}: a tsai lens's focal length is its focal_mm, not K")
+        if not np.isfinite(scale) or scale <= 0:
+            raise ValueError(f"scale must be a positive finite number, got {scale!r}")
+        K = self.K.copy()
+        K[:2, :2] *= scale
+        return self._replace(K=K)
+
     def resized(self, width: int, height: int) -> "Camera":
         """The camera for the image resized to ``width x height`` (as ``cv2.resize(img, (width, height))``).
 

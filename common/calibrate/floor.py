@@ -17,7 +17,9 @@ stretches of different cameras that overlap in time show the same board position
    along its rows, Z up out of the floor); cameras and board positions are placed in turn through
    the sightings they share (breadth first). Cameras that no chain reaches are named.
 5. Bundle adjustment (``scipy.optimize.least_squares``, soft-L1 loss with a 1 px scale) over
-   every camera pose (6 values) and every other board position, which lies on the same floor
+   every camera pose (6 values), every camera's focal length (held to its lens file's by a prior,
+   :data:`FOCAL_PRIOR`: the board places at known distances apart pin it down better than a board
+   clip held up close) and every other board position, which lies on the same floor
    (x, y, yaw), minimising the corners' reprojection error in pixels through each lens model. A
    camera's view of one position that the result misses by far more than its others (a board partly
    hidden, found a square off) is left out and the chain adjusted again (:data:`WRONG_SIGHTING_PX`).
@@ -62,6 +64,12 @@ POSITION_TOLERANCE_M = 0.02
 """A camera's calibrated centre should be within this of the truth (the fusion's targets rest on it)."""
 ANGLE_TOLERANCE_DEG = 0.3
 """And its orientation within this (the moved-camera alarm's view tolerance)."""
+FOCAL_PRIOR = 0.002
+"""How far (one standard deviation, a share) a lens file's focal length is taken to be from the truth. The
+adjustment refines each camera's focal length from the board places, held to the lens file's by this, so
+that the bounds carry the lens's own error: a focal length 0.2 % long puts a camera 5 m from the board
+1 cm too far along its view. ``calibrate intrinsics`` fitted the tuning worlds' rendered board clips
+within 0.03-0.27 % (30 views). Tsai lenses keep theirs."""
 ROUGH_BOARD_Z_M = 0.6
 ROUGH_AGREE_M = 1.2
 
@@ -108,6 +116,8 @@ class CameraReport:
     first board position), from the bundle adjustment's covariance (see :func:`pose_uncertainty`)."""
     angle_95_deg: float = float("nan")
     """The same for its orientation (degrees)."""
+    focal_change: float = 0.0
+    """The focal length the adjustment found over the lens file's, less one (0.003: 0.3 % longer)."""
 
     @property
     def pinned(self) -> bool:
@@ -182,7 +192,7 @@ def calibrate_floor(sightings: list[Sighting], intrinsics: dict[str, Camera], bo
     sightings = [_drop_stray_corners(s, intrinsics[s.cam_id], obj, poses.pop(id(s)), poses) for s in sightings]
     while True:
         cams0, boards0 = _chain(sightings, poses, cam_ids)
-        cams_bf, boards, spread, view_err = _adjust(sightings, intrinsics, obj, cams0, boards0)
+        cams_bf, focal, boards, spread, view_err = _adjust(sightings, intrinsics, obj, cams0, boards0)
         wrong = _wrong_sighting(sightings, view_err)
         if wrong is None:
             break
@@ -195,7 +205,7 @@ def calibrate_floor(sightings: list[Sighting], intrinsics: dict[str, Camera], bo
                      f"{wrong.stop}) disagreed with the others and was left out (the board partly hidden, or its "
                      f"corners found a square off)")
         sightings = rest
-    board_cameras = {c: intrinsics[c].with_pose(*cams_bf[c]) for c in cam_ids}
+    board_cameras = {c: intrinsics[c].with_focal_scale(focal[c]).with_pose(*cams_bf[c]) for c in cam_ids}
     residual = None
     if plan_points is not None:
         (origin, yaw_deg), residual = fit_plan(plan_points)
@@ -210,7 +220,7 @@ def calibrate_floor(sightings: list[Sighting], intrinsics: dict[str, Camera], bo
         share = _seen_share(cameras[c], volume) if volume is not None else float("nan")
         reports[c] = CameraReport(c, len({s.position for s in sightings if s.cam_id == c}), int(kept.sum()), kept.size,
                                   float(errs[kept].mean()), float(errs[kept].max()), float(errs.mean()), centre, share,
-                                  *spread.get(c, (float("nan"), float("nan"))))
+                                  *spread.get(c, (float("nan"), float("nan"))), focal_change=focal[c] - 1.0)
     n_pos = len({s.position for s in sightings})
     return FloorResult(cameras=cameras, board_cameras=board_cameras, reports=reports, positions=n_pos,
                        origin_m=tuple(float(v) for v in origin), yaw_deg=float(yaw_deg), plan_residual_m=residual,
@@ -433,10 +443,14 @@ def _adjust(sightings, intrinsics, obj, cams0, boards0):
     for p in pos_ids:
         R, t = boards0[p]
         x0 += [t[0], t[1], math.atan2(R[1, 0], R[0, 0])]
-    x0 = np.array(x0)
     ci = {c: 6 * k for k, c in enumerate(cam_ids)}
     pi = {p: 6 * len(cam_ids) + 3 * k for k, p in enumerate(pos_ids)}
-    groups = [(ci[s.cam_id], pi.get(s.position), intrinsics[s.cam_id], s.corners[s.kept], obj[s.kept]) for s in sightings]
+    # each camera's focal length as the log of its scale over the lens file's (Tsai lenses: held)
+    free = [c for c in cam_ids if intrinsics[c].model != "tsai"]
+    fi = {c: len(x0) + k for k, c in enumerate(free)}
+    x0 = np.array(x0 + [0.0] * len(free))
+    groups = [(ci[s.cam_id], pi.get(s.position), fi.get(s.cam_id), intrinsics[s.cam_id], s.corners[s.kept],
+               obj[s.kept]) for s in sightings]
 
     def unpack_board(x, j):
         if j is None:
@@ -445,28 +459,35 @@ def _adjust(sightings, intrinsics, obj, cams0, boards0):
 
     def residuals(x):
         out = []
-        for c, j, cam, uv, pts in groups:
+        for c, j, f, cam, uv, pts in groups:
             R_wb, t_wb = unpack_board(x, j)
             R_cw = rodrigues_to_matrix(x[c:c + 3])
             pc = (pts @ R_wb.T + t_wb) @ R_cw.T + x[c + 3:c + 6]
             proj, _ = cam.project_cam(pc)
+            if f is not None:   # the lens's pixels scale about the principal point with the focal length
+                proj = cam.K[:2, 2] + math.exp(x[f]) * (proj - cam.K[:2, 2])
             out.append(np.nan_to_num(proj - uv, nan=1e3).ravel())
+        # the prior, in pixels of the corners' least noise, so that the bounds weigh it as one of them
+        out.append(np.array([x[fi[c]] for c in free]) / FOCAL_PRIOR * NOISE_FLOOR_PX)
         return np.concatenate(out)
 
     sol = least_squares(residuals, x0, method="trf", loss="soft_l1", f_scale=1.0, x_scale="jac", max_nfev=200)
     x = sol.x
     cams = {c: (rodrigues_to_matrix(x[ci[c]:ci[c] + 3]), x[ci[c] + 3:ci[c] + 6].copy()) for c in cam_ids}
+    focal = {c: math.exp(x[fi[c]]) if c in fi else 1.0 for c in cam_ids}
     boards = {0: (np.eye(3), np.zeros(3)), **{p: unpack_board(x, pi[p]) for p in pos_ids}}
-    sizes = [2 * len(uv) for _, _, _, uv, _ in groups]
-    spread = pose_uncertainty(np.asarray(sol.jac), np.asarray(sol.fun), x, {c: ci[c] for c in cam_ids}, views=sizes)
+    sizes = [2 * len(g[4]) for g in groups]
+    spread = pose_uncertainty(np.asarray(sol.jac), np.asarray(sol.fun), x, {c: ci[c] for c in cam_ids}, views=sizes,
+                              prior_rows=len(free))
     # each view's mean corner error (px) at the solution, from the residuals the fit already has
-    view_err = [float(np.hypot(*part.reshape(-1, 2).T).mean()) for part in np.split(sol.fun, np.cumsum(sizes)[:-1])]
-    return cams, boards, spread, view_err
+    fun = sol.fun[:sum(sizes)]
+    view_err = [float(np.hypot(*part.reshape(-1, 2).T).mean()) for part in np.split(fun, np.cumsum(sizes)[:-1])]
+    return cams, focal, boards, spread, view_err
 
 
 def pose_uncertainty(jac: np.ndarray, residuals: np.ndarray, x: np.ndarray, offsets: dict[str, int], *,
-                     views: list[int] | None = None, noise_floor_px: float = NOISE_FLOOR_PX, samples: int = 400,
-                     seed: int = 0) -> dict[str, tuple[float, float]]:
+                     views: list[int] | None = None, prior_rows: int = 0, noise_floor_px: float = NOISE_FLOOR_PX,
+                     samples: int = 400, seed: int = 0) -> dict[str, tuple[float, float]]:
     """Per camera ``(position_95_m, angle_95_deg)``: how far its centre and its orientation may be from
     the solution, 95 % of the time, when each view's corners carry the noise the fit left in that view
     (the root mean square of its residuals, at least ``noise_floor_px``). The covariance is the
@@ -475,14 +496,15 @@ def pose_uncertainty(jac: np.ndarray, residuals: np.ndarray, x: np.ndarray, offs
     first board position; it is sampled and each sample's camera centre and rotation compared with
     the solution's. A camera that sees the board small, far, only edge-on or blurred gets a wide
     bound: the bound says where to lay the board again. jac: (M, P) at ``x`` (P,); residuals: (M,)
-    pixels; views: the number of residuals of each view in order (None: one view); offsets: camera
-    id -> index of its Rodrigues vector and translation (6 values) in ``x``."""
+    pixels; views: the number of residuals of each view in order (None: one view), followed by
+    ``prior_rows`` residuals of priors already in units of ``noise_floor_px`` (their noise); offsets:
+    camera id -> index of its Rodrigues vector and translation (6 values) in ``x``."""
     m, n = jac.shape
     if m <= n:
         return {c: (float("inf"), float("inf")) for c in offsets}
-    sigma = np.empty(m)
+    sigma = np.full(m, noise_floor_px)
     start = 0
-    for size in (views or [m]):
+    for size in (views or [m - prior_rows]):
         part = residuals[start:start + size]
         sigma[start:start + size] = max(noise_floor_px, float(np.sqrt(np.mean(part ** 2))) * math.sqrt(m / (m - n)))
         start += size

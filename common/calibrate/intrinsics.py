@@ -139,7 +139,7 @@ def _finder(board: Board | CharucoBoard) -> Callable[[np.ndarray], tuple[np.ndar
     every = np.arange(board.n)
 
     def find(gray: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
-        corners = find_board(gray, board)
+        corners = find_board(gray, board, refine=True)
         return None if corners is None else (every, corners)
 
     return find

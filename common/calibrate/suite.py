@@ -6,8 +6,10 @@
 
 1. with ``--lenses``, each camera's lens from a clip of a board moved in front of it
    (:func:`common.synth.board.intrinsics_poses`): a 9x6 chessboard of 140 mm through pinholes,
-   16 views; a 7x5-square ChArUco board of 140 mm through fisheyes, 24 views, many only partly in
-   the image (a chessboard bent that much by the lens is not found); without it the true lenses;
+   a 7x5-square ChArUco board of 140 mm through fisheyes, many of its views only partly in the
+   image (a chessboard bent that much by the lens is not found), 30 views each (about a minute of
+   holding the board still at places); without it the true lenses, which the floor calibration
+   still refines (:data:`common.calibrate.floor.FOCAL_PRIOR`);
 2. the floor: a 9x6 chessboard of 140 mm (or, where the command refuses it because no chain of
    places reaches every camera, a floor mat of 250 mm squares) laid at the places the installer's instructions lead to
    (:func:`common.synth.board.floor_positions` with ``well_seen``: a chain of places seen by two
@@ -55,7 +57,7 @@ too large for the board."""
 FLOOR_SQUARES_M = (0.14, 0.25)
 """The floor board's squares: an A0-sized 9x6 chessboard (1.4 x 1 m), and where the cameras cannot be
 chained with it (a large room, cameras far apart), a floor mat of 250 mm squares (2.5 x 1.75 m)."""
-LENS_VIEWS = {"pinhole": 16, "fisheye": 24}
+LENS_VIEWS = {"pinhole": 30, "fisheye": 30}
 
 
 def angle_between_deg(Ra: np.ndarray, Rb: np.ndarray) -> float:
