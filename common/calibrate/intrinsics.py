@@ -179,17 +179,28 @@ def _fit(views: list[_View], board: Board | CharucoBoard, cam_id: str, W: int, H
         # OpenCV 5 moved the fisheye flags (with other values) from cv2.fisheye to cv2
         names = cv2.fisheye if hasattr(cv2.fisheye, "CALIB_FIX_SKEW") else cv2
         flags = names.CALIB_RECOMPUTE_EXTRINSIC | names.CALIB_FIX_SKEW | names.CALIB_USE_INTRINSIC_GUESS
-        # OpenCV 4's own start: an equidistant lens seeing 180 degrees across the longer side, centred
-        # (with OpenCV 5's own start the fit failed on synthetic fisheye clips it solves from this one)
-        f = max(W, H) / np.pi
-        K0 = np.array([[f, 0.0, (W - 1) / 2], [0.0, f, (H - 1) / 2], [0.0, 0.0, 1.0]])
+        # started from an equidistant lens, centred, seeing 180 degrees across the shorter side (a
+        # ceiling fisheye's circle inside the frame), the longer side (OpenCV 4's own start) or the
+        # diagonal (a full-frame fisheye); the fit is local, and from a start far from the truth it
+        # lands far off or diverges (a 1280x720 lens of 225 px from OpenCV 4's 407 px start: 7.6 % off,
+        # or a negative focal length). The least RMS error of the valid fits wins.
         criteria = (cv2.TERM_CRITERIA_COUNT + cv2.TERM_CRITERIA_EPS, 200, 1e-9)
-        try:
-            rms, K, dist, rvecs, tvecs = cv2.fisheye.calibrate(objs, imgs, (W, H), K0, np.zeros(4), flags=flags,
-                                                               criteria=criteria)
-        except cv2.error as exc:
-            raise IntrinsicsError(f"the fisheye fit failed ({str(exc).strip().splitlines()[-1]}): "
-                                  "show the board in more places, nearer the image's edges") from None
+        fits, why = [], ""
+        for f in (min(W, H) / np.pi, max(W, H) / np.pi, float(np.hypot(W, H)) / np.pi):
+            K0 = np.array([[f, 0.0, (W - 1) / 2], [0.0, f, (H - 1) / 2], [0.0, 0.0, 1.0]])
+            try:
+                fit = cv2.fisheye.calibrate(objs, imgs, (W, H), K0, np.zeros(4), flags=flags, criteria=criteria)
+            except cv2.error as exc:
+                why = str(exc).strip().splitlines()[-1]
+                continue
+            K = fit[1]
+            if np.isfinite(fit[0]) and np.all(np.isfinite(K)) and K[0, 0] > 0 and K[1, 1] > 0 \
+                    and 0 <= K[0, 2] < W and 0 <= K[1, 2] < H:
+                fits.append(fit)
+        if not fits:
+            raise IntrinsicsError(f"the fisheye fit failed ({why or 'no start gave a lens'}): "
+                                  "show the board in more places, nearer the image's edges")
+        rms, K, dist, rvecs, tvecs = min(fits, key=lambda fit: fit[0])
         dist = dist.ravel()
         errs = []
         for o, v, r, t in zip(objs, views, rvecs, tvecs):
