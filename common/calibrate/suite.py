@@ -84,12 +84,15 @@ def rough_cameras(cameras) -> dict:
 
 
 def fit_lens(true, folder: Path, seed: int):
-    """The camera's lens from a rendered board clip, as ``calibrate intrinsics`` fits it."""
+    """The camera's lens from a rendered board clip, as ``calibrate intrinsics`` fits it; a Tsai lens (the
+    PETS rig's) is kept, as the command fits no Tsai model."""
     from common.calibrate.board import Board
     from common.calibrate.charuco import CharucoBoard
     from common.calibrate.intrinsics import calibrate_intrinsics
     from common.synth.board import BoardRenderer, intrinsics_clip, intrinsics_poses, write_frames
 
+    if true.model == "tsai":
+        return true
     if true.model == "fisheye":
         board, views, reach = CharucoBoard(7, 5, 0.14, 0.105, "5x5_100"), LENS_VIEWS["fisheye"], 0.4
     else:
