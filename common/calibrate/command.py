@@ -11,21 +11,13 @@ from pathlib import Path
 def register(sub) -> None:
     """Add ``calibrate intrinsics`` and ``calibrate floor`` to the umbrella command's subparsers."""
     p = sub.add_parser("calibrate", help="calibrate cameras from a board: intrinsics (chessboard or ChArUco), and "
-                                         "poses from a chessboard on the floor")
+                                         "poses from a chessboard or ChArUco mat on the floor")
     actions = p.add_subparsers(dest="action", metavar="ACTION", required=True)
     i = actions.add_parser("intrinsics", help="a camera's lens from a clip of a board (chessboard or ChArUco) moved "
                                               "in front of it")
     i.add_argument("--camera", required=True, help="the camera id (written into the file)")
     i.add_argument("--clip", required=True, help="video file, image folder, or device index / stream URL")
-    i.add_argument("--board", default="8x6", help="COLSxROWS: a chessboard's inner corners, or with --charuco the "
-                                                  "ChArUco board's squares (as OpenCV and board generators count "
-                                                  "them: a 7x5 ChArUco board has 6x4 inner corners) [8x6]")
-    i.add_argument("--square-mm", type=float, default=115.0, help="square size, millimetres [115]")
-    i.add_argument("--charuco", default=None, metavar="DICT",
-                   help="the board is a ChArUco board with markers from this OpenCV dictionary, e.g. 5x5_100 "
-                        "(DICT_5X5_100); its views may show only part of it")
-    i.add_argument("--marker-mm", type=float, default=None,
-                   help="ChArUco marker side, millimetres, smaller than the square [0.75 x --square-mm]")
+    _board_args(i)
     i.add_argument("--model", choices=("pinhole", "fisheye"), default="pinhole", help="lens model [pinhole]")
     i.add_argument("--out", default=None, help="the intrinsics file: .toml (voxelwatch) or .xml/.yaml/.json (OpenCV) "
                                                 "[ID-intrinsics.toml]")
@@ -45,22 +37,33 @@ def register(sub) -> None:
 
 
 def _board_args(p) -> None:
-    p.add_argument("--board", default="8x6", help="inner corners, COLSxROWS [8x6]")
+    p.add_argument("--board", default="8x6", help="COLSxROWS: a chessboard's inner corners, or with --charuco the "
+                                                  "ChArUco board's squares [8x6]")
     p.add_argument("--square-mm", type=float, default=115.0, help="square size, millimetres [115]")
+    p.add_argument("--charuco", default=None, metavar="DICT",
+                   help="the board is a ChArUco board (a mat) with markers from this OpenCV dictionary, e.g. 4x4_50; "
+                        "a camera may see only part of it, where furniture or the image's edge cuts it")
+    p.add_argument("--marker-mm", type=float, default=None,
+                   help="ChArUco marker side, millimetres, smaller than the square [0.75 x --square-mm]")
+
+
+def _parse_board(args: argparse.Namespace):
+    """The chessboard or ChArUco board the options describe; ValueError naming the option."""
+    from common.calibrate.board import Board
+    from common.calibrate.charuco import CharucoBoard
+
+    if args.charuco is not None:
+        return CharucoBoard.parse(args.board, args.square_mm, args.marker_mm, args.charuco)
+    if args.marker_mm is not None:
+        raise ValueError("--marker-mm is for a ChArUco board: give --charuco DICT too")
+    return Board.parse(args.board, args.square_mm)
 
 
 def _intrinsics(args: argparse.Namespace) -> int:
-    from common.calibrate.board import Board
-    from common.calibrate.charuco import CharucoBoard
     from common.calibrate.intrinsics import calibrate_intrinsics
     from common.calibrate.write import write_intrinsics
 
-    if args.charuco is not None:
-        board = CharucoBoard.parse(args.board, args.square_mm, args.marker_mm, args.charuco)
-    elif args.marker_mm is not None:
-        raise ValueError("--marker-mm is for a ChArUco board: give --charuco DICT too")
-    else:
-        board = Board.parse(args.board, args.square_mm)
+    board = _parse_board(args)
     out = Path(args.out or f"{args.camera}-intrinsics.toml")
     if out.suffix.lower() not in (".toml", ".xml", ".yaml", ".yml", ".json"):
         raise ValueError(f"--out {out}: expected a .toml (voxelwatch) or .xml/.yaml/.json (OpenCV) file name")
@@ -82,7 +85,6 @@ def _intrinsics(args: argparse.Namespace) -> int:
 
 
 def _floor(args: argparse.Namespace) -> int:
-    from common.calibrate.board import Board
     from common.calibrate.floor import (
         ANGLE_TOLERANCE_DEG, FOCAL_PRIOR, POSITION_TOLERANCE_M, calibrate_floor, find_sightings, read_plan_points,
     )
@@ -90,7 +92,7 @@ def _floor(args: argparse.Namespace) -> int:
     from common.calibration import CalibrationError, load_calibration
     from common.site import load_site
 
-    board = Board.parse(args.board, args.square_mm)
+    board = _parse_board(args)
     site = load_site(args.site)
     clips = _pairs(args.clip, "--clip", site)
     given = _pairs(args.intrinsics, "--intrinsics", site)

@@ -43,6 +43,7 @@ import numpy as np
 from scipy.optimize import least_squares
 
 from common.calibrate.board import Board, board_area_fraction, find_board
+from common.calibrate.charuco import CharucoBoard, CharucoFinder
 from common.calibrate.clips import read_gray, still_stretches
 from common.camera import Camera, matrix_to_rodrigues, rodrigues_to_matrix
 
@@ -80,7 +81,7 @@ class FloorError(ValueError):
 
 @dataclass(frozen=True)
 class Sighting:
-    """One camera's view of one board position: (N, 2) corners in board order, the frames it covers."""
+    """One camera's view of one board position: (N, 2) corners, the frames it covers."""
 
     cam_id: str
     start: int
@@ -90,10 +91,32 @@ class Sighting:
     position: int = -1
     keep: np.ndarray | None = None
     """(N,) bool: corners used (None: all)."""
+    ids: np.ndarray | None = None
+    """(N,) the corners' indices into the board's points (a ChArUco board seen in part); None: every
+    corner, in board order (a chessboard)."""
 
     @property
     def kept(self) -> np.ndarray:
         return np.ones(len(self.corners), dtype=bool) if self.keep is None else self.keep
+
+    def points(self, obj: np.ndarray) -> np.ndarray:
+        """(N, 3) the board points (``obj``, every corner of the board) its corners show."""
+        return obj if self.ids is None else obj[self.ids]
+
+    def but(self, **changes) -> "Sighting":
+        """The same sighting with some fields changed."""
+        fields = dict(cam_id=self.cam_id, start=self.start, stop=self.stop, corners=self.corners, area=self.area,
+                      position=self.position, keep=self.keep, ids=self.ids)
+        fields.update(changes)
+        return Sighting(**fields)
+
+
+def floor_points(board: Board | CharucoBoard) -> np.ndarray:
+    """(N, 3) the board's inner corners in its floor frame, Z up out of the printed face: a chessboard's
+    own frame; a ChArUco board's is OpenCV's (Z into the sheet) turned over about X, so that Y runs up
+    the sheet from its first row and the corners lie at negative Y."""
+    obj = board.object_points()
+    return obj * np.array([1.0, -1.0, -1.0]) if isinstance(board, CharucoBoard) else obj
 
 
 @dataclass(frozen=True)
@@ -140,7 +163,7 @@ class FloorResult:
     sightings: list[Sighting] = field(default_factory=list)
 
 
-def find_sightings(clips: dict[str, str], intrinsics: dict[str, Camera], board: Board,
+def find_sightings(clips: dict[str, str], intrinsics: dict[str, Camera], board: Board | CharucoBoard,
                    rough: dict[str, Camera | None]) -> list[Sighting]:
     """Every camera's board sightings, one per still stretch of its clip in which the board is found;
     FloorError when a camera never sees it or sees it too small; ClipError for a clip that cannot be read."""
@@ -155,23 +178,43 @@ def find_sightings(clips: dict[str, str], intrinsics: dict[str, Camera], board: 
         pose = None if rough.get(cam_id) is None else (rough[cam_id].R, rough[cam_id].t)
         found, small = [], []
         for still in still_stretches(frames, index):
-            corners = find_board(still.gray, board, camera=cam, thorough=True, rough_pose=pose)
+            ids, corners = _find_floor_board(still.gray, board, cam, pose)
             if corners is None:
                 continue
             area = board_area_fraction(corners, w, h)
-            (found if area >= MIN_FLOOR_AREA else small).append(Sighting(cam_id, still.start, still.stop, corners, area))
+            (found if area >= MIN_FLOOR_AREA else small).append(Sighting(cam_id, still.start, still.stop, corners, area,
+                                                                         ids=ids))
         if not found and small:
             raise FloorError(f"clip {clip}: the board is too small in camera {cam_id} "
                              f"({100 * max(s.area for s in small):.2f} % of the image, need {100 * MIN_FLOOR_AREA:g} %): "
                              "lay it nearer to the camera or use bigger squares")
         if not found:
-            raise FloorError(f"clip {clip}: board {board.describe()} not found by camera {cam_id} "
-                             "(check --board and --square-mm; the whole board must be in view, lying still, evenly lit)")
+            hint = ("check --board, --charuco and --marker-mm; lying still, evenly lit, its markers large enough to "
+                    "read" if isinstance(board, CharucoBoard) else
+                    "check --board and --square-mm; the whole board must be in view, lying still, evenly lit")
+            raise FloorError(f"clip {clip}: board {board.describe()} not found by camera {cam_id} ({hint})")
         out.extend(found)
     return out
 
 
-def calibrate_floor(sightings: list[Sighting], intrinsics: dict[str, Camera], board: Board, *,
+def _find_floor_board(gray: np.ndarray, board: Board | CharucoBoard, cam: Camera,
+                      rough_pose) -> tuple[np.ndarray | None, np.ndarray | None]:
+    """(ids or None for every corner, (N, 2) corners) of the board in one still frame, or (None, None). A
+    chessboard is looked for thoroughly (:func:`~common.calibrate.board.find_board`); a ChArUco board by
+    its markers, in the frame and, where they are too small to read, in the frame doubled."""
+    if isinstance(board, Board):
+        return None, find_board(gray, board, camera=cam, thorough=True, rough_pose=rough_pose)
+    finder = CharucoFinder(board)
+    found = finder.find(gray)
+    if found is None:
+        big = cv2.resize(gray, None, fx=2, fy=2, interpolation=cv2.INTER_CUBIC)
+        found = finder.find(big)
+        if found is not None:   # pixel centres are whole numbers at both scales
+            found = (found[0], (found[1] + 0.5) / 2 - 0.5)
+    return (None, None) if found is None else found
+
+
+def calibrate_floor(sightings: list[Sighting], intrinsics: dict[str, Camera], board: Board | CharucoBoard, *,
                     rough: dict[str, Camera | None] | None = None, plan_points=None,
                     placement: tuple[tuple[float, float, float], float] = ((0.0, 0.0, 0.0), 0.0),
                     volume: tuple[tuple[float, float, float], tuple[float, float, float]] | None = None) -> FloorResult:
@@ -187,9 +230,10 @@ def calibrate_floor(sightings: list[Sighting], intrinsics: dict[str, Camera], bo
     sightings = _number_positions(sightings)
     notes: list[str] = []
     sightings = _orient(sightings, intrinsics, board, rough, notes)
-    obj = board.object_points()
-    poses = {id(s): _pnp(intrinsics[s.cam_id], obj, s.corners) for s in sightings}
-    sightings = [_drop_stray_corners(s, intrinsics[s.cam_id], obj, poses.pop(id(s)), poses) for s in sightings]
+    obj = floor_points(board)
+    poses = {id(s): _pnp(intrinsics[s.cam_id], s.points(obj), s.corners) for s in sightings}
+    sightings = [_drop_stray_corners(s, intrinsics[s.cam_id], s.points(obj), poses.pop(id(s)), poses)
+                 for s in sightings]
     while True:
         cams0, boards0 = _chain(sightings, poses, cam_ids)
         cams_bf, focal, boards, spread, view_err = _adjust(sightings, intrinsics, obj, cams0, boards0)
@@ -309,14 +353,14 @@ def _number_positions(sightings: list[Sighting]) -> list[Sighting]:
             s = sightings[i]
             if s.cam_id not in best or s.stop - s.start > best[s.cam_id].stop - best[s.cam_id].start:
                 best[s.cam_id] = s
-        out.extend(Sighting(s.cam_id, s.start, s.stop, s.corners, s.area, pos) for s in best.values())
+        out.extend(s.but(position=pos) for s in best.values())
     return out
 
 
 def _orient(sightings, intrinsics, board: Board, rough, notes: list[str]) -> list[Sighting]:
     """Name a symmetric board's corners from the same end in every camera that shares a position."""
-    if not board.symmetric:
-        return sightings
+    if isinstance(board, CharucoBoard) or not board.symmetric:
+        return sightings   # the markers, or the odd count, name every corner
     obj = board.object_points()
     out = []
     for pos in sorted({s.position for s in sightings}):
@@ -350,7 +394,7 @@ def _orient(sightings, intrinsics, board: Board, rough, notes: list[str]) -> lis
         first = axes[0] if axes[0][0] >= 0 else -axes[0]
         for s, a in zip(group, axes):
             if np.dot(a, first) < 0:
-                s = Sighting(s.cam_id, s.start, s.stop, board.half_turn(s.corners), s.area, s.position)
+                s = s.but(corners=board.half_turn(s.corners))
             out.append(s)
     notes.append("the symmetric board's ends were told apart by the site's present calibrations")
     return out
@@ -379,7 +423,7 @@ def _drop_stray_corners(s: Sighting, cam: Camera, obj, pose, poses) -> Sighting:
         keep[:] = True   # not a few strays: keep everything and let the errors show it
     if not keep.all():
         pose = _pnp(cam, obj[keep], s.corners[keep])
-    out = Sighting(s.cam_id, s.start, s.stop, s.corners, s.area, s.position, None if keep.all() else keep)
+    out = s.but(keep=None if keep.all() else keep)
     poses[id(out)] = pose
     return out
 
@@ -450,7 +494,7 @@ def _adjust(sightings, intrinsics, obj, cams0, boards0):
     fi = {c: len(x0) + k for k, c in enumerate(free)}
     x0 = np.array(x0 + [0.0] * len(free))
     groups = [(ci[s.cam_id], pi.get(s.position), fi.get(s.cam_id), intrinsics[s.cam_id], s.corners[s.kept],
-               obj[s.kept]) for s in sightings]
+               s.points(obj)[s.kept]) for s in sightings]
 
     def unpack_board(x, j):
         if j is None:
@@ -537,7 +581,7 @@ def _errors(sightings, cam_id, cam: Camera, boards, obj) -> tuple[np.ndarray, np
     for s in sightings:
         if s.cam_id == cam_id:
             R_wb, t_wb = boards[s.position]
-            uv, _ = cam.project(obj @ R_wb.T + t_wb)
+            uv, _ = cam.project(s.points(obj) @ R_wb.T + t_wb)
             errs.append(np.nan_to_num(np.linalg.norm(uv - s.corners, axis=1), nan=1e3))
             kept.append(s.kept)
     return np.concatenate(errs), np.concatenate(kept)

@@ -11,7 +11,8 @@
    holding the board still at places); without it the true lenses, which the floor calibration
    still refines (:data:`common.calibrate.floor.FOCAL_PRIOR`);
 2. the floor: a 9x6 chessboard of 140 mm (or, where the command refuses it because no chain of
-   places reaches every camera, a floor mat of 250 mm squares) laid at the places the installer's instructions lead to
+   places reaches every camera, a floor mat of 250 mm squares, then a ChArUco mat of the same size
+   that counts where a camera reads only part of it: :data:`FLOOR_BOARDS`) laid at the places the installer's instructions lead to
    (:func:`common.synth.board.floor_positions` with ``well_seen``: a chain of places seen by two
    cameras or more, plus, for each camera that saw the board only small, a place it sees as large
    as it can among those another camera also sees), every camera recording every place (a camera
@@ -44,7 +45,9 @@ from typing import Any
 
 import numpy as np
 
-from common.calibrate.floor import ANGLE_TOLERANCE_DEG, POSITION_TOLERANCE_M
+from common.calibrate.board import Board
+from common.calibrate.charuco import CharucoBoard
+from common.calibrate.floor import ANGLE_TOLERANCE_DEG, POSITION_TOLERANCE_M, floor_points
 
 WELL_SEEN = 0.5
 """A camera whose views of the board are all under this share of the largest it can have gets that place."""
@@ -54,9 +57,11 @@ image; the larger first, the smaller where no chain of larger ones reaches every
 the finder takes at least, :data:`common.calibrate.floor.MIN_FLOOR_AREA`, so that the views that
 chain the cameras are found). A world no chain of them reaches is reported as refused: its room is
 too large for the board."""
-FLOOR_SQUARES_M = (0.14, 0.25)
-"""The floor board's squares: an A0-sized 9x6 chessboard (1.4 x 1 m), and where the cameras cannot be
-chained with it (a large room, cameras far apart), a floor mat of 250 mm squares (2.5 x 1.75 m)."""
+FLOOR_BOARDS = (Board(9, 6, 0.14), Board(9, 6, 0.25), CharucoBoard(10, 7, 0.25, 0.1875, "4x4_50"))
+"""The floor boards, each tried where the one before cannot chain the cameras: an A0-sized 9x6 chessboard
+(1.4 x 1 m); a chessboard mat of 250 mm squares (2.5 x 1.75 m) for a large room or cameras far apart;
+a ChArUco mat of the same size (10x7 squares, 4x4 markers of 187.5 mm), which counts where a camera
+sees it only in part, for a room whose furniture or cameras' views leave no place seen whole by two."""
 LENS_VIEWS = {"pinhole": 30, "fisheye": 30}
 
 
@@ -70,9 +75,10 @@ def plan_points(board, pose) -> np.ndarray:
     """(4, 4) rows ``board_x, board_y, room_x, room_y``: the board's outer inner corners where they lie."""
     from common.synth.board import corners_world
 
-    b = board.object_points()
+    b = floor_points(board)
     w = corners_world(board, pose)
-    k = [0, board.cols - 1, board.n - board.cols, board.n - 1]
+    cols = board.cols - 1 if isinstance(board, CharucoBoard) else board.cols   # inner corners along a row
+    k = [0, cols - 1, board.n - cols, board.n - 1]
     return np.concatenate([b[k, :2], w[k, :2]], axis=1)
 
 
@@ -86,8 +92,6 @@ def rough_cameras(cameras) -> dict:
 def fit_lens(true, folder: Path, seed: int):
     """The camera's lens from a rendered board clip, as ``calibrate intrinsics`` fits it; a Tsai lens (the
     PETS rig's) is kept, as the command fits no Tsai model."""
-    from common.calibrate.board import Board
-    from common.calibrate.charuco import CharucoBoard
     from common.calibrate.intrinsics import calibrate_intrinsics
     from common.synth.board import BoardRenderer, intrinsics_clip, intrinsics_poses, write_frames
 
@@ -105,7 +109,6 @@ def fit_lens(true, folder: Path, seed: int):
 def run_world(seed: int, work: Path, *, lenses: bool = False, heed: bool = True) -> dict[str, Any]:
     """One world calibrated (module text); returns per camera its errors and bounds. ``heed``: when the
     calibration warns of a camera, lay the board at two more places it sees well and calibrate again."""
-    from common.calibrate.board import Board
     from common.synth.world import random_world
 
     world = random_world(seed)
@@ -115,12 +118,12 @@ def run_world(seed: int, work: Path, *, lenses: bool = False, heed: bool = True)
         for k, (c, true) in enumerate(world.cameras.items()):
             intrinsics[c] = fit_lens(true, work / f"lens-{c}", seed * 100 + k)
     refusals = []
-    for square_m in FLOOR_SQUARES_M:
-        out = _floor_world(world, intrinsics, Board(9, 6, square_m), work / f"{square_m:.2f}", heed=heed)
+    for k, board in enumerate(FLOOR_BOARDS):
+        out = _floor_world(world, intrinsics, board, work / f"board{k}", heed=heed)
         out["refused_with"] = refusals
         if "error" not in out:
             break
-        refusals.append(f"{1000 * square_m:.0f} mm squares: {out['error']}")
+        refusals.append(f"{board.describe()}: {out['error']}")
     out["seconds"] = time.perf_counter() - t0
     return out
 
@@ -130,7 +133,7 @@ def _floor_world(world, intrinsics, board, work: Path, *, heed: bool) -> dict[st
     from common.synth.board import floor_positions, more_floor_positions
 
     seed = world.seed
-    out: dict[str, Any] = {"seed": seed, "rig": world.rig, "square_mm": round(1000 * board.square_m), "cameras": {},
+    out: dict[str, Any] = {"seed": seed, "rig": world.rig, "board": _board_name(board), "cameras": {},
                            "warned_first": []}
     poses = None
     for min_area in PLACE_AREAS:   # a large room, or far cameras: places seen smaller
@@ -177,6 +180,11 @@ def _calibrate(world, intrinsics, board, poses, folder: Path):
              for c, cam in world.cameras.items()}
     return calibrate_floor(find_sightings(clips, intrinsics, board, rough_cameras(world.cameras)), intrinsics,
                            board, plan_points=plan_points(board, poses[0]))
+
+
+def _board_name(board) -> str:
+    kind = "ChArUco mat" if isinstance(board, CharucoBoard) else "chessboard"
+    return f"{kind} of {1000 * board.square_m:.0f} mm squares"
 
 
 def _on_target(v: dict) -> bool:
@@ -237,7 +245,7 @@ def _report(r: dict) -> None:
         print(f"  world {r['seed']} ({r['rig']}): refused: {r['error']}", flush=True)
         return
     again = f", board laid again for {', '.join(r['warned_first'])}" if r["warned_first"] else ""
-    print(f"  world {r['seed']} ({r['rig']}, {r['square_mm']} mm squares, {r['places']} board places{again}, "
+    print(f"  world {r['seed']} ({r['rig']}, {r['board']}, {r['places']} board places{again}, "
           f"{r['seconds']:.0f} s):", flush=True)
     for c, v in r["cameras"].items():
         flag = "" if _on_target(v) else "  OUTSIDE"

@@ -38,6 +38,12 @@ BLACK, WHITE = 28.0, 220.0
 FLOOR_MIN_AREA = 0.006
 """A floor position counts as seen by a camera when the board covers at least this share of its image."""
 FLOOR_MAX_SLANT_DEG = 78.0
+CHARUCO_FLOOR_CORNERS = 12
+"""A ChArUco board on the floor counts as seen by a camera when at least this many of its inner corners
+are in view, unhidden and readable (:data:`CHARUCO_MARKER_PX`)."""
+CHARUCO_MARKER_PX = 12.0
+"""A corner of a ChArUco board counts as readable when the markers beside it are at least this many
+pixels across along both of the board's axes (two pixels a cell of a 4x4 marker and its border)."""
 SHEET_PX_PER_SQUARE = 64
 """Pixels a square of a ChArUco sheet's image (its markers' bits are a few pixels wide at least)."""
 
@@ -194,10 +200,14 @@ def floor_sees(camera: Camera, room: Room | None, board: Board, pose, *, min_are
     return floor_area(camera, room, board, pose, min_area=min_area) >= min_area
 
 
-def floor_area(camera: Camera, room: Room | None, board: Board, pose, *, min_area: float = 0.0) -> float:
+def floor_area(camera: Camera, room: Room | None, board: Board | CharucoBoard, pose, *, min_area: float = 0.0) -> float:
     """The share of ``camera``'s image the board lying at ``pose`` covers (its inner corners' hull), or 0
     when the camera does not see the whole board, sees it edge-on, something in the room hides it, or
-    it covers less than ``min_area`` (the room then not looked at)."""
+    it covers less than ``min_area`` (the room then not looked at). A ChArUco board counts seen in part:
+    the hull of its corners in view, unhidden and readable, when there are enough of them
+    (:data:`CHARUCO_FLOOR_CORNERS`)."""
+    if isinstance(board, CharucoBoard):
+        return _charuco_floor_area(camera, room, board, pose, min_area)
     pts = _sheet_corners(board, pose)
     uv, valid = camera.project(pts)
     m = 6
@@ -223,7 +233,35 @@ def floor_area(camera: Camera, room: Room | None, board: Board, pose, *, min_are
     return area
 
 
-def floor_positions(cameras: dict[str, Camera], room: Room, board: Board, rng: np.random.Generator, *,
+def _charuco_floor_area(camera: Camera, room: Room | None, board: CharucoBoard, pose, min_area: float) -> float:
+    R = np.asarray(pose[0], dtype=np.float64)
+    pts = corners_world(board, pose)
+    uv, valid = camera.project(pts)
+    m = 6
+    with np.errstate(invalid="ignore"):
+        ok = valid & (uv[:, 0] >= m) & (uv[:, 1] >= m) & (uv[:, 0] <= camera.width - 1 - m) & \
+            (uv[:, 1] <= camera.height - 1 - m)
+    d = pts - camera.center
+    dist = np.linalg.norm(d, axis=1)
+    ok &= np.degrees(np.arccos(np.clip(-d[:, 2] / dist, -1, 1))) <= FLOOR_MAX_SLANT_DEG
+    share = board.marker_m / board.square_m
+    for axis in (0, 1):   # the markers' size beside each corner along the board's two axes
+        step, _ = camera.project(pts + R[:, axis] * board.square_m)
+        with np.errstate(invalid="ignore"):
+            ok &= np.nan_to_num(np.linalg.norm(step - uv, axis=1)) * share >= CHARUCO_MARKER_PX
+    if ok.sum() < CHARUCO_FLOOR_CORNERS:
+        return 0.0
+    if room is not None and ok.any():
+        hits = raycast_room(room, camera.center, d[ok] / dist[ok, None])
+        ok[np.flatnonzero(ok)] = (hits.surface == SURF_FLOOR) & (np.abs(hits.t - dist[ok]) < 0.02)
+        if ok.sum() < CHARUCO_FLOOR_CORNERS:
+            return 0.0
+    hull = cv2.convexHull(uv[ok].astype(np.float32).reshape(-1, 1, 2))
+    area = float(cv2.contourArea(hull)) / (camera.width * camera.height)
+    return area if area >= min_area else 0.0
+
+
+def floor_positions(cameras: dict[str, Camera], room: Room, board: Board | CharucoBoard, rng: np.random.Generator, *,
                     max_positions: int = 8, step_m: float = 0.4, min_area: float = FLOOR_MIN_AREA,
                     well_seen: float = 0.0) -> list:
     """Board poses on the floor (Z = 0) that chain every camera: the first is the place most cameras
@@ -255,7 +293,7 @@ def floor_positions(cameras: dict[str, Camera], room: Room, board: Board, rng: n
     return [p for p, _, _ in picked]
 
 
-def more_floor_positions(cameras: dict[str, Camera], room: Room, board: Board, rng: np.random.Generator,
+def more_floor_positions(cameras: dict[str, Camera], room: Room, board: Board | CharucoBoard, rng: np.random.Generator,
                          cam_id: str, taken: list, *, count: int = 2, step_m: float = 0.4,
                          min_area: float = FLOOR_MIN_AREA, apart_m: float = 0.5) -> list:
     """Up to ``count`` more board poses for camera ``cam_id``, as an installer lays the board again when the
@@ -274,8 +312,20 @@ def more_floor_positions(cameras: dict[str, Camera], room: Room, board: Board, r
     return out
 
 
-def _board_centre(board: Board) -> np.ndarray:
+def _board_centre(board: Board | CharucoBoard) -> np.ndarray:
+    """(3,) the centre of the board's squares in its own frame."""
+    if isinstance(board, CharucoBoard):
+        return np.array([board.cols / 2, board.rows / 2, 0.0]) * board.square_m
     return np.array([(board.cols - 1) / 2, (board.rows - 1) / 2, 0.0]) * board.square_m
+
+
+def floor_pose(board: Board | CharucoBoard, x: float, y: float, yaw: float) -> tuple[np.ndarray, np.ndarray]:
+    """The world pose ``(R_wb, t_wb)`` of the board lying face up on the floor, its squares' centre at
+    ``(x, y)``, turned ``yaw`` radians (a ChArUco board's frame, Z into the sheet, turned over)."""
+    R = _rot(2, yaw)
+    if isinstance(board, CharucoBoard):
+        R = R @ np.diag([1.0, -1.0, -1.0])
+    return R, np.array([x, y, 0.0]) - R @ _board_centre(board)
 
 
 def _floor_candidates(cameras, room, board, rng, step_m: float, min_area: float) -> list:
@@ -284,8 +334,7 @@ def _floor_candidates(cameras, room, board, rng, step_m: float, min_area: float)
     cands = []
     for x in np.arange(x0 + 0.2, x1 - 0.2, step_m):
         for y in np.arange(y0 + 0.2, y1 - 0.2, step_m):
-            R = _rot(2, rng.uniform(0, 2 * math.pi))
-            t = np.array([x, y, 0.0]) - R @ _board_centre(board)
+            R, t = floor_pose(board, x, y, rng.uniform(0, 2 * math.pi))
             areas = {c: floor_area(cam, room, board, (R, t), min_area=min_area) for c, cam in cameras.items()}
             seen = {c for c, a in areas.items() if a >= min_area}
             if seen:
@@ -311,7 +360,8 @@ def intrinsics_clip(renderer: BoardRenderer, board: Board, poses, *, frames_per_
             k += 1
 
 
-def floor_clip(renderer: BoardRenderer, board: Board, poses, *, still_frames: int = 5, gap_frames: int = 2):
+def floor_clip(renderer: BoardRenderer, board: Board | CharucoBoard, poses, *, still_frames: int = 5,
+               gap_frames: int = 2):
     """Frames of the board lying at each floor pose in turn, the empty floor for ``gap_frames`` between
     (the board is being carried), as every camera records it at the same time. A pose of None: the
     camera does not see the board there (the empty floor instead)."""
