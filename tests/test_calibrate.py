@@ -222,6 +222,7 @@ def test_charuco_fisheye_lens_from_partial_views(tmp_path, capsys):
     assert views > whole
 
 
+@pytest.mark.slow   # 30 views at 1280x720
 def test_a_wide_fisheye_lens_is_fitted_from_its_own_start(tmp_path):
     """A 1280x720 ceiling fisheye of 225 px (tuning seed 4 cam8: 180 degrees across the image's shorter
     side), 30 ChArUco views: focal lengths within 0.5 % of the truth (0.07 % measured). Started only from
@@ -549,6 +550,22 @@ def test_a_clip_that_cannot_be_read_is_refused_and_nothing_written(tmp_path, cap
     assert "not found" in capsys.readouterr().err and not (tmp_path / "cam1.toml").exists()
 
 
+def test_cameras_that_share_no_board_position_are_named_by_the_calibration():
+    """The board seen by cam1 at the first place only and by the other cameras only at later places: the
+    chain cannot reach them, and the calibration names them (the command prints it as its one line,
+    below, with rendered clips)."""
+    from common.calibrate.floor import FloorError
+
+    world = random_world(2)
+    poses = floor_positions(world.cameras, world.room, BOARD, np.random.default_rng(0), well_seen=WELL_SEEN)
+    sightings = [s for s in _exact_sightings(world, poses, noise_px=0.1, rng=np.random.default_rng(1))
+                 if (s.cam_id == "cam1") == (s.start == 0)]
+    others = sorted({s.cam_id for s in sightings} - {"cam1"})
+    with pytest.raises(FloorError, match=f"camera\\(s\\) {', '.join(others)} share no board position with cam1"):
+        calibrate_floor(sightings, world.cameras, BOARD, plan_points=_plan_points(BOARD, poses[0]))
+
+
+@pytest.mark.slow   # rendered clips searched thoroughly; the calibration's message is held above
 def test_cameras_that_share_no_board_position_are_named(tmp_path, capsys):
     """cam1 and cam2 see the board only at different times: the chain cannot reach cam2."""
     world, site_path = _synthetic_site(tmp_path)

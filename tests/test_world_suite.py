@@ -23,7 +23,7 @@ VOXELWATCH = Path(sys.executable).with_name("voxelwatch")
 SEEDS = (3, 11, 27)
 """Tuning worlds: one person with a dark and a late camera, two people hugging in an L-shaped room,
 seven people in a talking cluster."""
-FRAMES = 60
+FRAMES = 30
 
 
 def test_parse_seeds():
