@@ -401,6 +401,7 @@ def test_the_fall_raises_the_banner_the_marker_lies_where_it_fell_and_a_click_ac
     browser.switch_to.window(first)
 
 
+@pytest.mark.slow  # a broker restart is also held by test_notify.py
 def test_the_fall_reaches_the_webhook_and_mqtt_once_the_broker_is_back(demo, alerts):
     """The notifier heard the demo's fall while the broker was down: the webhook has it at once;
     MQTT only once the broker is started again, then with nothing lost; every delivery carries the
@@ -552,6 +553,7 @@ def test_a_page_left_open_for_an_hour_of_frames_keeps_a_flat_heap(tmp_path):
 # --------------------------------------------------------------------------- a view that starts late
 
 
+@pytest.mark.slow  # a second live run: the banner and acknowledgement are held above, the history in test_server.py
 def test_a_view_started_after_a_fall_shows_it_from_the_history_and_acknowledges_it(tmp_path):
     """The fusion server's store already holds a fall, an older fall someone acknowledged, and a
     sit-down; a view started now shows the one alarm still waiting, and acknowledges it."""
