@@ -34,6 +34,9 @@ DICTIONARIES = {
 """The marker dictionaries by name: ``'5x5_100'`` is ``cv2.aruco.DICT_5X5_100``."""
 MARKER_SHARE = 0.75
 """The marker side as a share of the square side, when not given."""
+FACE_UP = np.diag([1.0, -1.0, -1.0])
+"""The board's frame turned over about X: a board lying face up on the floor, its frame's Z (into the
+sheet) pointing down, has this rotation between its frame and a floor frame with Z up."""
 MIN_CORNERS = 6
 """A view counts when it shows at least this many inner corners, not all on one line."""
 

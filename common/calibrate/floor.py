@@ -35,7 +35,7 @@ from __future__ import annotations
 import math
 import tomllib
 from collections import deque
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import cv2
@@ -43,7 +43,7 @@ import numpy as np
 from scipy.optimize import least_squares
 
 from common.calibrate.board import Board, board_area_fraction, find_board
-from common.calibrate.charuco import CharucoBoard, CharucoFinder
+from common.calibrate.charuco import FACE_UP, CharucoBoard, CharucoFinder
 from common.calibrate.clips import read_gray, still_stretches
 from common.camera import Camera, matrix_to_rodrigues, rodrigues_to_matrix
 
@@ -103,20 +103,13 @@ class Sighting:
         """(N, 3) the board points (``obj``, every corner of the board) its corners show."""
         return obj if self.ids is None else obj[self.ids]
 
-    def but(self, **changes) -> "Sighting":
-        """The same sighting with some fields changed."""
-        fields = dict(cam_id=self.cam_id, start=self.start, stop=self.stop, corners=self.corners, area=self.area,
-                      position=self.position, keep=self.keep, ids=self.ids)
-        fields.update(changes)
-        return Sighting(**fields)
-
 
 def floor_points(board: Board | CharucoBoard) -> np.ndarray:
     """(N, 3) the board's inner corners in its floor frame, Z up out of the printed face: a chessboard's
     own frame; a ChArUco board's is OpenCV's (Z into the sheet) turned over about X, so that Y runs up
     the sheet from its first row and the corners lie at negative Y."""
     obj = board.object_points()
-    return obj * np.array([1.0, -1.0, -1.0]) if isinstance(board, CharucoBoard) else obj
+    return obj @ FACE_UP.T if isinstance(board, CharucoBoard) else obj
 
 
 @dataclass(frozen=True)
@@ -168,6 +161,7 @@ def find_sightings(clips: dict[str, str], intrinsics: dict[str, Camera], board: 
     """Every camera's board sightings, one per still stretch of its clip in which the board is found;
     FloorError when a camera never sees it or sees it too small; ClipError for a clip that cannot be read."""
     out: list[Sighting] = []
+    finder = CharucoFinder(board) if isinstance(board, CharucoBoard) else None
     for cam_id, clip in clips.items():
         cam = intrinsics[cam_id]
         frames, index = read_gray(clip, spread=CLIP_SPREAD)
@@ -178,7 +172,7 @@ def find_sightings(clips: dict[str, str], intrinsics: dict[str, Camera], board: 
         pose = None if rough.get(cam_id) is None else (rough[cam_id].R, rough[cam_id].t)
         found, small = [], []
         for still in still_stretches(frames, index):
-            ids, corners = _find_floor_board(still.gray, board, cam, pose)
+            ids, corners = _find_floor_board(still.gray, board, finder, cam, pose)
             if corners is None:
                 continue
             area = board_area_fraction(corners, w, h)
@@ -197,14 +191,14 @@ def find_sightings(clips: dict[str, str], intrinsics: dict[str, Camera], board: 
     return out
 
 
-def _find_floor_board(gray: np.ndarray, board: Board | CharucoBoard, cam: Camera,
+def _find_floor_board(gray: np.ndarray, board: Board | CharucoBoard, finder: CharucoFinder | None, cam: Camera,
                       rough_pose) -> tuple[np.ndarray | None, np.ndarray | None]:
     """(ids or None for every corner, (N, 2) corners) of the board in one still frame, or (None, None). A
     chessboard is looked for thoroughly (:func:`~common.calibrate.board.find_board`); a ChArUco board by
-    its markers, in the frame and, where they are too small to read, in the frame doubled."""
-    if isinstance(board, Board):
+    its markers (``finder``, the board's), in the frame and, where they are too small to read, in the
+    frame doubled."""
+    if finder is None:
         return None, find_board(gray, board, camera=cam, thorough=True, rough_pose=rough_pose)
-    finder = CharucoFinder(board)
     found = finder.find(gray)
     if found is None:
         big = cv2.resize(gray, None, fx=2, fy=2, interpolation=cv2.INTER_CUBIC)
@@ -353,7 +347,7 @@ def _number_positions(sightings: list[Sighting]) -> list[Sighting]:
             s = sightings[i]
             if s.cam_id not in best or s.stop - s.start > best[s.cam_id].stop - best[s.cam_id].start:
                 best[s.cam_id] = s
-        out.extend(s.but(position=pos) for s in best.values())
+        out.extend(replace(s, position=pos) for s in best.values())
     return out
 
 
@@ -394,7 +388,7 @@ def _orient(sightings, intrinsics, board: Board, rough, notes: list[str]) -> lis
         first = axes[0] if axes[0][0] >= 0 else -axes[0]
         for s, a in zip(group, axes):
             if np.dot(a, first) < 0:
-                s = s.but(corners=board.half_turn(s.corners))
+                s = replace(s, corners=board.half_turn(s.corners))
             out.append(s)
     notes.append("the symmetric board's ends were told apart by the site's present calibrations")
     return out
@@ -423,7 +417,7 @@ def _drop_stray_corners(s: Sighting, cam: Camera, obj, pose, poses) -> Sighting:
         keep[:] = True   # not a few strays: keep everything and let the errors show it
     if not keep.all():
         pose = _pnp(cam, obj[keep], s.corners[keep])
-    out = s.but(keep=None if keep.all() else keep)
+    out = replace(s, keep=None if keep.all() else keep)
     poses[id(out)] = pose
     return out
 

@@ -29,7 +29,7 @@ import cv2
 import numpy as np
 
 from common.calibrate.board import Board
-from common.calibrate.charuco import CharucoBoard
+from common.calibrate.charuco import FACE_UP, CharucoBoard
 from common.camera import Camera
 from common.synth.render import SURF_FLOOR, CameraRenderer, raycast_room
 from common.synth.scene import Room
@@ -324,7 +324,7 @@ def floor_pose(board: Board | CharucoBoard, x: float, y: float, yaw: float) -> t
     ``(x, y)``, turned ``yaw`` radians (a ChArUco board's frame, Z into the sheet, turned over)."""
     R = _rot(2, yaw)
     if isinstance(board, CharucoBoard):
-        R = R @ np.diag([1.0, -1.0, -1.0])
+        R = R @ FACE_UP
     return R, np.array([x, y, 0.0]) - R @ _board_centre(board)
 
 
@@ -400,9 +400,8 @@ def _held(board: Board | CharucoBoard) -> tuple[float, np.ndarray, np.ndarray]:
     sq = board.square_m
     if isinstance(board, CharucoBoard):
         # OpenCV's frame: X right and Y down the sheet as the camera sees it, Z away from the camera
-        return board.cols * sq, np.array([board.cols / 2, board.rows / 2, 0.0]) * sq, np.eye(3)
-    return (board.cols + 1) * sq, np.array([(board.cols - 1) / 2, (board.rows - 1) / 2, 0.0]) * sq, \
-        np.diag([1.0, -1.0, -1.0])
+        return board.cols * sq, _board_centre(board), np.eye(3)
+    return (board.cols + 1) * sq, _board_centre(board), np.diag([1.0, -1.0, -1.0])
 
 
 def _towards(ray: np.ndarray) -> np.ndarray:
