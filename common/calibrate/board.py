@@ -22,7 +22,9 @@ Finding a board lying on the floor far from a camera that looks across the room 
 the detectors: its squares are thin slivers. :func:`find_board` then looks again in views of
 the floor seen from straight above, resampled through the camera's own lens model, with the
 camera's rough pose when one is known or with a few guessed pitches, and maps the corners
-back into the image.
+back into the image. A board set up on a stand, bent by a wide lens near the image's edge, is
+looked for again in a view straightened through the lens, looking straight at where the board may
+be.
 """
 
 from __future__ import annotations
@@ -121,6 +123,8 @@ def find_board(gray: np.ndarray, board: Board, *, camera: Camera | None = None, 
         corners = _find_direct(gray, board, exhaustive=False, scale=2)
         if corners is None and camera is not None:
             corners = _find_from_above(gray, board, camera, rough_pose)
+        if corners is None and camera is not None:
+            corners = _find_straightened(gray, board, camera)
     if corners is None:
         return None
     return canonical_order(corners, board, gray)
@@ -189,30 +193,57 @@ def _subpix_window(corners: np.ndarray, board: Board) -> int:
 
 
 def _find_from_above(gray, board: Board, camera: Camera, rough_pose) -> np.ndarray | None:
-    """Corners found in views from above at a few sizes; the detectors' sub-pixel accuracy varies from
-    one resampling to the next, so the set that best fits a flat board (:func:`planar_residual_px`)
-    is kept (the first one under :data:`GOOD_FIT_PX` at once)."""
+    """Corners found in views from above (:func:`_find_resampled`)."""
+    windows = _candidate_windows(gray)
+    return _find_resampled(gray, board, camera, ((R, w) for R in _downward_rotations(camera, rough_pose) for w in windows))
+
+
+def _find_straightened(gray, board: Board, camera: Camera) -> np.ndarray | None:
+    """Corners found in pinhole views through the lens looking straight at each candidate window (a board
+    on a stand near the edge of a wide lens, its rows bent)."""
+    views = []
+    for window in _candidate_windows(gray):
+        x0, y0, x1, y1 = window
+        ray = camera.rays_cam(np.array([[(x0 + x1) / 2.0, (y0 + y1) / 2.0]]))[0]
+        if np.all(np.isfinite(ray)):
+            views.append((_facing(ray / np.linalg.norm(ray)), window))
+    return _find_resampled(gray, board, camera, views)
+
+
+def _find_resampled(gray, board: Board, camera: Camera, views) -> np.ndarray | None:
+    """Corners found in pinhole views ``(R_view, window)`` (:func:`_view_from_above`) at a few sizes; the
+    detectors' sub-pixel accuracy varies from one resampling to the next, so the set that best fits a flat
+    board (:func:`planar_residual_px`) is kept (the first one under :data:`GOOD_FIT_PX` at once)."""
     best, best_fit = None, math.inf
-    for R_view in _downward_rotations(camera, rough_pose):
-        for window in _candidate_windows(gray):
-            for size in VIEW_SIZES_PX:
-                maps = _view_from_above(camera, R_view, window, size)
-                if maps is None:
-                    continue
-                mx, my = maps
-                view = cv2.remap(gray, mx, my, cv2.INTER_CUBIC, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
-                corners = _find_direct(view, board, exhaustive=False)
-                if corners is None:
-                    continue
-                uv = np.stack([_bilinear(mx, corners), _bilinear(my, corners)], axis=1)
-                if not np.all(np.isfinite(uv)) or np.any(uv < 0):
-                    continue
-                fit = planar_residual_px(uv, board, camera)
-                if fit < best_fit:
-                    best, best_fit = uv, fit
-                if best_fit < GOOD_FIT_PX:
-                    return best
+    for R_view, window in views:
+        for size in VIEW_SIZES_PX:
+            maps = _view_from_above(camera, R_view, window, size)
+            if maps is None:
+                continue
+            mx, my = maps
+            view = cv2.remap(gray, mx, my, cv2.INTER_CUBIC, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+            corners = _find_direct(view, board, exhaustive=False)
+            if corners is None:
+                continue
+            uv = np.stack([_bilinear(mx, corners), _bilinear(my, corners)], axis=1)
+            if not np.all(np.isfinite(uv)) or np.any(uv < 0):
+                continue
+            fit = planar_residual_px(uv, board, camera)
+            if fit < best_fit:
+                best, best_fit = uv, fit
+            if best_fit < GOOD_FIT_PX:
+                return best
     return best
+
+
+def _facing(ray: np.ndarray) -> np.ndarray:
+    """Rotation camera frame -> a virtual camera whose optical axis is the unit ``ray`` (camera frame), its
+    x axis kept as level with the camera's as it can be."""
+    x = np.cross([0.0, 1.0, 0.0], ray)
+    if np.linalg.norm(x) < 1e-9:
+        x = np.array([1.0, 0.0, 0.0])
+    x /= np.linalg.norm(x)
+    return np.stack([x, np.cross(ray, x), ray])
 
 
 def planar_residual_px(corners: np.ndarray, board: Board, camera: Camera) -> float:

@@ -22,8 +22,9 @@ def register(sub) -> None:
     i.add_argument("--out", default=None, help="the intrinsics file: .toml (voxelwatch) or .xml/.yaml/.json (OpenCV) "
                                                 "[ID-intrinsics.toml]")
     i.set_defaults(handler=_intrinsics)
-    f = actions.add_parser("floor", help="every camera's pose from a board laid on the floor; writes the site's "
-                                         "calibration files")
+    f = actions.add_parser("floor", help="every camera's pose from a board laid on the floor (and set up on a stand "
+                                         "where cameras share no place of the floor); writes the site's calibration "
+                                         "files")
     f.add_argument("--site", required=True, help="the site TOML file")
     f.add_argument("--clip", action="append", default=[], metavar="CAM=FILE",
                    help="a camera's clip of the board on the floor (default: the camera's source); all clips recorded together")
@@ -160,7 +161,7 @@ def _floor(args: argparse.Namespace) -> int:
     for cam_id in loose:
         print(f"  WARNING: camera {cam_id} may be off by more than {100 * POSITION_TOLERANCE_M:.0f} cm or "
               f"{ANGLE_TOLERANCE_DEG} deg: it sees the board too small or too few times; record again with the board "
-              f"also laid nearer to it, where another camera sees it too")
+              f"also laid nearer to it, where another camera sees it too (on the floor, or on a stand)")
     if args.dry_run:
         print("dry run: nothing written")
         return 0

@@ -15,12 +15,14 @@ stretches of different cameras that overlap in time show the same board position
    coordinates, so pinhole, fisheye and Tsai lenses are handled alike by their own model.
 4. Chaining: the first board position is the floor frame (origin at its first inner corner, X
    along its rows, Z up out of the floor); cameras and board positions are placed in turn through
-   the sightings they share (breadth first). Cameras that no chain reaches are named.
+   the sightings they share (breadth first). Cameras that no chain reaches are named. A position
+   whose board's centre the chain puts over :data:`RAISED_M` above the floor stood on a stand (set up
+   where cameras share no place of the floor): its whole pose is kept; the others lie on the floor.
 5. Bundle adjustment (``scipy.optimize.least_squares``, soft-L1 loss with a 1 px scale) over
    every camera pose (6 values), every camera's focal length (held to its lens file's by a prior,
    :data:`FOCAL_PRIOR`: the board places at known distances apart pin it down better than a board
    clip held up close) and every other board position, which lies on the same floor
-   (x, y, yaw), minimising the corners' reprojection error in pixels through each lens model. A
+   (x, y, yaw) or, on a stand, anywhere (6 values), minimising the corners' reprojection error in pixels through each lens model. A
    camera's view of one position that the result misses by far more than its others (a board partly
    hidden, found a square off) is left out and the chain adjusted again (:data:`WRONG_SIGHTING_PX`).
    Each camera's 95 % bounds on its position and orientation come from the adjustment's covariance
@@ -72,6 +74,10 @@ that the bounds carry the lens's own error: a focal length 0.2 % long puts a cam
 1 cm too far along its view. ``calibrate intrinsics`` fitted the tuning worlds' rendered board clips
 within 0.03-0.27 % (30 views). Tsai lenses keep theirs."""
 ROUGH_BOARD_Z_M = 0.6
+RAISED_M = 0.3
+"""A board position whose squares' centre the chain puts higher than this above the floor stood on a stand
+(an easel) and keeps its whole pose (a board on the floor, seen small and far, comes out a few centimetres
+off the floor at most; on a stand its centre is half a metre up or more)."""
 ROUGH_AGREE_M = 1.2
 
 
@@ -228,21 +234,28 @@ def calibrate_floor(sightings: list[Sighting], intrinsics: dict[str, Camera], bo
     poses = {id(s): _pnp(intrinsics[s.cam_id], s.points(obj), s.corners) for s in sightings}
     sightings = [_drop_stray_corners(s, intrinsics[s.cam_id], s.points(obj), poses.pop(id(s)), poses)
                  for s in sightings]
+    centre_b = obj.mean(axis=0)
+    _first_on_floor(sightings, intrinsics, obj, rough)
     while True:
-        cams0, boards0 = _chain(sightings, poses, cam_ids)
-        cams_bf, focal, boards, spread, view_err = _adjust(sightings, intrinsics, obj, cams0, boards0)
+        cams0, boards0, raised = _chain(sightings, poses, cam_ids, centre_b)
+        cams_bf, focal, boards, spread, view_err = _adjust(sightings, intrinsics, obj, cams0, boards0, raised)
         wrong = _wrong_sighting(sightings, view_err)
         if wrong is None:
             break
         rest = [s for s in sightings if s is not wrong]
         try:
-            _chain(rest, poses, cam_ids)
+            _chain(rest, poses, cam_ids, centre_b)
         except FloorError:
             break   # the chain needs it: keep it, and let its camera's error show
         notes.append(f"camera {wrong.cam_id}'s view of board position {wrong.position + 1} (frames {wrong.start}-"
                      f"{wrong.stop}) disagreed with the others and was left out (the board partly hidden, or its "
                      f"corners found a square off)")
         sightings = rest
+    for p in sorted(raised):
+        R_wb, t_wb = boards[p]
+        tilt = math.degrees(math.acos(min(1.0, abs(float(R_wb[2, 2])))))
+        notes.append(f"board position {p + 1} stood {float((R_wb @ centre_b + t_wb)[2]):.2f} m above the floor, "
+                     f"{tilt:.0f} degrees from lying flat (on a stand): its whole pose was fitted")
     board_cameras = {c: intrinsics[c].with_focal_scale(focal[c]).with_pose(*cams_bf[c]) for c in cam_ids}
     residual = None
     if plan_points is not None:
@@ -394,6 +407,23 @@ def _orient(sightings, intrinsics, board: Board, rough, notes: list[str]) -> lis
     return out
 
 
+def _first_on_floor(sightings, intrinsics, obj, rough) -> None:
+    """FloorError when the cameras' present calibrations put the first board position, which defines the
+    floor frame, well off the floor (set up on a stand); nothing to check without them."""
+    heights = []
+    for s in sightings:
+        r = rough.get(s.cam_id) if s.position == 0 else None
+        if r is not None:
+            R, t = _pnp(intrinsics[s.cam_id], s.points(obj), s.corners)
+            heights.append(float((r.R.T @ (R @ s.points(obj).mean(axis=0) + t - r.t))[2]))
+    if heights and float(np.median(heights)) > ROUGH_BOARD_Z_M:
+        first = min(s.start for s in sightings if s.position == 0)
+        raise FloorError(f"the first board position (from frame {first}) stood about {float(np.median(heights)):.1f} m "
+                         "above the floor by the site's present calibrations: lay the board flat on the floor first "
+                         "(it defines the floor frame), then set it up on a stand where the cameras share no place "
+                         "of the floor")
+
+
 def _wrong_sighting(sightings, errs: list[float]) -> Sighting | None:
     """The sighting the adjusted poses explain worst, when it is wrong rather than noisy: its mean error
     (``errs``, px, one per sighting) above :data:`WRONG_SIGHTING_PX` and four times the median sighting's,
@@ -437,15 +467,18 @@ def _pnp(cam: Camera, obj: np.ndarray, corners: np.ndarray) -> tuple[np.ndarray,
     return rodrigues_to_matrix(rvec.ravel()), tvec.ravel()
 
 
-def _chain(sightings, poses, cam_ids):
-    """Initial camera poses (board frame -> camera (R, t)) and board positions ((x, y, yaw_rad)) by
-    breadth-first placement from position 0; FloorError naming the cameras no chain reaches."""
+def _chain(sightings, poses, cam_ids, centre_b: np.ndarray):
+    """Initial camera poses (board frame -> camera (R, t)), board positions (board -> floor frame (R, t))
+    and the positions that stood on a stand (:data:`RAISED_M`; ``centre_b`` (3,) the squares' centre in the
+    board frame), by breadth-first placement from position 0; FloorError naming the cameras no chain
+    reaches."""
     seen = {s.cam_id for s in sightings}
     missing = [c for c in cam_ids if c not in seen]
     if missing:
         raise FloorError(f"camera(s) {', '.join(missing)}: no board sighting")
     cams: dict[str, tuple[np.ndarray, np.ndarray]] = {}
     boards: dict[int, tuple[np.ndarray, np.ndarray]] = {0: (np.eye(3), np.zeros(3))}   # board -> world
+    raised: set[int] = set()
     queue = deque([("pos", 0)])
     while queue:
         kind, key = queue.popleft()
@@ -460,29 +493,35 @@ def _chain(sightings, poses, cam_ids):
                 R_cw, t_cw = cams[key]
                 R_wb = R_cw.T @ R_cb
                 t_wb = R_cw.T @ (t_cb - t_cw)
-                yaw = math.atan2(R_wb[1, 0], R_wb[0, 0])   # onto the floor: keep the turn about Z
-                boards[s.position] = (_rz(math.degrees(yaw)), np.array([t_wb[0], t_wb[1], 0.0]))
+                if (R_wb @ centre_b + t_wb)[2] > RAISED_M:   # on a stand: as it stood
+                    boards[s.position] = (R_wb, t_wb)
+                    raised.add(s.position)
+                else:
+                    yaw = math.atan2(R_wb[1, 0], R_wb[0, 0])   # onto the floor: keep the turn about Z
+                    boards[s.position] = (_rz(math.degrees(yaw)), np.array([t_wb[0], t_wb[1], 0.0]))
                 queue.append(("pos", s.position))
     cut = [c for c in cam_ids if c not in cams]
     if cut:
         linked = sorted(cams)
         raise FloorError(f"camera(s) {', '.join(cut)} share no board position with {', '.join(linked)} (the cameras "
-                         "that see the first one): lay the board where one of them and one of these see it at once")
-    return cams, boards
+                         "that see the first one): lay the board where one of them and one of these see it at once, "
+                         "on the floor or set up on a stand")
+    return cams, boards, raised
 
 
-def _adjust(sightings, intrinsics, obj, cams0, boards0):
+def _adjust(sightings, intrinsics, obj, cams0, boards0, raised: set[int] = frozenset()):
     cam_ids = sorted(cams0)
     pos_ids = sorted(p for p in boards0 if p != 0)
     x0 = []
     for c in cam_ids:
         R, t = cams0[c]
         x0 += [*matrix_to_rodrigues(R), *t]
+    pi = {}
     for p in pos_ids:
         R, t = boards0[p]
-        x0 += [t[0], t[1], math.atan2(R[1, 0], R[0, 0])]
+        pi[p] = len(x0)
+        x0 += [*matrix_to_rodrigues(R), *t] if p in raised else [t[0], t[1], math.atan2(R[1, 0], R[0, 0])]
     ci = {c: 6 * k for k, c in enumerate(cam_ids)}
-    pi = {p: 6 * len(cam_ids) + 3 * k for k, p in enumerate(pos_ids)}
     # each camera's focal length as the log of its scale over the lens file's (Tsai lenses: held)
     free = [c for c in cam_ids if intrinsics[c].model != "tsai"]
     fi = {c: len(x0) + k for k, c in enumerate(free)}
@@ -490,9 +529,13 @@ def _adjust(sightings, intrinsics, obj, cams0, boards0):
     groups = [(ci[s.cam_id], pi.get(s.position), fi.get(s.cam_id), intrinsics[s.cam_id], s.corners[s.kept],
                s.points(obj)[s.kept]) for s in sightings]
 
+    stands = {pi[p] for p in raised}
+
     def unpack_board(x, j):
         if j is None:
             return np.eye(3), np.zeros(3)
+        if j in stands:
+            return rodrigues_to_matrix(x[j:j + 3]), x[j + 3:j + 6].copy()
         return _rz(math.degrees(x[j + 2])), np.array([x[j], x[j + 1], 0.0])
 
     def residuals(x):

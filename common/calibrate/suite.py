@@ -12,7 +12,8 @@
    still refines (:data:`common.calibrate.floor.FOCAL_PRIOR`);
 2. the floor: a 9x6 chessboard of 140 mm (or, where the command refuses it because no chain of
    places reaches every camera, a floor mat of 250 mm squares, then a ChArUco mat of the same size
-   that counts where a camera reads only part of it: :data:`FLOOR_BOARDS`) laid at the places the installer's instructions lead to
+   that counts where a camera reads only part of it, then the 140 mm chessboard set up on a stand
+   where no place of the floor chains a camera: :data:`FLOOR_BOARDS`) laid at the places the installer's instructions lead to
    (:func:`common.synth.board.floor_positions` with ``well_seen``: a chain of places seen by two
    cameras or more, plus, for each camera that saw the board only small, a place it sees as large
    as it can among those another camera also sees), every camera recording every place (a camera
@@ -57,11 +58,15 @@ image; the larger first, the smaller where no chain of larger ones reaches every
 the finder takes at least, :data:`common.calibrate.floor.MIN_FLOOR_AREA`, so that the views that
 chain the cameras are found). A world no chain of them reaches is reported as refused: its room is
 too large for the board."""
-FLOOR_BOARDS = (Board(9, 6, 0.14), Board(9, 6, 0.25), CharucoBoard(10, 7, 0.25, 0.1875, "4x4_50"))
-"""The floor boards, each tried where the one before cannot chain the cameras: an A0-sized 9x6 chessboard
-(1.4 x 1 m); a chessboard mat of 250 mm squares (2.5 x 1.75 m) for a large room or cameras far apart;
-a ChArUco mat of the same size (10x7 squares, 4x4 markers of 187.5 mm), which counts where a camera
-sees it only in part, for a room whose furniture or cameras' views leave no place seen whole by two."""
+FLOOR_BOARDS = ((Board(9, 6, 0.14), False), (Board(9, 6, 0.25), False),
+                (CharucoBoard(10, 7, 0.25, 0.1875, "4x4_50"), False), (Board(9, 6, 0.14), True))
+"""The floor boards, each tried where the one before cannot chain the cameras, and whether it may be set up
+on a stand: an A0-sized 9x6 chessboard (1.4 x 1 m); a chessboard mat of 250 mm squares (2.5 x 1.75 m) for a
+large room or cameras far apart; a ChArUco mat of the same size (10x7 squares, 4x4 markers of 187.5 mm),
+which counts where a camera sees it only in part, for a room whose furniture or cameras' views leave no
+place seen whole by two; the A0 chessboard again, first on the floor, then on a stand
+(:func:`common.synth.board.stand_pose`, its centre 1.2 m up) where no place of the floor reaches a camera:
+cameras level with the room, or looking across furniture, see the air above the floor together."""
 LENS_VIEWS = {"pinhole": 30, "fisheye": 30}
 
 
@@ -118,28 +123,28 @@ def run_world(seed: int, work: Path, *, lenses: bool = False, heed: bool = True)
         for k, (c, true) in enumerate(world.cameras.items()):
             intrinsics[c] = fit_lens(true, work / f"lens-{c}", seed * 100 + k)
     refusals = []
-    for k, board in enumerate(FLOOR_BOARDS):
-        out = _floor_world(world, intrinsics, board, work / f"board{k}", heed=heed)
+    for k, (board, stand) in enumerate(FLOOR_BOARDS):
+        out = _floor_world(world, intrinsics, board, work / f"board{k}", heed=heed, stand=stand)
         out["refused_with"] = refusals
         if "error" not in out:
             break
-        refusals.append(f"{board.describe()}: {out['error']}")
+        refusals.append(f"{_board_name(board, stand)}: {out['error']}")
     out["seconds"] = time.perf_counter() - t0
     return out
 
 
-def _floor_world(world, intrinsics, board, work: Path, *, heed: bool) -> dict[str, Any]:
+def _floor_world(world, intrinsics, board, work: Path, *, heed: bool, stand: bool = False) -> dict[str, Any]:
     from common.calibrate.floor import FloorError
-    from common.synth.board import floor_positions, more_floor_positions
+    from common.synth.board import floor_positions, more_floor_positions, on_stand
 
     seed = world.seed
-    out: dict[str, Any] = {"seed": seed, "rig": world.rig, "board": _board_name(board), "cameras": {},
+    out: dict[str, Any] = {"seed": seed, "rig": world.rig, "board": _board_name(board, stand), "cameras": {},
                            "warned_first": []}
     poses = None
     for min_area in PLACE_AREAS:   # a large room, or far cameras: places seen smaller
         try:
             poses = floor_positions(world.cameras, world.room, board, np.random.default_rng(seed), min_area=min_area,
-                                    well_seen=WELL_SEEN)
+                                    well_seen=WELL_SEEN, stand=stand)
             break
         except ValueError as exc:
             why = str(exc)
@@ -153,12 +158,13 @@ def _floor_world(world, intrinsics, board, work: Path, *, heed: bool) -> dict[st
             rng = np.random.default_rng([seed, 1])
             for c in warned:
                 poses = poses + more_floor_positions(world.cameras, world.room, board, rng, c, poses,
-                                                     min_area=min_area)
+                                                     min_area=min_area, stand=stand)
             result = _calibrate(world, intrinsics, board, poses, work / "floor-again")
     except FloorError as exc:
         out["error"] = str(exc)
         return out
     out["places"] = len(poses)
+    out["stand_places"] = sum(1 for pose in poses if on_stand(board, pose))
     for c, true in world.cameras.items():
         got, rep = result.cameras[c], result.reports[c]
         out["cameras"][c] = {
@@ -182,9 +188,9 @@ def _calibrate(world, intrinsics, board, poses, folder: Path):
                            board, plan_points=plan_points(board, poses[0]))
 
 
-def _board_name(board) -> str:
+def _board_name(board, stand: bool = False) -> str:
     kind = "ChArUco mat" if isinstance(board, CharucoBoard) else "chessboard"
-    return f"{kind} of {1000 * board.square_m:.0f} mm squares"
+    return f"{kind} of {1000 * board.square_m:.0f} mm squares{', on the floor and on a stand' if stand else ''}"
 
 
 def _on_target(v: dict) -> bool:
@@ -245,7 +251,8 @@ def _report(r: dict) -> None:
         print(f"  world {r['seed']} ({r['rig']}): refused: {r['error']}", flush=True)
         return
     again = f", board laid again for {', '.join(r['warned_first'])}" if r["warned_first"] else ""
-    print(f"  world {r['seed']} ({r['rig']}, {r['board']}, {r['places']} board places{again}, "
+    stands = f" ({r['stand_places']} on a stand)" if r.get("stand_places") else ""
+    print(f"  world {r['seed']} ({r['rig']}, {r['board']}, {r['places']} board places{stands}{again}, "
           f"{r['seconds']:.0f} s):", flush=True)
     for c, v in r["cameras"].items():
         flag = "" if _on_target(v) else "  OUTSIDE"

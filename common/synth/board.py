@@ -35,6 +35,8 @@ from common.synth.render import SURF_FLOOR, CameraRenderer, raycast_room
 from common.synth.scene import Room
 
 BLACK, WHITE = 28.0, 220.0
+BACK = 150.0
+"""The grey of a board's blank back (a board on a stand seen from behind)."""
 FLOOR_MIN_AREA = 0.006
 """A floor position counts as seen by a camera when the board covers at least this share of its image."""
 FLOOR_MAX_SLANT_DEG = 78.0
@@ -46,6 +48,13 @@ CHARUCO_MARKER_PX = 12.0
 pixels across along both of the board's axes (two pixels a cell of a 4x4 marker and its border)."""
 SHEET_PX_PER_SQUARE = 64
 """Pixels a square of a ChArUco sheet's image (its markers' bits are a few pixels wide at least)."""
+STAND_HEIGHT_M = 1.2
+"""The height of the squares' centre of a chessboard set up on a stand (an easel): above most furniture,
+so that cameras looking across a furnished room, or level with the room, see it where they share no
+place of the floor."""
+STAND_TILTS_DEG = (0.0, 35.0)
+"""A board on a stand stands upright or leans back by this much (its face turned up towards cameras
+high in the corners)."""
 
 
 class BoardRenderer:
@@ -115,6 +124,8 @@ class BoardRenderer:
                 i, j = np.floor(bx) + 1, np.floor(by) + 1
                 squares = (i >= 0) & (i <= board.cols) & (j >= 0) & (j <= board.rows)
                 value = np.where(squares & (np.mod(i + j, 2) == 0), BLACK, WHITE)
+            if _face_normal(board, R_wb) @ (self.centre - t_wb) < 0:   # seen from behind: the sheet's blank back
+                value = np.full_like(value, BACK)
             share = on.mean(axis=2)
             board_value = np.where(on, value, 0.0).sum(axis=2) / np.maximum(on.sum(axis=2), 1)
             img[y0:y1, x0:x1] = img[y0:y1, x0:x1] * (1.0 - share) + board_value * share
@@ -132,6 +143,27 @@ class BoardRenderer:
         on = (col >= 0) & (col < sheet.shape[1]) & (row >= 0) & (row < sheet.shape[0])
         value = sheet[np.where(on, row, 0).astype(np.intp), np.where(on, col, 0).astype(np.intp)]
         return on, value
+
+
+def _face_normal(board: Board | CharucoBoard, R: np.ndarray) -> np.ndarray:
+    """(3,) the world direction the printed face of a board turned by ``R`` (board -> world) looks to: a
+    chessboard's Z, a ChArUco board's minus Z (OpenCV's frame, Z into the sheet)."""
+    n = np.asarray(R, dtype=np.float64)[:, 2]
+    return -n if isinstance(board, CharucoBoard) else n
+
+
+def on_stand(board: Board | CharucoBoard, pose) -> bool:
+    """Whether the board at ``pose`` stands on a stand rather than lying on the floor (its squares' centre
+    over 5 cm up)."""
+    R, t = (np.asarray(a, dtype=np.float64) for a in pose)
+    return bool((R @ _board_centre(board) + t)[2] > 0.05)
+
+
+def place_area(camera: Camera, room: Room | None, board: Board | CharucoBoard, pose, *, min_area: float = 0.0) -> float:
+    """:func:`stand_area` of a board on a stand (:func:`on_stand`), else :func:`floor_area`."""
+    if on_stand(board, pose):
+        return stand_area(camera, room, board, pose, min_area=min_area)
+    return floor_area(camera, room, board, pose, min_area=min_area)
 
 
 def corners_world(board: Board | CharucoBoard, pose) -> np.ndarray:
@@ -263,20 +295,27 @@ def _charuco_floor_area(camera: Camera, room: Room | None, board: CharucoBoard, 
 
 def floor_positions(cameras: dict[str, Camera], room: Room, board: Board | CharucoBoard, rng: np.random.Generator, *,
                     max_positions: int = 8, step_m: float = 0.4, min_area: float = FLOOR_MIN_AREA,
-                    well_seen: float = 0.0) -> list:
+                    well_seen: float = 0.0, stand: bool = False) -> list:
     """Board poses on the floor (Z = 0) that chain every camera: the first is the place most cameras
     see, each next one is seen by a camera already chained and by the most cameras not yet chained.
     With ``well_seen`` > 0, as an installer is told to: each camera whose views so far are all under
     ``well_seen`` times the largest view it can have of a place another camera also sees gets that
-    place too. ValueError naming the cameras left out when no such chain exists."""
+    place too. With ``stand`` (a chessboard), where no place on the floor reaches a camera not yet
+    chained, the board set up on a stand (:func:`stand_pose`) at a place a chained camera sees too; the
+    first place always lies on the floor (it is the floor frame). ValueError naming the cameras left
+    out when no such chain exists."""
     cands = _floor_candidates(cameras, room, board, rng, step_m, min_area)
     if not cands:
         raise ValueError("no floor position is seen by any camera")
+    raised = _stand_candidates(cameras, room, board, rng, 2 * step_m, min_area) if stand else []
     picked = [max(cands, key=lambda c: len(c[1]))]
     chained = set(picked[0][1])
     while chained != set(cameras) and len(picked) < max_positions:
-        best = max(cands, key=lambda c: (bool(c[1] & chained) * len(c[1] - chained)))
-        if not (best[1] & chained) or not (best[1] - chained):
+        for pool in (cands, raised):
+            best = max(pool, key=lambda c: (bool(c[1] & chained) * len(c[1] - chained)), default=None)
+            if best is not None and best[1] & chained and best[1] - chained:
+                break
+        else:
             break
         picked.append(best)
         chained |= best[1]
@@ -284,7 +323,7 @@ def floor_positions(cameras: dict[str, Camera], room: Room, board: Board | Charu
         raise ValueError(f"cameras {sorted(set(cameras) - chained)} share no floor position with the others")
     if well_seen > 0.0:
         for c in cameras:
-            shared = [k for k in cands if c in k[1] and len(k[1]) >= 2]
+            shared = [k for k in cands + raised if c in k[1] and len(k[1]) >= 2]
             if not shared:
                 continue
             best = max(shared, key=lambda k: k[2][c])
@@ -295,14 +334,17 @@ def floor_positions(cameras: dict[str, Camera], room: Room, board: Board | Charu
 
 def more_floor_positions(cameras: dict[str, Camera], room: Room, board: Board | CharucoBoard, rng: np.random.Generator,
                          cam_id: str, taken: list, *, count: int = 2, step_m: float = 0.4,
-                         min_area: float = FLOOR_MIN_AREA, apart_m: float = 0.5) -> list:
+                         min_area: float = FLOOR_MIN_AREA, apart_m: float = 0.5, stand: bool = False) -> list:
     """Up to ``count`` more board poses for camera ``cam_id``, as an installer lays the board again when the
     calibration warns that it is not pinned down: the places it sees largest among those another camera
-    sees too, at least ``apart_m`` from the places ``taken`` and from each other."""
+    sees too, at least ``apart_m`` from the places ``taken`` and from each other (with ``stand``, places
+    with the board on a stand count too)."""
     centres = [p[1] + p[0] @ _board_centre(board) for p in taken]
     out = []
-    for pose, seen, areas in sorted(_floor_candidates(cameras, room, board, rng, step_m, min_area),
-                                    key=lambda k: -k[2][cam_id]):
+    cands = _floor_candidates(cameras, room, board, rng, step_m, min_area)
+    if stand:
+        cands += _stand_candidates(cameras, room, board, rng, 2 * step_m, min_area)
+    for pose, seen, areas in sorted(cands, key=lambda k: -k[2][cam_id]):
         if len(out) >= count:
             break
         centre = pose[1] + pose[0] @ _board_centre(board)
@@ -339,6 +381,87 @@ def _floor_candidates(cameras, room, board, rng, step_m: float, min_area: float)
             seen = {c for c, a in areas.items() if a >= min_area}
             if seen:
                 cands.append(((R, t), seen, areas))
+    return cands
+
+
+def stand_pose(board: Board, x: float, y: float, yaw: float, tilt_deg: float = 0.0,
+               height_m: float = STAND_HEIGHT_M) -> tuple[np.ndarray, np.ndarray]:
+    """The world pose ``(R_wb, t_wb)`` of a chessboard set up on a stand: its squares' centre ``height_m``
+    above the floor at ``(x, y)``, its printed face towards the floor direction ``yaw`` (radians) and
+    leaning back by ``tilt_deg``, its rows level."""
+    t = math.radians(tilt_deg)
+    normal = np.array([math.cos(yaw) * math.cos(t), math.sin(yaw) * math.cos(t), math.sin(t)])
+    x_axis = np.array([-math.sin(yaw), math.cos(yaw), 0.0])
+    R = np.stack([x_axis, np.cross(normal, x_axis), normal], axis=1)
+    return R, np.array([x, y, height_m]) - R @ _board_centre(board)
+
+
+def stand_area(camera: Camera, room: Room | None, board: Board, pose, *, min_area: float = 0.0) -> float:
+    """The share of ``camera``'s image a chessboard on a stand at ``pose`` covers (its inner corners'
+    hull), or 0 when the camera does not see the whole sheet from its printed side, sees it edge-on
+    (past :data:`FLOOR_MAX_SLANT_DEG`), something in the room stands in front of it, or it covers less
+    than ``min_area``."""
+    R = np.asarray(pose[0], dtype=np.float64)
+    pts = _sheet_corners(board, pose)
+    uv, valid = camera.project(pts)
+    m = 6
+    if not valid.all() or uv[:, 0].min() < m or uv[:, 1].min() < m or uv[:, 0].max() > camera.width - 1 - m \
+            or uv[:, 1].max() > camera.height - 1 - m:
+        return 0.0
+    d = pts - camera.center
+    dist = np.linalg.norm(d, axis=1)
+    slant = np.degrees(np.arccos(np.clip(-(d @ R[:, 2]) / dist, -1, 1)))
+    if slant.max() > FLOOR_MAX_SLANT_DEG:
+        return 0.0
+    inner_w = corners_world(board, pose)
+    inner, _ = camera.project(inner_w)
+    hull = cv2.convexHull(inner.astype(np.float32).reshape(-1, 1, 2))
+    area = float(cv2.contourArea(hull)) / (camera.width * camera.height)
+    if area < min_area:
+        return 0.0
+    if room is not None:   # nothing (furniture, a wall) between the camera and the sheet
+        d = np.concatenate([d, inner_w - camera.center])
+        dist = np.linalg.norm(d, axis=1)
+        hits = raycast_room(room, camera.center, d / dist[:, None])
+        if not np.all(hits.t > dist - 0.02):
+            return 0.0
+    return area
+
+
+def _stand_free(room: Room, board: Board, pose) -> bool:
+    """Whether a board on a stand at ``pose`` stands clear: nothing under its centre down to the floor,
+    nothing between its centre and its sheet's corners (furniture, a wall)."""
+    R, t = pose
+    centre = np.asarray(t) + np.asarray(R) @ _board_centre(board)
+    corners = _sheet_corners(board, pose)
+    d = np.concatenate([[[0.0, 0.0, -centre[2]]], corners - centre])
+    dist = np.linalg.norm(d, axis=1)
+    hits = raycast_room(room, centre, d / dist[:, None])
+    return bool(np.all(hits.t > dist - 0.02))
+
+
+def _stand_candidates(cameras, room, board, rng, step_m: float, min_area: float) -> list:
+    """``[(pose, cameras seeing it, camera -> area)]`` of a chessboard on a stand over a lattice of the
+    room's floor, facing twelve ways at a random start, upright and leaning back
+    (:data:`STAND_TILTS_DEG`), kept where it stands clear and two cameras or more see it."""
+    if not isinstance(board, Board):
+        return []
+    (x0, y0), (x1, y1) = room.volume_rect_m
+    cands = []
+    for x in np.arange(x0 + 0.5, x1 - 0.5, step_m):
+        for y in np.arange(y0 + 0.5, y1 - 0.5, step_m):
+            start = rng.uniform(0, 2 * math.pi)
+            for k in range(12):
+                for tilt in STAND_TILTS_DEG:
+                    pose = stand_pose(board, x, y, start + k * math.pi / 6, tilt)
+                    areas = {c: stand_area(cam, None, board, pose, min_area=min_area) for c, cam in cameras.items()}
+                    if sum(a >= min_area for a in areas.values()) < 2 or not _stand_free(room, board, pose):
+                        continue
+                    areas = {c: stand_area(cameras[c], room, board, pose, min_area=min_area) if a >= min_area else 0.0
+                             for c, a in areas.items()}
+                    seen = {c for c, a in areas.items() if a >= min_area}
+                    if len(seen) >= 2:
+                        cands.append((pose, seen, areas))
     return cands
 
 
