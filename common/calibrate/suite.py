@@ -23,7 +23,8 @@
 3. :func:`common.calibrate.floor.calibrate_floor` on the corners found, as the command runs it;
 4. as the command's warning tells the installer: for each camera whose bounds exceed the targets,
    the board laid at two more places that camera sees well (and another camera too), and the
-   whole calibration recorded again (``--no-heed``: the first result stands).
+   whole calibration recorded again, up to :data:`HEED_ROUNDS` times while the command still warns
+   (``--no-heed``: the first result stands).
 
 Per camera it reports the position error (cm) and the angle error (degrees) against the world's
 true camera, and the bounds the calibration itself gave (its 95 % uncertainty, which the command
@@ -68,6 +69,9 @@ place seen whole by two; the A0 chessboard again, first on the floor, then on a 
 (:func:`common.synth.board.stand_pose`, its centre 1.2 m up) where no place of the floor reaches a camera:
 cameras level with the room, or looking across furniture, see the air above the floor together."""
 LENS_VIEWS = {"pinhole": 30, "fisheye": 30}
+HEED_ROUNDS = 2
+"""How many times the installer records again for the cameras the command still warns of (each time two
+more places for each, where it has not been laid yet)."""
 
 
 def angle_between_deg(Ra: np.ndarray, Rb: np.ndarray) -> float:
@@ -154,12 +158,20 @@ def _floor_world(world, intrinsics, board, work: Path, *, heed: bool, stand: boo
         result = _calibrate(world, intrinsics, board, poses, work / "floor")
         warned = [c for c, rep in result.reports.items() if not rep.pinned]
         out["warned_first"] = warned
-        if warned and heed:
-            rng = np.random.default_rng([seed, 1])
+        rounds = HEED_ROUNDS if heed else 0
+        for k in range(rounds):
+            if not warned:
+                break
+            rng = np.random.default_rng([seed, 1 + k])
+            before = len(poses)
             for c in warned:
                 poses = poses + more_floor_positions(world.cameras, world.room, board, rng, c, poses,
                                                      min_area=min_area, stand=stand)
-            result = _calibrate(world, intrinsics, board, poses, work / "floor-again")
+            if len(poses) == before:
+                break   # nowhere left to lay it for them
+            result = _calibrate(world, intrinsics, board, poses, work / f"floor-again{k + 1}")
+            warned = [c for c, rep in result.reports.items() if not rep.pinned]
+            out["heed_rounds"] = k + 1
     except FloorError as exc:
         out["error"] = str(exc)
         return out
@@ -250,7 +262,8 @@ def _report(r: dict) -> None:
     if "error" in r:
         print(f"  world {r['seed']} ({r['rig']}): refused: {r['error']}", flush=True)
         return
-    again = f", board laid again for {', '.join(r['warned_first'])}" if r["warned_first"] else ""
+    rounds = f" ({r['heed_rounds']} rounds)" if r.get("heed_rounds", 0) > 1 else ""
+    again = f", board laid again for {', '.join(r['warned_first'])}{rounds}" if r["warned_first"] else ""
     stands = f" ({r['stand_places']} on a stand)" if r.get("stand_places") else ""
     print(f"  world {r['seed']} ({r['rig']}, {r['board']}, {r['places']} board places{stands}{again}, "
           f"{r['seconds']:.0f} s):", flush=True)
