@@ -266,7 +266,7 @@ def test_intrinsics_then_floor_recover_a_whole_rig(tmp_path):
 # ---------------------------------------------------------------------- bounds and wrong views (no rendering)
 
 
-def _exact_sightings(world, poses, *, noise_px: float = 0.0, rng=None, min_area: float = 0.0015) -> list:
+def _exact_sightings(world, poses, *, noise_px: float = 0.0, rng=None, min_area: float = 0.0015, board=BOARD) -> list:
     """Every camera's view of every place it sees whole: the true corners through its true lens, with
     ``noise_px`` of Gaussian noise per coordinate; position k covers frames 10k..10k+5."""
     from common.calibrate.board import board_area_fraction
@@ -276,9 +276,9 @@ def _exact_sightings(world, poses, *, noise_px: float = 0.0, rng=None, min_area:
     out = []
     for k, pose in enumerate(poses):
         for cam_id, cam in world.cameras.items():
-            if place_area(cam, world.room, BOARD, pose) < min_area:
+            if place_area(cam, world.room, board, pose) < min_area:
                 continue
-            uv, _ = cam.project(corners_world(BOARD, pose))
+            uv, _ = cam.project(corners_world(board, pose))
             if noise_px:
                 uv = uv + rng.normal(0.0, noise_px, uv.shape)
             out.append(Sighting(cam_id, 10 * k, 10 * k + 5, uv, board_area_fraction(uv, cam.width, cam.height)))
@@ -494,6 +494,20 @@ def test_the_first_board_place_must_lie_on_the_floor(stand_world):
     sightings = _exact_sightings(world, poses, noise_px=0.1, rng=np.random.default_rng(1))
     with pytest.raises(FloorError, match="stood about 1.2 m above the floor .* lay the board flat on the floor first"):
         calibrate_floor(sightings, world.cameras, BOARD, plan_points=_plan_points(BOARD, poses[0]),
+                        rough=_rough(world.cameras))
+
+
+def test_a_board_that_looks_the_same_turned_half_round_is_refused_on_a_stand(stand_world):
+    """An 8x6 board (the lab's) looks the same turned half round: on the floor the cameras' rough poses tell
+    its ends apart by where it lies; set up on a stand the calibration refuses it, naming the place and
+    what board to use."""
+    from common.calibrate.floor import FloorError
+
+    world, poses = stand_world
+    even = Board(8, 6, 0.14)
+    sightings = _exact_sightings(world, poses, noise_px=0.1, rng=np.random.default_rng(1), board=even)
+    with pytest.raises(FloorError, match="8x6 looks the same turned half round: set up on a stand .* 9x6"):
+        calibrate_floor(sightings, world.cameras, even, plan_points=_plan_points(even, poses[0]),
                         rough=_rough(world.cameras))
 
 

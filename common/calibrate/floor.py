@@ -390,6 +390,11 @@ def _orient(sightings, intrinsics, board: Board, rough, notes: list[str]) -> lis
             centres.append(r.R.T @ (R @ centre_b + t - r.t))
             axes.append(R_wb[:, 0])
         centres = np.array(centres)
+        if float(np.median(centres[:, 2])) > RAISED_M:
+            raise FloorError(
+                f"board {board.cols}x{board.rows} looks the same turned half round: set up on a stand (board position "
+                f"{pos + 1}) its ends cannot be told apart; use a board with one odd count (e.g. "
+                f"{board.cols + 1}x{board.rows})")
         bad = [s.cam_id for s, c in zip(group, centres) if abs(c[2]) > ROUGH_BOARD_Z_M
                or np.linalg.norm(c[:2] - np.median(centres[:, :2], axis=0)) > ROUGH_AGREE_M]
         if bad:
