@@ -195,7 +195,8 @@ def _subpix_window(corners: np.ndarray, board: Board) -> int:
 def _find_from_above(gray, board: Board, camera: Camera, rough_pose) -> np.ndarray | None:
     """Corners found in views from above (:func:`_find_resampled`)."""
     windows = _candidate_windows(gray)
-    return _find_resampled(gray, board, camera, ((R, w) for R in _downward_rotations(camera, rough_pose) for w in windows))
+    views = ((R, w) for R in _downward_rotations(camera, rough_pose) for w in windows)
+    return _find_resampled(gray, board, camera, views)
 
 
 def _find_straightened(gray, board: Board, camera: Camera) -> np.ndarray | None:

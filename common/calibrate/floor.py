@@ -21,10 +21,11 @@ stretches of different cameras that overlap in time show the same board position
 5. Bundle adjustment (``scipy.optimize.least_squares``, soft-L1 loss with a 1 px scale) over
    every camera pose (6 values), every camera's focal length (held to its lens file's by a prior,
    :data:`FOCAL_PRIOR`: the board places at known distances apart pin it down better than a board
-   clip held up close) and every other board position, which lies on the same floor
-   (x, y, yaw) or, on a stand, anywhere (6 values), minimising the corners' reprojection error in pixels through each lens model. A
-   camera's view of one position that the result misses by far more than its others (a board partly
-   hidden, found a square off) is left out and the chain adjusted again (:data:`WRONG_SIGHTING_PX`).
+   clip held up close) and every other board position, which lies on the same floor (x, y, yaw)
+   or, on a stand, anywhere (6 values), minimising the corners' reprojection error in pixels
+   through each lens model. A camera's view of one position that the result misses by far more
+   than its others (a board partly hidden, found a square off) is left out and the chain adjusted
+   again (:data:`WRONG_SIGHTING_PX`).
    Each camera's 95 % bounds on its position and orientation come from the adjustment's covariance
    (:func:`pose_uncertainty`): how precisely its views of the board pin it down.
 6. Placement in the room: floor-plan points (board-frame floor coordinates <-> room coordinates,

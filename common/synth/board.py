@@ -240,29 +240,7 @@ def floor_area(camera: Camera, room: Room | None, board: Board | CharucoBoard, p
     (:data:`CHARUCO_FLOOR_CORNERS`)."""
     if isinstance(board, CharucoBoard):
         return _charuco_floor_area(camera, room, board, pose, min_area)
-    pts = _sheet_corners(board, pose)
-    uv, valid = camera.project(pts)
-    m = 6
-    if not valid.all() or uv[:, 0].min() < m or uv[:, 1].min() < m or uv[:, 0].max() > camera.width - 1 - m \
-            or uv[:, 1].max() > camera.height - 1 - m:
-        return 0.0
-    d = pts - camera.center
-    slant = np.degrees(np.arccos(np.clip(-d[:, 2] / np.linalg.norm(d, axis=1), -1, 1)))
-    if slant.max() > FLOOR_MAX_SLANT_DEG:
-        return 0.0
-    inner_w = corners_world(board, pose)
-    inner, _ = camera.project(inner_w)
-    hull = cv2.convexHull(inner.astype(np.float32).reshape(-1, 1, 2))
-    area = float(cv2.contourArea(hull)) / (camera.width * camera.height)
-    if area < min_area:
-        return 0.0
-    if room is not None:   # nothing in the room (a chair, a table) stands on or in front of the sheet
-        d = np.concatenate([d, inner_w - camera.center])
-        dist = np.linalg.norm(d, axis=1)
-        hits = raycast_room(room, camera.center, d / dist[:, None])
-        if not np.all((hits.surface == SURF_FLOOR) & (np.abs(hits.t - dist) < 0.02)):
-            return 0.0
-    return area
+    return _sheet_area(camera, room, board, pose, min_area, on_floor=True)
 
 
 def _charuco_floor_area(camera: Camera, room: Room | None, board: CharucoBoard, pose, min_area: float) -> float:
@@ -401,6 +379,13 @@ def stand_area(camera: Camera, room: Room | None, board: Board, pose, *, min_are
     hull), or 0 when the camera does not see the whole sheet from its printed side, sees it edge-on
     (past :data:`FLOOR_MAX_SLANT_DEG`), something in the room stands in front of it, or it covers less
     than ``min_area``."""
+    return _sheet_area(camera, room, board, pose, min_area, on_floor=False)
+
+
+def _sheet_area(camera: Camera, room: Room | None, board: Board, pose, min_area: float, *, on_floor: bool) -> float:
+    """The share of the image a chessboard's inner corners' hull covers, or 0 (see :func:`floor_area` and
+    :func:`stand_area`). ``on_floor``: the rays to the sheet must meet the floor there (nothing standing on
+    or in front of it); else only nothing in front of it."""
     R = np.asarray(pose[0], dtype=np.float64)
     pts = _sheet_corners(board, pose)
     uv, valid = camera.project(pts)
@@ -409,8 +394,7 @@ def stand_area(camera: Camera, room: Room | None, board: Board, pose, *, min_are
             or uv[:, 1].max() > camera.height - 1 - m:
         return 0.0
     d = pts - camera.center
-    dist = np.linalg.norm(d, axis=1)
-    slant = np.degrees(np.arccos(np.clip(-(d @ R[:, 2]) / dist, -1, 1)))
+    slant = np.degrees(np.arccos(np.clip(-(d @ R[:, 2]) / np.linalg.norm(d, axis=1), -1, 1)))
     if slant.max() > FLOOR_MAX_SLANT_DEG:
         return 0.0
     inner_w = corners_world(board, pose)
@@ -419,11 +403,12 @@ def stand_area(camera: Camera, room: Room | None, board: Board, pose, *, min_are
     area = float(cv2.contourArea(hull)) / (camera.width * camera.height)
     if area < min_area:
         return 0.0
-    if room is not None:   # nothing (furniture, a wall) between the camera and the sheet
+    if room is not None:   # nothing in the room (a chair, a table, a wall) stands on or in front of the sheet
         d = np.concatenate([d, inner_w - camera.center])
         dist = np.linalg.norm(d, axis=1)
         hits = raycast_room(room, camera.center, d / dist[:, None])
-        if not np.all(hits.t > dist - 0.02):
+        clear = (hits.surface == SURF_FLOOR) & (np.abs(hits.t - dist) < 0.02) if on_floor else hits.t > dist - 0.02
+        if not np.all(clear):
             return 0.0
     return area
 
