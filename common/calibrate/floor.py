@@ -75,6 +75,8 @@ that the bounds carry the lens's own error: a focal length 0.2 % long puts a cam
 1 cm too far along its view. ``calibrate intrinsics`` fitted the tuning worlds' rendered board clips
 within 0.03-0.27 % (30 views). Tsai lenses keep theirs."""
 ROUGH_BOARD_Z_M = 0.6
+"""By the site's present (rough) calibrations, a board lying on the floor is within this of it; one higher
+stood on a stand."""
 RAISED_M = 0.3
 """A board position whose squares' centre the chain puts higher than this above the floor stood on a stand
 (an easel) and keeps its whole pose (a board on the floor, seen small and far, comes out a few centimetres
@@ -391,7 +393,7 @@ def _orient(sightings, intrinsics, board: Board, rough, notes: list[str]) -> lis
             centres.append(r.R.T @ (R @ centre_b + t - r.t))
             axes.append(R_wb[:, 0])
         centres = np.array(centres)
-        if float(np.median(centres[:, 2])) > RAISED_M:
+        if float(np.median(centres[:, 2])) > ROUGH_BOARD_Z_M:   # by the rough poses: on a stand
             raise FloorError(
                 f"board {board.cols}x{board.rows} looks the same turned half round: set up on a stand (board position "
                 f"{pos + 1}) its ends cannot be told apart; use a board with one odd count (e.g. "
