@@ -280,7 +280,10 @@ def floor_positions(cameras: dict[str, Camera], room: Room, board: Board | Charu
     ``well_seen`` times the largest view it can have of a place another camera also sees gets that
     place too. With ``stand`` (a chessboard), where no place on the floor reaches a camera not yet
     chained, the board set up on a stand (:func:`stand_pose`) at a place a chained camera sees too; the
-    first place always lies on the floor (it is the floor frame). ValueError naming the cameras left
+    first place always lies on the floor (it is the floor frame); once the chain stands on a stand, the
+    board is also laid flat once in front of each camera that has no floor place yet, where it sees it
+    largest, even alone (a place on the floor ties the camera's height and tilt to the floor, which a
+    chain through stands leaves to the one floor place at its start). ValueError naming the cameras left
     out when no such chain exists."""
     cands = _floor_candidates(cameras, room, board, rng, step_m, min_area)
     if not cands:
@@ -307,6 +310,14 @@ def floor_positions(cameras: dict[str, Camera], room: Room, board: Board | Charu
             best = max(shared, key=lambda k: k[2][c])
             if max(k[2][c] for k in picked) < well_seen * best[2][c] and len(picked) < max_positions:
                 picked.append(best)
+    if any(any(k is r for r in raised) for k in picked):
+        floor = [k for k in picked if not any(k is r for r in raised)]
+        for c in cameras:
+            own = [k for k in cands if c in k[1]]
+            if own and not any(c in k[1] for k in floor):
+                tie = max(own, key=lambda k: k[2][c])
+                picked.append(tie)
+                floor.append(tie)
     return [p for p, _, _ in picked]
 
 
