@@ -238,7 +238,7 @@ def calibrate_floor(sightings: list[Sighting], intrinsics: dict[str, Camera], bo
     sightings = [_drop_stray_corners(s, intrinsics[s.cam_id], s.points(obj), poses.pop(id(s)), poses)
                  for s in sightings]
     centre_b = obj.mean(axis=0)
-    _first_on_floor(sightings, intrinsics, obj, rough)
+    _first_on_floor(sightings, poses, obj, rough)
     while True:
         cams0, boards0, raised = _chain(sightings, poses, cam_ids, centre_b)
         cams_bf, focal, boards, spread, view_err = _adjust(sightings, intrinsics, obj, cams0, boards0, raised)
@@ -415,14 +415,15 @@ def _orient(sightings, intrinsics, board: Board, rough, notes: list[str]) -> lis
     return out
 
 
-def _first_on_floor(sightings, intrinsics, obj, rough) -> None:
+def _first_on_floor(sightings, poses, obj, rough) -> None:
     """FloorError when the cameras' present calibrations put the first board position, which defines the
-    floor frame, well off the floor (set up on a stand); nothing to check without them."""
+    floor frame, well off the floor (set up on a stand); nothing to check without them. poses: id of a
+    sighting -> its board -> camera (R, t)."""
     heights = []
     for s in sightings:
         r = rough.get(s.cam_id) if s.position == 0 else None
         if r is not None:
-            R, t = _pnp(intrinsics[s.cam_id], s.points(obj), s.corners)
+            R, t = poses[id(s)]
             heights.append(float((r.R.T @ (R @ s.points(obj).mean(axis=0) + t - r.t))[2]))
     if heights and float(np.median(heights)) > ROUGH_BOARD_Z_M:
         first = min(s.start for s in sightings if s.position == 0)

@@ -310,8 +310,8 @@ def floor_positions(cameras: dict[str, Camera], room: Room, board: Board | Charu
             best = max(shared, key=lambda k: k[2][c])
             if max(k[2][c] for k in picked) < well_seen * best[2][c] and len(picked) < max_positions:
                 picked.append(best)
-    if any(any(k is r for r in raised) for k in picked):
-        floor = [k for k in picked if not any(k is r for r in raised)]
+    if any(on_stand(board, k[0]) for k in picked):
+        floor = [k for k in picked if not on_stand(board, k[0])]
         for c in cameras:
             own = [k for k in cands if c in k[1]]
             if own and not any(c in k[1] for k in floor):
