@@ -292,6 +292,10 @@ class Camera:
         """The same intrinsics with a new world->camera pose ``(R, t)`` (metres)."""
         return self._replace(R=R, t=t)
 
+    def with_distortion(self, dist) -> "Camera":
+        """The same camera with the distortion coefficients ``dist`` (its model's, see the class text)."""
+        return self._replace(dist=np.asarray(dist, dtype=np.float64))
+
     def with_focal_scale(self, scale: float) -> "Camera":
         """The same camera with its focal length (``fx``, ``fy`` and the skew) times ``scale``, the principal
         point kept: every pixel moves ``scale`` times as far from it. Not for ``tsai`` lenses."""
@@ -347,7 +351,7 @@ class Camera:
         if self.model == "fisheye":
             xd, yd = _fisheye_distort(self.dist, x, y)
         else:
-            xd, yd = _pinhole_distort(self.dist, x, y)
+            xd, yd = pinhole_distort(self.dist, x, y)
         K = self.K
         return K[0, 0] * xd + K[0, 1] * yd + K[0, 2], K[1, 1] * yd + K[1, 2]
 
@@ -448,7 +452,7 @@ def _make_K(width, height, fx, fy, cx, cy, hfov_deg, *, fisheye: bool) -> np.nda
     return np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]], dtype=np.float64)
 
 
-def _pinhole_distort(dist: np.ndarray, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def pinhole_distort(dist: np.ndarray, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """OpenCV's distortion (as in cv::projectPoints) on normalised coordinates."""
     if dist.size == 0 or not np.any(dist):
         return x, y
@@ -488,7 +492,7 @@ def _tilt_matrix(tau_x: float, tau_y: float) -> np.ndarray:
 
 
 def _pinhole_undistort(dist, xd, yd, max_radius) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Invert :func:`_pinhole_distort`: OpenCV's fixed-point start, then Newton steps with a
+    """Invert :func:`pinhole_distort`: OpenCV's fixed-point start, then Newton steps with a
     numerical Jacobian so that the result reprojects to ~1e-12 (normalised units)."""
     if dist.size == 0 or not np.any(dist):
         return xd, yd, np.isfinite(xd) & np.isfinite(yd)
@@ -500,19 +504,19 @@ def _pinhole_undistort(dist, xd, yd, max_radius) -> tuple[np.ndarray, np.ndarray
     x, y = start[:, 0].copy(), start[:, 1].copy()
     h = 1e-7
     for _ in range(8):
-        fx, fy = _pinhole_distort(dist, x, y)
+        fx, fy = pinhole_distort(dist, x, y)
         ex, ey = fx - xd, fy - yd
-        ax, ay = _pinhole_distort(dist, x + h, y)
-        bx, by = _pinhole_distort(dist, x - h, y)
-        cx_, cy_ = _pinhole_distort(dist, x, y + h)
-        dx_, dy_ = _pinhole_distort(dist, x, y - h)
+        ax, ay = pinhole_distort(dist, x + h, y)
+        bx, by = pinhole_distort(dist, x - h, y)
+        cx_, cy_ = pinhole_distort(dist, x, y + h)
+        dx_, dy_ = pinhole_distort(dist, x, y - h)
         j11, j21 = (ax - bx) / (2 * h), (ay - by) / (2 * h)
         j12, j22 = (cx_ - dx_) / (2 * h), (cy_ - dy_) / (2 * h)
         det = j11 * j22 - j12 * j21
         det = np.where(np.abs(det) > 1e-12, det, np.nan)
         x = x - (j22 * ex - j12 * ey) / det
         y = y - (-j21 * ex + j11 * ey) / det
-    fx, fy = _pinhole_distort(dist, x, y)
+    fx, fy = pinhole_distort(dist, x, y)
     ok = (
         fin.ravel()
         & np.isfinite(x)
@@ -619,7 +623,7 @@ def _max_radius(cam: Camera) -> float:
     x = np.cos(phi)[:, None] * r[None, :]
     y = np.sin(phi)[:, None] * r[None, :]
     with np.errstate(all="ignore"):
-        xd, yd = _pinhole_distort(cam.dist, x, y)
+        xd, yd = pinhole_distort(cam.dist, x, y)
         s = np.hypot(xd, yd)
         grows = np.diff(s, axis=1) > 0
     bad = ~grows

@@ -21,7 +21,9 @@ stretches of different cameras that overlap in time show the same board position
 5. Bundle adjustment (``scipy.optimize.least_squares``, soft-L1 loss with a 1 px scale) over
    every camera pose (6 values), every camera's focal length (held to its lens file's by a prior,
    :data:`FOCAL_PRIOR`: the board places at known distances apart pin it down better than a board
-   clip held up close) and every other board position, which lies on the same floor (x, y, yaw)
+   clip held up close), every pinhole lens's k3 (held to its lens file's by :data:`LENS_CORNER_PX`:
+   the floor board is seen near the image's corners, where a lens clip seldom reaches) and every other
+   board position, which lies on the same floor (x, y, yaw)
    or, on a stand, anywhere (6 values), minimising the corners' reprojection error in pixels
    through each lens model. A camera's view of one position that the result misses by far more
    than its others (a board partly hidden, found a square off) is left out and the chain adjusted
@@ -48,7 +50,7 @@ from scipy.optimize import least_squares
 from common.calibrate.board import Board, board_area_fraction, find_board
 from common.calibrate.charuco import FACE_UP, CharucoBoard, CharucoFinder
 from common.calibrate.clips import read_gray, still_stretches
-from common.camera import Camera, matrix_to_rodrigues, rodrigues_to_matrix
+from common.camera import Camera, matrix_to_rodrigues, pinhole_distort, rodrigues_to_matrix
 
 MIN_FLOOR_AREA = 0.0015
 """A board on the floor must cover at least this share of the image (0.15 %, about 22 x 22 px at 640 x 480)."""
@@ -74,6 +76,20 @@ adjustment refines each camera's focal length from the board places, held to the
 that the bounds carry the lens's own error: a focal length 0.2 % long puts a camera 5 m from the board
 1 cm too far along its view. ``calibrate intrinsics`` fitted the tuning worlds' rendered board clips
 within 0.03-0.27 % (30 views). Tsai lenses keep theirs."""
+RADIAL = (0, 1, 4)
+"""Where k1, k2 and k3 sit in a pinhole lens's distortion coefficients (OpenCV's order)."""
+FREED = (2,)
+"""The radial terms the adjustment refines (indices into :data:`RADIAL`): k3 alone, the term that moves the
+image's edges and corners and hardly its middle, which a lens clip pins down well. Freeing k1 and k2 as well
+traded them against the focal length and widened every camera's bounds."""
+LENS_CORNER_PX = 3.0
+"""How far (one standard deviation, pixels) a pinhole lens file's k3 is taken to move the image's farthest corner
+from the truth. The adjustment refines it from the board places (:data:`FREED`), held to the lens file's by
+this: a lens clip that never showed the board near the image's corners leaves the lens there to
+extrapolation (a lab lens whose k3 of -0.031 the clip could not tell from none came out 15 px off at the
+corners, 1-2 px where the floor board lay, and its camera 26 cm off), while the floor board, laid around the
+room, is seen there. On tuning seed 6's lab rig with every lens file fitted inside 60 % of its corner
+radius, 2 px left cam2 1.6 cm off, 3 px 0.7 cm and 5 px 1.1 cm (2.8 cm held)."""
 ROUGH_BOARD_Z_M = 0.6
 """By the site's present (rough) calibrations, a board lying on the floor is within this of it; one higher
 stood on a stand."""
@@ -143,6 +159,8 @@ class CameraReport:
     """The same for its orientation (degrees)."""
     focal_change: float = 0.0
     """The focal length the adjustment found over the lens file's, less one (0.003: 0.3 % longer)."""
+    lens_change_px: float = 0.0
+    """How far the adjustment's radial distortion moved the image's corners from the lens file's (pixels)."""
 
     @property
     def pinned(self) -> bool:
@@ -241,7 +259,7 @@ def calibrate_floor(sightings: list[Sighting], intrinsics: dict[str, Camera], bo
     _first_on_floor(sightings, poses, obj, rough)
     while True:
         cams0, boards0, raised = _chain(sightings, poses, cam_ids, centre_b)
-        cams_bf, focal, boards, spread, view_err = _adjust(sightings, intrinsics, obj, cams0, boards0, raised)
+        cams_bf, focal, lenses, boards, spread, view_err = _adjust(sightings, intrinsics, obj, cams0, boards0, raised)
         wrong = _wrong_sighting(sightings, view_err)
         if wrong is None:
             break
@@ -254,12 +272,19 @@ def calibrate_floor(sightings: list[Sighting], intrinsics: dict[str, Camera], bo
                      f"{wrong.stop}) disagreed with the others and was left out (the board partly hidden, or its "
                      f"corners found a square off)")
         sightings = rest
+    for c in sorted(lenses):
+        moved = lens_change_px(intrinsics[c], intrinsics[c].with_distortion(lenses[c]))
+        if moved > LENS_CORNER_PX:
+            notes.append(f"camera {c}: the board places bent its lens {moved:.1f} px at the image's corners from its "
+                         "lens file's (k3); the clip it was fitted from showed the board too little near them, and "
+                         "the calibration written carries the lens as the board places have it")
     for p in sorted(raised):
         R_wb, t_wb = boards[p]
         tilt = math.degrees(math.acos(min(1.0, abs(float(R_wb[2, 2])))))
         notes.append(f"board position {p + 1} stood {float((R_wb @ centre_b + t_wb)[2]):.2f} m above the floor, "
                      f"{tilt:.0f} degrees from lying flat (on a stand): its whole pose was fitted")
-    board_cameras = {c: intrinsics[c].with_focal_scale(focal[c]).with_pose(*cams_bf[c]) for c in cam_ids}
+    lens = {c: intrinsics[c].with_distortion(lenses[c]) if c in lenses else intrinsics[c] for c in cam_ids}
+    board_cameras = {c: lens[c].with_focal_scale(focal[c]).with_pose(*cams_bf[c]) for c in cam_ids}
     residual = None
     if plan_points is not None:
         (origin, yaw_deg), residual = fit_plan(plan_points)
@@ -274,7 +299,8 @@ def calibrate_floor(sightings: list[Sighting], intrinsics: dict[str, Camera], bo
         share = _seen_share(cameras[c], volume) if volume is not None else float("nan")
         reports[c] = CameraReport(c, len({s.position for s in sightings if s.cam_id == c}), int(kept.sum()), kept.size,
                                   float(errs[kept].mean()), float(errs[kept].max()), float(errs.mean()), centre, share,
-                                  *spread.get(c, (float("nan"), float("nan"))), focal_change=focal[c] - 1.0)
+                                  *spread.get(c, (float("nan"), float("nan"))), focal_change=focal[c] - 1.0,
+                                  lens_change_px=lens_change_px(intrinsics[c], lens[c]) if c in lenses else 0.0)
     n_pos = len({s.position for s in sightings})
     return FloorResult(cameras=cameras, board_cameras=board_cameras, reports=reports, positions=n_pos,
                        origin_m=tuple(float(v) for v in origin), yaw_deg=float(yaw_deg), plan_residual_m=residual,
@@ -534,9 +560,15 @@ def _adjust(sightings, intrinsics, obj, cams0, boards0, raised: set[int] = froze
     # each camera's focal length as the log of its scale over the lens file's (Tsai lenses: held)
     free = [c for c in cam_ids if intrinsics[c].model != "tsai"]
     fi = {c: len(x0) + k for k, c in enumerate(free)}
-    x0 = np.array(x0 + [0.0] * len(free))
-    groups = [(ci[s.cam_id], pi.get(s.position), fi.get(s.cam_id), intrinsics[s.cam_id], s.corners[s.kept],
-               s.points(obj)[s.kept]) for s in sightings]
+    # each pinhole lens's radial distortion as changes to its lens file's k1, k2, k3
+    bent = [c for c in cam_ids if intrinsics[c].model == "pinhole"]
+    ki = {c: len(x0) + len(free) + len(FREED) * k for k, c in enumerate(bent)}
+    dist0 = {c: _padded(intrinsics[c].dist) for c in bent}
+    reach = {c: LENS_CORNER_PX / (intrinsics[c].K[0, 0] * _corner_radius(intrinsics[c]) ** (3.0 + 2.0 * np.arange(3)))[
+        list(FREED)] for c in bent}
+    x0 = np.array(x0 + [0.0] * (len(free) + len(FREED) * len(bent)))
+    groups = [(ci[s.cam_id], pi.get(s.position), fi.get(s.cam_id), ki.get(s.cam_id), intrinsics[s.cam_id],
+               s.corners[s.kept], s.points(obj)[s.kept]) for s in sightings]
 
     stands = {pi[p] for p in raised}
 
@@ -549,30 +581,79 @@ def _adjust(sightings, intrinsics, obj, cams0, boards0, raised: set[int] = froze
 
     def residuals(x):
         out = []
-        for c, j, f, cam, uv, pts in groups:
+        for c, j, f, k, cam, uv, pts in groups:
             R_wb, t_wb = unpack_board(x, j)
             R_cw = rodrigues_to_matrix(x[c:c + 3])
             pc = (pts @ R_wb.T + t_wb) @ R_cw.T + x[c + 3:c + 6]
-            proj, _ = cam.project_cam(pc)
+            if k is None:
+                proj, _ = cam.project_cam(pc)
+            else:
+                proj = _project_bent(cam, _bent(dist0[cam.id], x[k:k + len(FREED)]), pc)
             if f is not None:   # the lens's pixels scale about the principal point with the focal length
                 proj = cam.K[:2, 2] + math.exp(x[f]) * (proj - cam.K[:2, 2])
             out.append(np.nan_to_num(proj - uv, nan=1e3).ravel())
         # the prior, in pixels of the corners' least noise, so that the bounds weigh it as one of them
         out.append(np.array([x[fi[c]] for c in free]) / FOCAL_PRIOR * NOISE_FLOOR_PX)
+        out.extend(x[ki[c]:ki[c] + len(FREED)] / reach[c] * NOISE_FLOOR_PX for c in bent)
         return np.concatenate(out)
 
     sol = least_squares(residuals, x0, method="trf", loss="soft_l1", f_scale=1.0, x_scale="jac", max_nfev=200)
     x = sol.x
     cams = {c: (rodrigues_to_matrix(x[ci[c]:ci[c] + 3]), x[ci[c] + 3:ci[c] + 6].copy()) for c in cam_ids}
     focal = {c: math.exp(x[fi[c]]) if c in fi else 1.0 for c in cam_ids}
+    lenses = {c: _bent(dist0[c], x[ki[c]:ki[c] + len(FREED)]) for c in bent}
     boards = {0: (np.eye(3), np.zeros(3)), **{p: unpack_board(x, pi[p]) for p in pos_ids}}
-    sizes = [2 * len(g[4]) for g in groups]
+    sizes = [2 * len(g[5]) for g in groups]
     spread = pose_uncertainty(np.asarray(sol.jac), np.asarray(sol.fun), x, {c: ci[c] for c in cam_ids}, views=sizes,
-                              prior_rows=len(free))
+                              prior_rows=len(free) + len(FREED) * len(bent))
     # each view's mean corner error (px) at the solution, from the residuals the fit already has
     fun = sol.fun[:sum(sizes)]
     view_err = [float(np.hypot(*part.reshape(-1, 2).T).mean()) for part in np.split(fun, np.cumsum(sizes)[:-1])]
-    return cams, focal, boards, spread, view_err
+    return cams, focal, lenses, boards, spread, view_err
+
+
+def _padded(dist: np.ndarray) -> np.ndarray:
+    """A pinhole lens's distortion coefficients with room for k3 (at least five)."""
+    return np.concatenate([dist, np.zeros(max(0, 5 - dist.size))])
+
+
+def _bent(dist: np.ndarray, change: np.ndarray) -> np.ndarray:
+    """``dist`` (padded) with ``change`` added to its k1, k2 and k3."""
+    out = dist.copy()
+    out[[RADIAL[i] for i in FREED]] += change
+    return out
+
+
+def _project_bent(cam: Camera, dist: np.ndarray, pc: np.ndarray) -> np.ndarray:
+    """(N, 2) pixels of camera-frame points ``pc`` (in front) through ``cam``'s pinhole lens with the
+    distortion ``dist``."""
+    z = np.where(pc[:, 2] > 1e-6, pc[:, 2], np.nan)
+    xd, yd = pinhole_distort(dist, pc[:, 0] / z, pc[:, 1] / z)
+    K = cam.K
+    return np.stack([K[0, 0] * xd + K[0, 1] * yd + K[0, 2], K[1, 1] * yd + K[1, 2]], axis=1)
+
+
+def _frame_pixels(cam: Camera) -> np.ndarray:
+    """(8, 2) the image's corners and the middles of its edges (pixels)."""
+    w, h = cam.width - 1, cam.height - 1
+    return np.array([[0, 0], [w, 0], [0, h], [w, h], [w / 2, 0], [w / 2, h], [0, h / 2], [w, h / 2]], dtype=float)
+
+
+def _corner_radius(cam: Camera) -> float:
+    """The normalised radius (undistorted, through the lens file) of the image's farthest corner, or of
+    the farthest edge point the lens reaches."""
+    rays = cam.rays_cam(_frame_pixels(cam))
+    r = np.hypot(rays[:, 0], rays[:, 1]) / rays[:, 2]
+    return float(np.nanmax(r)) if np.any(np.isfinite(r)) else 1.0
+
+
+def lens_change_px(before: Camera, after: Camera) -> float:
+    """How far (pixels) the image's corners and the middles of its edges move from ``before``'s lens to
+    ``after``'s, at the same focal length: what the floor calibration changed of a lens file's distortion."""
+    px = _frame_pixels(before)
+    uv = _project_bent(before, after.dist, before.rays_cam(px))
+    moved = np.linalg.norm(uv - px, axis=1)
+    return float(np.nanmax(moved)) if np.any(np.isfinite(moved)) else 0.0
 
 
 def pose_uncertainty(jac: np.ndarray, residuals: np.ndarray, x: np.ndarray, offsets: dict[str, int], *,
