@@ -87,7 +87,8 @@ def _intrinsics(args: argparse.Namespace) -> int:
 
 def _floor(args: argparse.Namespace) -> int:
     from common.calibrate.floor import (
-        ANGLE_TOLERANCE_DEG, FOCAL_PRIOR, POSITION_TOLERANCE_M, calibrate_floor, find_sightings, read_plan_points,
+        ANGLE_TOLERANCE_DEG, FOCAL_PRIOR, MISFIT_PX, POSITION_TOLERANCE_M, calibrate_floor, find_sightings,
+        read_plan_points,
     )
     from common.calibrate.write import WRITABLE, write_site_calibrations
     from common.calibration import CalibrationError, load_calibration
@@ -136,7 +137,6 @@ def _floor(args: argparse.Namespace) -> int:
     where = "from the plan points" if plan is not None else "from the site's first camera entry"
     print(f"  board frame in the room ({where}): origin ({ox:.3f}, {oy:.3f}) m, yaw {result.yaw_deg:.2f} deg"
           + (f", plan points fit to {100 * result.plan_residual_m:.1f} cm" if result.plan_residual_m is not None else ""))
-    worst = 0.0
     loose, lens = [], []
     for cam_id, rep in result.reports.items():
         x, y, z = rep.centre_m
@@ -145,19 +145,19 @@ def _floor(args: argparse.Namespace) -> int:
               f"at ({x:.2f}, {y:.2f}) m, height {z:.2f} m, within {100 * rep.position_95_m:.1f} cm and "
               f"{rep.angle_95_deg:.2f} deg (95 %); sees {100 * rep.seen_share:.0f} % of the volume; "
               f"focal length {100 * rep.focal_change:+.2f} % over the lens file's")
-        worst = max(worst, rep.mean_px)
         if not rep.pinned:
             loose.append(cam_id)
-        if abs(rep.focal_change) > 3 * FOCAL_PRIOR:
+        if rep.lens_doubtful:
             lens.append(cam_id)
     for note in result.notes:
         print(f"  note: {note}")
-    if worst > 1.0:
-        print("  WARNING: a mean error above 1 px: check the intrinsics and that the board lies flat")
     for cam_id in lens:
+        rep = result.reports[cam_id]
         print(f"  WARNING: camera {cam_id}'s lens disagrees with the board places (its focal length moved "
-              f"{100 * result.reports[cam_id].focal_change:+.2f} %, over three times the {100 * FOCAL_PRIOR:g} % a lens "
-              "file is trusted to): check its intrinsics (the right file, the image size) or calibrate the lens again")
+              f"{100 * rep.focal_change:+.2f} %, over three times the {100 * FOCAL_PRIOR:g} % a lens file is trusted "
+              f"to, or its corners are missed by {rep.mean_px:.2f} px on average, over {MISFIT_PX:g} px): check its "
+              "intrinsics (the right file, the image size) and that the board lies flat, or calibrate the lens again "
+              "with the board held near the image's edges and corners too")
     for cam_id in loose:
         print(f"  WARNING: camera {cam_id} may be off by more than {100 * POSITION_TOLERANCE_M:.0f} cm or "
               f"{ANGLE_TOLERANCE_DEG} deg: it sees the board too small or too few times; record again with the board "

@@ -90,6 +90,10 @@ extrapolation (a lab lens whose k3 of -0.031 the clip could not tell from none c
 corners, 1-2 px where the floor board lay, and its camera 26 cm off), while the floor board, laid around the
 room, is seen there. On tuning seed 6's lab rig with every lens file fitted inside 60 % of its corner
 radius, 2 px left cam2 1.6 cm off, 3 px 0.7 cm and 5 px 1.1 cm (2.8 cm held)."""
+MISFIT_PX = 1.0
+"""A camera whose board corners the adjusted calibration misses by more than this on average (four times the
+corners' least noise, :data:`NOISE_FLOOR_PX`) is not described by its lens file where it sees the board: its
+bounds, which take the errors for noise, do not hold for it."""
 ROUGH_BOARD_Z_M = 0.6
 """By the site's present (rough) calibrations, a board lying on the floor is within this of it; one higher
 stood on a stand."""
@@ -166,6 +170,17 @@ class CameraReport:
     def pinned(self) -> bool:
         """Whether its bounds lie within :data:`POSITION_TOLERANCE_M` and :data:`ANGLE_TOLERANCE_DEG`."""
         return self.position_95_m <= POSITION_TOLERANCE_M and self.angle_95_deg <= ANGLE_TOLERANCE_DEG
+
+    @property
+    def lens_doubtful(self) -> bool:
+        """Whether its lens file disagrees with the board places: its focal length moved over three times the
+        prior (:data:`FOCAL_PRIOR`), or its corners are missed by over :data:`MISFIT_PX` on average."""
+        return abs(self.focal_change) > 3 * FOCAL_PRIOR or self.mean_px > MISFIT_PX
+
+    @property
+    def warned(self) -> bool:
+        """Whether ``calibrate floor`` warns of it (:attr:`pinned`, :attr:`lens_doubtful`)."""
+        return not self.pinned or self.lens_doubtful
 
 
 @dataclass

@@ -29,7 +29,8 @@
 Per camera it reports the position error (cm) and the angle error (degrees) against the world's
 true camera, and the bounds the calibration itself gave (its 95 % uncertainty, which the command
 prints and warns on); in total the share of cameras within 2 cm and 0.3 degree, and whether every
-camera outside them was warned about. A world whose room no chain of board places reaches (every
+camera outside them was warned about (its bounds, or its lens disagreeing with the board places:
+:attr:`common.calibrate.floor.CameraReport.warned`). A world whose room no chain of board places reaches (every
 camera must see a place with another) is counted as refused, with the command's reason.
 
 Seeds below 1000 are for tuning; figures are reported on 1000 and up.
@@ -184,7 +185,7 @@ def _floor_world(world, intrinsics, board, work: Path, *, heed: bool, stand: boo
             "position_cm": 100 * float(np.linalg.norm(got.center - true.center)),
             "angle_deg": angle_between_deg(got.R, true.R),
             "bound_cm": 100 * rep.position_95_m, "bound_deg": rep.angle_95_deg,
-            "reprojection_px": rep.mean_px, "board_views": rep.positions, "warned": not rep.pinned,
+            "reprojection_px": rep.mean_px, "board_views": rep.positions, "warned": rep.warned,
         }
     return out
 
