@@ -25,9 +25,12 @@ stretches of different cameras that overlap in time show the same board position
    the floor board is seen near the image's corners, where a lens clip seldom reaches) and every other
    board position, which lies on the same floor (x, y, yaw)
    or, on a stand, anywhere (6 values), minimising the corners' reprojection error in pixels
-   through each lens model. A camera's view of one position that the result misses by far more
-   than its others (a board partly hidden, found a square off) is left out and the chain adjusted
-   again (:data:`WRONG_SIGHTING_PX`).
+   through each lens model. A camera's view of one position that the other views outvote (a board
+   partly hidden, found a square off) is left out and the chain adjusted again: the views explained
+   worst are each left out in turn, and one is wrong when the chain adjusted without it misses it by
+   far (:data:`WRONG_SIGHTING_PX`) while its camera's other views come back within the noise
+   (:func:`_outvoted_sighting`); the view explained worst with it in need not be the wrong one, as the
+   adjustment spreads a wrong view's error over its camera's other views.
    Each camera's 95 % bounds on its position and orientation come from the adjustment's covariance
    (:func:`pose_uncertainty`): how precisely its views of the board pin it down.
 6. Placement in the room: floor-plan points (board-frame floor coordinates <-> room coordinates,
@@ -46,6 +49,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 from scipy.optimize import least_squares
+from scipy.sparse import lil_matrix
 
 from common.calibrate.board import Board, board_area_fraction, find_board
 from common.calibrate.charuco import FACE_UP, CharucoBoard, CharucoFinder
@@ -59,8 +63,8 @@ STRAY_PX = 1.5
 """A corner that misses the board's own best pose by more than this and by four times the sighting's
 median error is a stray detection (a corner snapped to a neighbouring edge) and is left out."""
 WRONG_SIGHTING_PX = 2.0
-"""A camera's view of one board position that the adjusted poses miss by more than this on average
-(and by four times the median view) while the camera sees the board elsewhere is left out: a board
+"""A camera's view of one board position that the poses adjusted without it miss by more than this on average
+(and by four times the median view), while the camera's other views agree with them, is left out: a board
 partly hidden by furniture can be found with its corners a square off."""
 NOISE_FLOOR_PX = 0.25
 """The least corner noise assumed for the calibration's error bounds (pixels): a fit that leaves less
@@ -90,6 +94,8 @@ extrapolation (a lab lens whose k3 of -0.031 the clip could not tell from none c
 corners, 1-2 px where the floor board lay, and its camera 26 cm off), while the floor board, laid around the
 room, is seen there. On tuning seed 6's lab rig with every lens file fitted inside 60 % of its corner
 radius, 2 px left cam2 1.6 cm off, 3 px 0.7 cm and 5 px 1.1 cm (2.8 cm held)."""
+MAX_SUSPECTS = 6
+"""At most this many views are left out in turn to find one the others outvote (:func:`_outvoted_sighting`)."""
 MISFIT_PX = 1.0
 """A camera whose board corners the adjusted calibration misses by more than this on average (four times the
 corners' least noise, :data:`NOISE_FLOOR_PX`) is not described by its lens file where it sees the board: its
@@ -275,14 +281,10 @@ def calibrate_floor(sightings: list[Sighting], intrinsics: dict[str, Camera], bo
     while True:
         cams0, boards0, raised = _chain(sightings, poses, cam_ids, centre_b)
         cams_bf, focal, lenses, boards, spread, view_err = _adjust(sightings, intrinsics, obj, cams0, boards0, raised)
-        wrong = _wrong_sighting(sightings, view_err)
+        wrong = _outvoted_sighting(sightings, view_err, intrinsics, obj, poses, cam_ids, centre_b)
         if wrong is None:
             break
         rest = [s for s in sightings if s is not wrong]
-        try:
-            _chain(rest, poses, cam_ids, centre_b)
-        except FloorError:
-            break   # the chain needs it: keep it, and let its camera's error show
         notes.append(f"camera {wrong.cam_id}'s view of board position {wrong.position + 1} (frames {wrong.start}-"
                      f"{wrong.stop}) disagreed with the others and was left out (the board partly hidden, or its "
                      f"corners found a square off)")
@@ -474,17 +476,38 @@ def _first_on_floor(sightings, poses, obj, rough) -> None:
                          "of the floor")
 
 
-def _wrong_sighting(sightings, errs: list[float]) -> Sighting | None:
-    """The sighting the adjusted poses explain worst, when it is wrong rather than noisy: its mean error
-    (``errs``, px, one per sighting) above :data:`WRONG_SIGHTING_PX` and four times the median sighting's,
-    and its camera seen elsewhere."""
-    k = int(np.argmax(errs))
-    worst = sightings[k]
-    if errs[k] <= max(WRONG_SIGHTING_PX, 4.0 * float(np.median(errs))):
-        return None
-    if sum(1 for s in sightings if s.cam_id == worst.cam_id) < 2:
-        return None
-    return worst
+def _outvoted_sighting(sightings, errs: list[float], intrinsics, obj, poses, cam_ids, centre_b) -> Sighting | None:
+    """A view the others outvote (a board partly hidden by furniture, found with its corners a square off),
+    or None. The adjustment spreads a wrong view's error over its camera's other views, the more so the fewer
+    places the camera sees, so the view it explains worst need not be the wrong one: each view above four
+    times the median view's error (``errs``, px), worst first, whose camera sees the board elsewhere, whose
+    position another camera sees and without which the chain holds, is left out in turn and the chain
+    adjusted without it. It is wrong when that adjustment misses it by over :data:`WRONG_SIGHTING_PX` and
+    four times the median view, while its camera's other views come within :data:`MISFIT_PX` or four times
+    the median."""
+    median = float(np.median(errs))
+    for k in sorted((k for k, e in enumerate(errs) if e > 4.0 * median), key=lambda k: -errs[k])[:MAX_SUSPECTS]:
+        s = sightings[k]
+        rest = [r for r in sightings if r is not s]
+        if not any(r.cam_id == s.cam_id for r in rest) or not any(r.position == s.position for r in rest):
+            continue
+        try:
+            cams0, boards0, raised = _chain(rest, poses, cam_ids, centre_b)
+        except FloorError:
+            continue
+        cams, focal, lenses, boards, _, rest_err = _adjust(rest, intrinsics, obj, cams0, boards0, raised, bounds=False)
+        lens = intrinsics[s.cam_id]
+        if s.cam_id in lenses:
+            lens = lens.with_distortion(lenses[s.cam_id])
+        cam = lens.with_focal_scale(focal[s.cam_id]).with_pose(*cams[s.cam_id])
+        R_wb, t_wb = boards[s.position]
+        uv, _ = cam.project(s.points(obj)[s.kept] @ R_wb.T + t_wb)
+        missed = float(np.nan_to_num(np.linalg.norm(uv - s.corners[s.kept], axis=1), nan=1e3).mean())
+        floor = 4.0 * float(np.median(rest_err))
+        own = [e for r, e in zip(rest, rest_err) if r.cam_id == s.cam_id]
+        if missed > max(WRONG_SIGHTING_PX, floor) and max(own) <= max(MISFIT_PX, floor):
+            return s
+    return None
 
 
 def _drop_stray_corners(s: Sighting, cam: Camera, obj, pose, poses) -> Sighting:
@@ -559,7 +582,7 @@ def _chain(sightings, poses, cam_ids, centre_b: np.ndarray):
     return cams, boards, raised
 
 
-def _adjust(sightings, intrinsics, obj, cams0, boards0, raised: set[int] = frozenset()):
+def _adjust(sightings, intrinsics, obj, cams0, boards0, raised: set[int] = frozenset(), *, bounds: bool = True):
     cam_ids = sorted(cams0)
     pos_ids = sorted(p for p in boards0 if p != 0)
     x0 = []
@@ -612,15 +635,36 @@ def _adjust(sightings, intrinsics, obj, cams0, boards0, raised: set[int] = froze
         out.extend(x[ki[c]:ki[c] + len(FREED)] / reach[c] * NOISE_FLOOR_PX for c in bent)
         return np.concatenate(out)
 
-    sol = least_squares(residuals, x0, method="trf", loss="soft_l1", f_scale=1.0, x_scale="jac", max_nfev=200)
+    # which parameters each residual depends on: its view's camera, board place, focal length and k3; a prior's
+    # own parameter. The finite differences then perturb many independent parameters at once.
+    rows = sum(2 * len(g[5]) for g in groups) + len(free) + len(FREED) * len(bent)
+    sparsity = lil_matrix((rows, len(x0)), dtype=np.int8)
+    r = 0
+    for c, j, f, k, cam, uv, pts in groups:
+        cols = [*range(c, c + 6)]
+        if j is not None:
+            cols += range(j, j + (6 if j in stands else 3))
+        if f is not None:
+            cols.append(f)
+        if k is not None:
+            cols += range(k, k + len(FREED))
+        sparsity[r:r + 2 * len(uv), cols] = 1
+        r += 2 * len(uv)
+    for col in [fi[c] for c in free] + [ki[c] + i for c in bent for i in range(len(FREED))]:
+        sparsity[r, col] = 1
+        r += 1
+    sol = least_squares(residuals, x0, method="trf", loss="soft_l1", f_scale=1.0, x_scale="jac", max_nfev=200,
+                        jac_sparsity=sparsity)
     x = sol.x
     cams = {c: (rodrigues_to_matrix(x[ci[c]:ci[c] + 3]), x[ci[c] + 3:ci[c] + 6].copy()) for c in cam_ids}
     focal = {c: math.exp(x[fi[c]]) if c in fi else 1.0 for c in cam_ids}
     lenses = {c: _bent(dist0[c], x[ki[c]:ki[c] + len(FREED)]) for c in bent}
     boards = {0: (np.eye(3), np.zeros(3)), **{p: unpack_board(x, pi[p]) for p in pos_ids}}
     sizes = [2 * len(g[5]) for g in groups]
-    spread = pose_uncertainty(np.asarray(sol.jac), np.asarray(sol.fun), x, {c: ci[c] for c in cam_ids}, views=sizes,
-                              prior_rows=len(free) + len(FREED) * len(bent))
+    spread = {} if not bounds else pose_uncertainty(
+        sol.jac.toarray() if hasattr(sol.jac, "toarray") else np.asarray(sol.jac), np.asarray(sol.fun), x,
+        {c: ci[c] for c in cam_ids}, views=sizes,
+        prior_rows=len(free) + len(FREED) * len(bent))
     # each view's mean corner error (px) at the solution, from the residuals the fit already has
     fun = sol.fun[:sum(sizes)]
     view_err = [float(np.hypot(*part.reshape(-1, 2).T).mean()) for part in np.split(fun, np.cumsum(sizes)[:-1])]
