@@ -289,10 +289,11 @@ def calibrate_floor(sightings: list[Sighting], intrinsics: dict[str, Camera], bo
                      f"{wrong.stop}) disagreed with the others and was left out (the board partly hidden, or its "
                      f"corners found a square off)")
         sightings = rest
+    board_cameras = {c: _adjusted_camera(intrinsics[c], focal[c], lenses.get(c), cams_bf[c]) for c in cam_ids}
+    moved = {c: lens_change_px(intrinsics[c], board_cameras[c]) if c in lenses else 0.0 for c in cam_ids}
     for c in sorted(lenses):
-        moved = lens_change_px(intrinsics[c], intrinsics[c].with_distortion(lenses[c]))
-        if moved > LENS_CORNER_PX:
-            notes.append(f"camera {c}: the board places bent its lens {moved:.1f} px at the image's corners from its "
+        if moved[c] > LENS_CORNER_PX:
+            notes.append(f"camera {c}: the board places bent its lens {moved[c]:.1f} px at the image's corners from its "
                          "lens file's (k3); the clip it was fitted from showed the board too little near them, and "
                          "the calibration written carries the lens as the board places have it")
     for p in sorted(raised):
@@ -300,8 +301,6 @@ def calibrate_floor(sightings: list[Sighting], intrinsics: dict[str, Camera], bo
         tilt = math.degrees(math.acos(min(1.0, abs(float(R_wb[2, 2])))))
         notes.append(f"board position {p + 1} stood {float((R_wb @ centre_b + t_wb)[2]):.2f} m above the floor, "
                      f"{tilt:.0f} degrees from lying flat (on a stand): its whole pose was fitted")
-    lens = {c: intrinsics[c].with_distortion(lenses[c]) if c in lenses else intrinsics[c] for c in cam_ids}
-    board_cameras = {c: lens[c].with_focal_scale(focal[c]).with_pose(*cams_bf[c]) for c in cam_ids}
     residual = None
     if plan_points is not None:
         (origin, yaw_deg), residual = fit_plan(plan_points)
@@ -317,7 +316,7 @@ def calibrate_floor(sightings: list[Sighting], intrinsics: dict[str, Camera], bo
         reports[c] = CameraReport(c, len({s.position for s in sightings if s.cam_id == c}), int(kept.sum()), kept.size,
                                   float(errs[kept].mean()), float(errs[kept].max()), float(errs.mean()), centre, share,
                                   *spread.get(c, (float("nan"), float("nan"))), focal_change=focal[c] - 1.0,
-                                  lens_change_px=lens_change_px(intrinsics[c], lens[c]) if c in lenses else 0.0)
+                                  lens_change_px=moved[c])
     n_pos = len({s.position for s in sightings})
     return FloorResult(cameras=cameras, board_cameras=board_cameras, reports=reports, positions=n_pos,
                        origin_m=tuple(float(v) for v in origin), yaw_deg=float(yaw_deg), plan_residual_m=residual,
@@ -496,10 +495,7 @@ def _outvoted_sighting(sightings, errs: list[float], intrinsics, obj, poses, cam
         except FloorError:
             continue
         cams, focal, lenses, boards, _, rest_err = _adjust(rest, intrinsics, obj, cams0, boards0, raised, bounds=False)
-        lens = intrinsics[s.cam_id]
-        if s.cam_id in lenses:
-            lens = lens.with_distortion(lenses[s.cam_id])
-        cam = lens.with_focal_scale(focal[s.cam_id]).with_pose(*cams[s.cam_id])
+        cam = _adjusted_camera(intrinsics[s.cam_id], focal[s.cam_id], lenses.get(s.cam_id), cams[s.cam_id])
         R_wb, t_wb = boards[s.position]
         uv, _ = cam.project(s.points(obj)[s.kept] @ R_wb.T + t_wb)
         missed = float(np.nan_to_num(np.linalg.norm(uv - s.corners[s.kept], axis=1), nan=1e3).mean())
@@ -598,7 +594,7 @@ def _adjust(sightings, intrinsics, obj, cams0, boards0, raised: set[int] = froze
     # each camera's focal length as the log of its scale over the lens file's (Tsai lenses: held)
     free = [c for c in cam_ids if intrinsics[c].model != "tsai"]
     fi = {c: len(x0) + k for k, c in enumerate(free)}
-    # each pinhole lens's radial distortion as changes to its lens file's k1, k2, k3
+    # each pinhole lens's refined radial terms (FREED: k3) as changes to its lens file's
     bent = [c for c in cam_ids if intrinsics[c].model == "pinhole"]
     ki = {c: len(x0) + len(free) + len(FREED) * k for k, c in enumerate(bent)}
     dist0 = {c: _padded(intrinsics[c].dist) for c in bent}
@@ -671,13 +667,21 @@ def _adjust(sightings, intrinsics, obj, cams0, boards0, raised: set[int] = froze
     return cams, focal, lenses, boards, spread, view_err
 
 
+def _adjusted_camera(lens: Camera, focal: float, dist: np.ndarray | None, pose) -> Camera:
+    """The lens file's camera as the adjustment found it: its focal length times ``focal``, its distortion
+    ``dist`` (None: the file's), at ``pose`` (board frame -> camera (R, t))."""
+    if dist is not None:
+        lens = lens.with_distortion(dist)
+    return lens.with_focal_scale(focal).with_pose(*pose)
+
+
 def _padded(dist: np.ndarray) -> np.ndarray:
     """A pinhole lens's distortion coefficients with room for k3 (at least five)."""
     return np.concatenate([dist, np.zeros(max(0, 5 - dist.size))])
 
 
 def _bent(dist: np.ndarray, change: np.ndarray) -> np.ndarray:
-    """``dist`` (padded) with ``change`` added to its k1, k2 and k3."""
+    """``dist`` (padded) with ``change`` added to the radial terms the adjustment refines (:data:`FREED`)."""
     out = dist.copy()
     out[[RADIAL[i] for i in FREED]] += change
     return out
