@@ -115,6 +115,45 @@ def test_floor_recovers_the_true_cameras_of_a_random_world(tmp_path):
         assert result.reports[cam_id].mean_px < 0.5
 
 
+def test_a_lens_fit_knows_how_far_its_centre_may_be_off_and_asks_for_the_board_nearer(tmp_path):
+    """A 320x240 lens of 234 px (tuning seed 0's cam5) from a board spanning a quarter to three fifths of the
+    image's width leaves the principal point about half a pixel uncertain: the fit says so (its standard
+    deviations agree with OpenCV's ``calibrateCameraExtended``, an independent computation), the true
+    principal point lies within three of them, and the camera's tilt is flagged uncertain. The same lens
+    from the board held nearer (half the width or more) is within the tolerance and not flagged."""
+    from common.calibrate.intrinsics import LENS_TILT_95_DEG
+    from common.calibrate.suite import HELD, NEARER
+
+    true = random_world(0).cameras["cam5"]
+    assert (true.width, true.height) == (320, 240)
+    for k, fill in enumerate((HELD, HELD, NEARER, NEARER)):
+        poses = intrinsics_poses(true, BOARD, 30, np.random.default_rng([4, k]), fill=fill)
+        clip = write_frames(intrinsics_clip(BoardRenderer(true, None, seed=k), BOARD, poses, frames_per_pose=1),
+                            tmp_path / f"take{k}")
+        res = calibrate_intrinsics(str(clip), "cam5", BOARD)
+        off = res.camera.K[:2, 2] - true.K[:2, 2]
+        sd = np.array(res.centre_sd_px)
+        # OpenCV's own standard deviations of the same fit
+        obj = BOARD.object_points().astype(np.float32).reshape(-1, 1, 3)
+        views = [find_board(gray, BOARD, refine=True) for gray in _frames(clip)]
+        imgs = [v.astype(np.float32).reshape(-1, 1, 2) for v in views if v is not None]
+        flags = 0 if res.camera.dist[4] != 0.0 else cv2.CALIB_FIX_K3
+        ext = cv2.calibrateCameraExtended([obj] * len(imgs), imgs, (true.width, true.height), None, None, flags=flags)
+        print(f"take {k} spanning {fill}: span {res.board_span:.2f}, centre off {off.round(2)} px, sd {sd.round(2)} "
+              f"(OpenCV {ext[5].ravel()[2:4].round(2)}), tilt {res.tilt_95_deg:.3f} deg (95 %), {res.views_used} views")
+        if res.views_used == len(imgs):   # the same views fitted (no repeat or outlier left out)
+            assert np.allclose(sd, ext[5].ravel()[2:4], rtol=0.05)
+        assert np.all(np.abs(off) < 3 * sd)
+        if fill == HELD:
+            assert res.uncertain and sd.min() > 0.3
+        else:
+            assert not res.uncertain and res.tilt_95_deg < LENS_TILT_95_DEG and res.board_span > 0.4
+
+
+def _frames(clip: Path) -> list[np.ndarray]:
+    return [cv2.imread(str(f), cv2.IMREAD_GRAYSCALE) for f in sorted(clip.glob("*.png"))]
+
+
 def test_intrinsics_recover_the_true_lens(tmp_path):
     """A board moved in front of a camera of a random world gives its lens back: the same pose through
     the fitted lens lands within 1 px of the truth over the image (0.77 px measured, 320x240)."""

@@ -61,7 +61,7 @@ def _parse_board(args: argparse.Namespace):
 
 
 def _intrinsics(args: argparse.Namespace) -> int:
-    from common.calibrate.intrinsics import calibrate_intrinsics
+    from common.calibrate.intrinsics import LENS_TILT_95_DEG, calibrate_intrinsics
     from common.calibrate.write import write_intrinsics
 
     board = _parse_board(args)
@@ -78,8 +78,16 @@ def _intrinsics(args: argparse.Namespace) -> int:
     K = cam.K
     print(f"  fx {K[0, 0]:.2f}  fy {K[1, 1]:.2f}  cx {K[0, 2]:.2f}  cy {K[1, 2]:.2f} px; distortion "
           f"[{', '.join(f'{v:.5f}' for v in cam.dist)}]")
+    sx, sy = res.centre_sd_px
+    print(f"  uncertainty (one standard deviation): fx {res.focal_sd_px:.2f} px, cx {sx:.2f} px, cy {sy:.2f} px: "
+          f"the camera's tilt to {res.tilt_95_deg:.3f} degree (95 %); the board spanned {100 * res.board_span:.0f} % "
+          "of the image's width (median)")
     if res.rms_px > 1.0:
         print("  WARNING: above 1 px: the board may be bent, blurred or badly lit; record again")
+    if res.uncertain:
+        print(f"  WARNING: the lens's centre leaves camera {args.camera}'s tilt uncertain by more than "
+              f"{LENS_TILT_95_DEG:.2f} degree, which no floor calibration takes back: record again with the board "
+              "nearer, spanning half the image's width or more, tilted, in more places")
     write_intrinsics(cam, out)
     print(f"wrote {out}")
     return 0

@@ -14,10 +14,18 @@ then fits a pinhole model (``calibrateCamera``: fx, fy, cx, cy, k1, k2, p1, p2, 
 views show it, :data:`K3_EVIDENCE`) or the
 fisheye model (``fisheye.calibrate``: k1..k4) to the views' corners, each view with its own
 number of corners; views whose error is far above the others' are dropped and the fit repeated once.
+
+The fit's own uncertainty is measured from its Jacobian (the corners as noisy as the fit found them):
+the principal point's, as a tilt of the camera (:attr:`IntrinsicsResult.tilt_95_deg`), which no floor
+calibration can take back, since it trades against the camera's turn. Where it exceeds
+:data:`LENS_TILT_95_DEG` the result says so (:attr:`IntrinsicsResult.uncertain`): the board was held too
+far for the image (a board spanning a quarter to three fifths of a 320x240 image's width left the
+principal point of a 230 px lens 0.5 px uncertain, 0.17 degree; spanning half or more, 0.07 degree).
 """
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -27,6 +35,7 @@ import numpy as np
 from common.calibrate.board import Board, board_area_fraction, find_board, sharpness
 from common.calibrate.charuco import CharucoBoard, CharucoFinder
 from common.calibrate.clips import read_gray
+from common.calibrate.floor import ANGLE_TOLERANCE_DEG
 from common.camera import Camera
 
 MIN_VIEWS = 6
@@ -43,6 +52,9 @@ K3_EVIDENCE = 10.0
 (the likelihood-ratio test of one more parameter: chi-square with one degree of freedom, p < 0.002). A
 lens whose k3 is not zero (the lab's: -0.03 to -0.07) fitted without it came out with its principal point
 1-3 px off (0.2-0.4 degree of tilt at 490 px); a lens without one is fitted the same either way."""
+LENS_TILT_95_DEG = ANGLE_TOLERANCE_DEG / math.sqrt(2.0)
+"""The most a lens fit may leave a camera's tilt uncertain (95 %): half the variance of the floor
+calibration's angle tolerance, the other half left to the floor calibration's own pose."""
 
 
 class IntrinsicsError(ValueError):
@@ -53,7 +65,9 @@ class IntrinsicsError(ValueError):
 class IntrinsicsResult:
     """camera: the fitted camera (pose: identity, a placeholder until the floor calibration).
     rms_px: OpenCV's RMS reprojection error. views_used, views_found, frames_searched: counts;
-    skipped_blurred, skipped_duplicate, skipped_small, dropped_outliers: why found views were left out."""
+    skipped_blurred, skipped_duplicate, skipped_small, dropped_outliers: why found views were left out.
+    centre_sd_px: the principal point's standard deviation (x, y), focal_sd_px the focal length's (fx),
+    from the fit's Jacobian; board_span: the median share of the image's width the used views' boards span."""
 
     camera: Camera
     rms_px: float
@@ -64,6 +78,19 @@ class IntrinsicsResult:
     skipped_duplicate: int
     skipped_small: int
     dropped_outliers: int
+    centre_sd_px: tuple[float, float]
+    focal_sd_px: float
+    board_span: float
+
+    @property
+    def tilt_95_deg(self) -> float:
+        """How far (95 %) the principal point's uncertainty may tilt the camera, in degrees."""
+        return math.degrees(1.96 * math.hypot(*self.centre_sd_px) / self.camera.K[0, 0])
+
+    @property
+    def uncertain(self) -> bool:
+        """Whether that tilt exceeds :data:`LENS_TILT_95_DEG`: the board should be held nearer."""
+        return self.tilt_95_deg > LENS_TILT_95_DEG
 
 
 def calibrate_intrinsics(clip: str, cam_id: str, board: Board | CharucoBoard, *,
@@ -107,16 +134,19 @@ def calibrate_intrinsics(clip: str, cam_id: str, board: Board | CharucoBoard, *,
     if len(picked) < MIN_VIEWS:
         raise IntrinsicsError(f"clip {clip}: the board was found in only {len(picked)} distinct sharp views "
                               f"(need {MIN_VIEWS}): move it slowly to other places, distances and tilts")
-    camera, rms, errs = _fit(picked, board, cam_id, W, H, model)
+    camera, rms, errs, sd = _fit(picked, board, cam_id, W, H, model)
     keep = errs <= OUTLIER_FACTOR * max(float(np.median(errs)), 0.05)
     dropped = int((~keep).sum())
     if dropped and keep.sum() >= MIN_VIEWS:
-        camera, rms, errs = _fit([p for p, k in zip(picked, keep) if k], board, cam_id, W, H, model)
+        picked = [p for p, k in zip(picked, keep) if k]
+        camera, rms, errs, sd = _fit(picked, board, cam_id, W, H, model)
     else:
         dropped = 0
-    return IntrinsicsResult(camera=camera, rms_px=rms, views_used=len(picked) - dropped, views_found=len(views),
+    span = float(np.median([np.ptp(v.corners[:, 0]) / W for v in picked]))
+    return IntrinsicsResult(camera=camera, rms_px=rms, views_used=len(picked), views_found=len(views),
                             frames_searched=len(frames), skipped_blurred=blurred, skipped_duplicate=duplicates,
-                            skipped_small=small, dropped_outliers=dropped)
+                            skipped_small=small, dropped_outliers=dropped, centre_sd_px=(sd[2], sd[3]),
+                            focal_sd_px=sd[0], board_span=span)
 
 
 @dataclass(frozen=True)
@@ -160,7 +190,7 @@ def _outline(view: _View, board: Board | CharucoBoard) -> np.ndarray:
 
 
 def _fit(views: list[_View], board: Board | CharucoBoard, cam_id: str, W: int, H: int, model: str):
-    """(camera, rms, per-view mean error px)."""
+    """(camera, rms, per-view mean error px, standard deviations of fx, fy, cx, cy px)."""
     every = board.object_points()
     if model == "pinhole":
         objs = [every[v.ids].astype(np.float32).reshape(-1, 1, 3) for v in views]
@@ -173,6 +203,7 @@ def _fit(views: list[_View], board: Board | CharucoBoard, cam_id: str, W: int, H
         if fit[0] > 0 and points * (rms ** 2 - fit[0] ** 2) > K3_EVIDENCE * fit[0] ** 2:
             rms, K, dist, rvecs, tvecs = fit
         dist = dist.ravel()[:5]
+        free = 9 if dist[4] != 0.0 else 8   # fx, fy, cx, cy, k1, k2, p1, p2 (, k3)
         errs = []
         for o, v, r, t in zip(objs, views, rvecs, tvecs):
             uv, _ = cv2.projectPoints(o, r, t, K, dist)
@@ -207,13 +238,39 @@ def _fit(views: list[_View], board: Board | CharucoBoard, cam_id: str, W: int, H
                                   "show the board in more places, nearer the image's edges")
         rms, K, dist, rvecs, tvecs = min(fits, key=lambda fit: fit[0])
         dist = dist.ravel()
+        free = 8   # fx, fy, cx, cy, k1..k4
         errs = []
         for o, v, r, t in zip(objs, views, rvecs, tvecs):
             uv, _ = cv2.fisheye.projectPoints(o, r, t, K, dist)
             errs.append(np.linalg.norm(uv.reshape(-1, 2) - v.corners, axis=1).mean())
+    sd = _intrinsic_sd(objs, imgs, K, dist, rvecs, tvecs, model, free)
     K = np.asarray(K, dtype=np.float64)
     K[1, 0] = 0.0
     K[2] = (0.0, 0.0, 1.0)
     camera = Camera(id=cam_id, model=model, width=W, height=H, K=K, dist=np.asarray(dist, dtype=np.float64),
                     R=np.eye(3), t=np.zeros(3))
-    return camera, float(rms), np.asarray(errs)
+    return camera, float(rms), np.asarray(errs), sd
+
+
+def _intrinsic_sd(objs, imgs, K, dist, rvecs, tvecs, model: str, free: int) -> np.ndarray:
+    """Standard deviations (px) of fx, fy, cx, cy: the Gauss-Newton covariance of the fit (its first ``free``
+    lens parameters and every view's pose), each corner coordinate as noisy as the residuals say."""
+    rows, resid = [], []
+    views = len(objs)
+    for k, (o, img, r, t) in enumerate(zip(objs, imgs, rvecs, tvecs)):
+        if model == "pinhole":
+            uv, J = cv2.projectPoints(o.astype(np.float64), r, t, K, dist)
+            lens, pose = J[:, 6:6 + free], J[:, :6]   # r, t, fx, fy, cx, cy, k1, k2, p1, p2, k3
+        else:
+            uv, J = cv2.fisheye.projectPoints(o.astype(np.float64), r, t, K, dist)
+            lens, pose = J[:, :free], J[:, 8:14]      # fx, fy, cx, cy, k1..k4, r, t, skew
+        block = np.zeros((len(J), free + 6 * views))
+        block[:, :free] = lens
+        block[:, free + 6 * k:free + 6 * k + 6] = pose
+        rows.append(block)
+        resid.append(uv.reshape(-1) - img.reshape(-1))
+    J = np.concatenate(rows)
+    r = np.concatenate(resid)
+    dof = max(len(r) - J.shape[1], 1)
+    cov = np.linalg.pinv(J.T @ J) * float(r @ r) / dof
+    return np.sqrt(np.clip(np.diag(cov)[:4], 0.0, None))

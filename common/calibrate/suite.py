@@ -8,8 +8,11 @@
    (:func:`common.synth.board.intrinsics_poses`): a 9x6 chessboard of 140 mm through pinholes,
    a 7x5-square ChArUco board of 140 mm through fisheyes, many of its views only partly in the
    image (a chessboard bent that much by the lens is not found), 30 views each (about a minute of
-   holding the board still at places); without it the true lenses, which the floor calibration
-   still refines (:data:`common.calibrate.floor.FOCAL_PRIOR`);
+   holding the board still at places), the board spanning a quarter to three fifths of the image's
+   width (:data:`HELD`), and recorded again nearer (:data:`NEARER`) where the command warns that the
+   lens's centre leaves the camera's tilt uncertain (a camera it still warns of counts as warned);
+   without it the true lenses, which the floor calibration still refines
+   (:data:`common.calibrate.floor.FOCAL_PRIOR`);
 2. the floor: a 9x6 chessboard of 140 mm (or, where the command refuses it because no chain of
    places reaches every camera, a floor mat of 250 mm squares, then a ChArUco mat of the same size
    that counts where a camera reads only part of it, then the 140 mm chessboard set up on a stand
@@ -70,6 +73,11 @@ place seen whole by two; the A0 chessboard again, first on the floor, then on a 
 (:func:`common.synth.board.stand_pose`, its centre 1.2 m up) where no place of the floor reaches a camera:
 cameras level with the room, or looking across furniture, see the air above the floor together."""
 LENS_VIEWS = {"pinhole": 30, "fisheye": 30}
+HELD = (0.25, 0.6)
+"""The share of the image's width the board spans in the lens clip, as an installer first holds it."""
+NEARER = (0.45, 0.85)
+"""And as the installer holds it when ``calibrate intrinsics`` warns that the lens's centre is uncertain
+(the warning asks for half the image's width or more)."""
 HEED_ROUNDS = 2
 """How many times the installer records again for the cameras the command still warns of (each time two
 more places for each, where it has not been laid yet)."""
@@ -100,20 +108,29 @@ def rough_cameras(cameras) -> dict:
 
 
 def fit_lens(true, folder: Path, seed: int):
-    """The camera's lens from a rendered board clip, as ``calibrate intrinsics`` fits it; a Tsai lens (the
-    PETS rig's) is kept, as the command fits no Tsai model."""
+    """(lens, whether the command still warns of it): the camera's lens from a rendered board clip, as
+    ``calibrate intrinsics`` fits it, recorded again with the board nearer (:data:`NEARER`) where the
+    command warns that the fit leaves the camera's tilt uncertain; a Tsai lens (the PETS rig's) is kept,
+    as the command fits no Tsai model."""
     from common.calibrate.intrinsics import calibrate_intrinsics
     from common.synth.board import BoardRenderer, intrinsics_clip, intrinsics_poses, write_frames
 
     if true.model == "tsai":
-        return true
+        return true, False
     if true.model == "fisheye":
         board, views, reach = CharucoBoard(7, 5, 0.14, 0.105, "5x5_100"), LENS_VIEWS["fisheye"], 0.4
     else:
         board, views, reach = Board(9, 6, 0.14), LENS_VIEWS["pinhole"], 1.0
-    poses = intrinsics_poses(true, board, views, np.random.default_rng(seed), min_in_view=reach)
-    clip = write_frames(intrinsics_clip(BoardRenderer(true, None, seed=seed), board, poses, frames_per_pose=1), folder)
-    return calibrate_intrinsics(str(clip), true.id, board, model=true.model).camera
+    res = None
+    for k, fill in enumerate((HELD, NEARER)):
+        poses = intrinsics_poses(true, board, views, np.random.default_rng([seed, k] if k else seed),
+                                 min_in_view=reach, fill=fill)
+        clip = write_frames(intrinsics_clip(BoardRenderer(true, None, seed=seed), board, poses, frames_per_pose=1),
+                            folder / f"take{k + 1}")
+        res = calibrate_intrinsics(str(clip), true.id, board, model=true.model)
+        if not res.uncertain:
+            break
+    return res.camera, res.uncertain
 
 
 def run_world(seed: int, work: Path, *, lenses: bool = False, heed: bool = True) -> dict[str, Any]:
@@ -124,9 +141,12 @@ def run_world(seed: int, work: Path, *, lenses: bool = False, heed: bool = True)
     world = random_world(seed)
     t0 = time.perf_counter()
     intrinsics = dict(world.cameras)
+    uncertain = []
     if lenses:
         for k, (c, true) in enumerate(world.cameras.items()):
-            intrinsics[c] = fit_lens(true, work / f"lens-{c}", seed * 100 + k)
+            intrinsics[c], doubt = fit_lens(true, work / f"lens-{c}", seed * 100 + k)
+            if doubt:
+                uncertain.append(c)
     refusals = []
     for k, (board, stand) in enumerate(FLOOR_BOARDS):
         out = _floor_world(world, intrinsics, board, work / f"board{k}", heed=heed, stand=stand)
@@ -134,6 +154,10 @@ def run_world(seed: int, work: Path, *, lenses: bool = False, heed: bool = True)
         if "error" not in out:
             break
         refusals.append(f"{_board_name(board, stand)}: {out['error']}")
+    for c in uncertain:
+        if c in out["cameras"]:
+            out["cameras"][c]["lens_uncertain"] = True
+            out["cameras"][c]["warned"] = True
     out["seconds"] = time.perf_counter() - t0
     return out
 
@@ -270,7 +294,7 @@ def _report(r: dict) -> None:
           f"{r['seconds']:.0f} s):", flush=True)
     for c, v in r["cameras"].items():
         flag = "" if _on_target(v) else "  OUTSIDE"
-        warn = "  (warned)" if v["warned"] else ""
+        warn = ("  (warned: lens)" if v.get("lens_uncertain") else "  (warned)") if v["warned"] else ""
         print(f"    {c} {v['model']} {v['size']}: position {v['position_cm']:.2f} cm, angle {v['angle_deg']:.3f} deg; "
               f"bounds {v['bound_cm']:.2f} cm, {v['bound_deg']:.3f} deg; {v['reprojection_px']:.2f} px over "
               f"{v['board_views']} place(s){flag}{warn}", flush=True)

@@ -173,10 +173,10 @@ def corners_world(board: Board | CharucoBoard, pose) -> np.ndarray:
 
 
 def intrinsics_poses(camera: Camera, board: Board | CharucoBoard, count: int, rng: np.random.Generator, *,
-                     min_in_view: float = 1.0) -> list:
+                     min_in_view: float = 1.0, fill: tuple[float, float] = (0.25, 0.6)) -> list:
     """``count`` world poses of the board held in front of ``camera``: spread over the image (a 3x3
-    grid of aims, then random), covering 25-60 % of its width, tilted up to 40 degrees, the printed
-    face towards the camera.
+    grid of aims, then random), spanning a share of its width drawn from ``fill`` (held square to the
+    camera), tilted up to 40 degrees, the printed face towards the camera.
 
     min_in_view 1: every corner in view with a margin of 4 % of the image, the board square to the
     optical axis before it is tilted. Below 1 (partial views, for a ChArUco board): the random
@@ -204,8 +204,8 @@ def intrinsics_poses(camera: Camera, board: Board | CharucoBoard, count: int, rn
         ray = camera.rays_cam(np.array([[u, v]]))[0]
         if not np.all(np.isfinite(ray)):
             continue
-        fill = rng.uniform(0.25, 0.6)
-        dist = camera.K[0, 0] * width_m / (fill * W)
+        span = rng.uniform(*fill)
+        dist = camera.K[0, 0] * width_m / (span * W)
         tilt = _rot(0, math.radians(rng.uniform(-40, 40))) @ _rot(1, math.radians(rng.uniform(-40, 40))) @ \
             _rot(2, math.radians(rng.uniform(-20, 20)))
         if partial:
