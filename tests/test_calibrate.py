@@ -115,12 +115,13 @@ def test_floor_recovers_the_true_cameras_of_a_random_world(tmp_path):
         assert result.reports[cam_id].mean_px < 0.5
 
 
-def test_a_lens_fit_knows_how_far_its_centre_may_be_off_and_asks_for_the_board_nearer(tmp_path):
+def test_a_lens_fit_knows_how_far_its_centre_may_be_off_and_asks_for_the_board_nearer(tmp_path, capsys):
     """A 320x240 lens of 234 px (tuning seed 0's cam5) from a board spanning a quarter to three fifths of the
     image's width leaves the principal point about half a pixel uncertain: the fit says so (its standard
     deviations agree with OpenCV's ``calibrateCameraExtended``, an independent computation), the true
     principal point lies within three of them, and the camera's tilt is flagged uncertain. The same lens
-    from the board held nearer (half the width or more) is within the tolerance and not flagged."""
+    from the board held nearer (half the width or more) is within the tolerance and not flagged. The command
+    warns of the first by the camera's name, and writes the file all the same."""
     from common.calibrate.intrinsics import LENS_TILT_95_DEG
     from common.calibrate.suite import HELD, NEARER
 
@@ -148,6 +149,14 @@ def test_a_lens_fit_knows_how_far_its_centre_may_be_off_and_asks_for_the_board_n
             assert res.uncertain and sd.min() > 0.3
         else:
             assert not res.uncertain and res.tilt_95_deg < LENS_TILT_95_DEG and res.board_span > 0.4
+        if k % 2 == 0:
+            out = tmp_path / f"take{k}.toml"
+            assert main(["calibrate", "intrinsics", "--camera", "cam5", "--clip", str(clip), "--board", "9x6",
+                         "--square-mm", "140", "--out", str(out)]) == 0
+            printed = capsys.readouterr().out
+            assert f"{res.tilt_95_deg:.3f} degree (95 %)" in printed
+            assert ("WARNING: the lens's centre leaves camera cam5's tilt uncertain" in printed) == (fill == HELD)
+            assert out.exists()
 
 
 def _frames(clip: Path) -> list[np.ndarray]:
