@@ -28,6 +28,9 @@ Formats (``load_calibration(path, fmt, ...)``):
       rotation = [[...], [...], [...]]     # world -> camera 3x3, or instead:
       # rvec = [rx, ry, rz]                # Rodrigues vector, world -> camera
       tvec_m = [tx, ty, tz]                # metres, X_cam = R X_world + t
+      centre_sd_px = [sx, sy]              # optional: the principal point's standard deviations from
+                                           # the lens fit (``calibrate intrinsics``; OpenCV files:
+                                           # PrincipalPointStd)
 
       [tsai]                      # model = "tsai" only (camera_matrix is then optional)
       focal_mm = 5.55
@@ -206,6 +209,42 @@ def load_opencv(
     return _build(path, transform, id=cam_id, model=model, width=width, height=height, K=K, dist=dist_v, R=R, t=t)
 
 
+def lens_centre_sd(path: str | Path, fmt: str) -> tuple[float, float] | None:
+    """The principal point's standard deviations (px) a lens file carries from its fit (``centre_sd_px`` in the
+    project's TOML, ``PrincipalPointStd`` in OpenCV FileStorage), or None where it carries none."""
+    path = Path(path)
+    if fmt == "voxelwatch":
+        try:
+            value = tomllib.loads(path.read_text(encoding="utf-8")).get("centre_sd_px")
+        except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError):
+            return None   # the loader says what is wrong with the file
+        label = "centre_sd_px"
+    elif fmt in ("opencv", "opencv-fisheye"):
+        try:
+            fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
+        except (cv2.error, SystemError):
+            return None
+        try:
+            node = fs.getNode("PrincipalPointStd") if fs.isOpened() else None
+            value = None if node is None or node.empty() else node.mat()
+            value = None if value is None else value.ravel().tolist()
+        finally:
+            fs.release()
+        label = "PrincipalPointStd"
+    else:
+        return None
+    if value is None:
+        return None
+    try:
+        sd = [float(v) for v in value] if not isinstance(value, (str, bool)) else []
+    except (TypeError, ValueError):
+        sd = []
+    if len(sd) != 2 or not all(math.isfinite(v) and v >= 0.0 for v in sd) or any(isinstance(v, bool) for v in value):
+        raise CalibrationError(f"calibration file {path}: {label}: expected two standard deviations "
+                               f"(pixels, not negative), got {value!r}")
+    return sd[0], sd[1]
+
+
 def load_pets_tsai(
     path: str | Path,
     cam_id: str,
@@ -318,8 +357,9 @@ def load_voxelwatch(
     return _build(path, transform, id=cam_id, model=model, width=width, height=height, K=K, dist=dist, R=R, t=t, tsai=tsai)
 
 
-def save_voxelwatch(camera: Camera, path: str | Path) -> None:
-    """Write ``camera`` (world frame, metres) as a voxelwatch TOML calibration."""
+def save_voxelwatch(camera: Camera, path: str | Path, centre_sd_px: tuple[float, float] | None = None) -> None:
+    """Write ``camera`` (world frame, metres) as a voxelwatch TOML calibration, with the principal point's
+    standard deviations from its lens fit when given."""
     lines = [
         "# voxelwatch camera calibration (world frame: metres, Z up; X_cam = R X_world + t)",
         f"id = {_toml_str(camera.id)}",
@@ -331,6 +371,8 @@ def save_voxelwatch(camera: Camera, path: str | Path) -> None:
         f"rotation = {_toml_matrix(camera.R)}",
         f"tvec_m = {_toml_vector(camera.t)}",
     ]
+    if centre_sd_px is not None:
+        lines.append(f"centre_sd_px = {_toml_vector(centre_sd_px)}")
     if camera.tsai is not None:
         ts = camera.tsai
         lines += ["", "[tsai]"] + [

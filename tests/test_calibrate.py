@@ -355,6 +355,48 @@ def test_the_bounds_cover_the_errors_of_noisy_corners():
         assert 0.5 * said < seen < 1.5 * said
 
 
+def test_the_bounds_cover_a_lens_files_uncertain_principal_point():
+    """Lens files whose principal points are off by the noise their fits reported (0.5 px a coordinate, a
+    320x240 lens's from a board held far), corners without noise: the board places cannot take the error back,
+    and the orientation's bound with the lens's term covers it (the errors' 95th percentile between half and
+    one and a half times the median bound, per camera), where through a pinhole the board places' own bound
+    alone would not."""
+    import dataclasses
+
+    from common.calibrate.intrinsics import lens_tilt_95_deg
+
+    world = random_world(FLOOR_SEED)
+    poses = floor_positions(world.cameras, world.room, BOARD, np.random.default_rng(0), well_seen=WELL_SEEN)
+    sightings = _exact_sightings(world, poses)
+    rng = np.random.default_rng(3)
+    sd = (0.5, 0.5)
+    tilt = {c: lens_tilt_95_deg(cam, sd) for c, cam in world.cameras.items()}
+    errs = {c: [] for c in world.cameras}
+    total, own = {c: [] for c in world.cameras}, {c: [] for c in world.cameras}
+    for _ in range(20):
+        lenses = {}
+        for c, cam in world.cameras.items():
+            K = cam.K.copy()
+            K[:2, 2] += rng.normal(0.0, sd)
+            lenses[c] = dataclasses.replace(cam, K=K)
+        res = calibrate_floor(sightings, lenses, BOARD, plan_points=_plan_points(BOARD, poses[0]), lens_tilt_95_deg=tilt)
+        for c, true in world.cameras.items():
+            errs[c].append(_angle_deg(res.cameras[c].R, true.R))
+            total[c].append(res.reports[c].total_angle_95_deg)
+            own[c].append(res.reports[c].angle_95_deg)
+    for c, true in world.cameras.items():
+        seen = float(np.quantile(errs[c], 0.95))
+        said, alone = float(np.median(total[c])), float(np.median(own[c]))
+        print(f"{c} ({true.model}, f {true.K[0, 0]:.0f} px): errors' 95th percentile {seen:.3f} deg, bound {said:.3f} "
+              f"deg (the board places' alone {alone:.3f}, the lens's {tilt[c]:.3f})")
+        assert 0.5 * said < seen < 1.5 * said
+    # through the pinholes the board places' bound alone is exceeded by more than the 5 % a 95 % bound allows
+    # (a fisheye's wide view takes part of a principal point's error back: its bound with the lens's is wide)
+    over = [e > o for c, cam in world.cameras.items() if cam.model == "pinhole" for e, o in zip(errs[c], own[c])]
+    print(f"pinholes: {100 * np.mean(over):.0f} % of the errors over the board places' own bound")
+    assert np.mean(over) > 0.1
+
+
 def test_a_camera_that_sees_the_board_only_far_away_is_warned_of(capsys):
     """The house's cam1 and cam2 share board places with the other cameras only where they see the board
     small (cam1 under 0.2 % of its image, cam2 under 0.5 %): their bounds exceed 2 cm or 0.3 degree (the
@@ -722,11 +764,19 @@ def test_command_writes_the_site_calibrations_with_backups(tmp_path, capsys):
     plan.write_text("points = [\n" + "".join(f"  {{ board = [{r[0]}, {r[1]}], room = [{r[2]}, {r[3]}] }},\n" for r in rows)
                     + "]\n", encoding="utf-8")
     before = _snapshot(site_path)
+    # cam1's lens file says its fit left the principal point 2 px uncertain a coordinate
+    from common.calibrate.write import write_intrinsics
+
+    lens = write_intrinsics(world.cameras["cam1"], tmp_path / "cam1-intrinsics.toml", centre_sd_px=(2.0, 2.0))
+    tilt = math.degrees(1.96 * math.hypot(2.0, 2.0) / world.cameras["cam1"].K[0, 0])
     argv = ["calibrate", "floor", "--site", str(site_path), "--board", "9x6", "--square-mm", "140",
-            "--plan-points", str(plan), *[f"--clip={c}={p}" for c, p in clips.items()]]
+            "--plan-points", str(plan), f"--intrinsics=cam1={lens}", *[f"--clip={c}={p}" for c, p in clips.items()]]
     assert main(argv) == 0
     out = capsys.readouterr().out
     site = load_site(site_path)
+    assert f"the lens's centre {tilt:.2f} deg of it" in out
+    assert "WARNING: camera cam1's lens leaves its angle uncertain" in out
+    assert sum("lens leaves its angle uncertain" in line for line in out.splitlines()) == 1
     for cam_id, true in world.cameras.items():
         assert f"camera {cam_id}: reprojection" in out
         path = site.calibration_path(cam_id)
@@ -810,6 +860,39 @@ def test_a_clip_that_cannot_be_read_is_refused_and_nothing_written(tmp_path, cap
     assert main(["calibrate", "intrinsics", "--camera", "cam1", "--clip", str(tmp_path / "missing.avi"),
                  "--out", str(tmp_path / "cam1.toml")]) == 2
     assert "not found" in capsys.readouterr().err and not (tmp_path / "cam1.toml").exists()
+
+
+@pytest.mark.parametrize("suffix", [".toml", ".yaml"])
+def test_a_lens_file_carries_its_principal_points_uncertainty(tmp_path, suffix):
+    """The standard deviations ``calibrate intrinsics`` writes come back as written, in the project's TOML and
+    in OpenCV FileStorage; a file without them gives None."""
+    from common.calibrate.write import write_intrinsics
+    from common.calibration import lens_centre_sd
+
+    cam = random_world(FLOOR_SEED).cameras["cam1"]
+    fmt = "voxelwatch" if suffix == ".toml" else "opencv"
+    path = write_intrinsics(cam, tmp_path / f"with{suffix}", centre_sd_px=(0.41, 0.37))
+    assert lens_centre_sd(path, fmt) == pytest.approx((0.41, 0.37), abs=1e-12)
+    assert np.allclose(load_calibration(path, fmt, "cam1").K, cam.K)
+    assert lens_centre_sd(write_intrinsics(cam, tmp_path / f"without{suffix}"), fmt) is None
+
+
+def test_a_lens_file_with_a_broken_uncertainty_stops_the_floor_calibration(tmp_path, capsys):
+    """A lens file whose ``centre_sd_px`` is not two standard deviations: one line naming the file and the
+    field, and nothing written."""
+    from common.calibrate.write import write_intrinsics
+
+    world, site_path = _synthetic_site(tmp_path)
+    before = _snapshot(site_path)
+    lens = write_intrinsics(world.cameras["cam1"], tmp_path / "cam1.toml")
+    lens.write_text(lens.read_text(encoding="utf-8") + "centre_sd_px = [0.4]\n", encoding="utf-8")
+    clip = tmp_path / "never-read.avi"
+    assert main(["calibrate", "floor", "--site", str(site_path), f"--intrinsics=cam1={lens}",
+                 *[f"--clip={c}={clip}" for c in before]]) == 2
+    err = capsys.readouterr().err
+    assert f"calibration file {lens}: centre_sd_px: expected two standard deviations" in err, err
+    assert len(err.strip().splitlines()) == 1
+    assert _snapshot(site_path) == before
 
 
 def test_cameras_that_share_no_board_position_are_named_by_the_calibration():

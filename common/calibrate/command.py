@@ -88,7 +88,7 @@ def _intrinsics(args: argparse.Namespace) -> int:
         print(f"  WARNING: the lens's centre leaves camera {args.camera}'s tilt uncertain by more than "
               f"{LENS_TILT_95_DEG:.2f} degree, which no floor calibration takes back: record again with the board "
               "nearer, spanning half the image's width or more, tilted, in more places")
-    write_intrinsics(cam, out)
+    write_intrinsics(cam, out, res.centre_sd_px)
     print(f"wrote {out}")
     return 0
 
@@ -99,7 +99,8 @@ def _floor(args: argparse.Namespace) -> int:
         read_plan_points,
     )
     from common.calibrate.write import WRITABLE, write_site_calibrations
-    from common.calibration import CalibrationError, load_calibration
+    from common.calibrate.intrinsics import LENS_TILT_95_DEG, lens_tilt_95_deg
+    from common.calibration import CalibrationError, lens_centre_sd, load_calibration
     from common.site import load_site
 
     board = _parse_board(args)
@@ -117,7 +118,7 @@ def _floor(args: argparse.Namespace) -> int:
         if spec.format not in WRITABLE and not args.dry_run:
             raise ValueError(f"site file {site.source}: camera {cam_id}: {spec.format} calibrations cannot be "
                              f"written; switch it to one of {', '.join(WRITABLE)}")
-    intrinsics, rough = {}, {}
+    intrinsics, rough, lens_tilt = {}, {}, {}
     for cam_id in site.camera_ids:
         try:
             rough[cam_id] = site.load_camera(cam_id)
@@ -133,30 +134,38 @@ def _floor(args: argparse.Namespace) -> int:
             intrinsics[cam_id] = load_calibration(path, fmt, cam_id, image_size=spec.resolution)
         else:
             intrinsics[cam_id] = rough[cam_id]
+            path, fmt = site.calibration_path(cam_id), site.camera(cam_id).format
+        sd = lens_centre_sd(path, fmt)
+        if sd is not None:
+            lens_tilt[cam_id] = lens_tilt_95_deg(intrinsics[cam_id], sd)
         if rough[cam_id] is not None and not _plausible(rough[cam_id]):
             rough[cam_id] = None
     first = site.cameras[0]
     sightings = find_sightings(clips, intrinsics, board, rough)
     result = calibrate_floor(sightings, intrinsics, board, rough=rough, plan_points=plan,
-                             placement=(first.origin_m, first.yaw_deg), volume=(site.volume.min_m, site.volume.max_m))
+                             placement=(first.origin_m, first.yaw_deg), volume=(site.volume.min_m, site.volume.max_m),
+                             lens_tilt_95_deg=lens_tilt)
     print(f"site {site.name}: board {board.describe()}, {result.positions} board position(s), "
           f"{len(site.camera_ids)} cameras")
     ox, oy, _ = result.origin_m
     where = "from the plan points" if plan is not None else "from the site's first camera entry"
     print(f"  board frame in the room ({where}): origin ({ox:.3f}, {oy:.3f}) m, yaw {result.yaw_deg:.2f} deg"
           + (f", plan points fit to {100 * result.plan_residual_m:.1f} cm" if result.plan_residual_m is not None else ""))
-    loose, lens = [], []
+    loose, lens, centre = [], [], []
     for cam_id, rep in result.reports.items():
         x, y, z = rep.centre_m
+        of_lens = f", the lens's centre {rep.lens_tilt_95_deg:.2f} deg of it" if rep.lens_tilt_95_deg else ""
         print(f"  camera {cam_id}: reprojection {rep.mean_px:.2f} px mean, {rep.max_px:.2f} px max over {rep.corners} "
               f"corners ({rep.corners_found - rep.corners} stray left out) in {rep.positions} position(s); "
               f"at ({x:.2f}, {y:.2f}) m, height {z:.2f} m, within {100 * rep.position_95_m:.1f} cm and "
-              f"{rep.angle_95_deg:.2f} deg (95 %); sees {100 * rep.seen_share:.0f} % of the volume; "
+              f"{rep.total_angle_95_deg:.2f} deg (95 %{of_lens}); sees {100 * rep.seen_share:.0f} % of the volume; "
               f"focal length {100 * rep.focal_change:+.2f} % over the lens file's")
         if not rep.pinned:
             loose.append(cam_id)
         if rep.lens_doubtful:
             lens.append(cam_id)
+        if rep.lens_uncertain:
+            centre.append(cam_id)
     for note in result.notes:
         print(f"  note: {note}")
     for cam_id in lens:
@@ -166,6 +175,12 @@ def _floor(args: argparse.Namespace) -> int:
               f"to, or its corners are missed by {rep.mean_px:.2f} px on average, over {MISFIT_PX:g} px): check its "
               "intrinsics (the right file, the image size) and that the board lies flat, or calibrate the lens again "
               "with the board held near the image's edges and corners too")
+    for cam_id in centre:
+        rep = result.reports[cam_id]
+        print(f"  WARNING: camera {cam_id}'s lens leaves its angle uncertain by {rep.total_angle_95_deg:.2f} deg, over "
+              f"{ANGLE_TOLERANCE_DEG} deg, though the board places pin it: its lens file's principal point is "
+              f"{rep.lens_tilt_95_deg:.2f} deg of it (over {LENS_TILT_95_DEG:.2f} would be warned of by calibrate "
+              "intrinsics); calibrate the lens again with the board nearer, spanning half the image's width or more")
     for cam_id in loose:
         print(f"  WARNING: camera {cam_id} may be off by more than {100 * POSITION_TOLERANCE_M:.0f} cm or "
               f"{ANGLE_TOLERANCE_DEG} deg: it sees the board too small or too few times; record again with the board "

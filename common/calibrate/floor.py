@@ -171,11 +171,28 @@ class CameraReport:
     """The focal length the adjustment found over the lens file's, less one (0.003: 0.3 % longer)."""
     lens_change_px: float = 0.0
     """How far the adjustment's radial distortion moved the image's corners from the lens file's (pixels)."""
+    lens_tilt_95_deg: float = 0.0
+    """How far (95 %, degrees) the lens file's principal point leaves the camera's tilt uncertain, from the lens
+    fit's own uncertainty when the file carries it (0: it does not). The board places cannot take it back (a
+    principal point off by a pixel turns the camera as a pixel's turn would), so it adds to
+    :attr:`angle_95_deg`, the board places' own bound, in :attr:`total_angle_95_deg`."""
+
+    @property
+    def total_angle_95_deg(self) -> float:
+        """The orientation's bound with the lens's: the two independent, their variances added."""
+        return math.hypot(self.angle_95_deg, self.lens_tilt_95_deg)
 
     @property
     def pinned(self) -> bool:
-        """Whether its bounds lie within :data:`POSITION_TOLERANCE_M` and :data:`ANGLE_TOLERANCE_DEG`."""
+        """Whether the board places' bounds lie within :data:`POSITION_TOLERANCE_M` and :data:`ANGLE_TOLERANCE_DEG`
+        (else more places near the camera pin it better)."""
         return self.position_95_m <= POSITION_TOLERANCE_M and self.angle_95_deg <= ANGLE_TOLERANCE_DEG
+
+    @property
+    def lens_uncertain(self) -> bool:
+        """Whether, the board places pinning the camera, its lens's principal point takes the orientation's bound
+        past :data:`ANGLE_TOLERANCE_DEG` (the lens wants calibrating again, the board held nearer)."""
+        return self.pinned and self.total_angle_95_deg > ANGLE_TOLERANCE_DEG
 
     @property
     def lens_doubtful(self) -> bool:
@@ -185,8 +202,8 @@ class CameraReport:
 
     @property
     def warned(self) -> bool:
-        """Whether ``calibrate floor`` warns of it (:attr:`pinned`, :attr:`lens_doubtful`)."""
-        return not self.pinned or self.lens_doubtful
+        """Whether ``calibrate floor`` warns of it (:attr:`pinned`, :attr:`lens_doubtful`, :attr:`lens_uncertain`)."""
+        return not self.pinned or self.lens_doubtful or self.lens_uncertain
 
 
 @dataclass
@@ -259,13 +276,16 @@ def _find_floor_board(gray: np.ndarray, board: Board | CharucoBoard, finder: Cha
 def calibrate_floor(sightings: list[Sighting], intrinsics: dict[str, Camera], board: Board | CharucoBoard, *,
                     rough: dict[str, Camera | None] | None = None, plan_points=None,
                     placement: tuple[tuple[float, float, float], float] = ((0.0, 0.0, 0.0), 0.0),
-                    volume: tuple[tuple[float, float, float], tuple[float, float, float]] | None = None) -> FloorResult:
+                    volume: tuple[tuple[float, float, float], tuple[float, float, float]] | None = None,
+                    lens_tilt_95_deg: dict[str, float] | None = None) -> FloorResult:
     """Camera poses from the sightings (see the module text).
 
     intrinsics: camera id -> camera whose lens model is used (pose ignored). rough: camera id -> the
     camera's rough pose (room frame), or None. plan_points: (K, 4) rows ``board_x, board_y, room_x,
     room_y`` (metres), K >= 2, or None. placement: ``(origin_m, yaw_deg)`` of the board frame in the
     room without plan points. volume: ``(min_m, max_m)``, for the share of it each camera sees.
+    lens_tilt_95_deg: camera id -> how far its lens file's principal point leaves its tilt uncertain
+    (:attr:`CameraReport.lens_tilt_95_deg`), for the cameras whose lens files say.
     """
     rough = rough or {}
     cam_ids = list(intrinsics)
@@ -316,7 +336,7 @@ def calibrate_floor(sightings: list[Sighting], intrinsics: dict[str, Camera], bo
         reports[c] = CameraReport(c, len({s.position for s in sightings if s.cam_id == c}), int(kept.sum()), kept.size,
                                   float(errs[kept].mean()), float(errs[kept].max()), float(errs.mean()), centre, share,
                                   *spread.get(c, (float("nan"), float("nan"))), focal_change=focal[c] - 1.0,
-                                  lens_change_px=moved[c])
+                                  lens_change_px=moved[c], lens_tilt_95_deg=(lens_tilt_95_deg or {}).get(c, 0.0))
     n_pos = len({s.position for s in sightings})
     return FloorResult(cameras=cameras, board_cameras=board_cameras, reports=reports, positions=n_pos,
                        origin_m=tuple(float(v) for v in origin), yaw_deg=float(yaw_deg), plan_residual_m=residual,

@@ -85,12 +85,19 @@ class IntrinsicsResult:
     @property
     def tilt_95_deg(self) -> float:
         """How far (95 %) the principal point's uncertainty may tilt the camera, in degrees."""
-        return math.degrees(1.96 * math.hypot(*self.centre_sd_px) / self.camera.K[0, 0])
+        return lens_tilt_95_deg(self.camera, self.centre_sd_px)
 
     @property
     def uncertain(self) -> bool:
         """Whether that tilt exceeds :data:`LENS_TILT_95_DEG`: the board should be held nearer."""
         return self.tilt_95_deg > LENS_TILT_95_DEG
+
+
+def lens_tilt_95_deg(camera: Camera, centre_sd_px: tuple[float, float]) -> float:
+    """How far (95 %, degrees) a principal point as uncertain as ``centre_sd_px`` (one standard deviation, x and
+    y) may tilt ``camera``: near the image's centre a pixel is one focal length's worth of radian for every
+    model."""
+    return math.degrees(1.96 * math.hypot(*centre_sd_px) / float(camera.K[0, 0]))
 
 
 def calibrate_intrinsics(clip: str, cam_id: str, board: Board | CharucoBoard, *,

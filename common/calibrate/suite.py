@@ -108,7 +108,8 @@ def rough_cameras(cameras) -> dict:
 
 
 def fit_lens(true, folder: Path, seed: int):
-    """(lens, whether the command still warns of it): the camera's lens from a rendered board clip, as
+    """(lens, whether the command still warns of it, how far its principal point may tilt the camera (95 %,
+    degrees; 0 for a lens kept)): the camera's lens from a rendered board clip, as
     ``calibrate intrinsics`` fits it, recorded again with the board nearer (:data:`NEARER`) where the
     command warns that the fit leaves the camera's tilt uncertain; a Tsai lens (the PETS rig's) is kept,
     as the command fits no Tsai model."""
@@ -116,7 +117,7 @@ def fit_lens(true, folder: Path, seed: int):
     from common.synth.board import BoardRenderer, intrinsics_clip, intrinsics_poses, write_frames
 
     if true.model == "tsai":
-        return true, False
+        return true, False, 0.0
     if true.model == "fisheye":
         board, views, reach = CharucoBoard(7, 5, 0.14, 0.105, "5x5_100"), LENS_VIEWS["fisheye"], 0.4
     else:
@@ -130,7 +131,7 @@ def fit_lens(true, folder: Path, seed: int):
         res = calibrate_intrinsics(str(clip), true.id, board, model=true.model)
         if not res.uncertain:
             break
-    return res.camera, res.uncertain
+    return res.camera, res.uncertain, res.tilt_95_deg
 
 
 def run_world(seed: int, work: Path, *, lenses: bool = False, heed: bool = True) -> dict[str, Any]:
@@ -141,15 +142,15 @@ def run_world(seed: int, work: Path, *, lenses: bool = False, heed: bool = True)
     world = random_world(seed)
     t0 = time.perf_counter()
     intrinsics = dict(world.cameras)
-    uncertain = []
+    uncertain, tilt = [], {}
     if lenses:
         for k, (c, true) in enumerate(world.cameras.items()):
-            intrinsics[c], doubt = fit_lens(true, work / f"lens-{c}", seed * 100 + k)
+            intrinsics[c], doubt, tilt[c] = fit_lens(true, work / f"lens-{c}", seed * 100 + k)
             if doubt:
                 uncertain.append(c)
     refusals = []
     for k, (board, stand) in enumerate(FLOOR_BOARDS):
-        out = _floor_world(world, intrinsics, board, work / f"board{k}", heed=heed, stand=stand)
+        out = _floor_world(world, intrinsics, board, work / f"board{k}", heed=heed, stand=stand, lens_tilt=tilt)
         out["refused_with"] = refusals
         if "error" not in out:
             break
@@ -162,7 +163,8 @@ def run_world(seed: int, work: Path, *, lenses: bool = False, heed: bool = True)
     return out
 
 
-def _floor_world(world, intrinsics, board, work: Path, *, heed: bool, stand: bool = False) -> dict[str, Any]:
+def _floor_world(world, intrinsics, board, work: Path, *, heed: bool, stand: bool = False,
+                 lens_tilt: dict[str, float] | None = None) -> dict[str, Any]:
     from common.calibrate.floor import FloorError
     from common.synth.board import floor_positions, more_floor_positions, on_stand
 
@@ -180,7 +182,7 @@ def _floor_world(world, intrinsics, board, work: Path, *, heed: bool, stand: boo
     try:
         if poses is None:
             raise FloorError(f"no chain of board places: {why}")
-        result = _calibrate(world, intrinsics, board, poses, work / "floor")
+        result = _calibrate(world, intrinsics, board, poses, work / "floor", lens_tilt)
         warned = [c for c, rep in result.reports.items() if not rep.pinned]
         out["warned_first"] = warned
         rounds = HEED_ROUNDS if heed else 0
@@ -194,7 +196,7 @@ def _floor_world(world, intrinsics, board, work: Path, *, heed: bool, stand: boo
                                                      min_area=min_area, stand=stand)
             if len(poses) == before:
                 break   # nowhere left to lay it for them
-            result = _calibrate(world, intrinsics, board, poses, work / f"floor-again{k + 1}")
+            result = _calibrate(world, intrinsics, board, poses, work / f"floor-again{k + 1}", lens_tilt)
             warned = [c for c, rep in result.reports.items() if not rep.pinned]
             out["heed_rounds"] = k + 1
     except FloorError as exc:
@@ -208,13 +210,14 @@ def _floor_world(world, intrinsics, board, work: Path, *, heed: bool, stand: boo
             "model": true.model, "size": f"{true.width}x{true.height}",
             "position_cm": 100 * float(np.linalg.norm(got.center - true.center)),
             "angle_deg": angle_between_deg(got.R, true.R),
-            "bound_cm": 100 * rep.position_95_m, "bound_deg": rep.angle_95_deg,
+            "bound_cm": 100 * rep.position_95_m, "bound_deg": rep.total_angle_95_deg,
+            "lens_tilt_deg": rep.lens_tilt_95_deg,
             "reprojection_px": rep.mean_px, "board_views": rep.positions, "warned": rep.warned,
         }
     return out
 
 
-def _calibrate(world, intrinsics, board, poses, folder: Path):
+def _calibrate(world, intrinsics, board, poses, folder: Path, lens_tilt: dict[str, float] | None = None):
     """Every camera records the board at every place; the floor calibration of what they found."""
     from common.calibrate.floor import calibrate_floor, find_sightings
     from common.synth.board import BoardRenderer, floor_clip, write_frames
@@ -222,7 +225,7 @@ def _calibrate(world, intrinsics, board, poses, folder: Path):
     clips = {c: str(write_frames(floor_clip(BoardRenderer(cam, world.room, seed=world.seed), board, poses), folder / c))
              for c, cam in world.cameras.items()}
     return calibrate_floor(find_sightings(clips, intrinsics, board, rough_cameras(world.cameras)), intrinsics,
-                           board, plan_points=plan_points(board, poses[0]))
+                           board, plan_points=plan_points(board, poses[0]), lens_tilt_95_deg=lens_tilt)
 
 
 def _board_name(board, stand: bool = False) -> str:

@@ -24,14 +24,16 @@ from common.camera import Camera, matrix_to_rodrigues
 WRITABLE = ("opencv", "opencv-fisheye", "voxelwatch")
 
 
-def write_intrinsics(camera: Camera, path: str | Path) -> Path:
+def write_intrinsics(camera: Camera, path: str | Path, centre_sd_px: tuple[float, float] | None = None) -> Path:
     """An intrinsics file: the project's TOML for ``.toml``, else OpenCV FileStorage (``.xml``,
-    ``.yaml``, ``.yml``, ``.json``); the pose is the identity (a placeholder until the floor calibration)."""
+    ``.yaml``, ``.yml``, ``.json``); the pose is the identity (a placeholder until the floor calibration).
+    centre_sd_px: the principal point's standard deviations from the fit, kept for the floor calibration's
+    bounds (:func:`common.calibration.lens_centre_sd`)."""
     path = Path(path)
     if path.suffix.lower() == ".toml":
-        save_voxelwatch(camera, path)
+        save_voxelwatch(camera, path, centre_sd_px)
     elif path.suffix.lower() in (".xml", ".yaml", ".yml", ".json"):
-        _write_opencv(camera, path)
+        _write_opencv(camera, path, centre_sd_px)
     else:
         raise ValueError(f"--out {path}: expected a .toml (voxelwatch) or .xml/.yaml/.json (OpenCV) file name")
     return path
@@ -88,7 +90,7 @@ def write_site_calibrations(site, cameras: dict[str, Camera]) -> list[tuple[Path
                 tmp.unlink()
 
 
-def _write_opencv(camera: Camera, path: Path) -> None:
+def _write_opencv(camera: Camera, path: Path, centre_sd_px: tuple[float, float] | None = None) -> None:
     fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_WRITE)
     try:
         fs.write("image_width", int(camera.width))
@@ -97,5 +99,7 @@ def _write_opencv(camera: Camera, path: Path) -> None:
         fs.write("DistortionCoeffs", np.asarray(camera.dist, dtype=np.float64).reshape(1, -1))
         fs.write("Rotation", matrix_to_rodrigues(camera.R).reshape(3, 1))
         fs.write("Translation", np.asarray(camera.t, dtype=np.float64).reshape(3, 1))
+        if centre_sd_px is not None:
+            fs.write("PrincipalPointStd", np.asarray(centre_sd_px, dtype=np.float64).reshape(2, 1))
     finally:
         fs.release()
