@@ -112,8 +112,8 @@ def find_board(gray: np.ndarray, board: Board, *, camera: Camera | None = None, 
     views of the floor from above: through ``rough_pose`` (world -> camera ``(R, t)``, the floor at
     Z = 0) when given, else at guessed pitches, and views straightened towards each candidate window;
     with ``camera`` each is tried in turn until one fits a flat board through the lens within
-    :data:`GOOD_FIT_PX`, else the best fit is kept (a 9x6 board half in shadow, seen by a 320x240 wide
-    lens, was taken from the image as is 0.64 px off a flat board, 8 px from the truth with its ends
+    :data:`GOOD_FIT_PX`, else the best fit is kept (a 9x6 mat of 250 mm squares half in shade, seen by a
+    320x240 wide lens, was taken from the image as is 0.64 px off a flat board, 8 px from the truth with its ends
     swapped; doubled, 0.15 px off a flat board and 0.17 px from the truth).
 
     refine: the sector detector's corners refined by the gradient search (``cornerSubPix``), for a
