@@ -211,10 +211,6 @@ def _fit(views: list[_View], board: Board | CharucoBoard, cam_id: str, W: int, H
             rms, K, dist, rvecs, tvecs = fit
         dist = dist.ravel()[:5]
         free = 9 if dist[4] != 0.0 else 8   # fx, fy, cx, cy, k1, k2, p1, p2 (, k3)
-        errs = []
-        for o, v, r, t in zip(objs, views, rvecs, tvecs):
-            uv, _ = cv2.projectPoints(o, r, t, K, dist)
-            errs.append(np.linalg.norm(uv.reshape(-1, 2) - v.corners, axis=1).mean())
     else:
         # OpenCV 5's fisheye fit takes (1, N, 3) and (1, N, 2) views only
         objs = [every[v.ids].reshape(1, -1, 3) for v in views]
@@ -246,25 +242,22 @@ def _fit(views: list[_View], board: Board | CharucoBoard, cam_id: str, W: int, H
         rms, K, dist, rvecs, tvecs = min(fits, key=lambda fit: fit[0])
         dist = dist.ravel()
         free = 8   # fx, fy, cx, cy, k1..k4
-        errs = []
-        for o, v, r, t in zip(objs, views, rvecs, tvecs):
-            uv, _ = cv2.fisheye.projectPoints(o, r, t, K, dist)
-            errs.append(np.linalg.norm(uv.reshape(-1, 2) - v.corners, axis=1).mean())
-    sd = _intrinsic_sd(objs, imgs, K, dist, rvecs, tvecs, model, free)
+    errs, sd = _errors_and_sd(objs, [v.corners for v in views], K, dist, rvecs, tvecs, model, free)
     K = np.asarray(K, dtype=np.float64)
     K[1, 0] = 0.0
     K[2] = (0.0, 0.0, 1.0)
     camera = Camera(id=cam_id, model=model, width=W, height=H, K=K, dist=np.asarray(dist, dtype=np.float64),
                     R=np.eye(3), t=np.zeros(3))
-    return camera, float(rms), np.asarray(errs), sd
+    return camera, float(rms), errs, sd
 
 
-def _intrinsic_sd(objs, imgs, K, dist, rvecs, tvecs, model: str, free: int) -> np.ndarray:
-    """Standard deviations (px) of fx, fy, cx, cy: the Gauss-Newton covariance of the fit (its first ``free``
-    lens parameters and every view's pose), each corner coordinate as noisy as the residuals say."""
+def _errors_and_sd(objs, corners, K, dist, rvecs, tvecs, model: str, free: int) -> tuple[np.ndarray, np.ndarray]:
+    """Each view's mean corner error (px) and the standard deviations (px) of fx, fy, cx, cy: the Gauss-Newton
+    covariance of the fit (its first ``free`` lens parameters and every view's pose), each corner coordinate as
+    noisy as the residuals say; both from one projection of every view."""
     rows, resid = [], []
     views = len(objs)
-    for k, (o, img, r, t) in enumerate(zip(objs, imgs, rvecs, tvecs)):
+    for k, (o, img, r, t) in enumerate(zip(objs, corners, rvecs, tvecs)):
         if model == "pinhole":
             uv, J = cv2.projectPoints(o.astype(np.float64), r, t, K, dist)
             lens, pose = J[:, 6:6 + free], J[:, :6]   # r, t, fx, fy, cx, cy, k1, k2, p1, p2, k3
@@ -276,8 +269,9 @@ def _intrinsic_sd(objs, imgs, K, dist, rvecs, tvecs, model: str, free: int) -> n
         block[:, free + 6 * k:free + 6 * k + 6] = pose
         rows.append(block)
         resid.append(uv.reshape(-1) - img.reshape(-1))
+    errs = np.array([np.hypot(*part.reshape(-1, 2).T).mean() for part in resid])
     J = np.concatenate(rows)
     r = np.concatenate(resid)
     dof = max(len(r) - J.shape[1], 1)
     cov = np.linalg.pinv(J.T @ J) * float(r @ r) / dof
-    return np.sqrt(np.clip(np.diag(cov)[:4], 0.0, None))
+    return errs, np.sqrt(np.clip(np.diag(cov)[:4], 0.0, None))
