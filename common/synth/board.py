@@ -74,10 +74,14 @@ class BoardRenderer:
         if room is not None:
             bg = CameraRenderer(camera, room, seed=seed, noise_std=0.0, shadows=False)
             self.background = cv2.cvtColor(bg.bg_bgr, cv2.COLOR_BGR2GRAY).astype(np.float32)
-            self.bg_depth = bg.bg_depth
+            # the room's depth along every sample's own ray: a board lying on the floor is as far as the floor
+            # along each of them, where the pixel's one depth would hide part of its far squares (seen at a
+            # grazing angle a pixel spans tens of centimetres of floor)
+            hits = raycast_room(room, self.centre, rays.astype(np.float64))
+            self.bg_depth = hits.t.reshape(H, W, s * s).astype(np.float32)
         else:
             self.background = np.full((H, W), 110.0, dtype=np.float32)
-            self.bg_depth = np.full((H, W), np.inf, dtype=np.float32)
+            self.bg_depth = np.full((H, W, s * s), np.inf, dtype=np.float32)
         self.seed = seed
         self._sheets: dict[CharucoBoard, np.ndarray] = {}
 
@@ -113,7 +117,7 @@ class BoardRenderer:
             with np.errstate(divide="ignore", invalid="ignore"):   # a fisheye's rays are NaN outside its circle
                 s = np.float32(n @ (t_wb - self.centre)) / denom
                 p = (s[..., None] * rays + (self.centre - t_wb).astype(np.float32)) @ R_wb.astype(np.float32)
-            ok = np.isfinite(s) & (s > 0) & (s <= self.bg_depth[y0:y1, x0:x1, None] + 0.01)
+            ok = np.isfinite(s) & (s > 0) & (s <= self.bg_depth[y0:y1, x0:x1] + 0.01)
             sq = board.square_m
             bx, by = p[..., 0] / sq, p[..., 1] / sq
             if isinstance(board, CharucoBoard):
