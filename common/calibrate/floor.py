@@ -6,7 +6,10 @@ stretches of different cameras that overlap in time show the same board position
 (:mod:`common.calibrate.clips`).
 
 1. Per camera and still stretch: the board's corners (:func:`~common.calibrate.board.find_board`,
-   with the floor seen from above through the camera's rough pose when the site has one).
+   with the floor seen from above through the camera's rough pose when the site has one); a
+   chessboard's then from the board fitted to the still frame as a whole through the lens
+   (:mod:`common.calibrate.boardfit`: every pixel of its squares, where the detector places each
+   corner from the few pixels around it).
 2. Orientation: corners are named the same way in every camera (:mod:`common.calibrate.board`);
    a board that looks the same turned half round is oriented in each camera by the cameras'
    rough poses (the site's present calibrations), which only need to be right to within a
@@ -52,6 +55,7 @@ from scipy.optimize import least_squares
 from scipy.sparse import lil_matrix
 
 from common.calibrate.board import Board, board_area_fraction, find_board
+from common.calibrate.boardfit import refined_corners
 from common.calibrate.charuco import FACE_UP, CharucoBoard, CharucoFinder
 from common.calibrate.clips import read_gray, still_stretches
 from common.camera import Camera, matrix_to_rodrigues, pinhole_distort, rodrigues_to_matrix
@@ -259,11 +263,13 @@ def find_sightings(clips: dict[str, str], intrinsics: dict[str, Camera], board: 
 def _find_floor_board(gray: np.ndarray, board: Board | CharucoBoard, finder: CharucoFinder | None, cam: Camera,
                       rough_pose) -> tuple[np.ndarray | None, np.ndarray | None]:
     """(ids or None for every corner, (N, 2) corners) of the board in one still frame, or (None, None). A
-    chessboard is looked for thoroughly (:func:`~common.calibrate.board.find_board`); a ChArUco board by
+    chessboard is looked for thoroughly (:func:`~common.calibrate.board.find_board`) and the board found fitted to
+    the frame as a whole (:func:`~common.calibrate.boardfit.refined_corners`); a ChArUco board by
     its markers (``finder``, the board's), in the frame and, where they are too small to read, in the
     frame doubled."""
     if finder is None:
-        return None, find_board(gray, board, camera=cam, thorough=True, rough_pose=rough_pose)
+        corners = find_board(gray, board, camera=cam, thorough=True, rough_pose=rough_pose)
+        return None, None if corners is None else refined_corners(gray, corners, board, cam)
     found = finder.find(gray)
     if found is None:
         big = cv2.resize(gray, None, fx=2, fy=2, interpolation=cv2.INTER_CUBIC)
