@@ -125,3 +125,28 @@ def test_the_fit_takes_a_real_lens_blur():
     print(f"blur {fit.blur_px:.2f} px, corners {err:.3f} px; detected {before:.3f} px")
     assert err < 0.05 and err < 0.5 * before
     assert fit.blur_px > 1.0
+
+
+def test_floor_sightings_take_the_fitted_board_on_request_and_keep_the_detectors_corners(tmp_path):
+    """Tuning seed 0's cam6 records the mat at two places on the floor (a clip, as the floor command reads it):
+    by default the sightings' corners are the detector's; with fit_board they are the fitted board's, closer to the
+    truth, and each sighting keeps the detector's own (for the command's check of the calibration against them)."""
+    from common.calibrate.floor import find_sightings
+    from common.synth.board import floor_clip, write_frames
+
+    world = random_world(0)
+    cam = world.cameras["cam6"]
+    poses = [_floor_pose(4.377252893450217, 1.6129622192362363, -0.037530903369848795), _floor_pose(3.4, 2.4, 0.5)]
+    clip = str(write_frames(floor_clip(BoardRenderer(cam, world.room, seed=0), MAT, poses), tmp_path / "cam6"))
+    rough = rough_cameras(world.cameras)
+    plain = find_sightings({"cam6": clip}, {"cam6": cam}, MAT, rough)
+    fitted = find_sightings({"cam6": clip}, {"cam6": cam}, MAT, rough, fit_board=True)
+    assert len(plain) == len(fitted) == 2
+    for a, b, pose in zip(plain, fitted, poses):
+        truth, _ = cam.project(corners_world(MAT, pose))
+        e_plain = np.linalg.norm(a.corners - truth, axis=1).mean()
+        e_fit = np.linalg.norm(b.corners - truth, axis=1).mean()
+        print(f"place at {pose[1][:2]}: detector {e_plain:.3f} px, fitted {e_fit:.3f} px from the truth")
+        assert a.detected is None
+        assert np.array_equal(b.detected, a.corners)
+        assert e_fit < 0.06 and e_fit < 0.6 * e_plain

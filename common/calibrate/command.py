@@ -34,6 +34,9 @@ def register(sub) -> None:
     f.add_argument("--plan-points", default=None, metavar="FILE",
                    help="TOML file of board-frame <-> room floor points placing the board in the room")
     f.add_argument("--dry-run", action="store_true", help="print the result, write nothing")
+    f.add_argument("--fit-board", action="store_true",
+                   help="take a chessboard's corners from the board fitted to each still frame as a whole (for boards "
+                        "seen small, their rows a few pixels apart; the README says when it helps)")
     f.set_defaults(handler=_floor)
 
 
@@ -141,7 +144,7 @@ def _floor(args: argparse.Namespace) -> int:
         if rough[cam_id] is not None and not _plausible(rough[cam_id]):
             rough[cam_id] = None
     first = site.cameras[0]
-    sightings = find_sightings(clips, intrinsics, board, rough)
+    sightings = find_sightings(clips, intrinsics, board, rough, fit_board=args.fit_board)
     result = calibrate_floor(sightings, intrinsics, board, rough=rough, plan_points=plan,
                              placement=(first.origin_m, first.yaw_deg), volume=(site.volume.min_m, site.volume.max_m),
                              lens_tilt_95_deg=lens_tilt)
@@ -155,8 +158,9 @@ def _floor(args: argparse.Namespace) -> int:
     for cam_id, rep in result.reports.items():
         x, y, z = rep.centre_m
         of_lens = f", the lens's centre {rep.lens_tilt_95_deg:.2f} deg of it" if rep.lens_tilt_95_deg else ""
+        detector = "" if math.isnan(rep.detected_px) else f", the detector's own corners {rep.detected_px:.2f} px"
         print(f"  camera {cam_id}: reprojection {rep.mean_px:.2f} px mean, {rep.max_px:.2f} px max over {rep.corners} "
-              f"corners ({rep.corners_found - rep.corners} stray left out) in {rep.positions} position(s); "
+              f"corners ({rep.corners_found - rep.corners} stray left out{detector}) in {rep.positions} position(s); "
               f"at ({x:.2f}, {y:.2f}) m, height {z:.2f} m, within {100 * rep.position_95_m:.1f} cm and "
               f"{rep.total_angle_95_deg:.2f} deg (95 %{of_lens}); sees {100 * rep.seen_share:.0f} % of the volume; "
               f"focal length {100 * rep.focal_change:+.2f} % over the lens file's")

@@ -6,10 +6,10 @@ stretches of different cameras that overlap in time show the same board position
 (:mod:`common.calibrate.clips`).
 
 1. Per camera and still stretch: the board's corners (:func:`~common.calibrate.board.find_board`,
-   with the floor seen from above through the camera's rough pose when the site has one); a
-   chessboard's then from the board fitted to the still frame as a whole through the lens
-   (:mod:`common.calibrate.boardfit`: every pixel of its squares, where the detector places each
-   corner from the few pixels around it).
+   with the floor seen from above through the camera's rough pose when the site has one); on
+   request, a chessboard's then from the board fitted to the still frame as a whole through the
+   lens (:mod:`common.calibrate.boardfit`: every pixel of its squares, where the detector places
+   each corner from the few pixels around it).
 2. Orientation: corners are named the same way in every camera (:mod:`common.calibrate.board`);
    a board that looks the same turned half round is oriented in each camera by the cameras'
    rough poses (the site's present calibrations), which only need to be right to within a
@@ -133,6 +133,9 @@ class Sighting:
     ids: np.ndarray | None = None
     """(N,) the corners' indices into the board's points (a ChArUco board seen in part); None: every
     corner, in board order (a chessboard)."""
+    detected: np.ndarray | None = None
+    """(N, 2) the detector's own corners where ``corners`` come from the board fitted to the frame as a whole
+    (:mod:`common.calibrate.boardfit`); None: ``corners`` are the detector's."""
 
     @property
     def kept(self) -> np.ndarray:
@@ -175,6 +178,10 @@ class CameraReport:
     """The focal length the adjustment found over the lens file's, less one (0.003: 0.3 % longer)."""
     lens_change_px: float = 0.0
     """How far the adjustment's radial distortion moved the image's corners from the lens file's (pixels)."""
+    detected_px: float = float("nan")
+    """Mean distance (pixels, over the corners used) of the calibrated board's corners from the detector's own,
+    where the floor views' corners come from the board fitted to the frame as a whole (NaN: they are the
+    detector's): a check of the calibration against corners that fit did not place."""
     lens_tilt_95_deg: float = 0.0
     """How far (95 %, degrees) the lens file's principal point leaves the camera's tilt uncertain, from the lens
     fit's own uncertainty when the file carries it (0: it does not). The board places cannot take it back (a
@@ -226,9 +233,11 @@ class FloorResult:
 
 
 def find_sightings(clips: dict[str, str], intrinsics: dict[str, Camera], board: Board | CharucoBoard,
-                   rough: dict[str, Camera | None]) -> list[Sighting]:
+                   rough: dict[str, Camera | None], *, fit_board: bool = False) -> list[Sighting]:
     """Every camera's board sightings, one per still stretch of its clip in which the board is found;
-    FloorError when a camera never sees it or sees it too small; ClipError for a clip that cannot be read."""
+    FloorError when a camera never sees it or sees it too small; ClipError for a clip that cannot be read.
+    fit_board: a chessboard's corners from the board fitted to the still frame as a whole
+    (:mod:`common.calibrate.boardfit`), the detector's kept in :attr:`Sighting.detected`."""
     out: list[Sighting] = []
     finder = CharucoFinder(board) if isinstance(board, CharucoBoard) else None
     for cam_id, clip in clips.items():
@@ -241,12 +250,12 @@ def find_sightings(clips: dict[str, str], intrinsics: dict[str, Camera], board: 
         pose = None if rough.get(cam_id) is None else (rough[cam_id].R, rough[cam_id].t)
         found, small = [], []
         for still in still_stretches(frames, index):
-            ids, corners = _find_floor_board(still.gray, board, finder, cam, pose)
+            ids, corners, detected = _find_floor_board(still.gray, board, finder, cam, pose, fit_board)
             if corners is None:
                 continue
             area = board_area_fraction(corners, w, h)
             (found if area >= MIN_FLOOR_AREA else small).append(Sighting(cam_id, still.start, still.stop, corners, area,
-                                                                         ids=ids))
+                                                                         ids=ids, detected=detected))
         if not found and small:
             raise FloorError(f"clip {clip}: the board is too small in camera {cam_id} "
                              f"({100 * max(s.area for s in small):.2f} % of the image, need {100 * MIN_FLOOR_AREA:g} %): "
@@ -261,22 +270,27 @@ def find_sightings(clips: dict[str, str], intrinsics: dict[str, Camera], board: 
 
 
 def _find_floor_board(gray: np.ndarray, board: Board | CharucoBoard, finder: CharucoFinder | None, cam: Camera,
-                      rough_pose) -> tuple[np.ndarray | None, np.ndarray | None]:
-    """(ids or None for every corner, (N, 2) corners) of the board in one still frame, or (None, None). A
-    chessboard is looked for thoroughly (:func:`~common.calibrate.board.find_board`) and the board found fitted to
-    the frame as a whole (:func:`~common.calibrate.boardfit.refined_corners`); a ChArUco board by
+                      rough_pose, fit_board: bool = False
+                      ) -> tuple[np.ndarray | None, np.ndarray | None, np.ndarray | None]:
+    """(ids or None for every corner, (N, 2) corners, the detector's own corners or None where they are the
+    corners) of the board in one still frame, or (None, None, None). A
+    chessboard is looked for thoroughly (:func:`~common.calibrate.board.find_board`) and, with ``fit_board``, the
+    board found fitted to the frame as a whole (:func:`~common.calibrate.boardfit.refined_corners`); a ChArUco board by
     its markers (``finder``, the board's), in the frame and, where they are too small to read, in the
     frame doubled."""
     if finder is None:
-        corners = find_board(gray, board, camera=cam, thorough=True, rough_pose=rough_pose)
-        return None, None if corners is None else refined_corners(gray, corners, board, cam)
+        detected = find_board(gray, board, camera=cam, thorough=True, rough_pose=rough_pose)
+        if detected is None or not fit_board:
+            return None, detected, None
+        corners = refined_corners(gray, detected, board, cam)
+        return None, corners, None if corners is detected else detected
     found = finder.find(gray)
     if found is None:
         big = cv2.resize(gray, None, fx=2, fy=2, interpolation=cv2.INTER_CUBIC)
         found = finder.find(big)
         if found is not None:   # pixel centres are whole numbers at both scales
             found = (found[0], (found[1] + 0.5) / 2 - 0.5)
-    return (None, None) if found is None else found
+    return (None, None, None) if found is None else (*found, None)
 
 
 def calibrate_floor(sightings: list[Sighting], intrinsics: dict[str, Camera], board: Board | CharucoBoard, *,
@@ -337,12 +351,15 @@ def calibrate_floor(sightings: list[Sighting], intrinsics: dict[str, Camera], bo
     reports = {}
     for c in cam_ids:
         errs, kept = _errors(sightings, c, board_cameras[c], boards, obj)
+        detected = _errors(sightings, c, board_cameras[c], boards, obj, detected=True)
         centre = tuple(float(v) for v in cameras[c].center)
         share = _seen_share(cameras[c], volume) if volume is not None else float("nan")
         reports[c] = CameraReport(c, len({s.position for s in sightings if s.cam_id == c}), int(kept.sum()), kept.size,
                                   float(errs[kept].mean()), float(errs[kept].max()), float(errs.mean()), centre, share,
                                   *spread.get(c, (float("nan"), float("nan"))), focal_change=focal[c] - 1.0,
-                                  lens_change_px=moved[c], lens_tilt_95_deg=(lens_tilt_95_deg or {}).get(c, 0.0))
+                                  lens_change_px=moved[c],
+                                  detected_px=float(detected[0][detected[1]].mean()) if detected[1].any() else math.nan,
+                                  lens_tilt_95_deg=(lens_tilt_95_deg or {}).get(c, 0.0))
     n_pos = len({s.position for s in sightings})
     return FloorResult(cameras=cameras, board_cameras=board_cameras, reports=reports, positions=n_pos,
                        origin_m=tuple(float(v) for v in origin), yaw_deg=float(yaw_deg), plan_residual_m=residual,
@@ -477,7 +494,8 @@ def _orient(sightings, intrinsics, board: Board, rough, notes: list[str]) -> lis
         first = axes[0] if axes[0][0] >= 0 else -axes[0]
         for s, a in zip(group, axes):
             if np.dot(a, first) < 0:
-                s = replace(s, corners=board.half_turn(s.corners))
+                s = replace(s, corners=board.half_turn(s.corners),
+                            detected=None if s.detected is None else board.half_turn(s.detected))
             out.append(s)
     notes.append("the symmetric board's ends were told apart by the site's present calibrations")
     return out
@@ -796,14 +814,15 @@ def pose_uncertainty(jac: np.ndarray, residuals: np.ndarray, x: np.ndarray, offs
     return out
 
 
-def _errors(sightings, cam_id, cam: Camera, boards, obj) -> tuple[np.ndarray, np.ndarray]:
-    """Every corner's error (px) and whether it was used."""
-    errs, kept = [], []
+def _errors(sightings, cam_id, cam: Camera, boards, obj, *, detected: bool = False) -> tuple[np.ndarray, np.ndarray]:
+    """Every corner's error (px) and whether it was used; ``detected``: against the detector's own corners, of the
+    views that have them (:attr:`Sighting.detected`)."""
+    errs, kept = [np.zeros(0)], [np.zeros(0, dtype=bool)]
     for s in sightings:
-        if s.cam_id == cam_id:
+        if s.cam_id == cam_id and (not detected or s.detected is not None):
             R_wb, t_wb = boards[s.position]
             uv, _ = cam.project(s.points(obj) @ R_wb.T + t_wb)
-            errs.append(np.nan_to_num(np.linalg.norm(uv - s.corners, axis=1), nan=1e3))
+            errs.append(np.nan_to_num(np.linalg.norm(uv - (s.detected if detected else s.corners), axis=1), nan=1e3))
             kept.append(s.kept)
     return np.concatenate(errs), np.concatenate(kept)
 

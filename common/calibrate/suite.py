@@ -134,9 +134,11 @@ def fit_lens(true, folder: Path, seed: int):
     return res.camera, res.uncertain, res.tilt_95_deg
 
 
-def run_world(seed: int, work: Path, *, lenses: bool = False, heed: bool = True) -> dict[str, Any]:
+def run_world(seed: int, work: Path, *, lenses: bool = False, heed: bool = True, fit_board: bool = False
+              ) -> dict[str, Any]:
     """One world calibrated (module text); returns per camera its errors and bounds. ``heed``: when the
-    calibration warns of a camera, lay the board at two more places it sees well and calibrate again."""
+    calibration warns of a camera, lay the board at two more places it sees well and calibrate again.
+    ``fit_board``: the floor views' corners from the board fitted to each still frame as a whole."""
     from common.synth.world import random_world
 
     world = random_world(seed)
@@ -150,7 +152,8 @@ def run_world(seed: int, work: Path, *, lenses: bool = False, heed: bool = True)
                 uncertain.append(c)
     refusals = []
     for k, (board, stand) in enumerate(FLOOR_BOARDS):
-        out = _floor_world(world, intrinsics, board, work / f"board{k}", heed=heed, stand=stand, lens_tilt=tilt)
+        out = _floor_world(world, intrinsics, board, work / f"board{k}", heed=heed, stand=stand, lens_tilt=tilt,
+                           fit_board=fit_board)
         out["refused_with"] = refusals
         if "error" not in out:
             break
@@ -164,7 +167,7 @@ def run_world(seed: int, work: Path, *, lenses: bool = False, heed: bool = True)
 
 
 def _floor_world(world, intrinsics, board, work: Path, *, heed: bool, stand: bool = False,
-                 lens_tilt: dict[str, float] | None = None) -> dict[str, Any]:
+                 lens_tilt: dict[str, float] | None = None, fit_board: bool = False) -> dict[str, Any]:
     from common.calibrate.floor import FloorError
     from common.synth.board import floor_positions, more_floor_positions, on_stand
 
@@ -182,7 +185,7 @@ def _floor_world(world, intrinsics, board, work: Path, *, heed: bool, stand: boo
     try:
         if poses is None:
             raise FloorError(f"no chain of board places: {why}")
-        result = _calibrate(world, intrinsics, board, poses, work / "floor", lens_tilt)
+        result = _calibrate(world, intrinsics, board, poses, work / "floor", lens_tilt, fit_board)
         warned = [c for c, rep in result.reports.items() if not rep.pinned]
         out["warned_first"] = warned
         rounds = HEED_ROUNDS if heed else 0
@@ -196,7 +199,7 @@ def _floor_world(world, intrinsics, board, work: Path, *, heed: bool, stand: boo
                                                      min_area=min_area, stand=stand)
             if len(poses) == before:
                 break   # nowhere left to lay it for them
-            result = _calibrate(world, intrinsics, board, poses, work / f"floor-again{k + 1}", lens_tilt)
+            result = _calibrate(world, intrinsics, board, poses, work / f"floor-again{k + 1}", lens_tilt, fit_board)
             warned = [c for c, rep in result.reports.items() if not rep.pinned]
             out["heed_rounds"] = k + 1
     except FloorError as exc:
@@ -217,15 +220,17 @@ def _floor_world(world, intrinsics, board, work: Path, *, heed: bool, stand: boo
     return out
 
 
-def _calibrate(world, intrinsics, board, poses, folder: Path, lens_tilt: dict[str, float] | None = None):
+def _calibrate(world, intrinsics, board, poses, folder: Path, lens_tilt: dict[str, float] | None = None,
+               fit_board: bool = False):
     """Every camera records the board at every place; the floor calibration of what they found."""
     from common.calibrate.floor import calibrate_floor, find_sightings
     from common.synth.board import BoardRenderer, floor_clip, write_frames
 
     clips = {c: str(write_frames(floor_clip(BoardRenderer(cam, world.room, seed=world.seed), board, poses), folder / c))
              for c, cam in world.cameras.items()}
-    return calibrate_floor(find_sightings(clips, intrinsics, board, rough_cameras(world.cameras)), intrinsics,
-                           board, plan_points=plan_points(board, poses[0]), lens_tilt_95_deg=lens_tilt)
+    sightings = find_sightings(clips, intrinsics, board, rough_cameras(world.cameras), fit_board=fit_board)
+    return calibrate_floor(sightings, intrinsics, board, plan_points=plan_points(board, poses[0]),
+                           lens_tilt_95_deg=lens_tilt)
 
 
 def _board_name(board, stand: bool = False) -> str:
@@ -265,6 +270,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--json", type=Path, default=None, help="write every world's figures here")
     p.add_argument("--no-heed", action="store_true", help="do not lay the board again for cameras the calibration "
                                                            "warns of")
+    p.add_argument("--fit-board", action="store_true", help="floor views' corners from the board fitted to each "
+                                                             "still frame as a whole (calibrate floor --fit-board)")
     args = p.parse_args(argv)
     try:
         seeds = parse_seeds(args.seeds)
@@ -274,11 +281,12 @@ def main(argv: list[str] | None = None) -> int:
     for seed in seeds:
         with tempfile.TemporaryDirectory() as tmp:
             work = (args.out / f"seed-{seed}") if args.out else Path(tmp)
-            r = run_world(seed, work, lenses=args.lenses, heed=not args.no_heed)
+            r = run_world(seed, work, lenses=args.lenses, heed=not args.no_heed, fit_board=args.fit_board)
         results.append(r)
         _report(r)
     total = summarise(results)
-    print(f"calibration, seeds {args.seeds}{' (lenses fitted)' if args.lenses else ''}: {total}")
+    print(f"calibration, seeds {args.seeds}{' (lenses fitted)' if args.lenses else ''}"
+          f"{' (boards fitted to the frames)' if args.fit_board else ''}: {total}")
     if args.json is not None:
         import json
 
