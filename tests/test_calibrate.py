@@ -894,6 +894,17 @@ def test_a_clip_that_cannot_be_read_is_refused_and_nothing_written(tmp_path, cap
     assert "not found" in capsys.readouterr().err and not (tmp_path / "cam1.toml").exists()
 
 
+def test_fitting_a_charuco_board_to_the_frames_is_refused_and_nothing_written(tmp_path, capsys):
+    _, site_path = _synthetic_site(tmp_path)
+    before = _snapshot(site_path)
+    argv = ["calibrate", "floor", "--site", str(site_path), "--charuco", "4x4_50", "--board", "10x7",
+            "--square-mm", "250", "--fit-board", *[f"--clip={c}={tmp_path / 'none.avi'}" for c in before]]
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert "--fit-board fits a chessboard to the frames" in err and len(err.strip().splitlines()) == 1, err
+    assert _snapshot(site_path) == before
+
+
 @pytest.mark.parametrize("suffix", [".toml", ".yaml"])
 def test_a_lens_file_carries_its_principal_points_uncertainty(tmp_path, suffix):
     """The standard deviations ``calibrate intrinsics`` writes come back as written, in the project's TOML and

@@ -107,6 +107,9 @@ def _floor(args: argparse.Namespace) -> int:
     from common.site import load_site
 
     board = _parse_board(args)
+    if args.fit_board and args.charuco is not None:
+        raise ValueError("--fit-board fits a chessboard to the frames; a ChArUco board's corners are taken as its "
+                         "markers name them: leave out --fit-board or --charuco")
     site = load_site(args.site)
     clips = _pairs(args.clip, "--clip", site)
     given = _pairs(args.intrinsics, "--intrinsics", site)
