@@ -111,10 +111,12 @@ def find_board(gray: np.ndarray, board: Board, *, camera: Camera | None = None, 
     thorough: also try the image doubled and, with ``camera`` (its intrinsics; its pose is ignored),
     views of the floor from above: through ``rough_pose`` (world -> camera ``(R, t)``, the floor at
     Z = 0) when given, else at guessed pitches, and views straightened towards each candidate window;
-    with ``camera`` each is tried in turn until one fits a flat board through the lens within
-    :data:`GOOD_FIT_PX`, else the best fit is kept (a 9x6 mat of 250 mm squares half in shade, seen by a
-    320x240 wide lens, was taken from the image as is 0.64 px off a flat board, 8 px from the truth with its ends
-    swapped; doubled, 0.15 px off a flat board and 0.17 px from the truth).
+    with ``camera`` every way is tried and the set that best fits a flat board through the lens is kept (a 9x6
+    mat of 250 mm squares with patchy far squares, seen by a 320x240 wide lens, was taken from the image as is
+    0.64 px off a flat board, 8 px from the truth with its ends swapped; doubled, 0.15 px off a flat board and
+    0.17 px from the truth. On 42 rendered floor views of tuning seeds 2 and 3 the best of every way came out
+    0.078 px from the truth on average, 0.133 at worst, where the first within 0.25 px of a flat board came out
+    0.104 and 0.236: the best never further than the first).
 
     refine: the sector detector's corners refined by the gradient search (``cornerSubPix``), for a
     board held up close. On rendered boards held up to pinholes the detector's own corners fitted
@@ -127,8 +129,8 @@ def find_board(gray: np.ndarray, board: Board, *, camera: Camera | None = None, 
         if corners is None:
             corners = _find_direct(gray, board, exhaustive=False, scale=2)
     elif thorough:
-        # the first set that fits a flat board through the lens, else the one that fits best: a detector can
-        # take a grid off the board's squares (seen small, half in shadow) that no flat board explains
+        # of every way of looking, the set that best fits a flat board through the lens: a detector can take a grid
+        # off the board's squares that no flat board explains, and its corners of a board seen small scatter
         best, best_fit = None, math.inf
         for find in (lambda: corners, lambda: _find_direct(gray, board, exhaustive=False, scale=2),
                      lambda: _find_from_above(gray, board, camera, rough_pose),
@@ -137,8 +139,6 @@ def find_board(gray: np.ndarray, board: Board, *, camera: Camera | None = None, 
             fit = math.inf if found is None else planar_residual_px(found, board, camera)
             if found is not None and (best is None or fit < best_fit):
                 best, best_fit = found, fit
-            if best_fit <= GOOD_FIT_PX:
-                break
         corners = best
     if corners is None:
         return None
