@@ -41,7 +41,8 @@ def grazing_view():
 
 def test_a_board_seen_at_a_grazing_angle_is_fitted_closer_to_its_true_corners_than_the_detector_puts_them(
         grazing_view):
-    """Measured: the detector's corners 0.19 px from the truth on average, the fitted board's 0.04 px."""
+    """Measured: the detector's corners (the best flat fit of every way of looking) 0.09 px from the truth on
+    average, the fitted board's 0.02 px."""
     cam, gray, truth, found = grazing_view
     fit = fit_board(gray, found, MAT, cam)
     assert fit is not None

@@ -262,6 +262,23 @@ def _facing(ray: np.ndarray) -> np.ndarray:
     return np.stack([x, np.cross(ray, x), ray])
 
 
+def board_pose(camera: Camera, obj: np.ndarray, corners: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+    """Board -> camera ``(rvec, tvec)`` from ``corners`` (N, 2) of the board points ``obj`` (N, 3), through the
+    camera's own lens model: ``solvePnP`` (IPPE, then iterative) on the corners' normalised lens coordinates, so
+    pinhole, fisheye and Tsai lenses are handled alike; None where a corner has no ray or no pose solves."""
+    rays = camera.rays_cam(np.asarray(corners, dtype=np.float64))
+    if not np.all(np.isfinite(rays)):
+        return None
+    norm = (rays[:, :2] / rays[:, 2:3]).reshape(-1, 1, 2)
+    o = np.asarray(obj, dtype=np.float64).reshape(-1, 1, 3)
+    ok, rvec, tvec = cv2.solvePnP(o, norm, np.eye(3), None, flags=cv2.SOLVEPNP_IPPE)
+    if not ok:
+        return None
+    ok, rvec, tvec = cv2.solvePnP(o, norm, np.eye(3), None, rvec, tvec, useExtrinsicGuess=True,
+                                  flags=cv2.SOLVEPNP_ITERATIVE)
+    return rvec.ravel(), tvec.ravel()
+
+
 def planar_residual_px(corners: np.ndarray, board: Board, camera: Camera) -> float:
     """Mean distance (pixels) between ``corners`` (N, 2, in detector order) and the best flat grid
     through them: a homography from the grid to the lens's undistorted coordinates, projected back."""

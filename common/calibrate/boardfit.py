@@ -30,7 +30,7 @@ import numpy as np
 from scipy.optimize import least_squares
 from scipy.special import erf
 
-from common.calibrate.board import Board
+from common.calibrate.board import Board, board_pose
 from common.camera import Camera
 
 MARGIN_SQUARES = 0.4
@@ -65,8 +65,10 @@ def fit_board(gray: np.ndarray, corners: np.ndarray, board: Board, camera: Camer
     ((H, W) uint8) fitted to the image through ``camera``'s lens (its pose is ignored); None where the view has
     too few pixels of its squares to fit, the fit fails, or it strays more than :data:`MAX_MOVE_PX` from the
     detection."""
-    start = _pose_from_corners(corners, board, camera)
-    if start is None:
+    if np.any(camera.rays_cam(np.asarray(corners, dtype=np.float64))[:, 2] <= 0):   # a corner behind the lens's plane
+        return None
+    start = board_pose(camera, board.object_points(), corners)
+    if start is None or start[1][2] <= 0:   # no pose, or the board behind the camera
         return None
     region = _Region.around(gray, board, camera, start)
     if region is None or region.count < MIN_PIXELS_PER_SQUARE * (board.cols + 1) * (board.rows + 1):
@@ -91,7 +93,7 @@ def fit_board(gray: np.ndarray, corners: np.ndarray, board: Board, camera: Camer
     if moved > MAX_MOVE_PX:
         return None
     return BoardFit(corners=uv, moved_px=moved, blur_px=math.exp(sol.x[6]), rms_before=_rms(r0),
-                    rms_after=_rms(region.residuals(sol.x)), pixels=region.count)
+                    rms_after=_rms(sol.fun), pixels=region.count)
 
 
 def refined_corners(gray: np.ndarray, corners: np.ndarray, board: Board, camera: Camera) -> np.ndarray:
@@ -102,18 +104,6 @@ def refined_corners(gray: np.ndarray, corners: np.ndarray, board: Board, camera:
 
 def _rms(r: np.ndarray) -> float:
     return float(np.sqrt(np.mean(r ** 2)))
-
-
-def _pose_from_corners(corners: np.ndarray, board: Board, camera: Camera):
-    """(rvec, tvec) board -> camera frame from the corners through the lens, or None."""
-    rays = camera.rays_cam(np.asarray(corners, dtype=np.float64))
-    if not np.all(np.isfinite(rays)) or np.any(rays[:, 2] <= 0):
-        return None
-    norm = np.ascontiguousarray(rays[:, :2] / rays[:, 2:3])
-    ok, rvec, tvec = cv2.solvePnP(board.object_points(), norm, np.eye(3), None, flags=cv2.SOLVEPNP_ITERATIVE)
-    if not ok or tvec[2, 0] <= 0:
-        return None
-    return rvec.ravel(), tvec.ravel()
 
 
 class _Region:

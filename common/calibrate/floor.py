@@ -54,7 +54,7 @@ import numpy as np
 from scipy.optimize import least_squares
 from scipy.sparse import lil_matrix
 
-from common.calibrate.board import Board, board_area_fraction, find_board
+from common.calibrate.board import Board, board_area_fraction, board_pose, find_board
 from common.calibrate.boardfit import refined_corners
 from common.calibrate.charuco import FACE_UP, CharucoBoard, CharucoFinder
 from common.calibrate.clips import read_gray, still_stretches
@@ -350,15 +350,15 @@ def calibrate_floor(sightings: list[Sighting], intrinsics: dict[str, Camera], bo
     cameras = {c: cam.with_world(R_place, np.asarray(origin, dtype=np.float64)) for c, cam in board_cameras.items()}
     reports = {}
     for c in cam_ids:
-        errs, kept = _errors(sightings, c, board_cameras[c], boards, obj)
-        detected = _errors(sightings, c, board_cameras[c], boards, obj, detected=True)
+        errs, kept, detected = _errors(sightings, c, board_cameras[c], boards, obj)
+        checked = kept & np.isfinite(detected)
         centre = tuple(float(v) for v in cameras[c].center)
         share = _seen_share(cameras[c], volume) if volume is not None else float("nan")
         reports[c] = CameraReport(c, len({s.position for s in sightings if s.cam_id == c}), int(kept.sum()), kept.size,
                                   float(errs[kept].mean()), float(errs[kept].max()), float(errs.mean()), centre, share,
                                   *spread.get(c, (float("nan"), float("nan"))), focal_change=focal[c] - 1.0,
                                   lens_change_px=moved[c],
-                                  detected_px=float(detected[0][detected[1]].mean()) if detected[1].any() else math.nan,
+                                  detected_px=float(detected[checked].mean()) if checked.any() else math.nan,
                                   lens_tilt_95_deg=(lens_tilt_95_deg or {}).get(c, 0.0))
     n_pos = len({s.position for s in sightings})
     return FloorResult(cameras=cameras, board_cameras=board_cameras, reports=reports, positions=n_pos,
@@ -571,18 +571,14 @@ def _drop_stray_corners(s: Sighting, cam: Camera, obj, pose, poses) -> Sighting:
 
 
 def _pnp(cam: Camera, obj: np.ndarray, corners: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Board -> camera (R, t) from corners, through the camera's own lens model."""
-    rays = cam.rays_cam(corners)
-    if not np.all(np.isfinite(rays)):
-        raise FloorError(f"camera {cam.id}: board corners lie where its lens model has no rays (check the intrinsics)")
-    norm = (rays[:, :2] / rays[:, 2:3]).reshape(-1, 1, 2)
-    o = obj.reshape(-1, 1, 3)
-    ok, rvec, tvec = cv2.solvePnP(o, norm, np.eye(3), None, flags=cv2.SOLVEPNP_IPPE)
-    if not ok:
+    """Board -> camera (R, t) from corners, through the camera's own lens model (:func:`board_pose`)."""
+    pose = board_pose(cam, obj, corners)
+    if pose is None:
+        if not np.all(np.isfinite(cam.rays_cam(corners))):
+            raise FloorError(f"camera {cam.id}: board corners lie where its lens model has no rays (check the "
+                             "intrinsics)")
         raise FloorError(f"camera {cam.id}: the board's pose cannot be solved from its corners")
-    ok, rvec, tvec = cv2.solvePnP(o, norm, np.eye(3), None, rvec, tvec, useExtrinsicGuess=True,
-                                  flags=cv2.SOLVEPNP_ITERATIVE)
-    return rodrigues_to_matrix(rvec.ravel()), tvec.ravel()
+    return rodrigues_to_matrix(pose[0]), pose[1]
 
 
 def _chain(sightings, poses, cam_ids, centre_b: np.ndarray):
@@ -814,17 +810,19 @@ def pose_uncertainty(jac: np.ndarray, residuals: np.ndarray, x: np.ndarray, offs
     return out
 
 
-def _errors(sightings, cam_id, cam: Camera, boards, obj, *, detected: bool = False) -> tuple[np.ndarray, np.ndarray]:
-    """Every corner's error (px) and whether it was used; ``detected``: against the detector's own corners, of the
-    views that have them (:attr:`Sighting.detected`)."""
-    errs, kept = [np.zeros(0)], [np.zeros(0, dtype=bool)]
+def _errors(sightings, cam_id, cam: Camera, boards, obj) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Every corner's error (px), whether it was used, and its error against the detector's own corner (NaN for
+    the views that have none, :attr:`Sighting.detected`)."""
+    errs, kept, detected = [], [], []
     for s in sightings:
-        if s.cam_id == cam_id and (not detected or s.detected is not None):
+        if s.cam_id == cam_id:
             R_wb, t_wb = boards[s.position]
             uv, _ = cam.project(s.points(obj) @ R_wb.T + t_wb)
-            errs.append(np.nan_to_num(np.linalg.norm(uv - (s.detected if detected else s.corners), axis=1), nan=1e3))
+            errs.append(np.nan_to_num(np.linalg.norm(uv - s.corners, axis=1), nan=1e3))
             kept.append(s.kept)
-    return np.concatenate(errs), np.concatenate(kept)
+            detected.append(np.full(len(uv), np.nan) if s.detected is None else
+                            np.nan_to_num(np.linalg.norm(uv - s.detected, axis=1), nan=1e3))
+    return np.concatenate(errs), np.concatenate(kept), np.concatenate(detected)
 
 
 def _seen_share(cam: Camera, volume) -> float:
