@@ -191,7 +191,8 @@ def _floor(args: argparse.Namespace) -> int:
     for cam_id in loose:
         print(f"  WARNING: camera {cam_id} may be off by more than {100 * POSITION_TOLERANCE_M:.0f} cm or "
               f"{ANGLE_TOLERANCE_DEG} deg: it sees the board too small or too few times; record again with the board "
-              f"also laid nearer to it, where another camera sees it too (on the floor, or on a stand)")
+              f"also laid nearer to it, where another camera sees it too (on the floor, or on a stand), at places "
+              f"spread across its view, near and far")
     if args.dry_run:
         print("dry run: nothing written")
         return 0

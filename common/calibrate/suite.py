@@ -18,16 +18,18 @@
    that counts where a camera reads only part of it, then the 140 mm chessboard set up on a stand
    where no place of the floor chains a camera: :data:`FLOOR_BOARDS`) laid at the places the installer's instructions lead to
    (:func:`common.synth.board.floor_positions` with ``well_seen``: a chain of places seen by two
-   cameras or more, plus, for each camera that saw the board only small, a place it sees as large
-   as it can among those another camera also sees), every camera recording every place (a camera
+   cameras or more, starting from the place most cameras see, of those the one they see largest (it
+   is the floor frame), plus, for each camera that saw the board only small, a
+   place it sees as large as it can among those another camera also sees), every camera recording every place (a camera
    sees what its lens and the room let it see), the room's own floor texture around it; the
    cameras' present calibrations 3 degrees and 22 cm off (to tell the board's ends apart), the
    first place's corners as plan points;
 3. :func:`common.calibrate.floor.calibrate_floor` on the corners found, as the command runs it;
 4. as the command's warning tells the installer: for each camera whose bounds exceed the targets,
-   the board laid at two more places that camera sees well (and another camera too), and the
-   whole calibration recorded again, up to :data:`HEED_ROUNDS` times while the command still warns
-   (``--no-heed``: the first result stands).
+   the board laid at two more places that camera sees well (at least :data:`WELL_SEEN` times as large
+   as it can; another camera too), each as far as it can be from the places laid so far (spread
+   across its view, near and far), and the whole calibration recorded again, up to
+   :data:`HEED_ROUNDS` times while the command still warns (``--no-heed``: the first result stands).
 
 Per camera it reports the position error (cm) and the angle error (degrees) against the world's
 true camera, and the bounds the calibration itself gave (its 95 % uncertainty, which the command
@@ -56,7 +58,8 @@ from common.calibrate.charuco import CharucoBoard
 from common.calibrate.floor import ANGLE_TOLERANCE_DEG, POSITION_TOLERANCE_M, floor_points
 
 WELL_SEEN = 0.5
-"""A camera whose views of the board are all under this share of the largest it can have gets that place."""
+"""A camera whose views of the board are all under this share of the largest it can have gets that place;
+the places laid again for a camera the command warns of are seen at least this share as large as it can."""
 PLACE_AREAS = (0.006, 0.003)
 """The board places an installer can use: seen by a camera when the board covers this share of its
 image; the larger first, the smaller where no chain of larger ones reaches every camera (twice what
@@ -137,7 +140,8 @@ def fit_lens(true, folder: Path, seed: int):
 def run_world(seed: int, work: Path, *, lenses: bool = False, heed: bool = True, fit_board: bool = False
               ) -> dict[str, Any]:
     """One world calibrated (module text); returns per camera its errors and bounds. ``heed``: when the
-    calibration warns of a camera, lay the board at two more places it sees well and calibrate again.
+    calibration warns of a camera, lay the board at two more places it sees well, spread across its view, and
+    calibrate again.
     ``fit_board``: the floor views' corners from the board fitted to each still frame as a whole."""
     from common.synth.world import random_world
 
@@ -196,7 +200,8 @@ def _floor_world(world, intrinsics, board, work: Path, *, heed: bool, stand: boo
             before = len(poses)
             for c in warned:
                 poses = poses + more_floor_positions(world.cameras, world.room, board, rng, c, poses,
-                                                     min_area=min_area, stand=stand)
+                                                     min_area=min_area, stand=stand, rule="spread",
+                                                     well_seen=WELL_SEEN)
             if len(poses) == before:
                 break   # nowhere left to lay it for them
             result = _calibrate(world, intrinsics, board, poses, work / f"floor-again{k + 1}", lens_tilt, fit_board)

@@ -279,7 +279,10 @@ def floor_positions(cameras: dict[str, Camera], room: Room, board: Board | Charu
                     max_positions: int = 8, step_m: float = 0.4, min_area: float = FLOOR_MIN_AREA,
                     well_seen: float = 0.0, stand: bool = False) -> list:
     """Board poses on the floor (Z = 0) that chain every camera: the first is the place most cameras
-    see, each next one is seen by a camera already chained and by the most cameras not yet chained.
+    see, of those the one whose views add up to the most of the cameras' images (the first place is the
+    floor frame, and every camera's pose is measured against that place as the cameras see it: a far camera
+    turns with any error of its yaw, by its distance from it); each next one is seen by a camera already
+    chained and by the most cameras not yet chained.
     With ``well_seen`` > 0, as an installer is told to: each camera whose views so far are all under
     ``well_seen`` times the largest view it can have of a place another camera also sees gets that
     place too. With ``stand`` (a chessboard), where no place on the floor reaches a camera not yet
@@ -293,7 +296,7 @@ def floor_positions(cameras: dict[str, Camera], room: Room, board: Board | Charu
     if not cands:
         raise ValueError("no floor position is seen by any camera")
     raised = _stand_candidates(cameras, room, board, rng, 2 * step_m, min_area) if stand else []
-    picked = [max(cands, key=lambda c: len(c[1]))]
+    picked = [max(cands, key=lambda c: (len(c[1]), sum(c[2][k] for k in c[1])))]
     chained = set(picked[0][1])
     while chained != set(cameras) and len(picked) < max_positions:
         for pool in (cands, raised):
@@ -327,23 +330,43 @@ def floor_positions(cameras: dict[str, Camera], room: Room, board: Board | Charu
 
 def more_floor_positions(cameras: dict[str, Camera], room: Room, board: Board | CharucoBoard, rng: np.random.Generator,
                          cam_id: str, taken: list, *, count: int = 2, step_m: float = 0.4,
-                         min_area: float = FLOOR_MIN_AREA, apart_m: float = 0.5, stand: bool = False) -> list:
+                         min_area: float = FLOOR_MIN_AREA, apart_m: float = 0.5, stand: bool = False,
+                         rule: str = "largest", well_seen: float = 0.5) -> list:
     """Up to ``count`` more board poses for camera ``cam_id``, as an installer lays the board again when the
-    calibration warns that it is not pinned down: the places it sees largest among those another camera
-    sees too, at least ``apart_m`` from the places ``taken`` and from each other (with ``stand``, places
-    with the board on a stand count too)."""
+    calibration warns that it is not pinned down, among the places another camera sees too, at least
+    ``apart_m`` from the places ``taken`` and from each other (with ``stand``, places with the board on a
+    stand count too): with ``rule="largest"``, the places it sees largest; with ``rule="spread"``, of the
+    places it sees at least ``well_seen`` times as large as the largest, each the one farthest from every
+    place laid so far (spread across its view, near and far: a camera far from every place is pinned by
+    how the places it sees lie apart, which places side by side at its nearest edge hardly tell)."""
+    if rule not in ("largest", "spread"):
+        raise ValueError(f"rule {rule!r}: expected 'largest' or 'spread'")
     centres = [p[1] + p[0] @ _board_centre(board) for p in taken]
-    out = []
     cands = _floor_candidates(cameras, room, board, rng, step_m, min_area)
     if stand:
         cands += _stand_candidates(cameras, room, board, rng, 2 * step_m, min_area)
-    for pose, seen, areas in sorted(cands, key=lambda k: -k[2][cam_id]):
-        if len(out) >= count:
+    cands = [k for k in cands if cam_id in k[1] and len(k[1]) >= 2]
+    out: list = []
+    if rule == "largest":
+        for pose, _, _ in sorted(cands, key=lambda k: -k[2][cam_id]):
+            if len(out) >= count:
+                break
+            centre = pose[1] + pose[0] @ _board_centre(board)
+            if all(np.linalg.norm(centre[:2] - c[:2]) >= apart_m for c in centres):
+                out.append(pose)
+                centres.append(centre)
+        return out
+    if not cands:
+        return out
+    largest = max(k[2][cam_id] for k in cands)
+    pool = [(k[0], k[0][1] + k[0][0] @ _board_centre(board)) for k in cands if k[2][cam_id] >= well_seen * largest]
+    while len(out) < count:
+        gap, pose, centre = max(((min((np.linalg.norm(c[:2] - t[:2]) for t in centres), default=math.inf), p, c)
+                                 for p, c in pool), key=lambda g: g[0])
+        if gap < apart_m:
             break
-        centre = pose[1] + pose[0] @ _board_centre(board)
-        if cam_id in seen and len(seen) >= 2 and all(np.linalg.norm(centre[:2] - c[:2]) >= apart_m for c in centres):
-            out.append(pose)
-            centres.append(centre)
+        out.append(pose)
+        centres.append(centre)
     return out
 
 
