@@ -81,9 +81,11 @@ HELD = (0.25, 0.6)
 NEARER = (0.45, 0.85)
 """And as the installer holds it when ``calibrate intrinsics`` warns that the lens's centre is uncertain
 (the warning asks for half the image's width or more)."""
-HEED_ROUNDS = 2
+HEED_ROUNDS = 3
 """How many times the installer records again for the cameras the command still warns of (each time two
-more places for each, where it has not been laid yet)."""
+more places for each, where it has not been laid yet). A camera far from every place is pinned by how far apart
+the places it sees lie, and each round spreads them further: on the PETS rig (tuning world 12, corners exact
+with 0.1 px of noise) view3, 34-40 m from them, came 1.41 cm from the truth after two rounds, 1.03 cm after three."""
 
 
 def angle_between_deg(Ra: np.ndarray, Rb: np.ndarray) -> float:
