@@ -686,13 +686,13 @@ def test_the_places_laid_again_for_a_camera_spread_across_its_view():
     least half as large as its largest (the largest rule's first pick is that largest, from the same lattice),
     each as far as it can be from the places laid so far, lie farther from them than the two it sees largest
     (cam1: 1.60 and 1.13 m from the others against 0.89 and 0.57 m), every one seen by another camera too."""
-    from common.synth.board import _board_centre, more_floor_positions, place_area
+    from common.synth.board import more_floor_positions, place_area, placed_centre
 
     world = random_world(1)
     poses = floor_positions(world.cameras, world.room, BOARD, np.random.default_rng(0), well_seen=WELL_SEEN)
 
     def centre(p):
-        return (p[1] + p[0] @ _board_centre(BOARD))[:2]
+        return placed_centre(BOARD, p)[:2]
 
     def gaps(new):
         return [min(np.linalg.norm(centre(p) - centre(q)) for q in poses + new[:i]) for i, p in enumerate(new)]
@@ -708,8 +708,7 @@ def test_the_places_laid_again_for_a_camera_spread_across_its_view():
         best = place_area(cam, world.room, BOARD, largest[0])
         for p in spread:
             assert place_area(cam, world.room, BOARD, p) >= WELL_SEEN * best
-            others = [c for c, o in world.cameras.items() if c != cam_id and place_area(o, world.room, BOARD, p) >= 0.006]
-            assert others
+            assert any(place_area(o, world.room, BOARD, p) >= 0.006 for c, o in world.cameras.items() if c != cam_id)
         assert min(gaps(spread)) > min(gaps(largest)) and sorted(gaps(spread)) > sorted(gaps(largest))
     with pytest.raises(ValueError, match="rule"):
         more_floor_positions(world.cameras, world.room, BOARD, np.random.default_rng(1), "cam1", poses, rule="near")

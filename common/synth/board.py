@@ -159,8 +159,7 @@ def _face_normal(board: Board | CharucoBoard, R: np.ndarray) -> np.ndarray:
 def on_stand(board: Board | CharucoBoard, pose) -> bool:
     """Whether the board at ``pose`` stands on a stand rather than lying on the floor (its squares' centre
     over 5 cm up)."""
-    R, t = (np.asarray(a, dtype=np.float64) for a in pose)
-    return bool((R @ _board_centre(board) + t)[2] > 0.05)
+    return bool(placed_centre(board, pose)[2] > 0.05)
 
 
 def place_area(camera: Camera, room: Room | None, board: Board | CharucoBoard, pose, *, min_area: float = 0.0) -> float:
@@ -341,33 +340,41 @@ def more_floor_positions(cameras: dict[str, Camera], room: Room, board: Board | 
     how the places it sees lie apart, which places side by side at its nearest edge hardly tell)."""
     if rule not in ("largest", "spread"):
         raise ValueError(f"rule {rule!r}: expected 'largest' or 'spread'")
-    centres = [p[1] + p[0] @ _board_centre(board) for p in taken]
+    centres = [placed_centre(board, p)[:2] for p in taken]
     cands = _floor_candidates(cameras, room, board, rng, step_m, min_area)
     if stand:
         cands += _stand_candidates(cameras, room, board, rng, 2 * step_m, min_area)
-    cands = [k for k in cands if cam_id in k[1] and len(k[1]) >= 2]
+    # the places another camera sees too: (pose, its centre on the floor's plan, how large the camera sees it)
+    places = [(pose, placed_centre(board, pose)[:2], areas[cam_id]) for pose, seen, areas in cands
+              if cam_id in seen and len(seen) >= 2]
+
+    def gap(centre) -> float:
+        return min((float(np.linalg.norm(centre - c)) for c in centres), default=math.inf)
+
     out: list = []
     if rule == "largest":
-        for pose, _, _ in sorted(cands, key=lambda k: -k[2][cam_id]):
+        for pose, centre, _ in sorted(places, key=lambda k: -k[2]):
             if len(out) >= count:
                 break
-            centre = pose[1] + pose[0] @ _board_centre(board)
-            if all(np.linalg.norm(centre[:2] - c[:2]) >= apart_m for c in centres):
+            if gap(centre) >= apart_m:
                 out.append(pose)
                 centres.append(centre)
         return out
-    if not cands:
-        return out
-    largest = max(k[2][cam_id] for k in cands)
-    pool = [(k[0], k[0][1] + k[0][0] @ _board_centre(board)) for k in cands if k[2][cam_id] >= well_seen * largest]
-    while len(out) < count:
-        gap, pose, centre = max(((min((np.linalg.norm(c[:2] - t[:2]) for t in centres), default=math.inf), p, c)
-                                 for p, c in pool), key=lambda g: g[0])
-        if gap < apart_m:
+    largest = max((area for _, _, area in places), default=0.0)
+    pool = [k for k in places if k[2] >= well_seen * largest]
+    while len(out) < count and pool:
+        pose, centre, _ = max(pool, key=lambda k: gap(k[1]))
+        if gap(centre) < apart_m:
             break
         out.append(pose)
         centres.append(centre)
     return out
+
+
+def placed_centre(board: Board | CharucoBoard, pose) -> np.ndarray:
+    """(3,) where the board at ``pose`` (world ``(R_wb, t_wb)``) has the centre of its squares."""
+    R, t = (np.asarray(a, dtype=np.float64) for a in pose)
+    return R @ _board_centre(board) + t
 
 
 def _board_centre(board: Board | CharucoBoard) -> np.ndarray:
@@ -454,8 +461,7 @@ def _sheet_area(camera: Camera, room: Room | None, board: Board, pose, min_area:
 def _stand_free(room: Room, board: Board, pose) -> bool:
     """Whether a board on a stand at ``pose`` stands clear: nothing under its centre down to the floor,
     nothing between its centre and its sheet's corners (furniture, a wall)."""
-    R, t = pose
-    centre = np.asarray(t) + np.asarray(R) @ _board_centre(board)
+    centre = placed_centre(board, pose)
     corners = _sheet_corners(board, pose)
     d = np.concatenate([[[0.0, 0.0, -centre[2]]], corners - centre])
     dist = np.linalg.norm(d, axis=1)
