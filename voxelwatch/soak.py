@@ -1,0 +1,234 @@
+"""``voxelwatch bench --sections soak``: the demo system run for a long time, with processes dying.
+
+The synthetic house as in ``voxelwatch demo`` (one worker per camera, one
+fusion server, this process as their zenoh router), played ``speed`` times
+faster than real time (every camera's rate and the site's times ``speed``,
+the recording looping), for ``minutes``. Every ``kill_every_s`` one camera
+worker, in turn, is SIGKILLed and started again two seconds later with the
+same shared start; once, half-way, the fusion server is SIGKILLed and started
+again on the same event store. At the end it reports:
+
+* frame sets lost: frame numbers between the first and the last fused frame
+  that never came as tracks (a restart, a dead camera below ``min_cameras``,
+  a slow machine), and the server's own dropped-set count;
+* events: published (heard on ``<p>/events/**``) against stored (in the
+  SQLite store): every published event must be in the store, whatever died;
+* memory (resident set) of the fusion server and of each worker, shortly
+  after it starts and when it ends (killed, or at the end of the soak), per
+  process lifetime (``cam2#1``: camera cam2's first process).
+
+It measures; it asserts nothing. Run it on an otherwise idle machine: five
+workers rendering the house at four times real time need several cores, and
+a machine that cannot keep up shows as lost frame sets.
+"""
+
+from __future__ import annotations
+
+import sqlite3
+import subprocess
+import sys
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, TextIO
+
+from voxelwatch.demo import BACKGROUND_FRAMES, START_DELAY_S, _spawn, _stop_all, _wait_alive
+from common.transport import free_port, zenoh_config
+
+__all__ = ["run_soak"]
+
+RESTART_DELAY_S = 2.0
+WARM_S = 20.0
+"""Memory is first read this long after a process starts (tables loaded, buffers at their size)."""
+
+
+@dataclass
+class _Heard:
+    lock: threading.Lock = field(default_factory=threading.Lock)
+    frames: set = field(default_factory=set)
+    events: dict = field(default_factory=dict)
+    status: Any = None
+
+
+def run_soak(*, minutes: float = 30.0, speed: float = 4.0, kill_every_s: float = 180.0, out_dir: str | Path = "voxelwatch-soak",
+             scenario: str | None = None, stream: TextIO = sys.stdout) -> dict[str, Any]:
+    """Run the soak; returns (and prints) its figures."""
+    import zenoh
+
+    import synth
+    from common import keys, messages
+    from common.site import write_site
+
+    if not (minutes > 0 and speed > 0 and kill_every_s > RESTART_DELAY_S):
+        raise ValueError(f"minutes and speed must be > 0 and kill_every_s > {RESTART_DELAY_S}, "
+                         f"got {minutes}, {speed}, {kill_every_s}")
+    out = Path(out_dir).resolve()
+    logs = out / "logs"
+    logs.mkdir(parents=True, exist_ok=True)
+    store = out / "events.sqlite"
+    for stale in (store, Path(f"{store}-wal"), Path(f"{store}-shm"), Path(f"{store}.pending.jsonl")):
+        stale.unlink(missing_ok=True)
+    name = scenario or synth.DEFAULT_SCENARIO
+    base = synth.default_site(out / "site")
+    fast = base.model_copy(update={"cameras": [c.model_copy(update={"fps": c.fps * speed}) for c in base.cameras]})
+    site_path = write_site(fast, out / "site" / "site-soak.toml")
+    cams = list(fast.camera_ids)
+    fps = fast.cameras[0].fps
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    zenoh_args = ["--mode", "client", "--connect", endpoint]
+    heard = _Heard()
+    procs: dict[str, subprocess.Popen] = {}
+    started: dict[str, float] = {}
+    rss: dict[str, list[int]] = {}
+    restarts: dict[str, int] = {}
+
+    def fusion() -> subprocess.Popen:
+        return _spawn(["voxelwatch-fusion", "--site", str(site_path), "--store", str(store),
+                       "--cache-dir", str(out / "cache"), *zenoh_args], logs / f"fusion-{restarts.get('fusion', 0)}.log")
+
+    def worker(cam: str, start_ns: int) -> subprocess.Popen:
+        return _spawn(["voxelwatch-camera", "--site", str(site_path), "--camera", cam, "--source", f"synthetic:{name}",
+                       "--background", f"synthetic:{name}", "--background-frames", str(BACKGROUND_FRAMES),
+                       "--fps", str(fps), "--loop", "--start-ns", str(start_ns), "-q", *zenoh_args],
+                      logs / f"{cam}-{restarts.get(cam, 0)}.log")
+
+    print(f"voxelwatch soak: {name} at {speed:g}x ({fps:g} frames/s), {minutes:g} min, a camera killed every "
+          f"{kill_every_s:g} s, the fusion server once; router {endpoint}, logs in {logs}", file=stream, flush=True)
+    t0 = time.monotonic()
+    with zenoh.open(zenoh_config(mode="router", listen=[endpoint])) as session:
+        subs = [
+            session.declare_subscriber(keys.events_wildcard(fast.prefix), lambda s: _on_event(s, heard, messages)),
+            session.declare_subscriber(keys.tracks_key(fast.prefix), lambda s: _on_tracks(s, heard, messages)),
+            session.declare_subscriber(keys.status_key(fast.prefix), lambda s: _on_status(s, heard, messages)),
+        ]
+        try:
+            procs["fusion"], started["fusion"] = fusion(), time.monotonic()
+            _wait_alive(session, keys.alive_fusion_key(fast.prefix), procs["fusion"], stream)
+            start_ns = time.time_ns() + int(START_DELAY_S * 1e9)
+            for cam in cams:
+                procs[cam], started[cam] = worker(cam, start_ns), time.monotonic()
+            end = time.monotonic() + minutes * 60
+            next_kill = time.monotonic() + kill_every_s
+            fusion_kill = time.monotonic() + minutes * 30
+            victim = 0
+            while time.monotonic() < end:
+                time.sleep(1.0)
+                now = time.monotonic()
+                for name_, proc in procs.items():  # first memory reading of each process, once warm
+                    if name_ not in rss and now - started[name_] >= WARM_S and proc.poll() is None:
+                        rss[name_] = [_rss_kb(proc.pid)]
+                if now >= fusion_kill:
+                    fusion_kill = float("inf")
+                    _retire(rss, restarts, "fusion", procs["fusion"])
+                    procs["fusion"].kill()
+                    procs["fusion"].wait()
+                    restarts["fusion"] = restarts.get("fusion", 0) + 1
+                    print(f"[{now - t0:6.0f} s] fusion server killed; starting it again", file=stream, flush=True)
+                    time.sleep(RESTART_DELAY_S)
+                    procs["fusion"], started["fusion"] = fusion(), time.monotonic()
+                if now >= next_kill:
+                    next_kill = now + kill_every_s
+                    cam = cams[victim % len(cams)]
+                    victim += 1
+                    _retire(rss, restarts, cam, procs[cam])
+                    procs[cam].kill()
+                    procs[cam].wait()
+                    restarts[cam] = restarts.get(cam, 0) + 1
+                    print(f"[{now - t0:6.0f} s] camera {cam} killed; starting it again", file=stream, flush=True)
+                    time.sleep(RESTART_DELAY_S)
+                    procs[cam], started[cam] = worker(cam, start_ns), time.monotonic()
+                with heard.lock:
+                    n, events = len(heard.frames), len(heard.events)
+                print(f"\r\033[K[{now - t0:6.0f} s] {n} frames fused, {events} events", end="", file=stream, flush=True)
+            for name_, proc in procs.items():
+                if proc.poll() is None:
+                    rss.setdefault(name_, []).append(_rss_kb(proc.pid))
+            time.sleep(2.0)  # the last events on their way
+        finally:
+            _stop_all(procs)
+            for sub in subs:
+                sub.undeclare()
+    stored = _stored_ids(store)
+    with heard.lock:
+        frames, published, status = sorted(heard.frames), dict(heard.events), heard.status
+    span = frames[-1] - frames[0] + 1 if frames else 0
+    figures = {
+        "minutes": minutes, "speed": speed, "fps": fps, "restarts": restarts,
+        "frames_fused": len(frames), "frame_span": span, "frame_sets_lost": span - len(frames),
+        "frame_sets_dropped_by_server": status.frame_sets_dropped if status is not None else None,
+        "events_published": len(published), "events_stored": len(stored),
+        "published_not_stored": sorted(set(published) - stored),
+        "stored_not_heard": len(stored - set(published)),
+        "rss_mb": {k: [round(v / 1024, 1) for v in vals] for k, vals in rss.items()},
+    }
+    print("\n" + _table(figures), file=stream, flush=True)
+    return figures
+
+
+# ---------------------------------------------------------------- helpers
+
+
+def _on_event(sample, heard: _Heard, messages) -> None:
+    try:
+        event = messages.decode_event(sample.payload.to_bytes())
+    except messages.WireError:
+        return
+    with heard.lock:
+        heard.events[event.id] = event.kind
+
+
+def _on_tracks(sample, heard: _Heard, messages) -> None:
+    try:
+        msg = messages.decode(sample.payload.to_bytes(), messages.TrackFrame)
+    except messages.WireError:
+        return
+    with heard.lock:
+        heard.frames.add(int(msg.frame))
+
+
+def _on_status(sample, heard: _Heard, messages) -> None:
+    try:
+        msg = messages.decode(sample.payload.to_bytes(), messages.Status)
+    except messages.WireError:
+        return
+    with heard.lock:
+        heard.status = msg
+
+
+def _retire(rss: dict[str, list[int]], restarts: dict[str, int], name: str, proc: subprocess.Popen) -> None:
+    """Close the memory readings of a process about to be killed, under its lifetime's name."""
+    if name in rss:
+        rss[name].append(_rss_kb(proc.pid))
+        rss[f"{name}#{restarts.get(name, 0) + 1}"] = rss.pop(name)
+
+
+def _rss_kb(pid: int) -> int:
+    try:
+        for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+            if line.startswith("VmRSS:"):
+                return int(line.split()[1])
+    except OSError:
+        pass
+    return 0
+
+
+def _stored_ids(path: Path) -> set[str]:
+    if not path.is_file():
+        return set()
+    with sqlite3.connect(str(path)) as db:
+        return {row[0] for row in db.execute("SELECT id FROM events")}
+
+
+def _table(f: dict[str, Any]) -> str:
+    lines = [
+        f"soak: {f['minutes']:g} min at {f['speed']:g}x; restarts {f['restarts'] or 'none'}",
+        f"  frame sets: {f['frames_fused']} fused of {f['frame_span']} in the span, {f['frame_sets_lost']} lost; "
+        f"dropped by the last server (slow) {f['frame_sets_dropped_by_server']}",
+        f"  events: {f['events_published']} published, {f['events_stored']} stored, "
+        f"{len(f['published_not_stored'])} published but not stored, {f['stored_not_heard']} stored but not heard",
+        "  memory (MB, after warm-up -> end):",
+    ]
+    for name, vals in sorted(f["rss_mb"].items()):
+        lines.append(f"    {name:<10} {' -> '.join(str(v) for v in vals)}")
+    return "\n".join(lines)
