@@ -10,5 +10,5 @@
 * :mod:`.command`: the command line.
 
 The boards of the synthetic worlds that check all this against true cameras are drawn by
-:mod:`common.synth.board`.
+:mod:`synth.board`.
 """

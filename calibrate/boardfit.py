@@ -30,7 +30,7 @@ import numpy as np
 from scipy.optimize import least_squares
 from scipy.special import erf
 
-from common.calibrate.board import Board, board_pose
+from calibrate.board import Board, board_pose
 from common.camera import Camera
 
 MARGIN_SQUARES = 0.4

@@ -53,8 +53,8 @@ def _board_args(p) -> None:
 
 def _parse_board(args: argparse.Namespace):
     """The chessboard or ChArUco board the options describe; ValueError naming the option."""
-    from common.calibrate.board import Board
-    from common.calibrate.charuco import CharucoBoard
+    from calibrate.board import Board
+    from calibrate.charuco import CharucoBoard
 
     if args.charuco is not None:
         return CharucoBoard.parse(args.board, args.square_mm, args.marker_mm, args.charuco)
@@ -64,8 +64,8 @@ def _parse_board(args: argparse.Namespace):
 
 
 def _intrinsics(args: argparse.Namespace) -> int:
-    from common.calibrate.intrinsics import LENS_TILT_95_DEG, calibrate_intrinsics
-    from common.calibrate.write import write_intrinsics
+    from calibrate.intrinsics import LENS_TILT_95_DEG, calibrate_intrinsics
+    from calibrate.write import write_intrinsics
 
     board = _parse_board(args)
     out = Path(args.out or f"{args.camera}-intrinsics.toml")
@@ -97,12 +97,12 @@ def _intrinsics(args: argparse.Namespace) -> int:
 
 
 def _floor(args: argparse.Namespace) -> int:
-    from common.calibrate.floor import (
+    from calibrate.floor import (
         ANGLE_TOLERANCE_DEG, FOCAL_PRIOR, MISFIT_PX, POSITION_TOLERANCE_M, calibrate_floor, find_sightings,
         read_plan_points,
     )
-    from common.calibrate.write import WRITABLE, write_site_calibrations
-    from common.calibrate.intrinsics import LENS_TILT_95_DEG, lens_tilt_95_deg
+    from calibrate.write import WRITABLE, write_site_calibrations
+    from calibrate.intrinsics import LENS_TILT_95_DEG, lens_tilt_95_deg
     from common.calibration import CalibrationError, lens_centre_sd, load_calibration
     from common.site import load_site
 

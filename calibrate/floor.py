@@ -3,14 +3,14 @@
 The board lies still at one place or more, seen by every camera at once or by a few at a time;
 the clips are recorded together (they start at the same moment, at the same rate), so the still
 stretches of different cameras that overlap in time show the same board position
-(:mod:`common.calibrate.clips`).
+(:mod:`calibrate.clips`).
 
-1. Per camera and still stretch: the board's corners (:func:`~common.calibrate.board.find_board`,
+1. Per camera and still stretch: the board's corners (:func:`~calibrate.board.find_board`,
    with the floor seen from above through the camera's rough pose when the site has one); on
    request, a chessboard's then from the board fitted to the still frame as a whole through the
-   lens (:mod:`common.calibrate.boardfit`: every pixel of its squares, where the detector places
+   lens (:mod:`calibrate.boardfit`: every pixel of its squares, where the detector places
    each corner from the few pixels around it).
-2. Orientation: corners are named the same way in every camera (:mod:`common.calibrate.board`);
+2. Orientation: corners are named the same way in every camera (:mod:`calibrate.board`);
    a board that looks the same turned half round is oriented in each camera by the cameras'
    rough poses (the site's present calibrations), which only need to be right to within a
    quarter turn; without them such a board is refused when two cameras must share it.
@@ -54,10 +54,10 @@ import numpy as np
 from scipy.optimize import least_squares
 from scipy.sparse import lil_matrix
 
-from common.calibrate.board import Board, board_area_fraction, board_pose, find_board
-from common.calibrate.boardfit import refined_corners
-from common.calibrate.charuco import FACE_UP, CharucoBoard, CharucoFinder
-from common.calibrate.clips import read_gray, still_stretches
+from calibrate.board import Board, board_area_fraction, board_pose, find_board
+from calibrate.boardfit import refined_corners
+from calibrate.charuco import FACE_UP, CharucoBoard, CharucoFinder
+from calibrate.clips import read_gray, still_stretches
 from common.camera import Camera, matrix_to_rodrigues, pinhole_distort, rodrigues_to_matrix
 
 MIN_FLOOR_AREA = 0.0015
@@ -135,7 +135,7 @@ class Sighting:
     corner, in board order (a chessboard)."""
     detected: np.ndarray | None = None
     """(N, 2) the detector's own corners where ``corners`` come from the board fitted to the frame as a whole
-    (:mod:`common.calibrate.boardfit`); None: ``corners`` are the detector's."""
+    (:mod:`calibrate.boardfit`); None: ``corners`` are the detector's."""
 
     @property
     def kept(self) -> np.ndarray:
@@ -237,7 +237,7 @@ def find_sightings(clips: dict[str, str], intrinsics: dict[str, Camera], board: 
     """Every camera's board sightings, one per still stretch of its clip in which the board is found;
     FloorError when a camera never sees it or sees it too small; ClipError for a clip that cannot be read.
     fit_board: a chessboard's corners from the board fitted to the still frame as a whole
-    (:mod:`common.calibrate.boardfit`), the detector's kept in :attr:`Sighting.detected`."""
+    (:mod:`calibrate.boardfit`), the detector's kept in :attr:`Sighting.detected`."""
     out: list[Sighting] = []
     finder = CharucoFinder(board) if isinstance(board, CharucoBoard) else None
     for cam_id, clip in clips.items():
@@ -274,8 +274,8 @@ def _find_floor_board(gray: np.ndarray, board: Board | CharucoBoard, finder: Cha
                       ) -> tuple[np.ndarray | None, np.ndarray | None, np.ndarray | None]:
     """(ids or None for every corner, (N, 2) corners, the detector's own corners or None where they are the
     corners) of the board in one still frame, or (None, None, None). A
-    chessboard is looked for thoroughly (:func:`~common.calibrate.board.find_board`) and, with ``fit_board``, the
-    board found fitted to the frame as a whole (:func:`~common.calibrate.boardfit.refined_corners`); a ChArUco board by
+    chessboard is looked for thoroughly (:func:`~calibrate.board.find_board`) and, with ``fit_board``, the
+    board found fitted to the frame as a whole (:func:`~calibrate.boardfit.refined_corners`); a ChArUco board by
     its markers (``finder``, the board's), in the frame and, where they are too small to read, in the
     frame doubled."""
     if finder is None:

@@ -1,8 +1,8 @@
 """Intrinsic calibration from a clip of a board moved in front of one camera.
 
 Up to :data:`MAX_CANDIDATES` frames, spread evenly over the clip, are searched for the board: a
-chessboard, which must be seen whole (:func:`~common.calibrate.board.find_board`), or a ChArUco
-board, of which any part showing enough corners counts (:class:`~common.calibrate.charuco.CharucoFinder`),
+chessboard, which must be seen whole (:func:`~calibrate.board.find_board`), or a ChArUco
+board, of which any part showing enough corners counts (:class:`~calibrate.charuco.CharucoFinder`),
 so that its views may reach past the image's edges, where a lens bends most.
 Views are then picked, sharpest first: a view is skipped when it is blurred (the variance of the
 Laplacian over the board below :data:`BLUR_SHARE` of the clip's median) or when it repeats one
@@ -32,10 +32,10 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from common.calibrate.board import Board, board_area_fraction, find_board, sharpness
-from common.calibrate.charuco import CharucoBoard, CharucoFinder
-from common.calibrate.clips import read_gray
-from common.calibrate.floor import ANGLE_TOLERANCE_DEG
+from calibrate.board import Board, board_area_fraction, find_board, sharpness
+from calibrate.charuco import CharucoBoard, CharucoFinder
+from calibrate.clips import read_gray
+from calibrate.floor import ANGLE_TOLERANCE_DEG
 from common.camera import Camera
 
 MIN_VIEWS = 6

@@ -20,8 +20,16 @@ Spec strings (command line, site file), see :func:`open_source`::
     0, 1, ...                 camera index (V4L2 on Linux)
     /dev/video0               camera device
     rtsp://host/stream        stream URL (rtsp, rtsps, http, https, udp, tcp, rtp, srt, rtmp)
-    synthetic[:scenario]      the synthetic house (common.synth), this camera's view
-    world:SEED                this camera's view of the randomised world of SEED (common.synth.world)
+    synthetic[:scenario]      the synthetic house, this camera's view
+    world:SEED                this camera's view of the randomised world of SEED
+
+The last two are not the worker's own: another installed package provides
+them through the entry-point group ``voxelwatch.sources`` (the synthetic
+worlds register ``synthetic`` and ``world``, :mod:`synth.source`), so a
+camera host needs nothing of the simulator. A plugin is
+``factory(rest, *, cam_id, seed, start_ns, background, n_frames, fps,
+modality, utc_offset_hours) -> FrameSource`` where ``rest`` is the spec after
+``scheme:``; a ValueError it raises becomes a :class:`SourceError`.
 
 Every failure is a :class:`SourceError` whose message names the source and
 the problem (``video file /x/y.avi: not found``).
@@ -47,11 +55,11 @@ __all__ = [
     "ImageFolderSource",
     "LiveReader",
     "SourceError",
-    "SyntheticSource",
     "URL_SCHEMES",
     "VideoFileSource",
     "describe_source",
     "open_source",
+    "plugin_schemes",
     "recorded_stamp_ns",
 ]
 
@@ -59,6 +67,7 @@ IMAGE_SUFFIXES = frozenset({".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".
 _DEEP_SUFFIXES = frozenset({".png", ".tif", ".tiff", ".pgm"})   # can hold 16-bit images
 URL_SCHEMES = ("rtsp", "rtsps", "http", "https", "udp", "tcp", "rtp", "srt", "rtmp")
 STREAM_TIMEOUT_MS = 5000
+SOURCE_PLUGINS = "voxelwatch.sources"
 """Open and read time-out given to FFmpeg for stream URLs."""
 
 _URL_RE = re.compile(r"^([A-Za-z][A-Za-z0-9+.-]*)://")
@@ -134,8 +143,8 @@ class VideoFileSource(FrameSource):
         self.path = Path(path)
         self.name = f"video file {self.path}"
         self.start_ns = int(start_ns)
-        self._fps_override = _check_fps(fps)
-        self._default_fps = _check_fps(default_fps)
+        self._fps_override = check_fps(fps)
+        self._default_fps = check_fps(default_fps)
         self.fps = self._fps_override
         self._cap: cv2.VideoCapture | None = None
         self._index = 0
@@ -217,7 +226,7 @@ class ImageFolderSource(FrameSource):
         self.path = Path(path)
         self.name = f"image folder {self.path}"
         self.start_ns = int(start_ns)
-        self.fps = _check_fps(fps) or 15.0
+        self.fps = check_fps(fps) or 15.0
         self._files: list[Path] = []
         self._index = 0
 
@@ -277,7 +286,7 @@ class CaptureSource(FrameSource):
                  timeout_ms: int = STREAM_TIMEOUT_MS) -> None:
         self.target = target if isinstance(target, int) else str(target)
         self.name = describe_source(target)
-        self.fps = _check_fps(fps)
+        self.fps = check_fps(fps)
         self._clock = clock
         self._timeout_ms = int(timeout_ms)
         self._cap: cv2.VideoCapture | None = None
@@ -318,95 +327,6 @@ class CaptureSource(FrameSource):
             self._cap = None
 
 
-class SyntheticSource(FrameSource):
-    """One camera of the synthetic house (``common.synth``) or of a randomised world
-    (``world``: its seed); recorded stamps, true masks.
-
-    ``background=True`` yields the clip of the empty room recorded before the
-    scenario (``background_frame(i)``), for learning. ``n_frames`` caps either.
-    ``modality``: the camera's kind (``colour``, ``infrared``, ``thermal``, ``depth``);
-    thermal and depth frames are ``(H, W) uint16``.
-    """
-
-    live = False
-
-    def __init__(self, cam_id: str, *, scenario: str | None = None, seed: int = 0, start_ns: int = 0,
-                 background: bool = False, n_frames: int | None = None, world: int | None = None,
-                 fps: float | None = None, modality: str = "colour") -> None:
-        self.cam_id = cam_id
-        self.modality = modality
-        self._fps_override = _check_fps(fps)
-        self.scenario = scenario
-        self.seed = int(seed)
-        self.world = None if world is None else int(world)
-        self.start_ns = int(start_ns)
-        self.background = bool(background)
-        label = f"world:{world}" if world is not None else f"synthetic:{scenario}" if scenario else "synthetic"
-        self.name = f"{label} camera {cam_id}" + (" (empty room)" if background else "")
-        self._n_frames = n_frames
-        self._camera = None
-        self._index = 0
-
-    def open(self) -> None:
-        try:
-            from common.synth.source import SyntheticCamera
-        except ImportError as exc:
-            raise SourceError(f"{self.name}: the synthetic house is not available ({exc})") from None
-        try:
-            if self.world is not None:
-                camera = _world_camera(self.world, self.cam_id, self.modality)
-            elif self.scenario:
-                camera = SyntheticCamera(self.scenario, self.cam_id, self.seed, modality=self.modality)
-            else:
-                camera = SyntheticCamera(cam_id=self.cam_id, seed=self.seed, modality=self.modality)
-        except (KeyError, ValueError) as exc:
-            raise SourceError(f"{self.name}: {exc}") from None
-        self._camera = camera
-        self.fps = self._fps_override or float(camera.fps)  # faster: the same frames, played sooner
-        self._index = 0
-
-    @property
-    def n_frames(self) -> int:
-        """Frames this source yields, capped by ``n_frames``: the scenario's length, or for the
-        empty room the clip recorded before the scenario (3 s)."""
-        if self._camera is None:
-            raise SourceError(f"{self.name}: not open")
-        total = int(self._camera.n_background_frames if self.background else self._camera.n_frames)
-        return total if self._n_frames is None else min(total, self._n_frames)
-
-    def seek(self, index: int) -> None:
-        """Jump to frame ``index`` (rendering is random access: skipped frames cost nothing)."""
-        self._index = max(0, int(index))
-
-    def read(self) -> Frame | None:
-        if self._camera is None:
-            raise SourceError(f"{self.name}: read before open")
-        if self._index >= self.n_frames:
-            return None
-        i = self._index
-        stamp = recorded_stamp_ns(self.start_ns, i, self.fps)
-        if self.background:
-            frame = Frame(i, stamp, self._camera.background_frame(i))
-        else:
-            image, truth = self._camera.frame(i)
-            frame = Frame(i, stamp, image, truth)
-        self._index += 1
-        return frame
-
-
-def _world_camera(seed: int, cam_id: str, modality: str = "colour"):
-    """The renderer of camera ``cam_id`` of the randomised world ``seed``, as its video worlds render
-    (a thermal or depth camera as a mixed rig's frames are written)."""
-    from common.synth.source import BACKGROUND_S, SyntheticCamera
-    from common.synth.world import random_world
-
-    world = random_world(seed)
-    if cam_id not in world.cameras:
-        raise ValueError(f"world {seed} has no camera {cam_id!r}; its cameras are {', '.join(world.cameras)}")
-    return SyntheticCamera(world.scenario, cam_id, world.seed, camera=world.cameras[cam_id],
-                           background_s=BACKGROUND_S, modality=modality)
-
-
 def describe_source(spec: int | str | Path) -> str:
     """How messages name a source spec: ``camera 0``, ``stream rtsp://...``, ``video file /x.avi``."""
     if isinstance(spec, int):
@@ -418,7 +338,7 @@ def describe_source(spec: int | str | Path) -> str:
         return f"camera {text}"
     if _URL_RE.match(text):
         return f"stream {_redact(text)}"
-    if text == "synthetic" or text.startswith(("synthetic:", "world:")):
+    if _plugin_of(text) is not None:
         return text
     path = Path(text)
     if path.is_dir():
@@ -430,7 +350,7 @@ def open_source(
     spec: str | int,
     *,
     cam_id: str,
-    start_ns: int = 0,
+    start_ns: int | None = 0,
     fps: float | None = None,
     seed: int = 0,
     base_dir: str | Path | None = None,
@@ -439,6 +359,7 @@ def open_source(
     default_fps: float = 15.0,
     clock: Callable[[], int] = time.time_ns,
     modality: str = "colour",
+    utc_offset_hours: float = 0.0,
 ) -> FrameSource:
     """Build (not open) the source a spec string names; see the module docstring for the forms.
 
@@ -447,8 +368,10 @@ def open_source(
     house; other specs are the clip itself. ``fps`` overrides a recording's
     own rate; ``default_fps`` (the site's camera fps) applies to image
     folders and to files that state no rate. ``modality`` (the site camera's) makes
-    the synthetic house render that kind of camera. Raises SourceError for an
-    empty or unknown spec.
+    the synthetic house render that kind of camera. ``start_ns=None`` stamps a
+    plugin's recording from its own start (a synthetic scenario's clock in the
+    site's time zone, ``utc_offset_hours``); other sources take it as 0.
+    Raises SourceError for an empty or unknown spec.
     """
     if isinstance(spec, int):
         return CaptureSource(spec, fps=fps, clock=clock)
@@ -457,16 +380,14 @@ def open_source(
         raise SourceError("no source given (a path, folder, camera index, URL or 'synthetic')")
     if text.isdigit():
         return CaptureSource(int(text), fps=fps, clock=clock)
-    if text == "synthetic" or text.startswith("synthetic:"):
-        scenario = text.partition(":")[2] or None
-        return SyntheticSource(cam_id, scenario=scenario, seed=seed, start_ns=start_ns, background=background,
-                               n_frames=n_frames, fps=fps, modality=modality)
-    if text.startswith("world:"):
-        seed_text = text.partition(":")[2]
-        if not seed_text.isdigit():
-            raise SourceError(f"{text}: a world source is 'world:SEED' with a non-negative integer seed")
-        return SyntheticSource(cam_id, world=int(seed_text), start_ns=start_ns, background=background,
-                               n_frames=n_frames, fps=fps, modality=modality)
+    scheme = _plugin_of(text)
+    if scheme is not None:
+        factory = plugin_schemes()[scheme].load()
+        try:
+            return factory(text.partition(":")[2], cam_id=cam_id, seed=seed, start_ns=start_ns, background=background,
+                           n_frames=n_frames, fps=fps, modality=modality, utc_offset_hours=utc_offset_hours)
+        except ValueError as exc:
+            raise SourceError(f"{text}: {exc}") from None
     match = _URL_RE.match(text)
     if match:
         if match.group(1).lower() not in URL_SCHEMES:
@@ -479,8 +400,8 @@ def open_source(
     if base_dir is not None and not path.is_absolute():
         path = Path(base_dir) / path
     if path.is_dir():
-        return ImageFolderSource(path, start_ns=start_ns, fps=fps or default_fps)
-    return VideoFileSource(path, start_ns=start_ns, fps=fps, default_fps=default_fps)
+        return ImageFolderSource(path, start_ns=start_ns or 0, fps=fps or default_fps)
+    return VideoFileSource(path, start_ns=start_ns or 0, fps=fps, default_fps=default_fps)
 
 
 class LiveReader:
@@ -607,12 +528,27 @@ class LiveReader:
                 self._on_event(message)
 
 
-def _check_fps(fps: float | None) -> float | None:
+def check_fps(fps: float | None) -> float | None:
     if fps is None:
         return None
     if not isinstance(fps, (int, float)) or isinstance(fps, bool) or not 0 < fps <= 1000 or not np.isfinite(fps):
         raise ValueError(f"fps must be a number in (0, 1000], got {fps!r}")
     return float(fps)
+
+
+def plugin_schemes() -> dict:
+    """The source schemes other installed packages provide: name -> entry point (group ``voxelwatch.sources``)."""
+    from importlib.metadata import entry_points
+
+    return {ep.name: ep for ep in entry_points(group=SOURCE_PLUGINS)}
+
+
+def _plugin_of(text: str) -> str | None:
+    """The plugin scheme ``text`` names (``scheme`` or ``scheme:rest``), or None."""
+    scheme = text.partition(":")[0]
+    if _URL_RE.match(text) or scheme not in plugin_schemes():
+        return None
+    return scheme
 
 
 def _bgr(image: np.ndarray) -> np.ndarray:

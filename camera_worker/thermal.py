@@ -6,7 +6,7 @@ what a thermal view needs:
 * **Input.** Radiometric ``(H, W) uint16`` frames (centi-kelvin by default,
   ``units_per_k = 100``) or 8-bit views (``(H, W)`` or grey ``(H, W, 3)``
   ``uint8``; ``units_per_k`` defaults to 255 / 25, a 25 K span over the 256
-  levels, as :func:`common.synth.sensors.agc8` with a fixed 15-40 C span gives).
+  levels, as :func:`synth.sensors.agc8` with a fixed 15-40 C span gives).
   The model works in kelvin from there on.
 * **The room drifts, people do not join it.** Heating and cooling move every
   surface of a room together. Each frame, the reading is compared with

@@ -438,7 +438,7 @@ def _as_points(value, dim: int, name: str) -> np.ndarray:
     return arr
 
 
-def _make_K(width, height, fx, fy, cx, cy, hfov_deg, *, fisheye: bool) -> np.ndarray:
+def _make_K(width, height, fx, fy, cx, cy, hfov_deg, *, fisheye: bool) -> np.ndarray:  # noqa: N802 - K, the camera matrix
     if (fx is None) == (hfov_deg is None):
         raise ValueError("give exactly one of fx and hfov_deg")
     if fx is None:

@@ -324,7 +324,7 @@ def _base_config(path: Path) -> zenoh.Config:
         raise TransportError(f"[zenoh] config: {path} not found")
     try:
         return zenoh.Config.from_file(str(path))
-    except Exception as exc:  # zenoh raises ZError for a file it refuses
+    except Exception as exc:  # noqa: BLE001 - zenoh raises ZError for a file it refuses
         raise TransportError(f"[zenoh] config {path}: {exc}") from None
 
 
@@ -335,6 +335,6 @@ def _config(values: dict[str, object], conf: zenoh.Config | None = None) -> zeno
     for key, value in values.items():
         try:
             conf.insert_json5(key, json.dumps(value))
-        except Exception as exc:  # zenoh raises ZError for a value it refuses
+        except Exception as exc:  # noqa: BLE001 - zenoh raises ZError for a value it refuses
             raise TransportError(f"zenoh setting {key} = {value!r}: {exc}") from None
     return conf

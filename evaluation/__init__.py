@@ -2,24 +2,24 @@
 
 Typical use::
 
-    from common.evaluation import evaluate, format_table, suite_table
+    from evaluation import evaluate, format_table, suite_table
     results = evaluate("scenarios/fall_kitchen", "runs/fall_kitchen")
     print(format_table(results))
 
-* :mod:`~common.evaluation.io`: the tracks CSV and events JSON-lines formats;
-* :mod:`~common.evaluation.tracking`: CLEAR-MOT (MOTA, MOTP, ID switches,
+* :mod:`~evaluation.io`: the tracks CSV and events JSON-lines formats;
+* :mod:`~evaluation.tracking`: CLEAR-MOT (MOTA, MOTP, ID switches,
   fragmentations, MT/PT/ML), identity measures (IDF1, IDP, IDR) and the
   per-frame MOTME, MOTV, missed and artifact tracks per frame;
-* :mod:`~common.evaluation.events`: precision, recall, F1 per event kind with a
+* :mod:`~evaluation.events`: precision, recall, F1 per event kind with a
   +-30-frame window, fall delays, false alarms per hour;
-* :mod:`~common.evaluation.posture`: posture accuracy and confusion matrix;
-* :mod:`~common.evaluation.report`: :func:`evaluate`, console tables, JSON;
-* :mod:`~common.evaluation.plots`: plan view, posture timeline and mask
+* :mod:`~evaluation.posture`: posture accuracy and confusion matrix;
+* :mod:`~evaluation.report`: :func:`evaluate`, console tables, JSON;
+* :mod:`~evaluation.plots`: plan view, posture timeline and mask
   overlay pictures (needs the ``plots`` extra for the first two).
 """
 
-from common.evaluation.events import ALARM_KINDS, WINDOW_FRAMES, EventScores, TrackLinks, score_events
-from common.evaluation.io import (
+from evaluation.events import ALARM_KINDS, WINDOW_FRAMES, EventScores, TrackLinks, score_events
+from evaluation.io import (
     POSTURES,
     SCORED_KINDS,
     EvalFormatError,
@@ -30,9 +30,9 @@ from common.evaluation.io import (
     write_events,
     write_tracks,
 )
-from common.evaluation.posture import PostureResult, posture_scores
-from common.evaluation.report import evaluate, format_table, suite_table, suite_totals, to_json, write_json
-from common.evaluation.tracking import Matches, PerFrameResult, TrackingResult, clear_mot, per_frame_measures
+from evaluation.posture import PostureResult, posture_scores
+from evaluation.report import evaluate, format_table, suite_table, suite_totals, to_json, write_json
+from evaluation.tracking import Matches, PerFrameResult, TrackingResult, clear_mot, per_frame_measures
 
 __all__ = [
     "ALARM_KINDS",

@@ -27,7 +27,7 @@ from common.transport import free_port
 if TYPE_CHECKING:
     from common.camera import Camera
     from common.site import Site
-    from fusion_server.carving.bench import Cylinder
+    from evaluation.carving_bench import Cylinder
     from fusion_server.pipeline import FusionPipeline
 
 SECTIONS = ("codec", "worker", "render", "carving", "tracking", "pipeline", "looks", "latency")
@@ -150,7 +150,7 @@ def bench_worker(quick: bool) -> list[dict[str, Any]]:
 
 
 def bench_render(quick: bool) -> dict[str, Any]:
-    from common.synth import measure_render
+    from synth import measure_render
 
     frames = 10 if quick else 30
     fps = measure_render(frames=frames, cpu_time=True)
@@ -168,7 +168,7 @@ def bench_carving(quick: bool) -> list[dict[str, Any]]:
     import tempfile
 
     from fusion_server.carving import Carver
-    from fusion_server.carving.bench import MaskRenderer, measure_carving, random_people, room_rig
+    from evaluation.carving_bench import MaskRenderer, measure_carving, random_people, room_rig
 
     rows = []
     configs: list[tuple[int, float, tuple[int, ...]]] = [(5, 0.05, (0, 1, 2, 4)), (8, 0.05, (2,)), (16, 0.05, (2,))]
@@ -199,7 +199,7 @@ def bench_tracking(quick: bool) -> list[dict[str, Any]]:
     of a :class:`FusionPipeline` built as the pipeline builds them, in an 8 x 6 x 2.5 m room."""
     import tempfile
 
-    from fusion_server.carving.bench import MaskRenderer, room_rig
+    from evaluation.carving_bench import MaskRenderer, room_rig
     from fusion_server.pipeline import FusionPipeline, build_carver, build_reasoner
 
     volume_max_m = (8.0, 6.0, 2.5)
@@ -241,7 +241,7 @@ def bench_pipeline(quick: bool, rows: Sequence[PipelineRow] = PIPELINE_ROWS) -> 
     and leaves every other setting at its default (:class:`common.site.Carving`)."""
     import tempfile
 
-    from fusion_server.carving.bench import MaskRenderer, room_rig
+    from evaluation.carving_bench import MaskRenderer, room_rig
     from fusion_server.pipeline import FusionPipeline, build_carver, build_reasoner
 
     poses, frames = (10, 30) if quick else (16, 90)
@@ -331,7 +331,7 @@ def bench_looks(quick: bool, *, cameras: int = 5, width: int = 640, height: int 
     import tempfile
 
     from camera_worker.worker import measure_worker
-    from fusion_server.carving.bench import MaskRenderer, room_rig
+    from evaluation.carving_bench import MaskRenderer, room_rig
     from fusion_server.identity import IdentityParams
     from fusion_server.pipeline import FusionPipeline, build_carver, build_reasoner
 
@@ -447,7 +447,8 @@ def measure_latency(*, seconds: float = 20.0, fps: float = 15.0, n_cameras: int 
 
     import zenoh
 
-    from common import keys, maskcodec, messages, synth
+    import synth
+    from common import keys, maskcodec, messages
     from common.transport import zenoh_config
 
     with tempfile.TemporaryDirectory() as tmp:
@@ -591,7 +592,8 @@ def _tracking_table(rows) -> str:
     lines = ["\ntracking and reasoning, one core (ms per frame)", "people  detect  associate+filter  posture  reason  total"]
     for r in rows:
         ms = r["ms"]
-        lines.append(f"{r['people']:>6}  {ms['detect']:>6.2f}  {ms['track']:>16.2f}  {ms['posture']:>7.2f}  {ms['reason']:>6.2f}  {ms['total']:>5.2f}")
+        lines.append(f"{r['people']:>6}  {ms['detect']:>6.2f}  {ms['track']:>16.2f}  {ms['posture']:>7.2f}  "
+                     f"{ms['reason']:>6.2f}  {ms['total']:>5.2f}")
     return "\n".join(lines)
 
 
@@ -665,7 +667,7 @@ def _walk(people: int, rng: np.random.Generator, frames: int, *, volume_max_m: S
           speed_m_s: float = 0.5) -> list[list[Cylinder]]:
     """Per frame (15 fps) the bodies of ``people`` standing people who start at random places of the room
     from the origin to ``volume_max_m`` and walk straight in random directions at ``speed_m_s``."""
-    from fusion_server.carving.bench import Cylinder, random_people
+    from evaluation.carving_bench import Cylinder, random_people
 
     start = random_people(people, rng, volume_max_m=volume_max_m)
     heading = rng.uniform(0, 2 * np.pi, size=people)

@@ -1,30 +1,30 @@
 """The calibration commands on randomised worlds: how close the calibrated cameras come to the true ones.
 
-``python -m common.calibrate.suite --seeds 1000-1009 [--lenses] [--out DIR]`` takes each world of
-:mod:`common.synth.world` (its room, its rig of two to eight cameras, pinholes of 320x240 to
+``python -m evaluation.calibration_suite --seeds 1000-1009 [--lenses] [--out DIR]`` takes each world of
+:mod:`synth.world` (its room, its rig of two to eight cameras, pinholes of 320x240 to
 1280x720 and ceiling fisheyes) and calibrates it as an installer would:
 
 1. with ``--lenses``, each camera's lens from a clip of a board moved in front of it
-   (:func:`common.synth.board.intrinsics_poses`): a 9x6 chessboard of 140 mm through pinholes,
+   (:func:`synth.board.intrinsics_poses`): a 9x6 chessboard of 140 mm through pinholes,
    a 7x5-square ChArUco board of 140 mm through fisheyes, many of its views only partly in the
    image (a chessboard bent that much by the lens is not found), 30 views each (about a minute of
    holding the board still at places), the board spanning a quarter to three fifths of the image's
    width (:data:`HELD`), and recorded again nearer (:data:`NEARER`) where the command warns that the
    lens's centre leaves the camera's tilt uncertain (a camera it still warns of counts as warned);
    without it the true lenses, which the floor calibration still refines
-   (:data:`common.calibrate.floor.FOCAL_PRIOR`);
+   (:data:`calibrate.floor.FOCAL_PRIOR`);
 2. the floor: a 9x6 chessboard of 140 mm (or, where the command refuses it because no chain of
    places reaches every camera, a floor mat of 250 mm squares, then a ChArUco mat of the same size
    that counts where a camera reads only part of it, then the 140 mm chessboard set up on a stand
    where no place of the floor chains a camera: :data:`FLOOR_BOARDS`) laid at the places the installer's instructions lead to
-   (:func:`common.synth.board.floor_positions` with ``well_seen``: a chain of places seen by two
+   (:func:`synth.board.floor_positions` with ``well_seen``: a chain of places seen by two
    cameras or more, starting from the place most cameras see, of those the one they see largest (it
    is the floor frame), plus, for each camera that saw the board only small, a
    place it sees as large as it can among those another camera also sees), every camera recording every place (a camera
    sees what its lens and the room let it see), the room's own floor texture around it; the
    cameras' present calibrations 3 degrees and 22 cm off (to tell the board's ends apart), the
    first place's corners as plan points;
-3. :func:`common.calibrate.floor.calibrate_floor` on the corners found, as the command runs it;
+3. :func:`calibrate.floor.calibrate_floor` on the corners found, as the command runs it;
 4. as the command's warning tells the installer: for each camera whose bounds exceed the targets,
    the board laid at two more places that camera sees well (at least :data:`WELL_SEEN` times as large
    as it can; another camera too), each as far as it can be from the places laid so far (spread
@@ -35,7 +35,7 @@ Per camera it reports the position error (cm) and the angle error (degrees) agai
 true camera, and the bounds the calibration itself gave (its 95 % uncertainty, which the command
 prints and warns on); in total the share of cameras within 2 cm and 0.3 degree, and whether every
 camera outside them was warned about (its bounds, or its lens disagreeing with the board places:
-:attr:`common.calibrate.floor.CameraReport.warned`). A world whose room no chain of board places reaches (every
+:attr:`calibrate.floor.CameraReport.warned`). A world whose room no chain of board places reaches (every
 camera must see a place with another) is counted as refused, with the command's reason.
 
 Seeds below 1000 are for tuning; figures are reported on 1000 and up.
@@ -53,9 +53,9 @@ from typing import Any
 
 import numpy as np
 
-from common.calibrate.board import Board
-from common.calibrate.charuco import CharucoBoard
-from common.calibrate.floor import ANGLE_TOLERANCE_DEG, POSITION_TOLERANCE_M, floor_points
+from calibrate.board import Board
+from calibrate.charuco import CharucoBoard
+from calibrate.floor import ANGLE_TOLERANCE_DEG, POSITION_TOLERANCE_M, floor_points
 
 WELL_SEEN = 0.5
 """A camera whose views of the board are all under this share of the largest it can have gets that place;
@@ -63,7 +63,7 @@ the places laid again for a camera the command warns of are seen at least this s
 PLACE_AREAS = (0.006, 0.003)
 """The board places an installer can use: seen by a camera when the board covers this share of its
 image; the larger first, the smaller where no chain of larger ones reaches every camera (twice what
-the finder takes at least, :data:`common.calibrate.floor.MIN_FLOOR_AREA`, so that the views that
+the finder takes at least, :data:`calibrate.floor.MIN_FLOOR_AREA`, so that the views that
 chain the cameras are found). A world no chain of them reaches is reported as refused: its room is
 too large for the board."""
 FLOOR_BOARDS = ((Board(9, 6, 0.14), False), (Board(9, 6, 0.25), False),
@@ -73,7 +73,7 @@ on a stand: an A0-sized 9x6 chessboard (1.4 x 1 m); a chessboard mat of 250 mm s
 large room or cameras far apart; a ChArUco mat of the same size (10x7 squares, 4x4 markers of 187.5 mm),
 which counts where a camera sees it only in part, for a room whose furniture or cameras' views leave no
 place seen whole by two; the A0 chessboard again, first on the floor, then on a stand
-(:func:`common.synth.board.stand_pose`, its centre 1.2 m up) where no place of the floor reaches a camera:
+(:func:`synth.board.stand_pose`, its centre 1.2 m up) where no place of the floor reaches a camera:
 cameras level with the room, or looking across furniture, see the air above the floor together."""
 LENS_VIEWS = {"pinhole": 30, "fisheye": 30}
 HELD = (0.25, 0.6)
@@ -96,7 +96,7 @@ def angle_between_deg(Ra: np.ndarray, Rb: np.ndarray) -> float:
 
 def plan_points(board, pose) -> np.ndarray:
     """(4, 4) rows ``board_x, board_y, room_x, room_y``: the board's outer inner corners where they lie."""
-    from common.synth.board import corners_world
+    from synth.board import corners_world
 
     b = floor_points(board)
     w = corners_world(board, pose)
@@ -118,8 +118,8 @@ def fit_lens(true, folder: Path, seed: int):
     ``calibrate intrinsics`` fits it, recorded again with the board nearer (:data:`NEARER`) where the
     command warns that the fit leaves the camera's tilt uncertain; a Tsai lens (the PETS rig's) is kept,
     as the command fits no Tsai model."""
-    from common.calibrate.intrinsics import calibrate_intrinsics
-    from common.synth.board import BoardRenderer, intrinsics_clip, intrinsics_poses, write_frames
+    from calibrate.intrinsics import calibrate_intrinsics
+    from synth.board import BoardRenderer, intrinsics_clip, intrinsics_poses, write_frames
 
     if true.model == "tsai":
         return true, False, 0.0
@@ -145,7 +145,7 @@ def run_world(seed: int, work: Path, *, lenses: bool = False, heed: bool = True,
     calibration warns of a camera, lay the board at two more places it sees well, spread across its view, and
     calibrate again.
     ``fit_board``: the floor views' corners from the board fitted to each still frame as a whole."""
-    from common.synth.world import random_world
+    from synth.world import random_world
 
     world = random_world(seed)
     t0 = time.perf_counter()
@@ -174,8 +174,8 @@ def run_world(seed: int, work: Path, *, lenses: bool = False, heed: bool = True,
 
 def _floor_world(world, intrinsics, board, work: Path, *, heed: bool, stand: bool = False,
                  lens_tilt: dict[str, float] | None = None, fit_board: bool = False) -> dict[str, Any]:
-    from common.calibrate.floor import FloorError
-    from common.synth.board import floor_positions, more_floor_positions, on_stand
+    from calibrate.floor import FloorError
+    from synth.board import floor_positions, more_floor_positions, on_stand
 
     seed = world.seed
     out: dict[str, Any] = {"seed": seed, "rig": world.rig, "board": _board_name(board, stand), "cameras": {},
@@ -230,8 +230,8 @@ def _floor_world(world, intrinsics, board, work: Path, *, heed: bool, stand: boo
 def _calibrate(world, intrinsics, board, poses, folder: Path, lens_tilt: dict[str, float] | None = None,
                fit_board: bool = False):
     """Every camera records the board at every place; the floor calibration of what they found."""
-    from common.calibrate.floor import calibrate_floor, find_sightings
-    from common.synth.board import BoardRenderer, floor_clip, write_frames
+    from calibrate.floor import calibrate_floor, find_sightings
+    from synth.board import BoardRenderer, floor_clip, write_frames
 
     clips = {c: str(write_frames(floor_clip(BoardRenderer(cam, world.room, seed=world.seed), board, poses), folder / c))
              for c, cam in world.cameras.items()}
@@ -268,9 +268,9 @@ def summarise(results: list[dict]) -> dict[str, Any]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from fusion_server.world_suite import parse_seeds
+    from evaluation.world_suite import parse_seeds
 
-    p = argparse.ArgumentParser(prog="python -m common.calibrate.suite", description=__doc__.split("\n")[0])
+    p = argparse.ArgumentParser(prog="python -m evaluation.calibration_suite", description=__doc__.split("\n")[0])
     p.add_argument("--seeds", required=True, help="e.g. 1000-1009 (below 1000: tuning seeds)")
     p.add_argument("--lenses", action="store_true", help="fit every lens from a rendered clip first")
     p.add_argument("--out", type=Path, default=None, help="keep the rendered clips here (default: a temporary folder)")

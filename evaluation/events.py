@@ -36,8 +36,8 @@ from typing import Any
 
 import numpy as np
 
-from common.evaluation.io import SCORED_KINDS, Event, TrackTable
-from common.evaluation.tracking import Matches, gated_assignment, ratio
+from evaluation.io import SCORED_KINDS, Event, TrackTable
+from evaluation.tracking import Matches, gated_assignment, ratio
 
 WINDOW_FRAMES = 30
 POSITION_GATE_M: Mapping[str, float] = {"enter": 1.0, "exit": 1.0}
@@ -172,7 +172,7 @@ class EventScores:
 class TrackLinks:
     """Which run track the tracking association matched to which truth track, and when.
 
-    Built from the CLEAR-MOT :class:`~common.evaluation.tracking.Matches`;
+    Built from the CLEAR-MOT :class:`~evaluation.tracking.Matches`;
     answers whether a truth track and a run track were matched in any frame of
     an inclusive frame interval.
     """

@@ -1,7 +1,7 @@
 """The moved-camera alarm on randomised worlds: false alarms of untouched cameras, time to alarm of moved ones.
 
-``python -m fusion_server.moved_suite --seeds 1000-1011 --out DIR`` takes each
-world of :mod:`common.synth.world` at ``duration_s`` (people do more in the
+``python -m evaluation.moved_suite --seeds 1000-1011 --out DIR`` takes each
+world of :mod:`synth.world` at ``duration_s`` (people do more in the
 same room with the same rig), knocks one camera (drawn from the seed) out of
 place ``move_at_s`` into the run -- turned by 2 degrees about an axis in its
 image plane, or shifted by 10 cm along the floor, alternately by seed, or not
@@ -47,10 +47,10 @@ def run_moved_world(seed: int, out_dir: str | Path, *, duration_s: float = 120.0
     scales people by a few per cent); ``view``: run the cameras' own view checks. Returns what
     happened (module text)."""
     from camera_worker.viewcheck import ViewCheck
-    from common.synth.source import SyntheticCamera
+    from synth.source import SyntheticCamera
     from common.site import load_site
-    from common.synth.degrade import CameraMove
-    from common.synth.world import _bodies_at, iter_masks, random_world, with_camera_moved, write_world_site
+    from synth.degrade import CameraMove
+    from synth.world import _bodies_at, iter_masks, random_world, with_camera_moved, write_world_site
     from fusion_server.node import FusionNode, FusionSettings
     from fusion_server.pipeline import FusionPipeline
     from fusion_server.sync import FrameSet
@@ -148,9 +148,9 @@ def summarise(results: list[dict]) -> dict[str, Any]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from fusion_server.world_suite import parse_seeds
+    from evaluation.world_suite import parse_seeds
 
-    p = argparse.ArgumentParser(prog="python -m fusion_server.moved_suite", description=__doc__.split("\n")[0])
+    p = argparse.ArgumentParser(prog="python -m evaluation.moved_suite", description=__doc__.split("\n")[0])
     p.add_argument("--seeds", required=True)
     p.add_argument("--out", type=Path, required=True)
     p.add_argument("--move", choices=MOVES, default="alternate")

@@ -18,8 +18,8 @@ from typing import Any
 
 import numpy as np
 
-from common.evaluation.io import POSTURES, TrackTable
-from common.evaluation.tracking import Matches, ratio
+from evaluation.io import POSTURES, TrackTable
+from evaluation.tracking import Matches, ratio
 
 LENIENT_SAME: dict[str, str] = {"bending": "standing"}
 

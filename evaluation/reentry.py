@@ -3,7 +3,7 @@
 A re-entry is a truth ``exit`` of a person followed by their next ``enter``
 within :data:`REENTRY_WITHIN_S` seconds (``track`` of the truth events is the
 person's id in the truth tracks). The run track ids the person had on either
-side come from the matches of :func:`~common.evaluation.tracking.clear_mot`
+side come from the matches of :func:`~evaluation.tracking.clear_mot`
 (the same radius as the tracking figures):
 
 * before: the run ids matched to the person in the last :data:`BEFORE_S`
@@ -28,8 +28,8 @@ from typing import Any
 
 import numpy as np
 
-from common.evaluation.io import Event, TrackTable
-from common.evaluation.tracking import Matches, ratio
+from evaluation.io import Event, TrackTable
+from evaluation.tracking import Matches, ratio
 
 REENTRY_WITHIN_S = 600.0
 BEFORE_S = 1.0
@@ -76,7 +76,7 @@ def reentry_identity(truth: TrackTable, run: TrackTable, pairs: Matches, truth_e
                      *, within_s: float = REENTRY_WITHIN_S, before_s: float = BEFORE_S,
                      after_s: float = AFTER_S) -> ReentryResult:
     """Judge every re-entry of ``truth_events`` (see the module text). ``pairs``: the matches of
-    :func:`~common.evaluation.tracking.clear_mot` on the same ``truth`` and ``run`` tables, as passed
+    :func:`~evaluation.tracking.clear_mot` on the same ``truth`` and ``run`` tables, as passed
     in; ``fps`` frames per second (converts the windows to frames)."""
     if not (fps and np.isfinite(fps) and fps > 0):
         raise ValueError(f"fps must be a positive number, got {fps!r}")

@@ -22,7 +22,7 @@ keeps its own identity assignment, as identities do not cross recordings);
 MTPF and ATPF per summed frame; event precision/recall/F1 from summed
 TP/FP/FN; posture accuracy from summed correct/scored pairs; false alarms per
 summed hour; fall delays pooled; re-entry identity from summed re-entries and
-same ids (:mod:`~common.evaluation.reentry`).
+same ids (:mod:`~evaluation.reentry`).
 """
 
 from __future__ import annotations
@@ -35,13 +35,13 @@ from typing import Any
 
 import numpy as np
 
-from common.evaluation import io
-from common.evaluation.events import ALARM_KINDS, WINDOW_FRAMES, TrackLinks, f1_score, score_events
-from common.evaluation.posture import posture_scores
-from common.evaluation.reentry import reentry_identity
-from common.evaluation.residents import resident_scores
-from common.evaluation.residents import totals as resident_totals
-from common.evaluation.tracking import (
+from evaluation import io
+from evaluation.events import ALARM_KINDS, WINDOW_FRAMES, TrackLinks, f1_score, score_events
+from evaluation.posture import posture_scores
+from evaluation.reentry import reentry_identity
+from evaluation.residents import resident_scores
+from evaluation.residents import totals as resident_totals
+from evaluation.tracking import (
     CLEAR_RADIUS_M, PER_FRAME_RADIUS_M, band_summary, by_people_present, clear_mot, frame_span, per_frame_measures, ratio,
 )
 from common.plain import plain_value
@@ -69,8 +69,8 @@ def evaluate(
     MOTV, MTPF, ATPF), ``events`` (None when the truth has no events file),
     ``posture``, ``identity`` (re-entries that keep their track id; None without truth
     events or frame rate), ``notes`` and, when ``resident`` gives ``(truth person id,
-    enrolled name)``, ``resident`` (:func:`~common.evaluation.residents.resident_scores`).
-    Raises :class:`~common.evaluation.io.EvalFormatError` naming the file, line and
+    enrolled name)``, ``resident`` (:func:`~evaluation.residents.resident_scores`).
+    Raises :class:`~evaluation.io.EvalFormatError` naming the file, line and
     field of any bad input.
     """
     if fps is not None and not (isinstance(fps, (int, float)) and math.isfinite(fps) and fps > 0):
@@ -191,7 +191,8 @@ def format_table(results: Mapping[str, Any]) -> str:
             if k["truth"] or k["run"]
         ]
         o = ev["overall"]
-        rows.append(["all", o["truth"], o["run"], o["tp"], o["fp"], o["fn"], fmt_pct(o["precision"]), fmt_pct(o["recall"]), fmt_pct(o["f1"])])
+        rows.append(["all", o["truth"], o["run"], o["tp"], o["fp"], o["fn"],
+                     fmt_pct(o["precision"]), fmt_pct(o["recall"]), fmt_pct(o["f1"])])
         lines += text_table(["kind", "truth", "run", "TP", "FP", "FN", "precision", "recall", "F1"], rows)
         lines.append(
             f"fall delay s: mean {fmt_num(ev['fall_delay_mean_s'], 2)}  median {fmt_num(ev['fall_delay_median_s'], 2)}"
@@ -210,7 +211,8 @@ def format_table(results: Mapping[str, Any]) -> str:
     lines.append(f"accuracy strict {fmt_pct(p['strict_accuracy'])}  lenient (bending = standing) {fmt_pct(p['lenient_accuracy'])}")
     labels = p["labels"]
     conf = p["confusion"]
-    lines += text_table(["truth \\ run", *labels], [[lab, *row] for lab, row in zip(labels, conf) if any(row)] or [["-"] * (len(labels) + 1)])
+    rows = [[lab, *row] for lab, row in zip(labels, conf) if any(row)] or [["-"] * (len(labels) + 1)]
+    lines += text_table(["truth \\ run", *labels], rows)
     res = results.get("resident")
     if res is not None:
         lines += ["", f"enrolled resident {res['name']} (truth person {res['person']}): "
@@ -291,7 +293,7 @@ def identity_cell(ident: Mapping[str, Any] | None) -> str:
 
 
 def people_table(bands: Mapping[str, Mapping[str, Any]]) -> list[str]:
-    """Text rows of :func:`~common.evaluation.tracking.by_people_present` bands and their total."""
+    """Text rows of :func:`~evaluation.tracking.by_people_present` bands and their total."""
     total = band_summary({k: sum(b[k] for b in bands.values()) for k in _BAND_COUNTS})
     rows = [[label, b["frames"], b["gt"], fmt_pct(b["mota"]), fmt_num(b["motp_m"], 3), fmt_pct(b["count_exact_ratio"]),
              b["fp"], b["fn"], b["id_switches"]] for label, b in [*bands.items(), ("all", total)]]
@@ -378,7 +380,8 @@ def _frame_range(
     if n_frames == 0 and first is None:
         return None, None
     if first is not None and (first < 0 or last > n_frames - 1):
-        notes.append(f"rows or events lie outside frames 0..{n_frames - 1}: the evaluated range is widened to {min(first, 0)}..{max(last, n_frames - 1)}")
+        notes.append(f"rows or events lie outside frames 0..{n_frames - 1}: the evaluated range is widened to "
+                     f"{min(first, 0)}..{max(last, n_frames - 1)}")
         return min(first, 0), max(last, n_frames - 1)
     return 0, n_frames - 1
 

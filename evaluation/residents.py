@@ -2,7 +2,7 @@
 
 A run names the tracks of an enrolled resident (the ``person`` column of its
 tracks file). Against a truth in which the resident is one known person
-id, over the CLEAR-MOT matches (:func:`~common.evaluation.tracking.clear_mot`):
+id, over the CLEAR-MOT matches (:func:`~evaluation.tracking.clear_mot`):
 
 * ``false_named``: matched pairs whose run track carries the resident's name
   while the truth person is someone else: a false resident identity (the
@@ -19,15 +19,15 @@ from typing import Any
 
 import numpy as np
 
-from common.evaluation.io import TrackTable
-from common.evaluation.tracking import Matches, ratio
+from evaluation.io import TrackTable
+from evaluation.tracking import Matches, ratio
 
 COUNTS = ("named_rows", "false_named", "named_unmatched", "resident_matched", "resident_named")
 
 
 def resident_scores(truth: TrackTable, run: TrackTable, pairs: Matches, *, person: str, name: str) -> dict[str, Any]:
     """The counts above for the resident ``name``, truth person id ``person``; ``pairs`` are the
-    matches of :func:`~common.evaluation.tracking.clear_mot` on the same tables."""
+    matches of :func:`~evaluation.tracking.clear_mot` on the same tables."""
     named = run.person == name
     t_rows, r_rows = pairs.truth_row, pairs.run_row
     is_resident = truth.track_id[t_rows] == str(person)

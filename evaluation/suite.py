@@ -8,7 +8,7 @@ With an enrolment (``voxelwatch enrol`` of one person of the house, e.g.
 person 1 from ``walk``: a person's build and clothes depend only on the seed
 and their id, so they look the same in every scenario), the suite's site
 enrols that person and every scenario also scores the name
-(:mod:`common.evaluation.residents`): frames in which someone else's track
+(:mod:`evaluation.residents`): frames in which someone else's track
 carries it (the target is zero) and the share of the person's own matched
 frames that do.
 """
@@ -20,8 +20,8 @@ import time
 from collections.abc import Sequence
 from pathlib import Path
 
-from common.evaluation import evaluate, suite_table, write_json
-from common.evaluation import suite_totals
+from evaluation import evaluate, suite_table, write_json
+from evaluation import suite_totals
 
 QUICK_SCENARIOS = ("walk", "sit_stand", "fall_forward", "two_pass")
 QUICK_FRAMES = 675  # 45 s at 15 fps
@@ -64,7 +64,7 @@ def run_suite(
         scores gain ``resident``.
     settings: ``SECTION.KEY=VALUE`` changes to the site (:func:`common.site.with_settings`).
     """
-    from common import synth
+    import synth
 
     out = Path(out_dir)
     names = list(scenarios) if scenarios else (list(QUICK_SCENARIOS) if quick else synth.list_scenarios())
@@ -143,7 +143,7 @@ def _enrolled_name(path: Path) -> str:
 def _run_one(site_path: str, out: str, count: int, cams: list[str], name: str, max_frames: int | None, seed: int,
              resident: tuple[str, str] | None = None) -> dict:
     """Replay and score one scenario with some cameras (runs in a worker process)."""
-    from common import synth
+    import synth
     from common.site import load_site
     from fusion_server.replay import replay
 

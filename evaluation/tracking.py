@@ -42,7 +42,7 @@ from typing import Any
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
-from common.evaluation.io import TrackTable
+from evaluation.io import TrackTable
 
 CLEAR_RADIUS_M = 0.5
 PER_FRAME_RADIUS_M = 1.0

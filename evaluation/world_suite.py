@@ -1,7 +1,7 @@
 """The randomised-world suite: many worlds written, replayed and scored, with totals by people and rig.
 
 ``voxelwatch eval --suite --world random --seeds 1000-1049 --jobs 2`` writes
-each world (:mod:`common.synth.world`), replays it exactly as ``voxelwatch
+each world (:mod:`synth.world`), replays it exactly as ``voxelwatch
 replay --input`` does, scores it as ``voxelwatch eval`` does, and prints:
 
 * what the worlds hold: rooms, rigs, cameras, people, behaviours, dress, faults;
@@ -15,7 +15,7 @@ replay --input`` does, scores it as ``voxelwatch eval`` does, and prints:
 ``IDSW`` counts identity switches (CLEAR-MOT); ``re-ID`` the truth re-entries
 (an exit and the person's return within 10 minutes) whose run track id after
 the return is the one before it, as same/re-entries
-(:mod:`common.evaluation.reentry`). ``fused/s`` is frame sets through the fusion pipeline (carving, detection,
+(:mod:`evaluation.reentry`). ``fused/s`` is frame sets through the fusion pipeline (carving, detection,
 tracking, posture, events) per second of that stage's wall time, in a process
 that shares the machine with the suite's other jobs. The worlds' media are
 deleted once scored unless ``keep_media``.
@@ -31,8 +31,8 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from common.evaluation import evaluate, suite_totals, write_json
-from common.evaluation.report import event_cells, fmt_num, fmt_pct, identity_cell, people_table, text_table
+from evaluation import evaluate, suite_totals, write_json
+from evaluation.report import event_cells, fmt_num, fmt_pct, identity_cell, people_table, text_table
 
 
 def parse_seeds(text: str) -> list[int]:
@@ -72,7 +72,7 @@ def run_world_suite(
     changes to every world's site before its replay (:func:`common.site.with_settings`). ``sensors``:
     'colour' rigs, or 'mixed' (one depth and one thermal camera in each world; the same worlds
     otherwise, so the two reports compare the rigs)."""
-    from common.synth.world import seed_set
+    from synth.world import seed_set
 
     sets = sorted({seed_set(s) for s in seeds})
     out = Path(out_dir)
@@ -170,7 +170,7 @@ def worlds_table(results: Sequence[dict]) -> str:
 def rig_groups(results: Sequence[dict]) -> dict[str, list[dict]]:
     """Worlds by rig: each kind, drawn rigs with and without a fisheye, and the real rigs together
     (groups without worlds left out)."""
-    from common.synth.world import RIG_LABELS
+    from synth.world import RIG_LABELS
 
     order = [RIG_LABELS["high-corners"], RIG_LABELS["level-walls"], "drawn, with fisheye", "drawn, no fisheye",
              RIG_LABELS["real-lab"], RIG_LABELS["real-pets"], "real rigs"]
@@ -227,7 +227,7 @@ def _run_world(seed: int, out: str, frames: int | None, keep_media: bool, settin
                sensors: str = "colour") -> dict:
     """Write, replay and score one world (runs in a worker process)."""
     from common.site import load_site, with_settings
-    from common.synth.world import random_world, write_world
+    from synth.world import random_world, write_world
     from fusion_server.replay import replay
 
     out_dir = Path(out)

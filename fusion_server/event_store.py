@@ -360,7 +360,9 @@ def parse_history_selector(
     Raises ValueError naming the parameter and the problem.
     """
     if known_kinds is None:
-        from common.messages import EVENT_KINDS as known_kinds  # the wire's list is the reference
+        from common.messages import EVENT_KINDS  # the wire's list is the reference
+
+        known_kinds = EVENT_KINDS
     known = frozenset(known_kinds)
     items = _selector_items(parameters)
     unknown = sorted(k for k in items if k not in SELECTOR_PARAMETERS)

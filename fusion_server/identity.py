@@ -519,7 +519,7 @@ class IdentityKeeper:
 
     def _expire(self, stamp_ns: int) -> None:
         window = self.p.reid_window_s * 1e9
-        for label in [l for l, lost in self._lost.items() if lost.person.name is None and stamp_ns - lost.lost_ns > window]:
+        for label in [key for key, lost in self._lost.items() if lost.person.name is None and stamp_ns - lost.lost_ns > window]:
             del self._lost[label]
 
     def _check_swaps(self, live: Mapping[int, object], stamp_ns: int) -> None:

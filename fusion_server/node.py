@@ -765,7 +765,8 @@ class FusionNode:
     def summary(self, now_ns: int, mono: float) -> str:
         """One line of what the node has done, for the log at exit."""
         c = self.c
-        parts = [f"{c.frames_fused} frames fused ({c.frames_with_range} with range)", f"{c.events} events", f"{c.events_not_stored} not stored",
+        parts = [f"{c.frames_fused} frames fused ({c.frames_with_range} with range)", f"{c.events} events",
+                 f"{c.events_not_stored} not stored",
                  f"{c.frame_sets_dropped} frame sets dropped (slow)", f"{c.frame_sets_too_few} with too few cameras",
                  f"{c.inbox_dropped} masks dropped on arrival", f"{c.unknown_camera} from unknown cameras",
                  f"{c.pipeline_errors} fusion errors", f"{c.queries} history queries"]

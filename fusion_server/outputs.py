@@ -1,4 +1,4 @@
-"""The fusion server's output files: ``tracks.csv`` and ``events.jsonl``.
+"""The fusion server's output files: ``tracks.csv`` and ``events.jsonl``; per-camera mask overlays.
 
 Both are the run files of :mod:`common.runfiles`, which the evaluation
 reads too, so a live run can be scored like a replay:
@@ -21,6 +21,8 @@ import math
 from collections.abc import Iterable, Mapping
 from pathlib import Path
 from typing import Any, Protocol
+
+import numpy as np
 
 from common.messages import Event
 from common.runfiles import EVENTS_FILE, TRACK_HEADER, TRACKS_FILE, event_line, write_track_rows
@@ -184,3 +186,52 @@ def _trim_partial_line(raw, size: int) -> None:
             return
         pos = start
     raw.truncate(0)
+
+
+def mask_overlay(
+    frame_bgr: np.ndarray,
+    mask: np.ndarray,
+    out_png: str | Path,
+    *,
+    colour_bgr: tuple[int, int, int] = (0, 0, 255),
+    alpha: float = 0.45,
+) -> Path:
+    """Tint a camera frame where its foreground mask is set and outline the blobs; write a PNG.
+
+    ``frame_bgr`` (H, W, 3) uint8 BGR, or (H, W) uint8 grey; ``mask`` (h, w)
+    bool or uint8, foreground > 0 (shadows marked 127, as OpenCV's MOG2 does,
+    are tinted grey instead); a mask of another size, e.g. a downscaled one,
+    is resized to the frame. The PNG has the frame's size.
+    """
+    import cv2
+
+    frame = np.asarray(frame_bgr)
+    if frame.dtype != np.uint8 or frame.ndim not in (2, 3) or (frame.ndim == 3 and frame.shape[2] != 3):
+        raise ValueError(f"frame_bgr must be (H, W, 3) or (H, W) uint8, got {frame.shape} {frame.dtype}")
+    if not 0.0 <= alpha <= 1.0:
+        raise ValueError(f"alpha must lie in 0..1, got {alpha}")
+    if frame.ndim == 2:
+        frame = cv2.cvtColor(frame, cv2.COLOR_GRAY2BGR)
+    m = np.asarray(mask)
+    if m.ndim != 2 or m.size == 0:
+        raise ValueError(f"mask must be a non-empty (h, w) array, got shape {m.shape}")
+    m = m.astype(np.uint8) * 255 if m.dtype == bool else m.astype(np.uint8)
+    h, w = frame.shape[:2]
+    if m.shape != (h, w):
+        m = cv2.resize(m, (w, h), interpolation=cv2.INTER_NEAREST)
+    shadow = m == 127
+    fg = (m > 0) & ~shadow
+    out = frame.copy()
+    for sel, colour in ((fg, colour_bgr), (shadow, (160, 160, 160))):
+        if sel.any():
+            tint = np.empty_like(frame)
+            tint[:] = colour
+            blend = cv2.addWeighted(frame, 1.0 - alpha, tint, alpha, 0.0)
+            out[sel] = blend[sel]
+    contours, _ = cv2.findContours(fg.astype(np.uint8), cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)
+    cv2.drawContours(out, contours, -1, colour_bgr, 1, lineType=cv2.LINE_AA)
+    out_png = Path(out_png)
+    out_png.parent.mkdir(parents=True, exist_ok=True)
+    if not cv2.imwrite(str(out_png), out):
+        raise OSError(f"mask overlay {out_png}: OpenCV could not write the PNG")
+    return out_png

@@ -8,7 +8,7 @@ Each stage is built in one place: the carver, the event reasoner and the
 identity keeper of a site by :func:`build_carver`, :func:`build_reasoner` and
 :func:`build_identity` (which reads the enrolled residents' model files, as
 ``from_site`` reads the calibrations), the tracker by :func:`build_tracker`. ``FusionPipeline.from_site`` and the benchmark
-(``fusion_server.benchmark``) both build through them.
+(``evaluation.benchmark``) both build through them.
 """
 
 from __future__ import annotations

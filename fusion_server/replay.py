@@ -230,9 +230,8 @@ def _open_inputs(site, cam_ids, input_dir, synthetic, seed, background_frames) -
             spec = site.camera(cam)
             seg_args = dict(mask_scale=site.carving.mask_scale, default_fps=spec.fps)
             if synthetic is not None:
-                start_ns = _scenario_start_ns(synthetic, seed, site.utc_offset_hours)
-                source = open_source(f"synthetic:{synthetic}", cam_id=cam, seed=seed, start_ns=start_ns,
-                                     modality=spec.modality)
+                source = open_source(f"synthetic:{synthetic}", cam_id=cam, seed=seed, start_ns=None,
+                                     utc_offset_hours=site.utc_offset_hours, modality=spec.modality)
                 background = open_source(
                     f"synthetic:{synthetic}", cam_id=cam, seed=seed, background=True, n_frames=background_frames,
                     modality=spec.modality,
@@ -327,7 +326,7 @@ def _next_masks(inputs: dict, holds: dict, images: dict | None = None, asked: di
 
 
 def _write_overlays(folder: Path, frame: int, images: dict, masks: dict) -> None:
-    from common.evaluation.plots import mask_overlay
+    from fusion_server.outputs import mask_overlay
 
     folder.mkdir(parents=True, exist_ok=True)
     for cam, image in images.items():
@@ -365,13 +364,8 @@ def _find_video(folder: Path, stem: str) -> Path | None:
         if path.is_file():
             return path
     if stem == "video":
-        videos = [p for p in folder.iterdir() if p.suffix.lower() in VIDEO_SUFFIXES and not p.stem.startswith(("background", "checkerboard"))]
+        videos = [p for p in folder.iterdir()
+                  if p.suffix.lower() in VIDEO_SUFFIXES and not p.stem.startswith(("background", "checkerboard"))]
         if len(videos) == 1:
             return videos[0]
     return None
-
-
-def _scenario_start_ns(name: str, seed: int, utc_offset_hours: float) -> int:
-    from common.synth import get_scenario
-
-    return get_scenario(name, seed, utc_offset_hours=utc_offset_hours).start_ns

@@ -9,7 +9,7 @@ than 408/429, a mail address refused). ``deliver`` never raises for an
 expected fault.
 
 A :class:`Dispatcher` (one thread per channel) takes the channel's due
-deliveries from the :class:`~common.notify.outbox.Outbox`, oldest first,
+deliveries from the :class:`~notify.outbox.Outbox`, oldest first,
 hands them over while the channel is ready, and writes each outcome back;
 the outbox does the back-off. Its log says each problem once when it starts
 (``webhook http://hub/hook: HTTP 500; retrying ...``), again at most once a
@@ -27,7 +27,7 @@ from dataclasses import dataclass
 from typing import Literal
 
 from common.messages import Event
-from common.notify.outbox import Outbox
+from notify.outbox import Outbox
 
 log = logging.getLogger("voxelwatch.notify")
 

@@ -27,7 +27,7 @@ def register(sub) -> None:
 
 def _notify(args: argparse.Namespace) -> int:
     from common import keys
-    from common.notify.service import build_channels, run_forever
+    from notify.service import build_channels, run_forever
     from common.site import load_site
     from common.transport import site_config
 

@@ -2,7 +2,7 @@
 
 Subject ``voxelwatch <site>: fall (Ada, sofa) 14:03``; the body says what,
 who, where and when (site time) and gives the event id
-(:func:`common.notify.people.describe`). The ``Message-ID`` is made from the
+(:func:`notify.people.describe`). The ``Message-ID`` is made from the
 event id (``<event id@voxelwatch.site>``), so a mail client or a filter can
 tell a repeated delivery (after a restart) from a new alarm.
 
@@ -25,8 +25,8 @@ from email.message import EmailMessage
 from email.utils import formatdate
 
 from common.messages import Event
-from common.notify.channel import DELIVERED, Channel, Outcome
-from common.notify.people import describe
+from notify.channel import DELIVERED, Channel, Outcome
+from notify.people import describe
 
 
 class EmailChannel(Channel):

@@ -46,8 +46,8 @@ from collections.abc import Callable, Mapping
 import paho.mqtt.client as paho
 
 from common.messages import Event
-from common.notify.channel import DELIVERED, Channel, Outcome
-from common.notify.people import PersonState
+from notify.channel import DELIVERED, Channel, Outcome
+from notify.people import PersonState
 
 log = logging.getLogger("voxelwatch.notify")
 

@@ -13,7 +13,7 @@
 * :class:`Notifier` (the logic, fed with messages and the time) writes each
   event of a channel's kinds into the outbox once per channel, with the
   person's name and the place as heard, and turns tracks and camera status
-  into MQTT states. One :class:`~common.notify.channel.Dispatcher` thread per
+  into MQTT states. One :class:`~notify.channel.Dispatcher` thread per
   channel drains the outbox.
 * Every :data:`STATUS_EVERY_S` one log line per channel: delivered, pending
   and failed.
@@ -35,12 +35,12 @@ from typing import Any
 
 from common import keys, messages
 from common.messages import Event
-from common.notify.channel import Channel, Dispatcher
-from common.notify.mail import EmailChannel
-from common.notify.mqtt import MqttChannel
-from common.notify.outbox import Outbox
-from common.notify.people import CameraStates, PeopleState, place_at, zones_of
-from common.notify.webhook import WebhookChannel
+from notify.channel import Channel, Dispatcher
+from notify.mail import EmailChannel
+from notify.mqtt import MqttChannel
+from notify.outbox import Outbox
+from notify.people import CameraStates, PeopleState, place_at, zones_of
+from notify.webhook import WebhookChannel
 from common.ratelog import RateLimitedLog
 from common.site import Site, SiteError
 

@@ -21,7 +21,7 @@ import urllib.request
 from collections.abc import Mapping
 
 from common.messages import Event
-from common.notify.channel import DELIVERED, Channel, Outcome
+from notify.channel import DELIVERED, Channel, Outcome
 
 USER_AGENT = "voxelwatch-notify"
 RETRIED_STATUS = frozenset({408, 429})

@@ -2,20 +2,20 @@
 
 Main entry points::
 
-    from common.synth import SyntheticCamera, get_scenario, list_scenarios, write_scenario
+    from synth import SyntheticCamera, get_scenario, list_scenarios, write_scenario
     cam = SyntheticCamera("demo", "cam1", seed=0)      # frame source: cam.frame(i) -> (bgr, true_mask)
     write_scenario("demo", "out/", seed=0)             # videos, site, calibrations, truth
     default_site("out/")                               # site file + calibrations only
 """
 
-from common.synth.house import HouseOutput, measure_render, write_scenario
-from common.synth.scenario import LightChange, Scenario, ScenarioSpec
-from common.synth.scenarios import (
+from synth.house import HouseOutput, measure_render, write_scenario
+from synth.scenario import LightChange, Scenario, ScenarioSpec
+from synth.scenarios import (
     DEFAULT_SCENARIO, get_scenario, list_scenarios, scenario_descriptions, scenario_spec,
 )
-from common.synth.scene import CAMERA_IDS, default_cameras, default_room, default_site
-from common.synth.source import SyntheticCamera
-from common.synth.truth import Truth, derive_truth, write_truth
+from synth.scene import CAMERA_IDS, default_cameras, default_room, default_site
+from synth.source import SyntheticCamera
+from synth.truth import Truth, derive_truth, write_truth
 
 __all__ = [
     "CAMERA_IDS", "DEFAULT_SCENARIO", "HouseOutput", "LightChange", "Scenario", "ScenarioSpec", "SyntheticCamera",

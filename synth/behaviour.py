@@ -35,11 +35,11 @@ from typing import Union
 import numpy as np
 
 from common.postures import BODY_POSTURES
-from common.synth.body import (
+from synth.body import (
     N_Q, Q_ELBOW, Q_HIP_ABD, Q_HIP_FLEX, Q_KNEE, Q_NECK, Q_PITCH, Q_ROLL, Q_SHOULDER_ABD, Q_SHOULDER_FLEX,
     Q_SPINE, Q_TWIST, Q_YAW, TRUNK_PARTS, BodyShape, lowest_point_m, standing_pose,
 )
-from common.synth.scene import Room
+from synth.scene import Room
 
 STANDING, SITTING, LYING, BENDING = (BODY_POSTURES.index(p) for p in ("standing", "sitting", "lying", "bending"))
 """Posture labels: indices into :data:`common.postures.BODY_POSTURES`."""

@@ -7,16 +7,16 @@ Rendering (:class:`BoardRenderer`): each pixel is sampled at ``supersample x sup
 points whose world rays come from the camera's own lens model (computed once per camera); a
 sample shows the board where its ray meets the board's plane inside the printed sheet (the
 squares and a white border half a square wide) before the empty room's surface behind it
-(:class:`common.synth.render.CameraRenderer`), else the room. The samples are averaged, so edges
+(:class:`synth.render.CameraRenderer`), else the room. The samples are averaged, so edges
 are anti-aliased as a real sensor sees them, and sensor noise is added. A chessboard's squares
 are drawn exactly; a ChArUco sheet is OpenCV's own image of the board
 (``CharucoBoard.generateImage``, :data:`SHEET_PX_PER_SQUARE` pixels a square, so that the squares'
 edges fall on its pixels' edges) looked up where each sample lands.
 
-Board frames: a chessboard's (:class:`common.calibrate.board.Board`) has inner corner
+Board frames: a chessboard's (:class:`calibrate.board.Board`) has inner corner
 ``(col, row)`` at ``(col, row, 0) * square_m``, the outer square next to corner ``(0, 0)``
 black, and Z out of the printed face; a ChArUco board's
-(:class:`common.calibrate.charuco.CharucoBoard`) is OpenCV's, origin at the sheet's first outer
+(:class:`calibrate.charuco.CharucoBoard`) is OpenCV's, origin at the sheet's first outer
 corner, Y down the sheet and Z into it. Poses are ``(R_wb, t_wb)``: ``X_world = R_wb X_board + t_wb``.
 """
 
@@ -28,11 +28,11 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from common.calibrate.board import Board
-from common.calibrate.charuco import FACE_UP, CharucoBoard
+from calibrate.board import Board
+from calibrate.charuco import FACE_UP, CharucoBoard
 from common.camera import Camera
-from common.synth.render import SURF_FLOOR, CameraRenderer, raycast_room
-from common.synth.scene import Room
+from synth.render import SURF_FLOOR, CameraRenderer, raycast_room
+from synth.scene import Room
 
 BLACK, WHITE = 28.0, 220.0
 BACK = 150.0

@@ -29,7 +29,7 @@ behaviour: they walk out through the nearest door (or, with ``open_edges``,
 over the nearest edge of the monitored volume), stay away 3-20 s, come back in
 through a door (or an edge) and go on as the others do.
 
-Group members are kept in step with :class:`~common.synth.behaviour.WaitUntil`
+Group members are kept in step with :class:`~synth.behaviour.WaitUntil`
 on arrival times estimated generously from the planned paths.
 """
 
@@ -40,11 +40,11 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from common.synth.behaviour import (
+from synth.behaviour import (
     Bend, Dwell, Enter, Face, Fall, Kneel, Leave, PersonScript, Return, Sit, Stand, WaitUntil, Walk,
 )
-from common.synth.rooms import FloorPlan
-from common.synth.scene import Room
+from synth.rooms import FloorPlan
+from synth.scene import Room
 
 SOLO = ("walk", "enter", "leave", "sit", "kneel", "bend", "dwell", "fall", "slow_fall")
 GROUP = ("group_walk", "hold_hands", "cross", "talk_cluster", "hug", "sit_side_by_side", "help_fallen")

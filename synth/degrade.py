@@ -34,7 +34,7 @@ import cv2
 import numpy as np
 
 from common.camera import Camera
-from common.synth.body import Body
+from synth.body import Body
 
 SHADOW_REACH_M = 1.0
 

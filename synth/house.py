@@ -7,7 +7,7 @@ Layout written by :func:`write_scenario` into ``OUT``::
     OUT/<cam>/video.avi           the scenario as seen by the camera
     OUT/<cam>/background.avi      the empty room just before (3 s)
     OUT/<cam>/masks/000000.png    true person masks (255 = person), when masks=True
-    OUT/truth/tracks.csv          ground truth tracks (see common.synth.truth)
+    OUT/truth/tracks.csv          ground truth tracks (see synth.truth)
     OUT/truth/events.jsonl        ground truth events
     OUT/truth/meta.json           fps, n_frames, scenario, seed, start time, people
 
@@ -27,11 +27,11 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from common.synth.scenario import Scenario
-from common.synth.scenarios import DEFAULT_SCENARIO, get_scenario
-from common.synth.scene import CAMERA_IDS, default_cameras, default_site
-from common.synth.source import BACKGROUND_S, SyntheticCamera
-from common.synth.truth import derive_truth, write_truth
+from synth.scenario import Scenario
+from synth.scenarios import DEFAULT_SCENARIO, get_scenario
+from synth.scene import CAMERA_IDS, default_cameras, default_site
+from synth.source import BACKGROUND_S, SyntheticCamera
+from synth.truth import derive_truth, write_truth
 
 CODECS = ("MJPG", "FFV1")
 MJPEG_QUALITY = 95
@@ -87,7 +87,7 @@ def write_scenario(
         raise ValueError(f"frames must lie in 1..{scenario.n_frames} for scenario {scenario.name}, got {frames!r}")
     out = Path(out_dir).resolve()
     out.mkdir(parents=True, exist_ok=True)
-    site = default_site(
+    default_site(
         out,
         cameras={c: all_cams[c] for c in cam_ids},
         room=scenario.room,

@@ -32,9 +32,9 @@ import cv2
 import numpy as np
 
 from common.camera import Camera
-from common.synth.body import FOREARM_PARTS, HEAD_PART, HAIR, PART_MATERIAL, SKIN, Body
-from common.synth.scene import Room
-from common.synth.sensors import (
+from synth.body import FOREARM_PARTS, HEAD_PART, HAIR, PART_MATERIAL, SKIN, Body
+from synth.scene import Room
+from synth.sensors import (
     RangeModel, ThermalModel, body_temperature_c, range_frame_mm, surface_offsets_k, thermal_frame_ck,
 )
 
@@ -74,7 +74,6 @@ def raycast_room(room: Room, origin_m, dirs) -> BackgroundHits:
     door and the furniture boxes."""
     o = np.asarray(origin_m, dtype=np.float64)
     d = np.asarray(dirs, dtype=np.float64).reshape(-1, 3)
-    n = d.shape[0]
     ok = np.all(np.isfinite(d), axis=1)
     d = np.where(ok[:, None], d, np.array([0.0, 0.0, -1.0]))
     t, axis = _slab_far(o, d, np.zeros(3), np.asarray(room.size_m, dtype=np.float64))
@@ -261,7 +260,7 @@ class CameraRenderer:
     def range_mm(self, bodies: list[Body], key: tuple[int, ...], *, model: RangeModel = RangeModel()) -> np.ndarray:
         """(H, W) uint16 what a time-of-flight camera here measures: range (distance from the
         camera centre along the pixel's ray) of the nearest surface, millimetres, 0 where it
-        gives no value (model in :mod:`common.synth.sensors`). Deterministic per ``key``."""
+        gives no value (model in :mod:`synth.sensors`). Deterministic per ``key``."""
         return self.range_labels(bodies, key, model=model)[0]
 
     def range_labels(self, bodies: list[Body], key: tuple[int, ...], *,
@@ -283,7 +282,7 @@ class CameraRenderer:
                 model: ThermalModel = ThermalModel()) -> np.ndarray:
         """(H, W) uint16 radiometric thermal frame, centi-kelvin (``(t_c + 273.15) * 100``): the
         room at ``ambient_c`` Celsius with its surfaces' offsets, people warmer, sensor noise and
-        fixed-pattern noise (model in :mod:`common.synth.sensors`). Deterministic per ``key``."""
+        fixed-pattern noise (model in :mod:`synth.sensors`). Deterministic per ``key``."""
         return self.thermal_labels(bodies, key, ambient_c=ambient_c, model=model)[0]
 
     def thermal_labels(self, bodies: list[Body], key: tuple[int, ...], *, ambient_c: float = 21.0,

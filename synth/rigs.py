@@ -29,7 +29,7 @@ import numpy as np
 
 from common.calibration import WorldTransform, load_calibration
 from common.camera import Camera, look_at
-from common.synth.scene import Room
+from synth.scene import Room
 
 RIG_KINDS = ("high-corners", "level-walls", "real-lab", "real-pets")
 RESOLUTIONS = ((320, 240), (640, 480), (800, 600), (1280, 720))

@@ -26,7 +26,7 @@ import numpy as np
 from scipy import ndimage, sparse
 from scipy.sparse import csgraph
 
-from common.synth.scene import Box, Door, HotSpot, Room, Seat, WallDecal
+from synth.scene import Box, Door, HotSpot, Room, Seat, WallDecal
 
 SIZE_RANGE_M = ((3.0, 12.0), (3.0, 10.0))
 CEILING_RANGE_M = (2.3, 3.0)

@@ -19,9 +19,9 @@ from functools import cached_property
 
 import numpy as np
 
-from common.synth.behaviour import PersonScript, Timeline, compile_person
-from common.synth.body import Body, forward_kinematics, pose_body
-from common.synth.scene import FPS, Room, default_room
+from synth.behaviour import PersonScript, Timeline, compile_person
+from synth.body import Body, forward_kinematics, pose_body
+from synth.scene import FPS, Room, default_room
 
 
 @dataclass(frozen=True)

@@ -11,11 +11,11 @@ from __future__ import annotations
 
 from collections.abc import Callable
 
-from common.synth.behaviour import (
+from synth.behaviour import (
     Bend, Dwell, Enter, Face, Fall, Kneel, Leave, PersonScript, Sit, Stand, Wait, WaitUntil, Walk,
 )
-from common.synth.scenario import LightChange, Scenario, ScenarioSpec
-from common.synth.scene import Room
+from synth.scenario import LightChange, Scenario, ScenarioSpec
+from synth.scene import Room
 
 DEFAULT_SCENARIO = "demo"
 

@@ -1,6 +1,6 @@
 """Sensor models beside the colour camera: a time-of-flight range camera and a thermal camera.
 
-Both turn what :class:`~common.synth.render.CameraRenderer` knows per pixel (the
+Both turn what :class:`~synth.render.CameraRenderer` knows per pixel (the
 nearest surface's range, its normal, how bright it is, what it is made of) into
 what such a camera delivers:
 
@@ -35,7 +35,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from common.synth.body import HAIR, SHIRT, SHOES, SKIN, TROUSERS
+from synth.body import HAIR, SHIRT, SHOES, SKIN, TROUSERS
 
 KELVIN_OFFSET_C = 273.15
 CK_PER_K = 100.0
@@ -150,10 +150,10 @@ def body_temperature_c(material: np.ndarray, person_id: int, seed: int) -> np.nd
 def surface_offsets_k(room, surface: np.ndarray, point: np.ndarray, seed: int) -> np.ndarray:
     """(N,) float32 temperature of background hits above the room's air, kelvin.
 
-    ``surface``: (N,) surface codes of :func:`common.synth.render.raycast_room`; ``point``: (N, 3)
+    ``surface``: (N,) surface codes of :func:`synth.render.raycast_room`; ``point``: (N, 3)
     world points. The same for every camera of a world (``seed``), so cameras agree on the room.
     """
-    from common.synth.render import (
+    from synth.render import (
         SURF_CEILING, SURF_CORRIDOR, SURF_FLOOR, SURF_FURNITURE, SURF_NONE, SURF_WALL_X0, SURF_WALL_Y1,
     )
 

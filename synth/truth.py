@@ -43,7 +43,7 @@ import numpy as np
 from common.postures import BODY_POSTURES
 from common.messages import Event, event_id
 from common.runfiles import EVENTS_FILE, META_FILE, TRACKS_FILE, write_events_file, write_tracks_file
-from common.synth.behaviour import LYING
+from synth.behaviour import LYING
 
 DWELL_WINDOW_S = 10.0
 LONG_LIE_S = 30.0
@@ -90,7 +90,7 @@ class Truth:
 
 
 def derive_truth(scenario) -> Truth:
-    """Ground truth of a :class:`common.synth.scenario.Scenario` (pure, deterministic)."""
+    """Ground truth of a :class:`synth.scenario.Scenario` (pure, deterministic)."""
     room = scenario.room
     n = scenario.n_frames
     fps = scenario.fps

@@ -18,10 +18,10 @@ as the synthetic house (site file, calibrations, per-camera media, truth), so
 
 A world draws (:func:`random_world`): a rig kind (high corners, level wall
 cameras, or one of the real rigs of the recordings), a number of people
-(1 to 12, from four bands), a room big enough for them (:mod:`common.synth.rooms`),
-the cameras (:mod:`common.synth.rigs`), who does what (:mod:`common.synth.crowd`),
+(1 to 12, from four bands), a room big enough for them (:mod:`synth.rooms`),
+the cameras (:mod:`synth.rigs`), who does what (:mod:`synth.crowd`),
 and how its masks are made: most worlds go from the true silhouettes through
-the faults of :mod:`common.synth.degrade` straight to masks; three in ten of
+the faults of :mod:`synth.degrade` straight to masks; three in ten of
 those with up to six people render video that replay segments with the camera
 worker's own segmenter, as the house does.
 Video worlds also run on the camera workers (each camera's source is its video).
@@ -30,7 +30,7 @@ Two draws come from generators of their own, so that they leave the rest of a
 world as it was: the dress (one world in four dresses every adult alike: the
 same shirt, sleeves and trousers; ``summary()['dress']`` 'alike' or 'distinct')
 and step-outs (in two of five worlds with doors or open edges, one or two
-people walk out and come back 3-20 s later, :mod:`common.synth.crowd`).
+people walk out and come back 3-20 s later, :mod:`synth.crowd`).
 
 Sensors (``sensors=``): ``'colour'`` (the default) gives the worlds above,
 unchanged. ``'mixed'`` turns two cameras of the same world into other sensors
@@ -38,9 +38,9 @@ unchanged. ``'mixed'`` turns two cameras of the same world into other sensors
 camera (time of flight, reading to 7 m) where a wall camera is nearest the
 middle of the monitored floor, so that most of it lies within its range, and a
 thermal camera drawn among the other wall cameras (fisheyes stay colour). Their
-frames come from :mod:`common.synth.sensors` and are segmented on replay by the
+frames come from :mod:`synth.sensors` and are segmented on replay by the
 camera worker's own thermal and range segmenters; the room's air drifts
-(:func:`common.synth.sensors.ambient_c`). The site file gives each camera its
+(:func:`synth.sensors.ambient_c`). The site file gives each camera its
 ``modality``; ``summary()['sensors']`` says which camera is which and why.
 
 Seeds: :data:`TUNING_SEEDS` are for changing the pipeline; :data:`EVALUATION_SEEDS`
@@ -63,18 +63,18 @@ import numpy as np
 
 from common.calibration import save_voxelwatch
 from common.camera import Camera
-from common.synth.body import SHIRT_COLOURS, TROUSER_COLOURS, pose_body
-from common.synth.crowd import Cast, random_people
-from common.synth.degrade import CameraMove, MaskFaults, degrade, random_faults
-from common.synth.house import open_video_writer
-from common.synth.render import CameraRenderer, frame_for
-from common.synth.rigs import CalibrationRef, real_rig, random_rig
-from common.synth.rooms import FloorPlan, random_room, summarise_room
-from common.synth.scenario import Scenario, ScenarioSpec
-from common.synth.scene import Box, HotSpot, Room, Seat, site_dict
-from common.synth.sensors import RangeModel, ambient_c
-from common.synth.source import BACKGROUND_S, SyntheticCamera
-from common.synth.truth import derive_truth, write_truth
+from synth.body import SHIRT_COLOURS, TROUSER_COLOURS, pose_body
+from synth.crowd import Cast, random_people
+from synth.degrade import CameraMove, MaskFaults, degrade, random_faults
+from synth.house import open_video_writer
+from synth.render import CameraRenderer, frame_for
+from synth.rigs import CalibrationRef, real_rig, random_rig
+from synth.rooms import FloorPlan, random_room, summarise_room
+from synth.scenario import Scenario, ScenarioSpec
+from synth.scene import Box, HotSpot, Room, Seat, site_dict
+from synth.sensors import RangeModel, ambient_c
+from synth.source import BACKGROUND_S, SyntheticCamera
+from synth.truth import derive_truth, write_truth
 
 TUNING_SEEDS = range(0, 1000)
 """Seeds to look at while changing the pipeline."""
@@ -100,7 +100,7 @@ SENSOR_RIGS = ("colour", "mixed")
 SENSOR_FOLDERS = {"thermal": "thermal", "depth": "range"}
 """Each non-colour camera's frame folder under ``DIR/<cam>/``."""
 DEPTH_RANGE_M = 7.0
-"""A mixed rig's depth camera reads to this range (:class:`common.synth.sensors.RangeModel`)."""
+"""A mixed rig's depth camera reads to this range (:class:`synth.sensors.RangeModel`)."""
 
 
 def seed_set(seed: int) -> str:
@@ -115,7 +115,7 @@ def seed_set(seed: int) -> str:
 def default_data_dir() -> Path:
     """The recordings' folder: ``$VOXELWATCH_DATA``, else ``../shared/data`` beside the project."""
     env = os.environ.get("VOXELWATCH_DATA")
-    return Path(env) if env else Path(__file__).resolve().parents[2] / ".." / "shared" / "data"
+    return Path(env) if env else Path(__file__).resolve().parents[1] / ".." / "shared" / "data"
 
 
 @dataclass(frozen=True)
@@ -335,7 +335,7 @@ def write_world_site(world: World, out_dir: str | Path, *, frames: int | None = 
 def render_masks(world: World, cam_id: str, frames, *, faults: bool = True) -> list[np.ndarray]:
     """The masks (H, W) uint8 0/255 of camera ``cam_id`` for frame indices ``frames``, at the site's
     mask size; ``faults=False`` gives the true silhouettes (furniture and people occlude) of the
-    camera as it stands (a :class:`~common.synth.degrade.CameraMove` is kept: it is no mask fault)."""
+    camera as it stands (a :class:`~synth.degrade.CameraMove` is kept: it is no mask fault)."""
     return list(iter_masks(world, cam_id, frames, faults=faults))
 
 
@@ -427,7 +427,7 @@ def _mask(world: World, cam_id: str, camera: Camera, labels: np.ndarray, f: Mask
 
 class _Renderers:
     """The renderer of one camera's masks (at the mask size), and of the camera as it stands
-    after its :class:`~common.synth.degrade.CameraMove`, from that move's frame on."""
+    after its :class:`~synth.degrade.CameraMove`, from that move's frame on."""
 
     def __init__(self, world: World, cam_id: str, faults: MaskFaults, *, colour: bool) -> None:
         self.world, self.cam_id, self.move, self.colour = world, cam_id, faults.moved, colour

@@ -38,7 +38,7 @@ def pets_calibration(data_dir: Path) -> Path:
 def house(tmp_path_factory):
     """(site, site file, carving-table cache dir) of the synthetic house, for tests that run it
     as processes (modules with a house of their own override this one)."""
-    from common import synth
+    import synth
 
     root = tmp_path_factory.mktemp("house")
     site = synth.default_site(root / "site")

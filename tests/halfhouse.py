@@ -8,10 +8,10 @@ from typing import Callable
 
 import numpy as np
 
-from common.synth.body import BodyShape, pose_body, standing_pose
-from common.synth.render import CameraRenderer
-from common.synth.scenarios import get_scenario
-from common.synth.scene import default_cameras
+from synth.body import BodyShape, pose_body, standing_pose
+from synth.render import CameraRenderer
+from synth.scenarios import get_scenario
+from synth.scene import default_cameras
 
 HALF = default_cameras(scale=0.5)
 SCENARIO = get_scenario("walk", 0)

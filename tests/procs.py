@@ -377,7 +377,7 @@ def _client_main(argv: list[str]) -> int:
         for reply in session.get(args.selector, timeout=args.timeout):
             try:
                 print(f">> Received ('{reply.ok.key_expr}': '{reply.ok.payload.to_string()}')")
-            except Exception:
+            except Exception:  # noqa: BLE001 - a reply that is not ok carries an error
                 print(f">> Received (ERROR: '{reply.err.payload.to_string()}')")
     return 0
 

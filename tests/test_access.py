@@ -44,7 +44,7 @@ def secured(tmp_path_factory):
                 '[zenoh.tls]\nca = "certs/ca.pem"\ncerts = "certs"\nreaders = ["reader", "tablet"]\n')
     site = load_site(site_file)
     make_site_certs(folder / "certs", site=site.name, cameras=site.camera_ids, readers=["reader", "tablet"])
-    router = Proc("router", [sys.executable, "-c", "import sys; from common.cli import main; sys.exit(main())",
+    router = Proc("router", [sys.executable, "-c", "import sys; from voxelwatch.cli import main; sys.exit(main())",
                              "router", "--site", str(site_file), "--listen", endpoint],
                   folder / "router.log", env={"PYTHONPATH": str(ROOT)})
     try:

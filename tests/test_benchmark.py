@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from fusion_server.benchmark import PIPELINE_ROWS, PipelineRow, _pipeline_table, bench_pipeline
+from evaluation.benchmark import PIPELINE_ROWS, PipelineRow, _pipeline_table, bench_pipeline
 
 
 def test_pipeline_section_tracks_the_people_it_places():
@@ -30,7 +30,7 @@ def test_pipeline_rows_hold_the_speed_targets():
 
 
 def test_looks_section_measures_the_descriptor_budget_and_the_answer_time():
-    from fusion_server.benchmark import LOOK_BUDGET_B, _looks_table, bench_looks
+    from evaluation.benchmark import LOOK_BUDGET_B, _looks_table, bench_looks
     from fusion_server.identity import IdentityParams
 
     r = bench_looks(True, cameras=4, width=160, height=120, room_m=(4.0, 3.0), people=(2,), describe_people=3)

@@ -1,4 +1,4 @@
-"""The floor board fitted to the image as a whole (common.calibrate.boardfit), against the board's true corners
+"""The floor board fitted to the image as a whole (calibrate.boardfit), against the board's true corners
 on rendered floor views."""
 
 from __future__ import annotations
@@ -9,11 +9,11 @@ import cv2
 import numpy as np
 import pytest
 
-from common.calibrate.board import Board, find_board
-from common.calibrate.boardfit import MAX_MOVE_PX, fit_board, refined_corners
-from common.calibrate.suite import rough_cameras
-from common.synth.board import BoardRenderer, corners_world
-from common.synth.world import random_world
+from calibrate.board import Board, find_board
+from calibrate.boardfit import MAX_MOVE_PX, fit_board, refined_corners
+from evaluation.calibration_suite import rough_cameras
+from synth.board import BoardRenderer, corners_world
+from synth.world import random_world
 
 MAT = Board(9, 6, 0.25)
 
@@ -132,8 +132,8 @@ def test_floor_sightings_take_the_fitted_board_on_request_and_keep_the_detectors
     """Tuning seed 0's cam6 records the mat at two places on the floor (a clip, as the floor command reads it):
     by default the sightings' corners are the detector's; with fit_board they are the fitted board's, closer to the
     truth, and each sighting keeps the detector's own (for the command's check of the calibration against them)."""
-    from common.calibrate.floor import find_sightings
-    from common.synth.board import floor_clip, write_frames
+    from calibrate.floor import find_sightings
+    from synth.board import floor_clip, write_frames
 
     world = random_world(0)
     cam = world.cameras["cam6"]

@@ -2,7 +2,7 @@
 recording's own board.
 
 Synthetic worlds (tuning seeds only): boards are rendered through each camera's true lens
-(:mod:`common.synth.board`); the floor calibration, placed in the room by plan points (the first
+(:mod:`synth.board`); the floor calibration, placed in the room by plan points (the first
 board position's true corners), must put every camera within 2 cm and 0.3 degrees of the truth.
 Lenses fitted from chessboard and ChArUco clips are compared with the true lenses; a ChArUco board
 is also found where it is only partly in a fisheye's view, where a chessboard is not.
@@ -22,21 +22,21 @@ import cv2
 import numpy as np
 import pytest
 
-from common.calibrate.board import Board, canonical_order, find_board
-from common.calibrate.charuco import CharucoBoard, CharucoFinder
-from common.calibrate.floor import calibrate_floor, find_sightings
-from common.calibrate.intrinsics import calibrate_intrinsics
-from common.calibrate.suite import angle_between_deg as _angle_deg
-from common.calibrate.suite import plan_points as _plan_points
-from common.calibrate.suite import rough_cameras as _rough
+from calibrate.board import Board, canonical_order, find_board
+from calibrate.charuco import CharucoBoard, CharucoFinder
+from calibrate.floor import calibrate_floor, find_sightings
+from calibrate.intrinsics import calibrate_intrinsics
+from evaluation.calibration_suite import angle_between_deg as _angle_deg
+from evaluation.calibration_suite import plan_points as _plan_points
+from evaluation.calibration_suite import rough_cameras as _rough
 from common.calibration import WorldTransform, load_calibration
-from common.cli import main
+from voxelwatch.cli import main
 from common.site import load_site
-from common.synth.board import (
+from synth.board import (
     BoardRenderer, corners_world, floor_clip, floor_positions, intrinsics_clip, intrinsics_poses, write_frames,
 )
-from common.synth.render import CameraRenderer
-from common.synth.world import random_world, write_world_site
+from synth.render import CameraRenderer
+from synth.world import random_world, write_world_site
 
 INTRINSICS_SEED = 35       # tuning seed: its cam1 is a 320x240 pinhole
 FLOOR_SEED = 1             # tuning seed: two high corner cameras and a ceiling fisheye, 2 board positions
@@ -75,7 +75,7 @@ def test_floor_recovers_the_true_cameras_of_the_house(tmp_path):
     it sees the board under 0.2 % of its image, and the calibration warns of it (test below)."""
     from types import SimpleNamespace
 
-    from common.synth.scene import default_cameras, default_room
+    from synth.scene import default_cameras, default_room
 
     room = default_room()
     cameras = {c: cam for c, cam in default_cameras().items() if c in HOUSE_CAMERAS}
@@ -123,8 +123,8 @@ def test_a_lens_fit_knows_how_far_its_centre_may_be_off_and_asks_for_the_board_n
     principal point lies within three of them, and the camera's tilt is flagged uncertain. The same lens
     from the board held nearer (half the width or more) is within the tolerance and not flagged. The command
     warns of the first by the camera's name, and writes the file all the same."""
-    from common.calibrate.intrinsics import LENS_TILT_95_DEG
-    from common.calibrate.suite import HELD, NEARER
+    from calibrate.intrinsics import LENS_TILT_95_DEG
+    from evaluation.calibration_suite import HELD, NEARER
 
     true = random_world(0).cameras["cam5"]
     assert (true.width, true.height) == (320, 240)
@@ -319,7 +319,7 @@ def _four_places_of_seed_2() -> list:
     """Tuning seed 2's four board places (centres and yaws) as the installer's rule first laid them, the place
     most cameras see first: the layout the tests of views outvoted and of lens files refined were measured on,
     kept fixed (29 views of eight cameras) whatever places the installer's rule now lays."""
-    from common.synth.board import floor_pose
+    from synth.board import floor_pose
 
     return [floor_pose(BOARD, x, y, yaw) for x, y, yaw in
             ((3.4, 1.8, 2.541874176), (3.8, 1.4, 1.253592506), (1.8, 2.2, -1.749940369), (5.0, 2.2, -1.702648235))]
@@ -328,9 +328,9 @@ def _four_places_of_seed_2() -> list:
 def _exact_sightings(world, poses, *, noise_px: float = 0.0, rng=None, min_area: float = 0.0015, board=BOARD) -> list:
     """Every camera's view of every place it sees whole: the true corners through its true lens, with
     ``noise_px`` of Gaussian noise per coordinate; position k covers frames 10k..10k+5."""
-    from common.calibrate.board import board_area_fraction
-    from common.calibrate.floor import Sighting
-    from common.synth.board import place_area
+    from calibrate.board import board_area_fraction
+    from calibrate.floor import Sighting
+    from synth.board import place_area
 
     out = []
     for k, pose in enumerate(poses):
@@ -374,7 +374,7 @@ def test_the_bounds_cover_a_lens_files_uncertain_principal_point():
     alone would not."""
     import dataclasses
 
-    from common.calibrate.intrinsics import lens_tilt_95_deg
+    from calibrate.intrinsics import lens_tilt_95_deg
 
     world = random_world(FLOOR_SEED)
     poses = floor_positions(world.cameras, world.room, BOARD, np.random.default_rng(0), well_seen=WELL_SEEN)
@@ -414,8 +414,8 @@ def test_a_camera_that_sees_the_board_only_far_away_is_warned_of(capsys):
     command warns of them); cam3, cam4 and cam5, which see a shared place at 0.9-2 %, are within them."""
     from types import SimpleNamespace
 
-    from common.calibrate.floor import ANGLE_TOLERANCE_DEG, POSITION_TOLERANCE_M
-    from common.synth.scene import default_cameras, default_room
+    from calibrate.floor import ANGLE_TOLERANCE_DEG, POSITION_TOLERANCE_M
+    from synth.scene import default_cameras, default_room
 
     house = SimpleNamespace(cameras=default_cameras(), room=default_room(), seed=0)
     rng = np.random.default_rng(0)
@@ -443,7 +443,7 @@ def test_a_view_found_a_square_off_is_left_out():
                   any(t.start == 0 and t.cam_id != s.cam_id for t in sightings))
     grid = victim.corners.reshape(BOARD.rows, BOARD.cols, 2)
     shifted = np.concatenate([grid[:, 1:], 2 * grid[:, -1:] - grid[:, -2:-1]], axis=1).reshape(-1, 2)
-    from common.calibrate.floor import Sighting
+    from calibrate.floor import Sighting
 
     bad = [Sighting(s.cam_id, s.start, s.stop, shifted, s.area) if s is victim else s for s in sightings]
     res = calibrate_floor(bad, world.cameras, BOARD, plan_points=_plan_points(BOARD, poses[0]))
@@ -460,7 +460,7 @@ def test_a_view_a_square_off_is_found_though_its_camera_sees_few_places():
     (the view it explains worst was a right one, and leaving that out put the camera 42 cm off; a wrong view
     under 2 px once spread was kept and put it 35 cm off), so each suspect view is left out in turn: the wrong
     one, and only it, is named in a note and every camera placed within 2 cm (measured: 0.45-0.48 cm)."""
-    from common.calibrate.floor import Sighting
+    from calibrate.floor import Sighting
 
     world = random_world(2)
     poses = _four_places_of_seed_2()
@@ -489,7 +489,7 @@ def test_a_lens_file_with_its_focal_length_off_is_refined_by_the_board_places(mo
     -0.31 %, leaving cam6 0.28 % long; asserted: under 0.35 %) and places cam6 within 2 cm (1.1 cm),
     where with the focal lengths held (FOCAL_PRIOR tiny) it lands 2 cm off or more (2.3 cm); the other
     cameras' focal lengths, whose files are right, stay within 0.2 %."""
-    import common.calibrate.floor as floor
+    import calibrate.floor as floor
 
     world = random_world(2)
     poses = _four_places_of_seed_2()
@@ -515,7 +515,7 @@ def test_a_lens_file_with_its_focal_length_off_is_refined_by_the_board_places(mo
 def _fitted_inside(cam, share: float):
     """``cam`` with the lens a clip that never showed the board beyond ``share`` of the image's corner radius
     gives: k1 and k2 fitted to the true distortion inside it, k3 none."""
-    from common.calibrate.floor import _corner_radius
+    from calibrate.floor import _corner_radius
 
     k1, k2, _, _, k3 = cam.dist[:5]
     r = np.linspace(0.0, share * _corner_radius(cam), 200)[1:]
@@ -533,7 +533,7 @@ def test_a_lens_file_wrong_at_the_corners_is_bent_back_by_the_board_places(monke
     image's corners, within 2 cm (measured: 0.69 cm, its lens bent 6.9 px at the corners and a note says
     so), where with the lens files held it lands 2 cm off or more (2.77 cm); the lenses of cameras that see
     the board only near their image's middle are left as their files have them (under 2 px)."""
-    import common.calibrate.floor as floor
+    import calibrate.floor as floor
 
     world = random_world(6)
     poses = floor_positions(world.cameras, world.room, BOARD, np.random.default_rng(0), well_seen=WELL_SEEN)
@@ -562,10 +562,10 @@ def test_a_charuco_mat_seen_in_part_chains_the_cameras():
     mm chessboard whole reaches cam3, while the ChArUco mat, counted where a camera reads a dozen of its
     corners or more, chains all four. Its corners in each camera's image (only part of the mat where the
     image's edge cuts it, 0.25 px of noise) place every camera within 2 cm and 0.3 degree."""
-    from common.calibrate.board import board_area_fraction
-    from common.calibrate.floor import Sighting
-    from common.calibrate.suite import plan_points
-    from common.synth.board import CHARUCO_FLOOR_CORNERS, floor_area
+    from calibrate.board import board_area_fraction
+    from calibrate.floor import Sighting
+    from evaluation.calibration_suite import plan_points
+    from synth.board import CHARUCO_FLOOR_CORNERS, floor_area
 
     world = random_world(14)
     with pytest.raises(ValueError, match="cam3"):
@@ -598,7 +598,7 @@ def test_a_charuco_mat_seen_in_part_chains_the_cameras():
 def test_a_charuco_mat_rendered_on_the_floor_calibrates_the_rig(tmp_path):
     """The same world calibrated from rendered clips of the ChArUco mat (the suite's fallback, its
     warnings heeded): every camera within 2 cm and 0.3 degree (0.66 cm and 0.07 degree measured)."""
-    from common.calibrate.suite import _floor_world
+    from evaluation.calibration_suite import _floor_world
 
     world = random_world(14)
     out = _floor_world(world, dict(world.cameras), MAT, tmp_path, heed=True)
@@ -627,8 +627,8 @@ def test_a_board_on_a_stand_chains_a_camera_no_floor_place_reaches(stand_world):
     whole pose, and places every camera within 2 cm and 0.3 degree or warns of it (corners with 0.25 px of
     noise); cam3, which only the stand reaches, within 5 cm (2.6 cm, its bound 4.5 cm: warned, and within
     the targets once the warning is heeded, in the rendered test below)."""
-    from common.calibrate.floor import RAISED_M
-    from common.synth.board import on_stand
+    from calibrate.floor import RAISED_M
+    from synth.board import on_stand
 
     world, poses = stand_world
     for board in (BOARD, Board(9, 6, 0.25)):
@@ -660,7 +660,7 @@ def test_a_chain_through_stands_ties_every_camera_to_the_floor():
     camera sees a place on the floor, which ties its height and tilt to the floor: from exact corners with
     0.25 px of noise every camera's angle bound lies within 0.3 degree (without those places cam3's was 0.305
     degree) and every camera within 2 cm and 0.3 degree of the truth."""
-    from common.synth.board import on_stand, place_area
+    from synth.board import on_stand, place_area
 
     world = random_world(20)
     poses = floor_positions(world.cameras, world.room, BOARD, np.random.default_rng(20), min_area=0.003,
@@ -686,7 +686,7 @@ def test_the_places_laid_again_for_a_camera_spread_across_its_view():
     least half as large as its largest (the largest rule's first pick is that largest, from the same lattice),
     each as far as it can be from the places laid so far, lie farther from them than the two it sees largest
     (cam1: 1.60 and 1.13 m from the others against 0.89 and 0.57 m), every one seen by another camera too."""
-    from common.synth.board import more_floor_positions, place_area, placed_centre
+    from synth.board import more_floor_positions, place_area, placed_centre
 
     world = random_world(1)
     poses = floor_positions(world.cameras, world.room, BOARD, np.random.default_rng(0), well_seen=WELL_SEEN)
@@ -720,7 +720,7 @@ def test_the_first_board_place_is_the_one_its_cameras_see_largest_of_those_most_
     measured against, a far camera turning with its yaw's error by its distance from it; of the places two
     cameras see, it is the one whose two views add up to the most of their images (1.5 %; the first of them in
     the lattice, as the first place was before, 1.1 %)."""
-    from common.synth.board import _floor_candidates
+    from synth.board import _floor_candidates
 
     world = random_world(12)
     poses = floor_positions(world.cameras, world.room, BOARD, np.random.default_rng(12), min_area=0.003, stand=True)
@@ -739,8 +739,8 @@ def test_the_first_board_place_is_the_one_its_cameras_see_largest_of_those_most_
 def test_the_first_board_place_must_lie_on_the_floor(stand_world):
     """The first place defines the floor frame: where the cameras' present calibrations put the first place
     1.2 m up (the board on a stand first), the calibration refuses and says to lay it on the floor first."""
-    from common.calibrate.floor import FloorError
-    from common.synth.board import on_stand
+    from calibrate.floor import FloorError
+    from synth.board import on_stand
 
     world, poses = stand_world
     first = next(k for k, p in enumerate(poses) if on_stand(BOARD, p))
@@ -757,7 +757,7 @@ def test_a_floor_view_the_detector_takes_wrongly_is_looked_for_again_until_a_fla
     mat along a sample's ray): the detector, on the image as it is, takes a grid off the squares (pixels from the
     truth in any order of its corners, 0.64 px off any flat board through the lens). The floor search goes on while no
     set fits a flat board within GOOD_FIT_PX, and the set that fits best is within 0.3 px of the truth."""
-    from common.calibrate.board import GOOD_FIT_PX, _find_direct, planar_residual_px
+    from calibrate.board import GOOD_FIT_PX, _find_direct, planar_residual_px
 
     mat = Board(9, 6, 0.25)
 
@@ -787,9 +787,9 @@ def test_a_floor_view_takes_the_way_of_looking_whose_corners_best_fit_a_flat_boa
     is finds corners 0.18 px off a flat board (well within GOOD_FIT_PX) and 0.24 px from the truth; the view from
     above fits a flat board within 0.08 px and lies 0.11 px from the truth. Every way is tried and the best fit
     kept."""
-    from common.calibrate.board import _find_direct, planar_residual_px
-    from common.calibrate.suite import FLOOR_BOARDS, WELL_SEEN
-    from common.synth.board import floor_positions
+    from calibrate.board import _find_direct, planar_residual_px
+    from evaluation.calibration_suite import FLOOR_BOARDS, WELL_SEEN
+    from synth.board import floor_positions
 
     world = random_world(3)
     cam = world.cameras["cam2"]
@@ -816,7 +816,7 @@ def test_a_board_that_looks_the_same_turned_half_round_is_refused_on_a_stand(sta
     """An 8x6 board (the lab's) looks the same turned half round: on the floor the cameras' rough poses tell
     its ends apart by where it lies; set up on a stand the calibration refuses it, naming the place and
     what board to use."""
-    from common.calibrate.floor import FloorError
+    from calibrate.floor import FloorError
 
     world, poses = stand_world
     even = Board(8, 6, 0.14)
@@ -832,8 +832,8 @@ def test_a_board_on_a_stand_bent_by_the_lens_is_found_in_a_straightened_view():
     lens towards it (:func:`find_board`'s last resort, after views of the floor from above, which take
     about ten seconds more here), it is, and its corners mapped back lie within a pixel of their true
     projections (0.3 px on average)."""
-    from common.calibrate.board import _find_straightened
-    from common.synth.board import stand_area, stand_pose
+    from calibrate.board import _find_straightened
+    from synth.board import stand_area, stand_pose
 
     world = random_world(20)
     cam = world.cameras["cam3"]
@@ -855,7 +855,7 @@ def test_a_board_on_a_stand_rendered_calibrates_a_rig_level_with_the_room(tmp_pa
     """Tuning seed 10 from rendered clips, as the suite's last fallback runs it (the A0 board on the floor, on
     a stand where no place of the floor reaches a camera, its warnings heeded): every camera within 2 cm
     and 0.3 degree."""
-    from common.calibrate.suite import _floor_world
+    from evaluation.calibration_suite import _floor_world
 
     world = random_world(STAND_SEED)
     out = _floor_world(world, dict(world.cameras), BOARD, tmp_path, heed=True, stand=True)
@@ -892,7 +892,7 @@ def test_command_writes_the_site_calibrations_with_backups(tmp_path, capsys):
                     + "]\n", encoding="utf-8")
     before = _snapshot(site_path)
     # cam1's lens file says its fit left the principal point 2 px uncertain a coordinate
-    from common.calibrate.write import write_intrinsics
+    from calibrate.write import write_intrinsics
 
     lens = write_intrinsics(world.cameras["cam1"], tmp_path / "cam1-intrinsics.toml", centre_sd_px=(2.0, 2.0))
     tilt = math.degrees(1.96 * math.hypot(2.0, 2.0) / world.cameras["cam1"].K[0, 0])
@@ -1004,7 +1004,7 @@ def test_fitting_a_charuco_board_to_the_frames_is_refused_and_nothing_written(tm
 def test_a_lens_file_carries_its_principal_points_uncertainty(tmp_path, suffix):
     """The standard deviations ``calibrate intrinsics`` writes come back as written, in the project's TOML and
     in OpenCV FileStorage; a file without them gives None."""
-    from common.calibrate.write import write_intrinsics
+    from calibrate.write import write_intrinsics
     from common.calibration import lens_centre_sd
 
     cam = random_world(FLOOR_SEED).cameras["cam1"]
@@ -1018,7 +1018,7 @@ def test_a_lens_file_carries_its_principal_points_uncertainty(tmp_path, suffix):
 def test_a_lens_file_with_a_broken_uncertainty_stops_the_floor_calibration(tmp_path, capsys):
     """A lens file whose ``centre_sd_px`` is not two standard deviations: one line naming the file and the
     field, and nothing written."""
-    from common.calibrate.write import write_intrinsics
+    from calibrate.write import write_intrinsics
 
     world, site_path = _synthetic_site(tmp_path)
     before = _snapshot(site_path)
@@ -1037,7 +1037,7 @@ def test_cameras_that_share_no_board_position_are_named_by_the_calibration():
     """The board seen by cam1 at the first place only and by the other cameras only at later places: the
     chain cannot reach them, and the calibration names them (the command prints it as its one line,
     below, with rendered clips)."""
-    from common.calibrate.floor import FloorError
+    from calibrate.floor import FloorError
 
     world = random_world(2)
     poses = floor_positions(world.cameras, world.room, BOARD, np.random.default_rng(0), well_seen=WELL_SEEN)
@@ -1076,7 +1076,7 @@ def test_cameras_that_share_no_board_position_are_named(tmp_path, capsys):
 
 
 def _sees(cam, room, pose) -> bool:
-    from common.synth.board import floor_sees
+    from synth.board import floor_sees
 
     return floor_sees(cam, room, BOARD, pose)
 

@@ -198,7 +198,8 @@ def test_with_world_maps_points_consistently():
     moved = cam.with_world(A, b, scale=0.001)  # current frame in mm, new one in metres
     pts_old = _points(rng) * 1000.0
     pts_new = 0.001 * pts_old @ A.T + b
-    np.testing.assert_allclose(moved.project(pts_new)[0], cam.with_world(np.eye(3), np.zeros(3), 0.001).project(pts_old * 0.001)[0], atol=1e-9)
+    in_metres = cam.with_world(np.eye(3), np.zeros(3), 0.001)
+    np.testing.assert_allclose(moved.project(pts_new)[0], in_metres.project(pts_old * 0.001)[0], atol=1e-9)
     np.testing.assert_allclose(moved.center, 0.001 * A @ cam.center + b, atol=1e-12)
 
 

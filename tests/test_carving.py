@@ -24,7 +24,7 @@ from fusion_server.carving import (
     octree_layout,
     vote,
 )
-from fusion_server.carving.bench import Box, Cylinder, MaskRenderer, body_voxels, measure_carving, room_rig
+from evaluation.carving_bench import Box, Cylinder, MaskRenderer, body_voxels, measure_carving, room_rig
 from fusion_server.carving.lut import LUT_FORMAT
 from fusion_server.grid import VoxelGrid
 

@@ -30,11 +30,11 @@ from scipy import ndimage
 
 from camera_worker.segmentation import ForegroundSegmenter, window_frames_for
 from common.camera import pixel_index
-from common.synth import SyntheticCamera, default_cameras, default_site, get_scenario
+from synth import SyntheticCamera, default_cameras, default_site, get_scenario
 from fusion_server.carving import Carver
 from fusion_server.carving.distance import needed_votes
 from fusion_server.grid import CarveResult, VoxelGrid
-from fusion_server.suite import cameras_for
+from evaluation.suite import cameras_for
 
 FRAMES: dict[str, tuple[int, ...]] = {
     "walk": (60, 110, 150, 240),  # walking a loop through the middle and the south side; standing by the hall
@@ -47,7 +47,7 @@ FRAMES: dict[str, tuple[int, ...]] = {
 
 CAMERA_COUNTS = (5, 4, 3)
 """All five cameras; without the ceiling fisheye; without it and one corner camera
-(the order of :func:`fusion_server.suite.cameras_for`). The site's vote stays: found in
+(the order of :func:`evaluation.suite.cameras_for`). The site's vote stays: found in
 ``max(2, ceil(0.75 * seeing))`` cameras, so 4 of 5, 3 of 4 and 3 of 3."""
 
 # Measured with the renderer's true masks (worst frame per scenario; seed 0):

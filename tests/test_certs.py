@@ -17,7 +17,7 @@ from cryptography import x509
 from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
 
 from common.certs import CertError, common_name, make_site_certs, read_common_name
-from common.cli import main as cli_main
+from voxelwatch.cli import main as cli_main
 from tests.tinysite import write_site
 
 

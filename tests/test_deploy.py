@@ -25,7 +25,7 @@ import numpy as np
 import pytest
 import zenoh
 
-from common import cli as vw_cli
+from voxelwatch import cli as vw_cli
 from common.site import load_site
 from common.transport import zenoh_config
 from fusion_server import cli as fusion_cli
@@ -364,14 +364,15 @@ def test_router_unit_command_routes_between_clients_configured_from_client_json5
     assert argv[listen_at] == "tcp/0.0.0.0:7447"
     endpoint = f"tcp/127.0.0.1:{_free_port()}"
     argv[listen_at] = endpoint
-    command = [sys.executable, "-c", "import sys; from common.cli import main; sys.exit(main())", *argv[1:]]
+    command = [sys.executable, "-c", "import sys; from voxelwatch.cli import main; sys.exit(main())", *argv[1:]]
     router = subprocess.Popen(command, cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
         first_line: list[str] = []
         reader = threading.Thread(target=lambda: first_line.append(router.stdout.readline()), daemon=True)
         reader.start()
         reader.join(timeout=60)
-        assert first_line and "listening on" in first_line[0], f"router did not start: {router.stderr.read() if router.poll() is not None else ''}"
+        said = router.stderr.read() if router.poll() is not None else ""
+        assert first_line and "listening on" in first_line[0], f"router did not start: {said}"
 
         def client() -> zenoh.Config:
             conf = zenoh.Config.from_file(str(DEPLOY / "zenoh" / "client.json5"))
@@ -453,7 +454,7 @@ def _logs(folder: Path) -> str:
 
 
 def _script(name: str) -> list[str]:
-    mains = {"voxelwatch": "common.cli", "voxelwatch-fusion": "fusion_server.cli", "voxelwatch-camera": "camera_worker.cli"}
+    mains = {"voxelwatch": "voxelwatch.cli", "voxelwatch-fusion": "fusion_server.cli", "voxelwatch-camera": "camera_worker.cli"}
     return [sys.executable, "-c", f"import sys; from {mains[name]} import main; sys.exit(main())"]
 
 

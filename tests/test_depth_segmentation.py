@@ -9,7 +9,7 @@ import pytest
 
 from camera_worker.depth import DepthSegmenter
 from common.maskcodec import decode_depth, encode_depth
-from common.synth.sensors import RangeModel
+from synth.sensors import RangeModel
 from tests.halfhouse import SCENARIO, half_renderers, hold_box, iou, standing_person, still_person_ious
 
 IOU_BOUND = 0.6

@@ -224,7 +224,9 @@ def test_separate_groups_are_detected_as_if_alone():
     ]
     together = detect_blobs(scene(*[p for g in groups for p in g]))
     alone = [b for g in groups for b in detect_blobs(scene(*g))]
-    key = lambda b: (b.volume_voxels, round(b.x, 9), round(b.y, 9), b.z_top_m)
+    def key(b):
+        return (b.volume_voxels, round(b.x, 9), round(b.y, 9), b.z_top_m)
+
     assert sorted(map(key, together)) == sorted(map(key, alone))
     assert len(together) == 5
     for b in together:

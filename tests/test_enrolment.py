@@ -17,8 +17,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from common import cli
-from common.evaluation import evaluate, read_events, read_tracks
+from voxelwatch import cli
+from evaluation import evaluate, read_events, read_tracks
 from common.site import load_site, site_from_dict, write_site
 from fusion_server.enrolment import EnrolmentError, choose_model
 from fusion_server.event_store import EventStore, parse_history_selector
@@ -67,7 +67,7 @@ def test_nobody_or_two_people_is_refused(frames, needle):
 @pytest.fixture(scope="module")
 def house(tmp_path_factory) -> Path:
     """The synthetic house's site, asking for colours every frame."""
-    from common.synth import default_site
+    from synth import default_site
 
     folder = tmp_path_factory.mktemp("house")
     raw = default_site(folder).model_dump(mode="json", exclude={"base_dir"})
@@ -123,7 +123,7 @@ def test_enrol_refuses_a_clip_with_two_people_and_one_with_nobody(house, cache, 
 
 @pytest.mark.slow
 def test_the_resident_is_named_on_their_track_and_nobody_else_is(enrolled, cache, tmp_path):
-    from common import synth
+    import synth
     from fusion_server.replay import replay
 
     site = load_site(enrolled)

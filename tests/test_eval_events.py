@@ -7,10 +7,10 @@ import json
 import numpy as np
 import pytest
 
-from common.evaluation import io
-from common.evaluation.events import TrackLinks, score_events
-from common.evaluation.io import Event, TrackTable
-from common.evaluation.report import evaluate, format_table, suite_table, suite_totals, to_json
+from evaluation import io
+from evaluation.events import TrackLinks, score_events
+from evaluation.io import Event, TrackTable
+from evaluation.report import evaluate, format_table, suite_table, suite_totals, to_json
 
 NS = 66_666_667  # one frame at 15 fps
 
@@ -73,7 +73,7 @@ def test_track_requirement_uses_tracking_links() -> None:
 
 
 def test_track_links_from_matches() -> None:
-    from common.evaluation.tracking import clear_mot
+    from evaluation.tracking import clear_mot
 
     truth = TrackTable.from_rows([(f, f * NS, "A", 0.0, 0.0, 1.7, "standing") for f in range(5)])
     run = TrackTable.from_rows([(f, f * NS, "7", 0.1, 0.0, 1.7, "standing") for f in range(3)])

@@ -8,9 +8,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from common.evaluation import io
-from common.evaluation.io import EvalFormatError, Event, TrackTable
-from common.evaluation.report import evaluate
+from evaluation import io
+from evaluation.io import EvalFormatError, Event, TrackTable
+from evaluation.report import evaluate
 
 HEADER = "frame,stamp_ns,id,x,y,z_top,posture\n"
 

@@ -10,9 +10,10 @@ import cv2
 import numpy as np
 import pytest
 
-from common.evaluation import io
-from common.evaluation.io import Event
-from common.evaluation.plots import mask_overlay, plan_view, site_geometry, timeline
+from evaluation import io
+from evaluation.io import Event
+from evaluation.plots import plan_view, site_geometry, timeline
+from fusion_server.outputs import mask_overlay
 from common.site import site_from_dict
 
 NS = 66_666_667

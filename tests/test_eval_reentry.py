@@ -6,11 +6,11 @@ import json
 
 import pytest
 
-from common.evaluation import io
-from common.evaluation.io import Event, TrackTable
-from common.evaluation.reentry import reentry_identity
-from common.evaluation.report import evaluate, format_table, suite_totals
-from common.evaluation.tracking import clear_mot
+from evaluation import io
+from evaluation.io import Event, TrackTable
+from evaluation.reentry import reentry_identity
+from evaluation.report import evaluate, format_table, suite_totals
+from evaluation.tracking import clear_mot
 
 FPS = 2.0  # the windows: 1 s before = 2 frames, 3 s after = 6 frames
 NS = 500_000_000

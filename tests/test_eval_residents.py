@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import pytest
 
-from common.evaluation import TrackTable, clear_mot, evaluate, format_table, suite_table, suite_totals, write_tracks
-from common.evaluation.residents import resident_scores
+from evaluation import TrackTable, clear_mot, evaluate, format_table, suite_table, suite_totals, write_tracks
+from evaluation.residents import resident_scores
 
 NS = 66_666_667
 

@@ -8,11 +8,11 @@ import math
 import numpy as np
 import pytest
 
-from common.evaluation import io
-from common.evaluation.io import TrackTable
-from common.evaluation.posture import posture_from_labels, posture_scores
-from common.evaluation.report import evaluate, suite_totals
-from common.evaluation.tracking import by_people_present, clear_mot, gated_assignment, per_frame_measures
+from evaluation import io
+from evaluation.io import TrackTable
+from evaluation.posture import posture_from_labels, posture_scores
+from evaluation.report import evaluate, suite_totals
+from evaluation.tracking import by_people_present, clear_mot, gated_assignment, per_frame_measures
 
 NS = 66_666_667  # one frame at 15 fps
 

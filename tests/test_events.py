@@ -648,9 +648,9 @@ def _run_synthetic(name: str, seed: int = 0):
     voxelised body as height profile, confirmed from its 3rd frame; a person
     who leaves stays reported at the last position for 35 frames, unconfirmed
     from the 8th (the tracker's defaults)."""
-    from common.synth.body import pose_body
-    from common.synth.scenarios import get_scenario
-    from common.synth.truth import derive_truth
+    from synth.body import pose_body
+    from synth.scenarios import get_scenario
+    from synth.truth import derive_truth
 
     sc = get_scenario(name, seed)
     room = sc.room
@@ -691,7 +691,7 @@ def _run_synthetic(name: str, seed: int = 0):
                  "dinner_visit")],
 )
 def test_synthetic_scenario_events_match_truth(name):
-    from common.evaluation.events import score_events
+    from evaluation.events import score_events
 
     run_events, truth_events = _run_synthetic(name)
     scores = score_events(truth_events, run_events)  # the project's protocol: same kind within 30 frames

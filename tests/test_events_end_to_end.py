@@ -2,14 +2,14 @@
 
 ``test_events.py`` and ``test_hotspots.py`` feed the event reasoner true
 positions; here the same events must come out of the whole chain. Each case
-scripts a short scene in the test (a :class:`~common.synth.ScenarioSpec`),
+scripts a short scene in the test (a :class:`~synth.ScenarioSpec`),
 renders it into the house's five cameras at half size (320 x 240), segments
 every camera with the camera worker's own segmenter after it has learnt the
 empty room (the hold regions of still people going back to it, as in
 ``fusion_server.replay``), and fuses the masks with
 :class:`~fusion_server.pipeline.FusionPipeline` built from the site file.
 Tracks and events are written by the server's own writers and scored with
-:func:`common.evaluation.evaluate` against :func:`common.synth.derive_truth`:
+:func:`evaluation.evaluate` against :func:`synth.derive_truth`:
 every true event of every kind matched one to one within +-30 frames, and no
 event that matches nothing, whatever the case is about.
 
@@ -55,11 +55,11 @@ import numpy as np
 import pytest
 
 from camera_worker.segmentation import ForegroundSegmenter, window_frames_for
-from common import synth
-from common.evaluation import ALARM_KINDS, Event, evaluate, read_events, read_tracks, score_events
+import synth
+from evaluation import ALARM_KINDS, Event, evaluate, read_events, read_tracks, score_events
 from common.site import Site, site_from_dict
-from common.synth import ScenarioSpec, SyntheticCamera, derive_truth, get_scenario
-from common.synth.behaviour import Enter, Face, Fall, PersonScript, Sit, Stand, Wait, Walk
+from synth import ScenarioSpec, SyntheticCamera, derive_truth, get_scenario
+from synth.behaviour import Enter, Face, Fall, PersonScript, Sit, Stand, Wait, Walk
 from fusion_server.outputs import RunOutputs
 from fusion_server.pipeline import FusionPipeline
 from fusion_server.replay import replay

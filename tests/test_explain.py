@@ -159,7 +159,7 @@ def test_a_low_piece_beside_a_standing_person_is_part_of_them_not_a_person(tmp_p
     the piece is carved apart (a gap of 0.2 m in height) and covers foreground of its own in
     every camera. Within 0.45 m of the person's top it is a piece of them; 1 m away it is
     someone crouching."""
-    from fusion_server.carving.bench import Cylinder, MaskRenderer, room_rig
+    from evaluation.carving_bench import Cylinder, MaskRenderer, room_rig
 
     rig = room_rig(n_cameras=5, width=320, height=240)
     carver = Carver(cameras=rig, volume_min_m=(0, 0, 0), volume_max_m=(8, 6, 2.5), cache_dir=tmp_path)

@@ -18,7 +18,7 @@ import pytest
 from common.camera import Camera, look_at
 from common.site import load_site
 from fusion_server.carving import Carver
-from fusion_server.carving.bench import Cylinder, MaskRenderer, body_voxels
+from evaluation.carving_bench import Cylinder, MaskRenderer, body_voxels
 from fusion_server.pipeline import FusionPipeline
 from tinysite import BOX_XY, box_mask, write_site
 from fusion_server.carving.freespace import (

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from fusion_server.carving import Carver
-from fusion_server.carving.bench import Cylinder, MaskRenderer, body_voxels, room_rig
+from evaluation.carving_bench import Cylinder, MaskRenderer, body_voxels, room_rig
 from fusion_server.carving.distance import needed_votes
 from fusion_server.carving.graphcut import (
     ENERGY_SCALE, benefits, graphcut_labels, labelling_energy, neighbour_pairs, potts_cut,

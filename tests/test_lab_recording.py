@@ -52,7 +52,7 @@ import numpy as np
 import pytest
 from scipy import ndimage
 
-from common.evaluation.io import read_run_events, read_run_tracks
+from evaluation.io import read_run_events, read_run_tracks
 from common.site import Site, load_site
 from fusion_server.carving import Carver
 from fusion_server.detection import detect_blobs

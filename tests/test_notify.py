@@ -39,11 +39,11 @@ import pytest
 
 from common import keys, messages
 from common.messages import Event, TrackFrame, TrackState, event_id
-from common.notify.mail import EmailChannel, message_id
-from common.notify.mqtt import alarm_config, camera_config, person_config
-from common.notify.outbox import Outbox
-from common.notify.people import PeopleState, Zone, describe
-from common.notify.webhook import WebhookChannel
+from notify.mail import EmailChannel, message_id
+from notify.mqtt import alarm_config, camera_config, person_config
+from notify.outbox import Outbox
+from notify.people import PeopleState, Zone, describe
+from notify.webhook import WebhookChannel
 from common.transport import free_port
 from tests.notifyparts import MOSQUITTO, History, HookServer, Mosquitto, MqttWatcher, SmtpReceiver
 from tests.procs import ROOT, Proc, Router, wait_for
@@ -276,7 +276,7 @@ def test_alarm_texts_for_a_person_and_for_a_camera():
 
 
 def _cli(*argv: str) -> tuple[int, str]:
-    from common.cli import main
+    from voxelwatch.cli import main
 
     err = io.StringIO()
     with redirect_stderr(err):
@@ -307,7 +307,7 @@ def test_bad_configuration_stops_with_one_line_naming_the_field(tmp_path, notify
 
 
 def _start_notifier(site: Path, endpoint: str, log_dir: Path, name: str = "notify") -> Proc:
-    argv = [sys.executable, "-m", "common.notify", "--site", str(site), "--mode", "client", "--connect", endpoint,
+    argv = [sys.executable, "-m", "voxelwatch", "notify", "--site", str(site), "--mode", "client", "--connect", endpoint,
             "--status-every", "2"]
     return Proc(name, argv, log_dir / f"{name}.log", env={"PYTHONPATH": str(ROOT)})
 
@@ -487,7 +487,7 @@ def test_on_a_secured_site_the_notifier_reads_with_a_reader_certificate(tmp_path
             zenoh.open(site_config(site, host=FUSION)) as fusion:
         history = History(fusion, site.prefix, tmp_path / "events.sqlite")
         history.store.add(earlier)  # published while nobody listened
-        argv = [sys.executable, "-m", "common.notify", "--site", str(site_file), "--reader", "tablet"]
+        argv = [sys.executable, "-m", "voxelwatch", "notify", "--site", str(site_file), "--reader", "tablet"]
         proc = Proc("notify", argv, tmp_path / "notify.log", env={"PYTHONPATH": str(ROOT)})
         try:
             wait_for(lambda: history.queries, 60, "the reader's history query", procs=[proc])
@@ -516,7 +516,7 @@ def test_the_demo_fall_reaches_mqtt_after_a_broker_restart_and_the_webhook(tmp_p
     """``voxelwatch demo`` (five camera workers and the fusion server as processes) and
     ``voxelwatch notify`` connected to the demo's router; the broker goes down while the person
     is tracked, before the fall, and comes back after the webhook has had the fall."""
-    from common import synth
+    import synth
     from common.runfiles import EVENTS_FILE
     from common.site import MqttSettings, NotifySettings, WebhookSettings
     from common.site import write_site as write_site_file
@@ -530,7 +530,7 @@ def test_the_demo_fall_reaches_mqtt_after_a_broker_restart_and_the_webhook(tmp_p
     site_file = write_site_file(site.model_copy(update={"notify": notify}), site.base_dir / "site.toml")
     port = free_port()
     env = {"PYTHONPATH": str(ROOT)}
-    demo = Proc("demo", [sys.executable, "-c", "import sys; from common.cli import main; sys.exit(main())", "demo",
+    demo = Proc("demo", [sys.executable, "-c", "import sys; from voxelwatch.cli import main; sys.exit(main())", "demo",
                          "--frames", str(FALL_FRAMES), "--port", str(port), "--out", str(tmp_path / "demo")],
                 tmp_path / "demo.log", env=env)
     notify = _start_notifier(site_file, f"tcp/127.0.0.1:{port}", tmp_path)

@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from common.evaluation.io import read_events, read_tracks
+from evaluation.io import read_events, read_tracks
 from common.messages import Event
 from fusion_server.outputs import EVENTS_FILE, TRACKS_FILE, RunOutputs, TracksWriter
 from fusion_server.pipeline import TrackOutput

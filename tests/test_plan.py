@@ -1,4 +1,4 @@
-"""The floor plan (:mod:`common.plan`): fields of view against hand-worked cases, and the SVG."""
+"""The floor plan (:mod:`view.plan`): fields of view against hand-worked cases, and the SVG."""
 
 from __future__ import annotations
 
@@ -8,10 +8,10 @@ import xml.etree.ElementTree as ET
 import numpy as np
 import pytest
 
-from common import synth
+import synth
 from common.camera import Camera, look_at
 from common.messages import Event
-from common.plan import floor_fov, image_outlines, plan_of, plan_svg
+from view.plan import floor_fov, image_outlines, plan_of, plan_svg
 
 SVG = "{http://www.w3.org/2000/svg}"
 

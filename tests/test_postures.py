@@ -5,9 +5,9 @@ from __future__ import annotations
 import typing
 
 from common import messages
-from common.evaluation import io
+from evaluation import io
 from common.postures import BODY_POSTURES, POSTURES, UNKNOWN
-from common.synth.behaviour import BENDING, LYING, SITTING, STANDING
+from synth.behaviour import BENDING, LYING, SITTING, STANDING
 from fusion_server import posture
 
 

@@ -20,8 +20,8 @@ import cv2
 import numpy as np
 import pytest
 
-from common.evaluation import read_events, read_tracks
-from common.synth import derive_truth, get_scenario
+from evaluation import read_events, read_tracks
+from synth import derive_truth, get_scenario
 
 VOXELWATCH = Path(sys.executable).with_name("voxelwatch")
 SCENARIO = "walk"
@@ -159,7 +159,7 @@ def test_replay_of_the_house_with_a_thermal_and_a_depth_camera(tmp_path):
     such, segments them with their own segmenters, passes cam2's foreground range to the pipeline
     and still tracks the person walking through."""
     from common.site import load_site
-    from common.synth import default_site
+    from synth import default_site
     from fusion_server.pipeline import FusionPipeline
     from fusion_server.replay import replay
 
@@ -244,7 +244,7 @@ def test_site_check_reads_each_clips_view_against_the_cameras_reference_picture(
     import re
 
     from camera_worker.viewcheck import save_reference
-    from common.cli import main
+    from voxelwatch.cli import main
 
     site_file, cams, pictures = _panning_room(tmp_path, pan_at_s=0.0, length_s=3.0)
     text = site_file.read_text()

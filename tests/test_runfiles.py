@@ -8,7 +8,7 @@ import math
 import numpy as np
 
 from common import runfiles
-from common.evaluation import io
+from evaluation import io
 from common.messages import Event
 from fusion_server.outputs import RunOutputs
 from fusion_server.pipeline import TrackOutput

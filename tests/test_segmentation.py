@@ -388,7 +388,7 @@ HOUSE_CAMERAS = ("cam1", "cam2", "cam3", "cam4", "cam5")
 
 
 def _house_camera(scenario: str, cam: str, *, shadows: bool = True):
-    source = pytest.importorskip("common.synth.source")
+    source = pytest.importorskip("synth.source")
     return source.SyntheticCamera(scenario, cam, 0, shadows=shadows)
 
 
@@ -478,8 +478,8 @@ def _per_frame(camera, seg: ForegroundSegmenter) -> tuple[list[tuple[float, floa
 def test_house_lamp_switched_on_recovers_at_once(cam):
     import dataclasses
 
-    scenarios = pytest.importorskip("common.synth.scenarios")
-    source = pytest.importorskip("common.synth.source")
+    scenarios = pytest.importorskip("synth.scenarios")
+    source = pytest.importorskip("synth.source")
     spec = scenarios.SCENARIOS["lights"]()
     lamp = source.SyntheticCamera(spec, cam, 0)
     no_lamp = source.SyntheticCamera(dataclasses.replace(spec, lights=()), cam, 0)

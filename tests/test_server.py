@@ -23,7 +23,7 @@ zenoh = pytest.importorskip("zenoh")
 
 from common import keys, messages  # noqa: E402
 from common.camera import Camera  # noqa: E402
-from common.evaluation.io import read_events, read_tracks  # noqa: E402
+from evaluation.io import read_events, read_tracks  # noqa: E402
 from common.messages import Event, HoldRegions, LookRequest, Status, TrackFrame, decode, decode_event, encode  # noqa: E402
 from procs import Proc, loopback_config  # noqa: E402
 from tinysite import BOX_XY, CAMERA_CENTRES, FPS, H, PERIOD_NS, W, box_mask, mask_frame, write_site  # noqa: E402

@@ -187,7 +187,8 @@ def test_lab_site_loads_every_calibration_into_the_world_frame(tmp_path, lab4cam
 
 
 def test_pets_camera_takes_its_size_from_the_calibration(tmp_path, pets_calibration):
-    text = f'name = "pets"\n[[cameras]]\nid = "v1"\ncalibration = "{pets_calibration / "View_001.xml"}"\nformat = "pets-tsai"\nunits = "mm"\n'
+    text = (f'name = "pets"\n[[cameras]]\nid = "v1"\ncalibration = "{pets_calibration / "View_001.xml"}"\n'
+            'format = "pets-tsai"\nunits = "mm"\n')
     cam = load_site(_write(tmp_path, text)).load_camera("v1")
     assert (cam.width, cam.height) == (768, 576)
     assert cam.center[2] > 1.0
@@ -309,7 +310,7 @@ def test_the_pipeline_of_a_site_recognises_its_residents_with_its_identity_setti
 
 
 def test_site_check_loads_the_enrolled_residents(tmp_path, capsys):
-    from common import cli
+    from voxelwatch import cli
     from tests.tinysite import write_site as write_tiny
 
     path, _ = write_tiny(tmp_path)
@@ -325,7 +326,7 @@ def test_site_check_loads_the_enrolled_residents(tmp_path, capsys):
 
 def test_settings_change_a_site_and_are_validated_like_the_file(tmp_path):
     from common.site import with_settings
-    from common.synth import default_site
+    from synth import default_site
 
     site = default_site(tmp_path / "site")
     changed = with_settings(site, ["carving.min_ratio=0.5", "carving.min_cameras = 3"])
@@ -345,7 +346,7 @@ def test_site_check_refuses_what_the_processes_would_refuse(tmp_path, capsys):
     line naming the field, as the fusion server and the workers would at start."""
     import re
 
-    from common import cli
+    from voxelwatch import cli
     from tests.tinysite import write_site as write_tiny
 
     path, _ = write_tiny(tmp_path)

@@ -19,12 +19,12 @@ from camera_worker.sources import (
     ImageFolderSource,
     LiveReader,
     SourceError,
-    SyntheticSource,
     VideoFileSource,
     describe_source,
     open_source,
     recorded_stamp_ns,
 )
+from synth.source import SyntheticSource
 
 
 def write_video(path: Path, n: int, fps: float = 10.0, size=(96, 64)) -> Path:
@@ -329,7 +329,7 @@ def test_live_reader_rejects_bad_backoff():
 
 
 def test_synthetic_source_gives_frames_truth_and_the_empty_room():
-    pytest.importorskip("common.synth.source")
+    pytest.importorskip("synth.source")
     src = open_source("synthetic:walk", cam_id="cam2", seed=1, start_ns=1_000, n_frames=3)
     with src:
         assert src.fps == 15.0 and src.n_frames == 3 and not src.live
@@ -346,7 +346,7 @@ def test_synthetic_source_gives_frames_truth_and_the_empty_room():
 
 
 def test_synthetic_source_names_an_unknown_scenario_or_camera():
-    pytest.importorskip("common.synth.source")
+    pytest.importorskip("synth.source")
     with pytest.raises(SourceError, match="synthetic:nowhere"):
         open_source("synthetic:nowhere", cam_id="cam1").open()
     with pytest.raises(SourceError, match="cam9"):

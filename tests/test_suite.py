@@ -1,7 +1,7 @@
 """The scenario suite, reduced: two short scenarios replayed and scored.
 
 ``voxelwatch eval --suite`` as a user runs it (a real process, which calls
-:func:`fusion_server.suite.run_suite`) with two camera counts: per count, one
+:func:`evaluation.suite.run_suite`) with two camera counts: per count, one
 table row per scenario and a total row from summed counts, and the same
 figures written as JSON.
 
@@ -18,7 +18,7 @@ from pathlib import Path
 
 import pytest
 
-from fusion_server.suite import cameras_for
+from evaluation.suite import cameras_for
 
 VOXELWATCH = Path(sys.executable).with_name("voxelwatch")
 SCENARIOS = ("walk", "two_pass")
@@ -98,7 +98,7 @@ def test_the_suite_scores_an_enrolled_resident(tmp_path):
     """With an enrolment (here a model of colours nobody in the house wears), the site of the
     suite enrols it and every scenario scores who carries the name."""
     from common.appearance import AppearanceModel
-    from fusion_server.suite import run_suite
+    from evaluation.suite import run_suite
 
     model = AppearanceModel()
     model.hist[:, 0] = 1.0
@@ -124,7 +124,7 @@ def test_the_suite_scores_an_enrolled_resident(tmp_path):
 
 
 def test_a_bad_enrolment_stops_the_suite_before_any_replay(tmp_path):
-    from fusion_server.suite import run_suite
+    from evaluation.suite import run_suite
 
     bad = tmp_path / "bad.json"
     bad.write_text(json.dumps({"name": "Ada", "bands": ["head"]}))

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from common.synth.body import (
+from synth.body import (
     N_PARTS, N_Q, Q_HIP_FLEX, Q_KNEE, Q_PITCH, BodyShape, forward_kinematics, highest_point_m, lowest_point_m,
     pose_body, standing_pose,
 )

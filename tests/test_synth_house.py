@@ -6,10 +6,10 @@ import cv2
 import numpy as np
 import pytest
 
-from common.evaluation.io import read_truth_events, read_truth_meta, read_truth_tracks
+from evaluation.io import read_truth_events, read_truth_meta, read_truth_tracks
 from common.site import load_site
-from common.synth.house import measure_render, write_scenario
-from common.synth.source import SyntheticCamera
+from synth.house import measure_render, write_scenario
+from synth.source import SyntheticCamera
 
 
 def _read_all(path):

@@ -7,10 +7,10 @@ import cv2
 import numpy as np
 import pytest
 
-from common.synth.render import CameraRenderer
-from common.synth.scenarios import get_scenario
-from common.synth.scene import CAMERA_IDS, default_cameras, default_site
-from common.synth.source import SyntheticCamera
+from synth.render import CameraRenderer
+from synth.scenarios import get_scenario
+from synth.scene import CAMERA_IDS, default_cameras, default_site
+from synth.source import SyntheticCamera
 
 HALF = default_cameras(scale=0.5)
 

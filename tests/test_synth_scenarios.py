@@ -5,12 +5,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from common.synth.behaviour import (
+from synth.behaviour import (
     FALL_S, SIT_DOWN_S, STAND_UP_S, Fall, Leave, PersonScript, Return, Sit, Stand, Walk, compile_person,
 )
-from common.synth.scenario import ScenarioSpec
-from common.synth.scenarios import DEFAULT_SCENARIO, get_scenario, list_scenarios, scenario_spec
-from common.synth.scene import default_room
+from synth.scenario import ScenarioSpec
+from synth.scenarios import DEFAULT_SCENARIO, get_scenario, list_scenarios, scenario_spec
+from synth.scene import default_room
 
 REQUIRED = {"walk", "sit_stand", "fall_forward", "fall_backward", "fall_sideways", "bend_kneel", "long_still",
             "sit_still_10min", "enter_exit", "hotspot_dwell", "two_pass", "side_by_side", "dinner_visit",

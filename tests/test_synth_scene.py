@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from common.site import load_site
-from common.synth.scene import CAMERA_IDS, default_cameras, default_room, default_site, floor_coverage
+from synth.scene import CAMERA_IDS, default_cameras, default_room, default_site, floor_coverage
 
 
 def _inside_box_xy(xy, box, margin=0.0) -> bool:

@@ -7,11 +7,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from common.synth.body import BodyShape, pose_body, standing_pose
-from common.synth.render import SURF_CEILING, CameraRenderer, frame_for, raycast_room
-from common.synth.scenarios import get_scenario
-from common.synth.scene import default_cameras
-from common.synth.sensors import RangeModel, ThermalModel, agc8, ck_to_celsius, range_frame_mm
+from synth.body import BodyShape, pose_body, standing_pose
+from synth.render import SURF_CEILING, CameraRenderer, frame_for, raycast_room
+from synth.scenarios import get_scenario
+from synth.scene import default_cameras
+from synth.sensors import RangeModel, ThermalModel, agc8, ck_to_celsius, range_frame_mm
 
 HALF = default_cameras(scale=0.5)
 ROOM = get_scenario("walk").room

@@ -7,10 +7,10 @@ import json
 import numpy as np
 import pytest
 
-from common.evaluation.io import read_truth_events, read_truth_meta, read_truth_tracks
+from evaluation.io import read_truth_events, read_truth_meta, read_truth_tracks
 from common.runfiles import TRACK_HEADER
-from common.synth.scenarios import get_scenario, list_scenarios
-from common.synth.truth import DWELL_WINDOW_S, derive_truth, visit_reason, write_truth
+from synth.scenarios import get_scenario, list_scenarios
+from synth.truth import DWELL_WINDOW_S, derive_truth, visit_reason, write_truth
 
 
 @pytest.fixture(scope="module")

@@ -22,13 +22,13 @@ import pytest
 
 from common.camera import Camera
 from common.site import load_site
-from common.synth.body import pose_body
-from common.synth.degrade import MaskFaults
-from common.synth.render import CameraRenderer, raycast_room
-from common.synth.scenario import Scenario
-from common.synth.crowd import STEP_OUT_AWAY_S
-from common.synth.truth import derive_truth
-from common.synth.world import (
+from synth.body import pose_body
+from synth.degrade import MaskFaults
+from synth.render import CameraRenderer, raycast_room
+from synth.scenario import Scenario
+from synth.crowd import STEP_OUT_AWAY_S
+from synth.truth import derive_truth
+from synth.world import (
     ADULT_M, EVALUATION_SEEDS, TUNING_SEEDS, random_world, render_masks, seed_set, write_world,
 )
 
@@ -379,8 +379,8 @@ def test_a_mixed_rig_turns_two_wall_cameras_into_sensors_and_leaves_the_world_as
 
 @pytest.mark.slow
 def test_a_mixed_world_writes_sixteen_bit_frames_and_replay_segments_them(tmp_path):
-    from common.synth.render import CameraRenderer
-    from common.synth.world import SENSOR_FOLDERS, sensor_frame
+    from synth.render import CameraRenderer
+    from synth.world import SENSOR_FOLDERS, sensor_frame
     from fusion_server.pipeline import FusionPipeline
     from fusion_server.replay import replay
 
@@ -427,7 +427,7 @@ def test_a_mixed_world_writes_sixteen_bit_frames_and_replay_segments_them(tmp_pa
 
 
 def test_synth_command_writes_a_mixed_rig_and_says_which_camera_is_which(tmp_path, capsys):
-    from common.cli import main
+    from voxelwatch.cli import main
 
     assert main(["synth", "--world", "random", "--seed", "3", "--sensors", "mixed", "--frames", "3",
                  "--out", str(tmp_path / "w")]) == 0

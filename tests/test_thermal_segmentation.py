@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from camera_worker.thermal import ThermalSegmenter
-from common.synth.sensors import agc8
+from synth.sensors import agc8
 from tests.halfhouse import SCENARIO, half_renderers, hold_box, iou, standing_person, still_person_ious
 
 IOU_BOUND = 0.7

@@ -112,7 +112,7 @@ def test_open_session_retries_an_absent_router_until_stopped_and_refuses_a_busy_
 def test_router_on_a_busy_port_is_one_clear_line() -> None:
     busy, port = _port_in_use()
     with busy:
-        result = subprocess.run([sys.executable, "-c", "import sys; from common.cli import main; sys.exit(main())",
+        result = subprocess.run([sys.executable, "-c", "import sys; from voxelwatch.cli import main; sys.exit(main())",
                                  "router", "--listen", f"tcp/127.0.0.1:{port}"], cwd=ROOT, capture_output=True,
                                 text=True, timeout=60)
     lines = [line for line in result.stderr.splitlines() if line.strip()]
@@ -236,7 +236,7 @@ def test_tls_options_without_a_tls_section_are_refused(tmp_path) -> None:
 ])
 def test_site_check_warns_about_plain_transport(tmp_path, capsys, zenoh_text, warnings) -> None:
     from common.certs import make_site_certs
-    from common.cli import main
+    from voxelwatch.cli import main
 
     site = _site(tmp_path, zenoh_text)
     make_site_certs(tmp_path / "certs", site=site.name, cameras=site.camera_ids)
@@ -274,7 +274,7 @@ def test_camera_and_fusion_commands_take_their_certificate_from_the_site_or_the_
 
 
 def test_router_of_a_secured_site_without_its_certificate_stops_with_the_path(tmp_path, capsys) -> None:
-    from common.cli import main
+    from voxelwatch.cli import main
 
     site = _site(tmp_path, '[zenoh]\nmode = "client"\n[zenoh.tls]\nca = "certs/ca.pem"\ncerts = "certs"\n')
     assert main(["router", "--site", str(site.base_dir / "site.toml"), "--listen", "tls/localhost:1"]) == 2

@@ -48,7 +48,8 @@ import pytest
 
 from procs import ROOT, Proc, free_port, loopback_config, stop_all, wait_for
 
-from common import keys, messages, synth
+import synth
+from common import keys, messages
 
 CHROMEDRIVER = Path("/usr/bin/chromedriver")
 SCENARIO = "fall_forward"
@@ -59,7 +60,7 @@ SHOTS = os.environ.get("VOXELWATCH_VIEW_SHOTS") == "1"
 HEAP_GROWTH_BOUND = 1024 * 1024
 RSS_GROWTH_BOUND_KB = 20 * 1024
 PREFIX = "voxelwatch/synthetic-house"
-PYTHON_CLI = [sys.executable, "-c", "import sys; from common.cli import main; sys.exit(main())"]
+PYTHON_CLI = [sys.executable, "-c", "import sys; from voxelwatch.cli import main; sys.exit(main())"]
 
 
 def _chrome_or_skip():
@@ -113,7 +114,7 @@ class Alerts:
         self.notifier: Proc | None = None
 
     def start_notifier(self, endpoint: str) -> None:
-        self.notifier = Proc("notify", [sys.executable, "-m", "common.notify", "--site", str(self.site_file),
+        self.notifier = Proc("notify", [sys.executable, "-m", "voxelwatch", "notify", "--site", str(self.site_file),
                                         "--mode", "client", "--connect", endpoint, "--status-every", "2"],
                              self.folder / "notify.log", env={"PYTHONPATH": str(ROOT)})
 
@@ -228,7 +229,7 @@ def test_a_wrong_token_is_refused_and_the_right_one_opens_the_page(demo):
     assert code == 200 and plan["plan"]["site"] == "synthetic-house" and plan["alarms"] == ["fall", "long_lie"]
     assert [c["id"] for c in plan["plan"]["cameras"]] == ["cam1", "cam2", "cam3", "cam4", "cam5"]
     # pages that go away free their places: twice as many streams as may be open at once, one after the other
-    from common.view.server import MAX_CLIENTS
+    from view.server import MAX_CLIENTS
 
     for _ in range(2 * MAX_CLIENTS):
         _fusion_up(opener, demo.url)

@@ -1,12 +1,12 @@
-"""The live view's core (:mod:`common.view.state`) and its access check, without zenoh or a browser."""
+"""The live view's core (:mod:`view.state`) and its access check, without zenoh or a browser."""
 
 from __future__ import annotations
 
 import pytest
 
 from common.messages import CameraStatus, Event, Status, TrackFrame, TrackState, event_id
-from common.view.server import Access, Client, clean_name
-from common.view.state import GAP_NS, MAX_ALARMS, MAX_RECENT_EVENTS, LiveState
+from view.server import Access, Client, clean_name
+from view.state import GAP_NS, MAX_ALARMS, MAX_RECENT_EVENTS, LiveState
 
 S = 1_000_000_000
 

@@ -17,9 +17,9 @@ import pytest
 from camera_worker.viewcheck import (
     GRID, ViewCheck, ViewCheckParams, lattice_shift, load_reference, save_reference,
 )
-from common.synth.degrade import CameraMove
-from common.synth.source import SyntheticCamera
-from common.synth.world import random_world
+from synth.degrade import CameraMove
+from synth.source import SyntheticCamera
+from synth.world import random_world
 
 
 def test_lattice_shift_of_a_translation_and_a_scale_by_hand():

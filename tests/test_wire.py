@@ -36,7 +36,6 @@ from procs import Listener, Proc, Router, start_camera, start_fusion, stop_all, 
 
 from camera_worker.worker import looks_bytes  # noqa: E402
 from common import appearance, keys, maskcodec, messages  # noqa: E402
-from common.messages import MaskFrame  # noqa: E402
 
 SCENARIO = "two_pass"
 PEOPLE = 2

@@ -480,7 +480,7 @@ def _play_walk(site: Path, listener: Listener) -> str:
 
 def test_worker_process_plays_the_synthetic_house(tmp_path, listener):
     """The synthetic house as source and background: masks of the walking person, as fast as possible."""
-    pytest.importorskip("common.synth.source")
+    pytest.importorskip("synth.source")
     site = _write_site(tmp_path)
     err = _play_walk(site, listener)
     masks = listener.masks()
@@ -495,7 +495,7 @@ def test_worker_process_plays_the_synthetic_house(tmp_path, listener):
 def test_worker_process_of_a_depth_camera_sends_the_range_with_its_masks(tmp_path, listener):
     """The site's camera is a range camera: the synthetic house renders it as one, the worker
     segments it with the range segmenter and every mask with a person carries its range."""
-    pytest.importorskip("common.synth.source")
+    pytest.importorskip("synth.source")
     site = _write_site(tmp_path)
     site.write_text(site.read_text().replace('source = "clip.avi"', 'modality = "depth"\nsource = "clip.avi"'))
     _play_walk(site, listener)

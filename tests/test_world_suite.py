@@ -17,7 +17,7 @@ from pathlib import Path
 
 import pytest
 
-from fusion_server.world_suite import parse_seeds, run_world_suite
+from evaluation.world_suite import parse_seeds, run_world_suite
 
 VOXELWATCH = Path(sys.executable).with_name("voxelwatch")
 SEEDS = (3, 11, 27)

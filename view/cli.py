@@ -1,4 +1,4 @@
-"""``voxelwatch view``: the command line and the process around :class:`common.view.server.View`.
+"""``voxelwatch view``: the command line and the process around :class:`view.server.View`.
 
 :func:`register` adds the subcommand to ``voxelwatch``; :func:`run_view`
 opens the zenoh session (retrying while the router is away, like every
@@ -96,7 +96,7 @@ async def _serve(session, site, *, host: str, port: int, token: str, prefix: str
                  stream: TextIO) -> int:
     from aiohttp import web
 
-    from common.view.server import View, make_app
+    from view.server import View, make_app
 
     view = View(session, site, token=token, prefix=prefix)
     # handler_cancellation: a page that goes away ends its stream at once (not at the next write)

@@ -212,7 +212,7 @@ def plan_svg(site: "Site | Plan", tracks_rows: Any, events: Iterable["Event | Ma
     """A finished run drawn on the floor plan, as SVG text (no other file needed to view it).
 
     site: a Site (its calibrations are loaded for the cameras' fields of view) or a :class:`Plan`.
-    tracks_rows: the run's tracks: a ``TrackTable`` (:mod:`common.evaluation.io`), or rows
+    tracks_rows: the run's tracks: a ``TrackTable`` (:mod:`evaluation.io`), or rows
         ``(frame, stamp_ns, id, x, y, z_top, posture[, person])`` or dicts with those keys.
     events: Events (or their dicts); those with a place are marked where they happened.
     truth: the true tracks in the same forms, drawn as dashed black paths.

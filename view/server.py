@@ -8,7 +8,7 @@ under a lock -- the newest track frame, status and mask of each camera
 replace older ones, events go into a bounded queue -- and wake the asyncio
 loop at most once until it has drained the inbox
 (``loop.call_soon_threadsafe``). Everything else happens on the loop:
-decoding, :class:`~common.view.state.LiveState`, and the push to browsers.
+decoding, :class:`~view.state.LiveState`, and the push to browsers.
 History queries and acknowledgements are zenoh ``get`` calls, run in worker
 threads so that the loop never waits on the network.
 
@@ -20,7 +20,7 @@ Web side:
 | ``/install/<cam>`` | the installer's page of one camera |
 | ``/login`` | the token form (GET), the login (POST: token, name) |
 | ``/static/...`` | the page's own script and style (no data in them) |
-| ``/api/plan`` | the plan geometry (:mod:`common.plan`) and the view settings |
+| ``/api/plan`` | the plan geometry (:mod:`view.plan`) and the view settings |
 | ``/api/stream`` | server-sent events: ``snapshot`` first, then ``tracks``, ``event``, ``alarms``, ``status``, ``fusion`` |
 | ``/api/events`` | the history (``kind``, ``since``, ``until``, ``limit`` as the history queryable takes them) |
 | ``/api/timeline`` | the day per person (since the home's midnight, or ``since``) |
@@ -65,7 +65,7 @@ from aiohttp import web
 
 from common import keys, messages
 from common.messages import Event, Status, TrackFrame, WireError
-from common.view.state import LiveState
+from view.state import LiveState
 
 log = logging.getLogger("voxelwatch.view")
 
@@ -248,7 +248,7 @@ class View:
 
     def __init__(self, session: Any, site: Any, *, token: str, prefix: str | None = None,
                  plan: dict[str, Any] | None = None) -> None:
-        from common.plan import plan_of
+        from view.plan import plan_of
 
         self.session = session
         self.site = site
@@ -424,7 +424,7 @@ class View:
     # ------------------------------------------------------------------ installer data
 
     def install_info(self, cam: str) -> dict[str, Any]:
-        from common.plan import image_outlines
+        from view.plan import image_outlines
 
         info = self._install.get(cam)
         if info is None:

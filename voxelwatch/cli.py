@@ -119,7 +119,8 @@ def _site_check(args: argparse.Namespace) -> int:
     for cam_id, cam in cameras.items():
         x, y, z = cam.center
         print(f"  camera {cam_id}: {cam.model} {cam.width}x{cam.height}, centre ({x:.2f}, {y:.2f}, {z:.2f}) m")
-    print(f"  {len(site.hotspots)} hot spots, {len(site.doors)} doors, {len(site.occluders)} occluders; long lie after {site.events.long_lie_s:g} s, "
+    print(f"  {len(site.hotspots)} hot spots, {len(site.doors)} doors, {len(site.occluders)} occluders; "
+          f"long lie after {site.events.long_lie_s:g} s, "
           f"inactivity after {site.events.inactivity_s:g} s")
     print(f"  identity: a person who leaves keeps their track id for {site.identity.reid_window_s:g} s; "
           f"colours asked {site.identity.rate_hz:g} times a second; {site.residents} residents, {len(residents)} enrolled")
@@ -128,7 +129,7 @@ def _site_check(args: argparse.Namespace) -> int:
     for line in _network_lines(site):
         print(f"  {line}")
     if args.clip:
-        from fusion_server.calibration_check import check_clips
+        from calibrate.check import check_clips
 
         clips = dict(c.split("=", 1) for c in args.clip if "=" in c)
         if len(clips) != len(args.clip):
@@ -307,7 +308,7 @@ def _register_synth(sub) -> None:
 
 
 def _synth(args: argparse.Namespace) -> int:
-    from common import synth
+    import synth
 
     if args.list:
         for name in synth.list_scenarios():
@@ -332,7 +333,7 @@ def _synth(args: argparse.Namespace) -> int:
 
 
 def _synth_world(args: argparse.Namespace) -> int:
-    from common.synth.world import random_world, write_world
+    from synth.world import random_world, write_world
 
     if args.scenario or args.cameras or args.masks:
         raise ValueError("--scenario, --cameras and --masks are for --world house; a random world is all its --seed")
@@ -368,7 +369,6 @@ def _register_replay(sub) -> None:
 
 
 def _replay(args: argparse.Namespace) -> int:
-    from common.site import load_site
     from fusion_server.replay import replay
 
     site = _replay_site(args)
@@ -394,7 +394,7 @@ def _replay_site(args: argparse.Namespace):
         return load_site(args.site)
     if args.synthetic is None:
         raise ValueError("--site is required with --input")
-    from common.synth import default_site
+    from synth import default_site
 
     return default_site(args.out / "site")
 
@@ -443,7 +443,7 @@ def _enrol(args: argparse.Namespace) -> int:
         elif args.synthetic is None:
             raise ValueError("--site is required with --input")
         else:
-            from common.synth import default_site
+            from synth import default_site
 
             site = default_site(Path(tmp))
         done = enrol(site, args.name, args.out, input_dir=args.input, synthetic=args.synthetic, seed=args.seed,
@@ -492,7 +492,7 @@ def _register_eval(sub) -> None:
 
 def _eval(args: argparse.Namespace) -> int:
     if args.suite and args.world == "random":
-        from fusion_server.world_suite import parse_seeds, run_world_suite
+        from evaluation.world_suite import parse_seeds, run_world_suite
 
         if args.enrolled is not None:
             raise ValueError("--enrolled is for the house suite: a random world's people are its own")
@@ -505,7 +505,7 @@ def _eval(args: argparse.Namespace) -> int:
     if args.sensors != "colour":
         raise ValueError("--sensors is for --suite --world random")
     if args.suite:
-        from fusion_server.suite import run_suite
+        from evaluation.suite import run_suite
 
         return run_suite(
             out_dir=args.out, scenarios=args.scenarios.split(",") if args.scenarios else None, quick=args.quick,
@@ -515,14 +515,14 @@ def _eval(args: argparse.Namespace) -> int:
         )
     if args.truth is None or args.run is None:
         raise ValueError("give --truth and --run, or --suite")
-    from common.evaluation import evaluate, format_table, write_json
+    from evaluation import evaluate, format_table, write_json
 
     results = evaluate(args.truth, args.run)
     print(format_table(results))
     if args.json:
         write_json(results, args.json)
     if args.plots:
-        from common.evaluation import plots
+        from evaluation import plots
 
         args.plots.mkdir(parents=True, exist_ok=True)
         plots.plan_view(args.run, _site_near(args.truth), args.plots / "plan.png", truth_dir=args.truth)
@@ -557,7 +557,7 @@ def _register_demo(sub) -> None:
 
 
 def _demo(args: argparse.Namespace) -> int:
-    from common.demo import run_demo
+    from voxelwatch.demo import run_demo
 
     if args.world and args.scenario:
         print("voxelwatch demo: give --scenario or --world, not both", file=sys.stderr)
@@ -571,7 +571,8 @@ def _demo(args: argparse.Namespace) -> int:
 
 def _register_bench(sub) -> None:
     p = sub.add_parser("bench", help="measure every stage's speed and size on this machine")
-    p.add_argument("--sections", default=None, help="comma-separated subset of: codec, worker, render, carving, tracking, pipeline, looks, latency; "
+    p.add_argument("--sections", default=None,
+                   help="comma-separated subset of: codec, worker, render, carving, tracking, pipeline, looks, latency; "
                    "and soak (never by default: the demo system for --soak-minutes with processes killed and restarted)")
     p.add_argument("--soak-minutes", type=float, default=30.0, help="soak: how long (default 30)")
     p.add_argument("--soak-speed", type=float, default=4.0, help="soak: times real time (default 4)")
@@ -584,7 +585,7 @@ def _register_bench(sub) -> None:
 
 
 def _bench(args: argparse.Namespace) -> int:
-    from fusion_server.benchmark import SECTIONS, run_bench
+    from evaluation.benchmark import SECTIONS, run_bench
 
     sections = [s.strip() for s in args.sections.split(",")] if args.sections else list(SECTIONS)
     unknown = sorted(set(sections) - set(SECTIONS) - {"soak"})
@@ -592,7 +593,7 @@ def _bench(args: argparse.Namespace) -> int:
         raise ValueError(f"unknown bench sections {unknown}; sections are {[*SECTIONS, 'soak']}")
     soak = None
     if "soak" in sections:
-        from common.soak import run_soak
+        from voxelwatch.soak import run_soak
 
         sections.remove("soak")
         soak = run_soak(minutes=args.soak_minutes, speed=args.soak_speed, kill_every_s=args.soak_kill_every,
@@ -604,9 +605,9 @@ def _bench(args: argparse.Namespace) -> int:
     return 0
 
 
-from common.notify.cli import register as _register_notify  # noqa: E402 - its own package, argparse only
-from common.view.cli import register as _register_view  # noqa: E402 - its own package, argparse only
-from common.calibrate.command import register as _register_calibrate  # noqa: E402 - its own package, argparse only
+from notify.cli import register as _register_notify  # noqa: E402 - its own package, argparse only
+from view.cli import register as _register_view  # noqa: E402 - its own package, argparse only
+from calibrate.command import register as _register_calibrate  # noqa: E402 - its own package, argparse only
 
 _SUBCOMMANDS: list[Callable] = [
     _register_demo,

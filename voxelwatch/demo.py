@@ -7,7 +7,7 @@ router the others connect to as clients, and it subscribes to the events and
 tracks like any user would. It prints events as they happen with a progress
 line, and ends with a summary, the tracks and events files, a score against
 the scenario's ground truth and an annotated plan view (``run/plan.svg``,
-drawn by :func:`common.plan.plan_svg`; also ``run/plan.png`` when matplotlib
+drawn by :func:`view.plan.plan_svg`; also ``run/plan.png`` when matplotlib
 is installed).
 
 With ``view``, the demo also runs ``voxelwatch view`` as one more process of
@@ -23,7 +23,6 @@ the reader certificate), never from inside the router.
 
 from __future__ import annotations
 
-import datetime as _dt
 import os
 import signal
 import subprocess
@@ -77,7 +76,8 @@ def run_demo(
     view is served as well (None: no view)."""
     import zenoh
 
-    from common import keys, messages, synth
+    import synth
+    from common import keys
 
     out = Path(out_dir).resolve()
     run_dir = out / "run"
@@ -101,7 +101,7 @@ def run_demo(
         if scenario is not None:
             raise ValueError("give a scenario or a world, not both")
         from common.site import load_site
-        from common.synth.world import random_world, write_world_site
+        from synth.world import random_world, write_world_site
 
         made = random_world(seed, sensors=sensors)
         sc = made.scenario
@@ -136,7 +136,7 @@ def run_demo(
     logs = out / "logs"
     logs.mkdir(exist_ok=True)
     zenoh_args = ["--mode", "client", "--connect", endpoint]
-    with zenoh.open(conf) as router, _reader_session(site, endpoint, secure) as reader:
+    with zenoh.open(conf) as router, _ReaderSession(site, endpoint, secure) as reader:
         session = reader or router
         subs = [
             session.declare_subscriber(keys.events_wildcard(site.prefix), lambda s: _on_event(s, live, stream, t_launch, sc)),
@@ -186,7 +186,7 @@ def _secure_site(site, certs_dir: Path, site_path: Path):
     return load_site(site_path)
 
 
-class _reader_session:
+class _ReaderSession:
     """With ``secure``, a client session with the reader certificate (``None`` otherwise), closed on exit."""
 
     def __init__(self, site, endpoint: str, secure: bool) -> None:
@@ -306,7 +306,8 @@ def _watch(procs, live: _Live, cam_ids, n_frames: int, fps: float, stream: TextI
         with live.lock:
             frame, tracks, count, cams = live.frame, list(live.tracks), live.track_frames, dict(live.cameras)
         now = time.monotonic()
-        rate = 0.7 * rate + 0.3 * (count - last_frames) / max(now - last_t, 1e-6) if last_frames else (count - last_frames) / max(now - last_t, 1e-6)
+        recent = (count - last_frames) / max(now - last_t, 1e-6)
+        rate = 0.7 * rate + 0.3 * recent if last_frames else recent
         last_frames, last_t = count, now
         people = ", ".join(f"{t.id}:{t.posture}" for t in tracks) or "nobody"
         ok = sum(1 for c in cams.values() if c.state == "ok")
@@ -335,7 +336,7 @@ def _stop_all(procs: dict[str, subprocess.Popen]) -> None:
 
 
 def _summary(out: Path, run_dir: Path, live: _Live, procs, stream: TextIO) -> int:
-    from common.evaluation import evaluate
+    from evaluation import evaluate
 
     print("\n", file=stream)
     kinds = Counter(e.kind for e in live.events)
@@ -356,11 +357,11 @@ def _summary(out: Path, run_dir: Path, live: _Live, procs, stream: TextIO) -> in
         if fall and (fall.get("tp", 0) + fall.get("fn", 0)):
             line += f", falls found {fall['tp']}/{fall['tp'] + fall['fn']}"
         print(line, file=stream)
-    except Exception as exc:  # the summary must not hide the files already written
+    except Exception as exc:  # noqa: BLE001 - the summary must not hide the files already written
         print(f"(could not score against ground truth: {exc})", file=stream)
     try:
-        from common.evaluation import io
-        from common.plan import plan_svg
+        from evaluation import io
+        from view.plan import plan_svg
         from common.site import load_site
 
         site = load_site(out / "site" / "site.toml")
@@ -369,12 +370,12 @@ def _summary(out: Path, run_dir: Path, live: _Live, procs, stream: TextIO) -> in
         (run_dir / "plan.svg").write_text(svg, encoding="utf-8")
         print(f"plan view: {run_dir / 'plan.svg'}", file=stream)
         try:
-            from common.evaluation import plots
+            from evaluation import plots
 
             plots.plan_view(run_dir, site, run_dir / "plan.png", truth_dir=out / "truth")
         except ImportError:
             pass  # the PNG needs matplotlib; the SVG does not
-    except Exception as exc:  # the summary must not hide the files already written
+    except Exception as exc:  # noqa: BLE001 - the summary must not hide the files already written
         print(f"(no plan view: {exc})", file=stream)
     print(f"tracks: {run_dir / TRACKS_FILE}\nevents: {run_dir / EVENTS_FILE}", file=stream)
     return 1 if failed else 0

@@ -35,7 +35,8 @@ import numpy as np
 
 __all__ = [
     "BEHIND", "BODY_DEPTH_M", "DEPTH_NOISE_M", "DEPTH_NOISE_PER_M", "FREE", "NOISE_SIGMAS", "NO_MEASUREMENT",
-    "FOOTPRINT_HALF_WIDTHS_PX", "SURFACE", "apply_verdicts", "footprint_level", "check_depth", "depth_tolerance_m", "depth_verdicts", "footprint_depth",
+    "FOOTPRINT_HALF_WIDTHS_PX", "SURFACE", "apply_verdicts", "footprint_level", "check_depth", "depth_tolerance_m",
+    "depth_verdicts", "footprint_depth",
 ]
 
 DEPTH_NOISE_M = 0.01

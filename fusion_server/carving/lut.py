@@ -277,7 +277,7 @@ def _read(path: Path, key: str, camera: Camera, layout: OctreeLayout) -> CameraL
             n = layout.count(level)
             if pix.dtype != np.int32 or pix.shape != (n,) or rad.dtype != np.uint16 or rad.shape != (n,):
                 raise ValueError(f"level {level}: arrays {pix.dtype}{pix.shape}/{rad.dtype}{rad.shape}, expected ({n},)")
-            if n and (pix.min() < -1 or pix.max() >= width * height):
+            if n and (pix.min() < HIDDEN or pix.max() >= width * height):
                 raise ValueError(f"level {level}: pixel index out of range")
             pixels.append(pix)
             radii.append(rad)
