@@ -8,12 +8,11 @@ from __future__ import annotations
 
 import argparse
 import logging
-import signal
 import sys
-import threading
 from collections.abc import Sequence
 
 from common import maskcodec
+from common.shell import add_logging_arguments, add_zenoh_arguments, configure_logging, serve
 
 log = logging.getLogger("voxelwatch.camera")
 
@@ -43,7 +42,8 @@ examples:
       --background cam1/background.avi --fast --connect tcp/10.0.0.2:7447
 
 exit status: 0 when a recorded source ended or on SIGINT/SIGTERM; 1 when the
-source or the background clip cannot be used; 2 for a bad site file or option.
+source, the background clip or the zenoh session cannot be used; 2 for a bad
+site file or option.
 """
 
 
@@ -89,29 +89,17 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--codec", choices=maskcodec.CODECS, default=maskcodec.DEFAULT_CODEC,
                    help=f"mask codec (default {maskcodec.DEFAULT_CODEC})")
 
-    g = p.add_argument_group("zenoh (default: the site's [zenoh] section)")
-    g.add_argument("--prefix", help="key prefix (default: the site's, or voxelwatch/<site name>)")
-    g.add_argument("--mode", choices=("peer", "client", "router"), help="zenoh mode")
-    g.add_argument("--listen", action="append", metavar="ENDPOINT",
-                   help="listen on this endpoint, e.g. tcp/0.0.0.0:7448 (repeatable; replaces the site's)")
-    g.add_argument("--connect", action="append", metavar="ENDPOINT",
-                   help="connect to this endpoint, e.g. tcp/10.0.0.2:7447 (repeatable; replaces the site's)")
-    g.add_argument("--tls-cert", metavar="PEM",
-                   help="this host's certificate (default: <camera id>.pem in the site's [zenoh.tls] certs folder)")
-    g.add_argument("--tls-key", metavar="PEM", help="this host's private key (default: <camera id>-key.pem beside it)")
+    add_zenoh_arguments(p, host="<camera id>")
 
-    g = p.add_argument_group("logging")
+    g = add_logging_arguments(p)
     g.add_argument("--stats-period", type=float, default=10.0, metavar="S",
                    help="log counters and per-stage times every S seconds (default 10)")
-    g.add_argument("-v", "--verbose", action="store_true", help="log debug messages")
-    g.add_argument("-q", "--quiet", action="store_true", help="log warnings and errors only")
     return p
 
 
 def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    logging.basicConfig(level=logging.DEBUG if args.verbose else logging.WARNING if args.quiet else logging.INFO,
-                        format="%(asctime)s %(levelname)s %(name)s: %(message)s", stream=sys.stderr)
+    configure_logging(args.verbose, args.quiet)
     _quiet_opencv()
     try:
         settings, conf, connect = _configure(args)
@@ -120,30 +108,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 2
 
     from camera_worker.worker import run
-    from common.transport import TransportError, open_session, watch_links
 
-    stop = threading.Event()
-
-    def _on_signal(signum: int, _frame: object) -> None:
-        log.info("camera %s: %s received, stopping", settings.cam, signal.Signals(signum).name)
-        stop.set()
-
-    signal.signal(signal.SIGINT, _on_signal)
-    signal.signal(signal.SIGTERM, _on_signal)
-    who = f"camera {settings.cam}"
-    try:
-        session = open_session(conf, stop, who=who, endpoints=connect, log=log)
-    except TransportError as exc:
-        print(f"voxelwatch-camera: cannot open the zenoh session: {exc}", file=sys.stderr)
-        return 2
-    if session is None:
-        log.info("%s: stopped before zenoh could be reached", who)
-        return 0
-    watch_links(session, stop, who=who, endpoints=connect, log=log)
-    try:
-        return run(session, settings, stop=stop)
-    finally:
-        session.close()
+    return serve(conf, who=f"camera {settings.cam}", endpoints=connect, log=log,
+                 work=lambda session, stop: run(session, settings, stop=stop))
 
 
 def _configure(args: argparse.Namespace):

@@ -67,11 +67,13 @@ def add_zenoh_arguments(parser: argparse.ArgumentParser, *, host: str, listen: b
     return g
 
 
-def add_logging_arguments(parser: argparse.ArgumentParser) -> None:
-    """``-v/--verbose`` (debug messages) and ``-q/--quiet`` (warnings and errors only)."""
+def add_logging_arguments(parser: argparse.ArgumentParser) -> argparse._ArgumentGroup:
+    """``-v/--verbose`` (debug messages) and ``-q/--quiet`` (warnings and errors only), in a
+    ``logging`` group the caller may add to."""
     g = parser.add_argument_group("logging")
     g.add_argument("-v", "--verbose", action="store_true", help="log debug messages")
     g.add_argument("-q", "--quiet", action="store_true", help="log warnings and errors only")
+    return g
 
 
 def configure_logging(verbose: bool = False, quiet: bool = False) -> None:

@@ -3,11 +3,12 @@
 from __future__ import annotations
 
 import argparse
-import logging
 import sys
 from collections.abc import Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING
+
+from common.shell import add_logging_arguments, add_zenoh_arguments, configure_logging
 
 if TYPE_CHECKING:
     from fusion_server.node import FusionSettings
@@ -30,22 +31,25 @@ restarted server answers history queries with everything it sent before.
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="voxelwatch-fusion", description=DESCRIPTION, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = argparse.ArgumentParser(prog="voxelwatch-fusion", description=DESCRIPTION,
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--site", required=True, type=Path, help="the site TOML file (cameras, volume, hot spots, doors, zenoh)")
-    p.add_argument("--store", type=Path, default=None, help="SQLite event store (default: voxelwatch-events.sqlite next to the site file)")
+    p.add_argument("--store", type=Path, default=None,
+                   help="SQLite event store (default: voxelwatch-events.sqlite next to the site file)")
     p.add_argument("--out", type=Path, default=None, help="also write tracks.csv and events.jsonl into this folder")
-    p.add_argument("--prefix", default=None, help="zenoh key prefix (default from the site: voxelwatch/<site name>)")
-    p.add_argument("--listen", action="append", default=None, help="zenoh endpoint to listen on (repeatable), overrides the site")
-    p.add_argument("--connect", action="append", default=None, help="zenoh endpoint to connect to (repeatable), overrides the site")
-    p.add_argument("--mode", choices=["peer", "client"], default=None, help="zenoh mode, overrides the site")
-    p.add_argument("--tls-cert", type=Path, default=None, help="this host's certificate (default: fusion.pem in the site's [zenoh.tls] certs folder)")
-    p.add_argument("--tls-key", type=Path, default=None, help="this host's private key (default: fusion-key.pem beside it)")
-    p.add_argument("--cache-dir", type=Path, default=None, help="where carving lookup tables are cached (default ~/.cache/voxelwatch)")
-    p.add_argument("--min-cameras", type=int, default=None, help="fewest cameras a frame set needs to be fused (default: the carving vote's min_cameras)")
-    p.add_argument("--exit-after-idle", type=float, default=None, metavar="SECONDS", help="stop when no mask has arrived for this long (for replays and tests)")
-    p.add_argument("--max-clock-skew-ms", type=float, default=None, metavar="MS", help="mark a camera skewed when its stamps run this far from the server's clock (default 250)")
-    p.add_argument("--free-timeline", action="store_true", help="let the frame-set timeline follow the cameras' stamps instead of this host's clock (recordings played faster than real time, e.g. workers run with --fast)")
-    p.add_argument("-v", "--verbose", action="store_true", help="log debug messages")
+    p.add_argument("--cache-dir", type=Path, default=None,
+                   help="where carving lookup tables are cached (default ~/.cache/voxelwatch)")
+    p.add_argument("--min-cameras", type=int, default=None,
+                   help="fewest cameras a frame set needs to be fused (default: the carving vote's min_cameras)")
+    p.add_argument("--exit-after-idle", type=float, default=None, metavar="SECONDS",
+                   help="stop when no mask has arrived for this long (for replays and tests)")
+    p.add_argument("--max-clock-skew-ms", type=float, default=None, metavar="MS",
+                   help="mark a camera skewed when its stamps run this far from the server's clock (default 250)")
+    p.add_argument("--free-timeline", action="store_true",
+                   help="let the frame-set timeline follow the cameras' stamps instead of this host's clock "
+                        "(recordings played faster than real time, e.g. workers run with --fast)")
+    add_zenoh_arguments(p, host="fusion")
+    add_logging_arguments(p)
     return p
 
 
@@ -89,7 +93,7 @@ def settings_from_args(args: argparse.Namespace) -> "FusionSettings":
 
 def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    configure_logging(args.verbose, args.quiet)
     from fusion_server.server import run_forever
 
     try:

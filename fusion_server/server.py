@@ -38,7 +38,6 @@ from __future__ import annotations
 
 import logging
 import queue
-import signal
 import threading
 import time
 from collections import OrderedDict, deque
@@ -75,7 +74,8 @@ def run_forever(settings: FusionSettings) -> int:
     output folder are unusable (the reason is logged).
     """
     from common.certs import FUSION
-    from common.transport import TransportError, open_session, site_config, watch_links
+    from common.shell import serve
+    from common.transport import site_config
 
     z = settings.site.zenoh
     connect = list(settings.connect if settings.connect is not None else z.connect)
@@ -94,24 +94,8 @@ def run_forever(settings: FusionSettings) -> int:
     except KeyboardInterrupt:  # interrupted while the lookup tables were being built
         log.info("fusion: interrupted before start")
         return 130
-    stop = threading.Event()
-    previous = _install_signal_handlers(stop)
-    try:
-        try:
-            session = open_session(make_config, stop, who="fusion", endpoints=connect, log=log)
-        except TransportError as exc:
-            log.error("fusion: cannot open the zenoh session: %s", exc)
-            return 1
-        if session is None:
-            log.info("fusion: stopped before zenoh could be reached")
-            return 0
-        watch_links(session, stop, who="fusion", endpoints=connect, log=log)
-        try:
-            return run(session, settings, stop, pipeline)
-        finally:
-            session.close()
-    finally:
-        _restore_signal_handlers(previous)
+    return serve(make_config, who="fusion", endpoints=connect, log=log,
+                 work=lambda session, stop: run(session, settings, stop, pipeline))
 
 
 def run(session: Any, settings: FusionSettings, stop_event: threading.Event, pipeline: FusionPipeline) -> int:
@@ -413,20 +397,3 @@ def _parameter(parameters: str, name: str) -> str:
 
 def _bounded(text: str, limit: int = _MAX_ERROR) -> str:
     return text if len(text) <= limit else text[: limit - 3] + "..."
-
-
-# --------------------------------------------------------------------------- signals
-
-
-def _install_signal_handlers(stop: threading.Event) -> dict:
-    previous = {}
-    if threading.current_thread() is not threading.main_thread():
-        return previous
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        previous[sig] = signal.signal(sig, lambda signum, frame: stop.set())
-    return previous
-
-
-def _restore_signal_handlers(previous: dict) -> None:
-    for sig, handler in previous.items():
-        signal.signal(sig, handler)

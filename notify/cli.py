@@ -5,6 +5,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from common.shell import add_zenoh_arguments
+
 
 def register(sub) -> None:
     """Add the ``notify`` subcommand to the umbrella command's subparsers."""
@@ -13,15 +15,11 @@ def register(sub) -> None:
     p.add_argument("--site", type=Path, required=True, help="the site TOML file (its [notify] section: channels, kinds)")
     p.add_argument("--outbox", type=Path, default=None,
                    help="the outbox file (default: [notify] outbox, relative to the site file)")
-    p.add_argument("--listen", action="append", default=None, help="zenoh endpoint to listen on (repeatable), overrides the site")
-    p.add_argument("--connect", action="append", default=None, help="zenoh endpoint to connect to (repeatable), overrides the site")
-    p.add_argument("--mode", choices=["peer", "client"], default=None, help="zenoh mode, overrides the site")
     p.add_argument("--reader", default=None, metavar="NAME",
                    help="the reader certificate to use with [zenoh.tls] (default: the site's first reader)")
-    p.add_argument("--tls-cert", type=Path, default=None, help="this host's certificate (default: <reader>.pem in the site's certs folder)")
-    p.add_argument("--tls-key", type=Path, default=None, help="this host's private key (default: <reader>-key.pem beside it)")
     p.add_argument("--status-every", type=float, default=60.0, metavar="SECONDS",
                    help="log a status line per channel this often (default 60)")
+    add_zenoh_arguments(p, host="<reader>", prefix=False)
     p.set_defaults(handler=_notify)
 
 

@@ -288,9 +288,7 @@ def run_forever(site: Site, *, outbox_path: Path, make_config: Callable[[], Any]
 
     Returns 0 after a stop, 1 when the zenoh session cannot be opened, 2 when the outbox
     cannot be opened (logged)."""
-    import signal
-
-    from common.transport import TransportError, open_session, watch_links
+    from common.shell import serve
 
     try:
         outbox = Outbox(outbox_path, retry_max_s=site.notify.retry_max_s)
@@ -298,10 +296,6 @@ def run_forever(site: Site, *, outbox_path: Path, make_config: Callable[[], Any]
         log.error("%s", exc)
         return 2
     stop = threading.Event()
-    previous = {}
-    if threading.current_thread() is threading.main_thread():
-        for sig in (signal.SIGINT, signal.SIGTERM):
-            previous[sig] = signal.signal(sig, lambda *_: stop.set())
     dispatchers: dict[str, Dispatcher] = {}
     notifier = Notifier(site, outbox, channels, wake=lambda name: dispatchers[name].wake.set())
     try:
@@ -314,18 +308,8 @@ def run_forever(site: Site, *, outbox_path: Path, make_config: Callable[[], Any]
                  ", ".join(f"{c.label}: {counts[c.name]['pending']} pending" for c in channels))
         for dispatcher in dispatchers.values():
             dispatcher.start()
-        try:
-            session = open_session(make_config, stop, who="notify", endpoints=endpoints, log=log)
-        except TransportError as exc:
-            log.error("notify: cannot open the zenoh session: %s", exc)
-            return 1
-        if session is None:
-            return 0
-        watch_links(session, stop, who="notify", endpoints=endpoints, log=log)
-        try:
-            return run(session, notifier, stop, status_every_s=status_every_s)
-        finally:
-            session.close()
+        return serve(make_config, who="notify", endpoints=endpoints, log=log, stop=stop,
+                     work=lambda session, stop: run(session, notifier, stop, status_every_s=status_every_s))
     finally:
         stop.set()
         deadline = time.monotonic() + STOP_WAIT_S
@@ -339,5 +323,3 @@ def run_forever(site: Site, *, outbox_path: Path, make_config: Callable[[], Any]
             channel.close()
         if not busy:
             outbox.close()
-        for sig, handler in previous.items():
-            signal.signal(sig, handler)

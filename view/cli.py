@@ -18,6 +18,8 @@ import threading
 from pathlib import Path
 from typing import TextIO
 
+from common.shell import add_zenoh_arguments
+
 log = logging.getLogger("voxelwatch.view")
 
 
@@ -32,13 +34,7 @@ def register(sub) -> None:
                    help="where the page is served (default: the site's [view] listen, 127.0.0.1:8080)")
     p.add_argument("--token-file", type=Path, default=None,
                    help="a file holding the access token (default: the site's [view] token or token_file)")
-    p.add_argument("--prefix", default=None, help="zenoh key prefix (default from the site: voxelwatch/<site name>)")
-    p.add_argument("--connect", action="append", default=None,
-                   help="zenoh endpoint to connect to (repeatable), overrides the site")
-    p.add_argument("--mode", choices=["peer", "client"], default=None, help="zenoh mode, overrides the site")
-    p.add_argument("--tls-cert", type=Path, default=None,
-                   help="this host's certificate (default: the first [zenoh.tls] reader's, e.g. reader.pem)")
-    p.add_argument("--tls-key", type=Path, default=None, help="this host's private key (default: beside it)")
+    add_zenoh_arguments(p, host="<first reader>", listen=False)
     p.set_defaults(handler=_view)
 
 
@@ -58,7 +54,8 @@ def run_view(site, *, host: str, port: int, token: str, prefix: str | None = Non
              stream: TextIO = sys.stdout) -> int:
     """Serve the view of ``site`` on ``host:port`` until SIGINT/SIGTERM; the exit code."""
     from common import keys
-    from common.transport import open_session, site_config, watch_links
+    from common.shell import serve
+    from common.transport import site_config
 
     if prefix is not None:
         try:
@@ -74,22 +71,12 @@ def run_view(site, *, host: str, port: int, token: str, prefix: str | None = Non
                            connect_timeout_ms=1000)
 
     make_config()  # a bad setting stops here with its message, before any retrying
-    stop = threading.Event()
-    previous = {sig: signal.signal(sig, lambda *_: stop.set()) for sig in (signal.SIGINT, signal.SIGTERM)}
-    try:
-        session = open_session(make_config, stop, who="view", endpoints=endpoints, log=log)
-        if session is None:
-            return 0
-        try:
-            watch_links(session, stop, who="view", endpoints=endpoints, log=log)
-            return asyncio.run(_serve(session, site, host=host, port=port, token=token, prefix=prefix,
-                                      stop=stop, stream=stream))
-        finally:
-            stop.set()
-            session.close()
-    finally:
-        for sig, handler in previous.items():
-            signal.signal(sig, handler)
+
+    def work(session, stop: threading.Event) -> int:
+        return asyncio.run(_serve(session, site, host=host, port=port, token=token, prefix=prefix,
+                                  stop=stop, stream=stream))
+
+    return serve(make_config, who="view", endpoints=endpoints, log=log, work=work)
 
 
 async def _serve(session, site, *, host: str, port: int, token: str, prefix: str | None, stop: threading.Event,

@@ -8,10 +8,11 @@ from __future__ import annotations
 
 import argparse
 import json
-import logging
 import sys
 from collections.abc import Callable, Sequence
 from pathlib import Path
+
+from common.shell import add_logging_arguments, configure_logging
 
 DESCRIPTION = """\
 voxelwatch: multi-camera 3D sensing of people at home.
@@ -44,7 +45,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
         prog="voxelwatch", description=DESCRIPTION, epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter
     )
-    parser.add_argument("-v", "--verbose", action="store_true", help="log debug messages")
+    add_logging_arguments(parser)
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     for register in _SUBCOMMANDS:
         register(sub)
@@ -56,7 +57,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.command is None:
         parser.print_help()
         return 2
-    logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO, format="%(levelname)s %(name)s: %(message)s")
+    configure_logging(args.verbose, args.quiet)
     try:
         return int(args.handler(args) or 0)
     except KeyboardInterrupt:
@@ -186,12 +187,10 @@ def _register_router(sub) -> None:
 
 
 def _router(args: argparse.Namespace) -> int:
-    import signal
-    import threading
-
     import zenoh
 
     from common.certs import ROUTER
+    from common.shell import stop_on_signals
     from common.site import ZenohSettings, load_site
     from common.transport import short_error, site_config, zenoh_config
 
@@ -211,17 +210,15 @@ def _router(args: argparse.Namespace) -> int:
         listen = args.listen or ["tcp/0.0.0.0:7447"]
         conf = zenoh_config(ZenohSettings(multicast_scouting=bool(args.multicast_scouting)), mode="router", listen=listen)
         how = "plain TCP: no authentication, no access control"
-    stop = threading.Event()
-    signal.signal(signal.SIGTERM, lambda *_: stop.set())
-    signal.signal(signal.SIGINT, lambda *_: stop.set())
-    try:
-        session = zenoh.open(conf)
-    except Exception as exc:  # noqa: BLE001 - zenoh reports a busy port or a bad certificate as ZError
-        print(f"voxelwatch router: cannot listen on {', '.join(listen)}: {short_error(exc)}", file=sys.stderr)
-        return 1
-    with session:
-        print(f"voxelwatch router listening on {', '.join(listen)} ({how})", flush=True)
-        stop.wait()
+    with stop_on_signals() as stop:
+        try:
+            session = zenoh.open(conf)
+        except Exception as exc:  # noqa: BLE001 - zenoh reports a busy port or a bad certificate as ZError
+            print(f"voxelwatch router: cannot listen on {', '.join(listen)}: {short_error(exc)}", file=sys.stderr)
+            return 1
+        with session:
+            print(f"voxelwatch router listening on {', '.join(listen)} ({how})", flush=True)
+            stop.wait()
     return 0
 
 
