@@ -75,7 +75,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="learning window: rate 1/n for the first L frames, then 1/L "
                         "(default: 33 s at the source's frame rate, 500 frames at 15 fps)")
     g.add_argument("--mask-scale", type=float, metavar="S",
-                   help="mask size as a fraction of the frame, 0.25..1 (default: the site's carving.mask_scale)")
+                   help="mask size as a fraction of the frame, 0.125..1 (default: the site's carving.mask_scale)")
     g.add_argument("--min-area-px", type=int, default=400, metavar="PX",
                    help="drop foreground blobs smaller than this, in pixels of a 640x480 frame (scaled to the "
                         "camera's size; default 400)")
@@ -116,9 +116,10 @@ def main(argv: Sequence[str] | None = None) -> int:
 def _configure(args: argparse.Namespace):
     """``(WorkerSettings, a zenoh config factory, the endpoints it connects to)`` from the arguments
     and the site file; ValueError on any problem."""
-    from common.site import load_site
-    from common.transport import site_config
     from camera_worker.worker import WorkerSettings
+    from common.settings import check_setting
+    from common.site import Carving, load_site
+    from common.transport import site_config
 
     site = load_site(args.site)
     spec = site.camera(args.camera)
@@ -130,9 +131,9 @@ def _configure(args: argparse.Namespace):
         background = ""
     else:
         background = args.background if args.background is not None else _from_site(site, spec.background)
-    mask_scale = args.mask_scale if args.mask_scale is not None else site.carving.mask_scale
-    if not 0.25 <= mask_scale <= 1.0:
-        raise ValueError(f"--mask-scale must lie in 0.25..1, got {mask_scale}")
+    mask_scale = site.carving.mask_scale
+    if args.mask_scale is not None:   # the site file's declaration, its one range
+        mask_scale = check_setting(Carving, "mask_scale", args.mask_scale, flag="--mask-scale")
     settings = WorkerSettings(
         cam=spec.id,
         prefix=args.prefix or site.prefix,

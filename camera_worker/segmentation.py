@@ -65,6 +65,9 @@ from typing import Iterable, Sequence
 import cv2
 import numpy as np
 
+from common.settings import check_setting
+from common.site import Carving
+
 Box = tuple[int, int, int, int]
 
 REFERENCE_AREA_PX = 640 * 480
@@ -171,8 +174,8 @@ class SegmenterBase:
             alpha = 1.0 / window_frames
         if not 0.0 < alpha <= 1.0:
             raise ValueError(f"alpha must be in (0, 1], got {alpha!r}")
-        if not 0.0 < mask_scale <= 1.0:
-            raise ValueError(f"mask_scale must be in (0, 1], got {mask_scale!r}")
+        # the site file's carving.mask_scale is the one declaration of its range
+        mask_scale = check_setting(Carving, "mask_scale", mask_scale, flag="mask_scale")
         for name, value in (("open_px", open_px), ("close_px", close_px), ("min_area_px", min_area_px)):
             if isinstance(value, bool) or not isinstance(value, int) or value < 0:
                 raise ValueError(f"{name} must be an int >= 0, got {value!r}")

@@ -48,6 +48,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Sequence
 
+from pydantic import Field, field_validator
+
 import cv2
 import msgpack
 import numpy as np
@@ -67,6 +69,7 @@ from camera_worker.sources import (
 from common import keys, maskcodec, messages
 from common.messages import Appearance, HoldRegions, LookRequest, MaskFrame, PersonRegion, WireError
 from common.ratelog import RateLimitedLog
+from common.settings import Settings
 
 __all__ = [
     "STAGES",
@@ -89,8 +92,7 @@ _STOP_NOTICE_S = 0.2
 nothing on the frames without one)."""
 
 
-@dataclass(frozen=True)
-class WorkerSettings:
+class WorkerSettings(Settings):
     """Everything :func:`run` needs; built by the command line from the site file and flags.
 
     ``source``/``background``: spec strings (see ``camera_worker.sources``),
@@ -126,34 +128,44 @@ class WorkerSettings:
     loop: bool = False
     seed: int = 0
     codec: str = maskcodec.DEFAULT_CODEC
-    segmenter: dict[str, Any] = field(default_factory=dict)
+    segmenter: dict[str, Any] = Field(default_factory=dict)
     base_dir: Path | None = None
-    max_frames: int | None = None
-    stats_period_s: float = 10.0
+    max_frames: int | None = Field(default=None, ge=1)
+    stats_period_s: float = Field(default=10.0, gt=0.0)
     backoff_s: float = 0.5
     max_backoff_s: float = 30.0
-    hold_queue: int = 8
-    look_queue: int = 4
+    hold_queue: int = Field(default=8, ge=1)
+    look_queue: int = Field(default=4, ge=1)
     expected_size: tuple[int, int] | None = None
     modality: str = "colour"
     view_check: bool = True
     view_reference: Path | None = None
 
-    def __post_init__(self) -> None:
-        keys.validate_chunk(self.cam, "camera id")
-        if self.modality not in MODALITIES:
-            raise ValueError(f"modality must be one of {', '.join(MODALITIES)}, got {self.modality!r}")
-        keys.validate_prefix(self.prefix)
-        if self.codec not in maskcodec.CODECS:
-            raise ValueError(f"codec must be one of {', '.join(maskcodec.CODECS)}, got {self.codec!r}")
-        if self.max_frames is not None and self.max_frames < 1:
-            raise ValueError(f"max_frames must be >= 1, got {self.max_frames!r}")
-        if not self.stats_period_s > 0:
-            raise ValueError(f"stats_period_s must be > 0, got {self.stats_period_s!r}")
-        if self.hold_queue < 1:
-            raise ValueError(f"hold_queue must be >= 1, got {self.hold_queue!r}")
-        if self.look_queue < 1:
-            raise ValueError(f"look_queue must be >= 1, got {self.look_queue!r}")
+    @field_validator("cam")
+    @classmethod
+    def _cam_ok(cls, cam: str) -> str:
+        keys.validate_chunk(cam, "camera id")
+        return cam
+
+    @field_validator("prefix")
+    @classmethod
+    def _prefix_ok(cls, prefix: str) -> str:
+        keys.validate_prefix(prefix)
+        return prefix
+
+    @field_validator("modality")
+    @classmethod
+    def _modality_ok(cls, modality: str) -> str:
+        if modality not in MODALITIES:
+            raise ValueError(f"must be one of {', '.join(MODALITIES)}")
+        return modality
+
+    @field_validator("codec")
+    @classmethod
+    def _codec_ok(cls, codec: str) -> str:
+        if codec not in maskcodec.CODECS:
+            raise ValueError(f"must be one of {', '.join(maskcodec.CODECS)}")
+        return codec
 
 
 @dataclass

@@ -133,6 +133,7 @@ from typing import TYPE_CHECKING, Any, Literal
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, ValidationInfo, field_validator, model_validator
 
 from common import keys
+from common.settings import field_name, problem
 
 if TYPE_CHECKING:
     from common.camera import Camera
@@ -671,9 +672,9 @@ def site_from_dict(raw: dict[str, Any], *, base_dir: Path, source: str = "<site>
         return Site.model_validate({**raw, "base_dir": base_dir, "source": source})
     except ValidationError as exc:
         err = exc.errors()[0]
-        field = _field_name(err["loc"])
+        field = field_name(err["loc"])
         more = f" (and {exc.error_count() - 1} more problems)" if exc.error_count() > 1 else ""
-        raise SiteError(f"site file {source}: field {field}: {_problem(err)}{more}") from None
+        raise SiteError(f"site file {source}: field {field}: {problem(err)}{more}") from None
 
 
 def with_settings(site: Site, settings: Sequence[str]) -> Site:
@@ -741,22 +742,3 @@ def _toml_value(value: Any) -> str:
     if isinstance(value, dict):  # an inline table ([zenoh] settings and tls)
         return "{" + ", ".join(f"{_toml_value(str(k))} = {_toml_value(v)}" for k, v in value.items() if v is not None) + "}"
     raise TypeError(f"cannot write {type(value).__name__} to TOML")
-
-
-def _field_name(loc: tuple) -> str:
-    name = ""
-    for part in loc:
-        if isinstance(part, int):
-            name += f"[{part}]"
-        else:
-            name += ("." if name else "") + str(part)
-    return name or "(top level)"
-
-
-def _problem(err: dict) -> str:
-    msg = err["msg"]
-    if err["type"] == "extra_forbidden":
-        return "unknown field (check the spelling against the documented site file)"
-    if err["type"] == "missing":
-        return "required field is missing"
-    return msg.removeprefix("Value error, ")

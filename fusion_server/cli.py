@@ -86,7 +86,7 @@ def settings_from_args(args: argparse.Namespace) -> "FusionSettings":
     except ValueError as exc:
         text = str(exc)
         for name, flag in _FLAGS.items():
-            if text.startswith(name + " "):
+            if text.startswith((name + " ", name + ":")):
                 text = flag + text[len(name):]
         raise ValueError(text) from None
 

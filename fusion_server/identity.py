@@ -48,6 +48,8 @@ from common import appearance
 from common.appearance import AppearanceModel, Resident, View
 from common.camera import Camera
 from common.messages import Appearance, PersonRegion
+from common.settings import check_setting, default_of
+from common.site import IdentitySettings
 
 __all__ = ["IdentityKeeper", "IdentityParams"]
 
@@ -106,7 +108,7 @@ class IdentityParams:
         mature model learns only views within ``agree`` of it.
     """
 
-    rate_hz: float = 3.0
+    rate_hz: float = default_of(IdentitySettings, "rate_hz")
     body_radius_m: float = 0.22
     min_pixels: int = 40
     min_visible: float = 0.7
@@ -115,7 +117,7 @@ class IdentityParams:
     settle_s: float = 3.0
     close_m: float = 1.0
     agree: float = 0.3
-    reid_window_s: float = 600.0
+    reid_window_s: float = default_of(IdentitySettings, "reid_window_s")
     reid_distance: float = 0.3
     reid_margin: float = 0.08
     near_s: float = 4.0
@@ -132,7 +134,9 @@ class IdentityParams:
     drift_evidence: float = 1.0
 
     def __post_init__(self) -> None:
-        for name in ("rate_hz", "body_radius_m", "learn_rate", "reid_window_s"):
+        for name in ("rate_hz", "reid_window_s"):   # the site file's [identity] declares them
+            object.__setattr__(self, name, check_setting(IdentitySettings, name, getattr(self, name), flag=name))
+        for name in ("body_radius_m", "learn_rate"):
             value = float(getattr(self, name))
             if not (math.isfinite(value) and value > 0):
                 raise ValueError(f"{name} must be a positive number, got {getattr(self, name)!r}")

@@ -92,7 +92,9 @@ import statistics
 from collections import Counter, deque
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Any, Literal, Mapping
+
+from pydantic import Field, field_validator, model_validator
 
 from common import keys, maskcodec, messages
 from common.camera import Camera
@@ -101,6 +103,7 @@ from common.messages import (
     CameraStatus, Event, HoldRegions, LookRequest, MaskFrame, Status, TrackFrame, TrackState, WireError, event_id,
 )
 from common.ratelog import RateLimitedLog
+from common.settings import Settings
 from common.site import Site
 from fusion_server.event_store import EventStore, parse_history_selector
 from fusion_server.outputs import RunOutputs
@@ -118,8 +121,7 @@ _SYNC_LATE = ("out_of_order", "stale", "unmatched")
 _SKEW_EVENT_EVERY_S = 60.0
 
 
-@dataclass(frozen=True)
-class FusionSettings:
+class FusionSettings(Settings):
     """Everything the fusion server needs; ``fusion_server.cli`` builds it from the command line.
 
     site: the loaded site. prefix: the zenoh key prefix. store_path: the
@@ -142,50 +144,43 @@ class FusionSettings:
     prefix: str
     store_path: Path | None = None
     out_dir: Path | None = None
-    mode: str | None = None
+    mode: Literal["peer", "client"] | None = None
     listen: tuple[str, ...] | None = None
     connect: tuple[str, ...] | None = None
     tls_cert: Path | None = None
     tls_key: Path | None = None
     cache_dir: Path | None = None
-    min_cameras: int | None = None
-    exit_after_idle_s: float | None = None
+    min_cameras: int | None = Field(default=None, ge=1, strict=True)
+    exit_after_idle_s: float | None = Field(default=None, gt=0.0, allow_inf_nan=False)
     seed: int = 0
-    status_period_s: float = 1.0
-    hold_ttl_ms: int = 2000
-    hold_slack_px: int = 2
-    max_clock_skew_ms: float = 250.0
+    status_period_s: float = Field(default=1.0, gt=0.0, allow_inf_nan=False)
+    hold_ttl_ms: int = Field(default=2000, ge=1, strict=True)
+    hold_slack_px: int = Field(default=2, ge=0, strict=True)
+    max_clock_skew_ms: float = Field(default=250.0, gt=0.0, allow_inf_nan=False)
     free_timeline: bool = False
-    skew_window: int = 30
-    inbox_per_camera: int = 32
-    max_ready_sets: int = 4
-    sync_buffer: int = 8
-    stale_s: float = 2.0
-    log_every_s: float = 10.0
-    history_queue: int = 16
+    skew_window: int = Field(default=30, ge=1, strict=True)
+    inbox_per_camera: int = Field(default=32, ge=1, strict=True)
+    max_ready_sets: int = Field(default=4, ge=1, strict=True)
+    sync_buffer: int = Field(default=8, ge=1, strict=True)
+    stale_s: float = Field(default=2.0, gt=0.0, allow_inf_nan=False)
+    log_every_s: float = Field(default=10.0, gt=0.0, allow_inf_nan=False)
+    history_queue: int = Field(default=16, ge=1, strict=True)
 
-    def __post_init__(self) -> None:
-        keys.validate_prefix(self.prefix)
+    @field_validator("prefix")
+    @classmethod
+    def _prefix_ok(cls, prefix: str) -> str:
+        keys.validate_prefix(prefix)
+        return prefix
+
+    @model_validator(mode="after")
+    def _cameras_enough(self) -> "FusionSettings":
         n_cams = len(self.site.cameras)
-        if self.min_cameras is not None and (isinstance(self.min_cameras, bool) or not 1 <= self.min_cameras <= n_cams):
+        if self.min_cameras is not None and self.min_cameras > n_cams:
             raise ValueError(f"min_cameras must be an int in 1..{n_cams} (the site's cameras), got {self.min_cameras!r}")
         if self.min_cameras is None and self.site.carving.min_cameras > n_cams:
             raise ValueError(f"site file {self.site.source}: field carving.min_cameras: {self.site.carving.min_cameras} "
                              f"exceeds the site's {n_cams} cameras: nothing could ever be carved")
-        if self.exit_after_idle_s is not None and not (math.isfinite(self.exit_after_idle_s) and self.exit_after_idle_s > 0):
-            raise ValueError(f"exit_after_idle_s must be a positive number of seconds, got {self.exit_after_idle_s!r}")
-        for name in ("status_period_s", "max_clock_skew_ms", "stale_s", "log_every_s"):
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, (int, float)) or not (math.isfinite(value) and value > 0):
-                raise ValueError(f"{name} must be a positive number, got {value!r}")
-        if isinstance(self.hold_slack_px, bool) or not isinstance(self.hold_slack_px, int) or self.hold_slack_px < 0:
-            raise ValueError(f"hold_slack_px must be an int >= 0, got {self.hold_slack_px!r}")
-        for name in ("hold_ttl_ms", "skew_window", "inbox_per_camera", "max_ready_sets", "sync_buffer", "history_queue"):
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
-                raise ValueError(f"{name} must be an int >= 1, got {value!r}")
-        if self.mode is not None and self.mode not in ("peer", "client", "router"):
-            raise ValueError(f"mode must be peer, client or router, got {self.mode!r}")
+        return self
 
     def build_pipeline(self, cameras: dict[str, Camera] | None = None) -> FusionPipeline:
         """The pipeline these settings describe (calibrations loaded unless given)."""

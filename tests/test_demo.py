@@ -29,11 +29,11 @@ from tests.procs import ROOT
 WORKER_START_S = 40.0
 """The workers' shared start after launch in these tests (the demo's own is 10 s). Each synthetic
 worker spends some 6 s of processor time before its first frame (it builds its renderer for the
-empty room and for the scenario and learns 45 frames of background); on two cores shared with
-another test session they were live 12-23 s after launch. One that misses the shared start joins
-it at the frame for the time it is ready, and its camera is missing from every set before that:
-the demo's world of four cameras then had one camera join 12 s late and 157 sets with too few
-cameras."""
+empty room and for the scenario and learns 45 frames of background); with five of them on two
+cores shared with another test session they were live 12-23 s after launch. A worker that misses
+the shared start joins it at the frame for the time it is ready: with the demo's 10 s the cameras
+joined between frames 91 and 109, the person was first tracked by two of five cameras, and the
+frames fused scored MOTA 0.85 with 3 identity switches."""
 
 
 @pytest.fixture
@@ -92,21 +92,20 @@ def score_fused(scenario, demo_dir: Path, frames: set[int], out: Path) -> dict:
 
 def scores(scenario, demo_dir: Path, heard: dict[int, list[str]], cameras: list[str], tmp_path: Path,
            text: str) -> tuple[dict, dict]:
-    """(the score on the frames fused with every camera, figures to print)."""
-    every = {f for f, cams in heard.items() if set(cams) == set(cameras)}
-    on_heard = score_fused(scenario, demo_dir, set(heard), tmp_path / "heard")["tracking"]
-    on_every = score_fused(scenario, demo_dir, every, tmp_path / "every")["tracking"]
-    demo_mota = re.search(r"MOTA ([\d.]+) %", text)
-    first = {c: min((f for f, cams in heard.items() if c in cams), default=None) for c in cameras}
+    """(the tracking score on the frames fused, figures to print)."""
+    score = score_fused(scenario, demo_dir, set(heard), tmp_path)["tracking"]
+    demo_mota = re.search(r"MOTA (-?[\d.]+) %", text)
     measured = {
-        "frames_heard": len(heard), "with_every_camera": len(every), "first_frame_of_each_camera": first,
-        "last_frame": max(heard, default=None),
-        "demo_mota_all_truth_frames": demo_mota and float(demo_mota.group(1)) / 100,
-        "mota_frames_heard": round(on_heard["mota"], 3),
-        "mota_with_every_camera": round(on_every["mota"], 3), "idf1_with_every_camera": round(on_every["idf1"], 3),
+        "frames_fused_heard": len(heard), "last_frame": max(heard, default=None),
+        "with_every_camera": sum(set(cams) == set(cameras) for cams in heard.values()),
+        "first_frame_of_each_camera": {c: min((f for f, cams in heard.items() if c in cams), default=None)
+                                       for c in cameras},
+        "demo_mota_on_every_truth_frame": demo_mota and round(float(demo_mota.group(1)) / 100, 3),
+        "mota_on_frames_fused": round(score["mota"], 3), "idf1_on_frames_fused": round(score["idf1"], 3),
+        "fp": score["fp"], "fn": score["fn"], "id_switches": score["id_switches"],
     }
     print("measured:", measured)
-    return {"frames": every, **on_every}, measured
+    return score, measured
 
 
 def events_heard(text: str) -> Counter:
@@ -121,14 +120,25 @@ def events_written(demo_dir: Path) -> Counter:
 
 @pytest.mark.slow
 def test_secure_demo_tracks_the_person_over_tls_and_access_control(tmp_path, monkeypatch, heard):
-    """Scored on the frames fused with all five cameras, not on every frame of the scenario: on a
-    loaded machine (two cores, another test session running) the run dropped 43 frame sets and
-    157 sets lacked a camera whose mask came too late; scored against every truth frame the same
-    run read MOTA 89.3 % where the frames it fused with every camera score above 90 %. What is
-    held here is the pipeline over processes and TLS, not the machine's speed: the offline replay
-    of the same scenarios is held to its figures by test_scenarios.py. The reader must hear every
-    event the fusion server stored, through the router that enforces access control (which
-    events there are depends on which frames were fused)."""
+    """Masks, tracks and events cross a TLS router enforcing access control, and the person is
+    tracked: scored against the truth on the frames the fusion server fused (as its reader heard
+    them on the tracks key), not on every frame of the scenario.
+
+    The demo plays each camera in real time on the host clock. On a loaded machine (two cores,
+    another test session running) a worker that falls behind skips the frames it is late for, the
+    fusion server drops the oldest frame sets it cannot keep up with (32-66 here) and fuses others
+    without a camera whose mask came too late, and a worker that skipped plays on past the demo's
+    150th frame. The demo's own figure counts every frame never fused as missed people and every
+    track past frame 149 as false: it read 89.3 % on a clean clone with two tests at once, and
+    between -27 % and +22 % here, runs whose frames fused scored MOTA 0.896 to 0.977. Scoring
+    what was fused keeps the bound of an unloaded run (where every frame is fused the two are
+    the same) without loosening it. What it does not remove: when the server drops sets in long
+    runs, the tracker, fed frames up to a second apart, confirms a person late. In the run that
+    scored 0.896 only frames 64, 78, 79, 87 and 88 of the 42 as the person came in were fused,
+    and 10 of the 96 person-frames scored were missed there and just after. Which events the
+    pipeline raises depends on the same frames (the entrance at frame 47 was missed whenever its
+    sets were dropped), so what is held of events is that the reader heard every event the
+    fusion server stored."""
     monkeypatch.setenv("PYTHONPATH", str(ROOT))  # the workers and the server run this tree's code
     out = io.StringIO()
     code = run_demo(out_dir=tmp_path / "demo", frames=150, secure=True, stream=out)
@@ -141,10 +151,10 @@ def test_secure_demo_tracks_the_person_over_tls_and_access_control(tmp_path, mon
     assert read_common_name(certs / "cam3.pem") == "camera-cam3"
     assert all(stat.S_IMODE(k.stat().st_mode) == 0o600 for k in certs.glob("*-key.pem"))
     scenario = synth.get_scenario(synth.DEFAULT_SCENARIO, 0, utc_offset_hours=site.utc_offset_hours)
+    fused = int(re.search(r"summary: (\d+) fused frames", text).group(1))
+    assert fused >= 100, text  # masks crossed the router from every camera to the fusion server
     score, measured = scores(scenario, tmp_path / "demo", heard, site.camera_ids, tmp_path / "score", text)
-    # masks crossed the router from every camera to the fusion server, and its tracks to the reader
     assert all(f is not None for f in measured["first_frame_of_each_camera"].values()), measured
-    assert len(score["frames"]) >= 50, measured
     written = events_written(tmp_path / "demo")
     assert written and events_heard(text) == written, (text, written)  # every event crossed the router
     assert score["mota"] >= 0.90, measured
@@ -155,11 +165,15 @@ def test_demo_of_a_mixed_rig_carries_masks_and_range_from_separate_workers(tmp_p
     """World 5 (tuning seed) with a depth and a thermal camera: each worker process renders and
     segments its own modality, and the depth camera's range crosses zenoh with its masks.
 
-    Scored, as the secure demo is, on the frames fused with every camera: on a loaded machine
-    the same run read MOTA 58.9 % against every truth frame, counting frames that were never
-    fused (dropped as too slow, or missing a camera whose mask came too late) as missed people.
-    The range is held per set: every fused set that holds the depth camera's mask carries its
-    range."""
+    Scored, as the secure demo is, on the frames the fusion server fused: on a loaded machine
+    the demo's own figure against every truth frame read 58.9 % on a clean clone, and -32 % and
+    +23 % here, runs whose frames fused scored MOTA 0.88 and 0.78 (sets missing a camera whose
+    mask came too late are fused and scored as they are). The range is held per set, for the
+    same reason:
+    every fused set that holds the depth camera's mask carries its range (here 100 of 172 sets
+    held it, the depth worker having fallen behind; the bound it replaces, range in 80 % of all
+    sets, failed with 115 of 209 when the workers joined 1-12 s after the demo's 10 s start)."""
+
     from synth.world import random_world
 
     monkeypatch.setenv("PYTHONPATH", str(ROOT))
@@ -172,11 +186,11 @@ def test_demo_of_a_mixed_rig_carries_masks_and_range_from_separate_workers(tmp_p
     assert (site.camera("cam1").modality, site.camera("cam2").modality) == ("depth", "thermal")
     log = (tmp_path / "demo" / "logs" / "fusion.log").read_text()
     fused, ranged = map(int, re.search(r"(\d+) frames fused \((\d+) with range\)", log).groups())
+    assert fused >= 100, log[-2000:]
     scenario = random_world(5, sensors="mixed").scenario
     score, measured = scores(scenario, tmp_path / "demo", heard, site.camera_ids, tmp_path / "score", text)
     with_depth = sum("cam1" in cams for cams in heard.values())
     print("measured:", {"fused": fused, "with_range": ranged, "heard_with_depth_camera": with_depth})
     assert all(f is not None for f in measured["first_frame_of_each_camera"].values()), measured
-    assert len(score["frames"]) >= 50, measured
     assert len(heard) == fused and ranged == with_depth > 0, log[-2000:]
     assert score["mota"] >= 0.70, measured

@@ -237,5 +237,5 @@ def test_model_round_trips_and_bad_models_are_named():
     assert np.allclose(back.hist, m.hist) and back.frames[1] == 7 and back.height_m == 1.7
     with pytest.raises(ValueError, match="ada.json: hist must be"):
         AppearanceModel.from_dict({**m.to_dict(), "hist": [[0.0]]}, where="ada.json")
-    with pytest.raises(ValueError, match="rate_hz must be a positive number"):
+    with pytest.raises(ValueError, match="rate_hz: Input should be greater than 0"):
         IdentityParams(rate_hz=0)

@@ -27,6 +27,8 @@ from collections.abc import Mapping, Sequence
 import numpy as np
 
 from common.camera import Camera
+from common.settings import default_of, validated
+from common.site import Carving
 from fusion_server.carving.distance import (
     DistanceImages, distance_images, mask_pixels, needed_votes, observations, tally, vote,
 )
@@ -87,14 +89,14 @@ class Carver:
         volume_max_m: Sequence[float] | None = None,
         grid: VoxelGrid | None = None,
         voxel_sizes_m: Sequence[float] = DEFAULT_VOXEL_SIZES_M,
-        min_cameras: int = 2,
-        min_ratio: float = 0.75,
-        mask_scale: float = 1.0,
+        min_cameras: int = default_of(Carving, "min_cameras"),
+        min_ratio: float = default_of(Carving, "min_ratio"),
+        mask_scale: float = default_of(Carving, "mask_scale"),
         cache_dir: str | os.PathLike | None = DEFAULT_CACHE_DIR,
         occluders: Sequence[Occluder] = (),
-        fusion: str = "vote",
-        smoothing: float = 0.1,
-        free_space: bool = True,
+        fusion: str = default_of(Carving, "fusion"),
+        smoothing: float = default_of(Carving, "smoothing"),
+        free_space: bool = default_of(Carving, "free_space"),
     ) -> None:
         if not isinstance(cameras, Mapping) or not cameras:
             raise ValueError("cameras must be a non-empty mapping of camera id -> Camera")
@@ -106,21 +108,13 @@ class Carver:
         if len(cameras) > 255:
             raise ValueError(f"cameras: at most 255 cameras, got {len(cameras)}")
         sizes = _check_voxel_sizes(voxel_sizes_m)
-        if isinstance(min_cameras, bool) or not isinstance(min_cameras, (int, np.integer)) or min_cameras < 1:
+        # the site file's [carving] declares these settings, their ranges and messages: one declaration
+        if isinstance(min_cameras, bool) or not isinstance(min_cameras, (int, np.integer)):
             raise ValueError(f"min_cameras must be an int >= 1, got {min_cameras!r}")
+        validated(Carving, min_cameras=int(min_cameras), min_ratio=min_ratio, mask_scale=mask_scale, fusion=fusion,
+                  smoothing=smoothing, free_space=free_space)
         if min_cameras > len(cameras):
             raise ValueError(f"min_cameras {min_cameras} exceeds the {len(cameras)} cameras: nothing could be carved")
-        if not isinstance(min_ratio, (int, float)) or not 0.0 <= float(min_ratio) <= 1.0:
-            raise ValueError(f"min_ratio must be in [0, 1], got {min_ratio!r}")
-        if not isinstance(mask_scale, (int, float)) or not (math.isfinite(mask_scale) and 0 < mask_scale <= 4):
-            raise ValueError(f"mask_scale must be in (0, 4], got {mask_scale!r}")
-        if fusion not in FUSIONS:
-            raise ValueError(f"fusion must be one of {FUSIONS}, got {fusion!r}")
-        if isinstance(smoothing, bool) or not isinstance(smoothing, (int, float)) \
-                or not (math.isfinite(smoothing) and 0.0 <= smoothing <= 1.0):
-            raise ValueError(f"smoothing must be in [0, 1], got {smoothing!r}")
-        if not isinstance(free_space, bool):
-            raise ValueError(f"free_space must be a bool, got {free_space!r}")
         grid = _make_grid(volume_min_m, volume_max_m, grid, sizes[-1])
 
         self.grid: VoxelGrid = grid

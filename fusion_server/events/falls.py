@@ -46,6 +46,8 @@ from typing import Any, Sequence
 
 import numpy as np
 
+from common.settings import default_of
+from common.site import EventSettings
 from fusion_server.events import _common
 from fusion_server.events._common import median, ns
 from fusion_server.events.records import Emitter
@@ -68,12 +70,12 @@ class FallParams:
     low_centre_frac: float = 0.25
     flat_top_frac: float = 0.45
     low_gap_s: float = 0.5
-    long_lie_s: float = 30.0
+    long_lie_s: float = default_of(EventSettings, "long_lie_s")
     standing_height_m: float = 1.70
 
     def __post_init__(self) -> None:
-        _common.positive(self, "window_s", "min_drop_m", "min_speed_mps", "max_accel_mps2", "long_lie_s",
-                         "standing_height_m")
+        _common.positive(self, "window_s", "min_drop_m", "min_speed_mps", "max_accel_mps2", "standing_height_m")
+        _common.declared(self, EventSettings, "long_lie_s")   # the site file's [events] declares it
         _common.non_negative(self, "height_tol_m", "confirm_s", "upright_s", "low_gap_s")
         _common.fraction(self, "low_top_frac", "low_centre_frac", "flat_top_frac")
 

@@ -14,6 +14,8 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Iterable
 
+from common.settings import default_of
+from common.site import EventSettings
 from fusion_server.events import _common
 from fusion_server.events._common import ns
 from fusion_server.events.records import Emitter
@@ -26,12 +28,14 @@ class InactivityParams:
     """Settings of :class:`InactivityDetector`, each described in the module text
     (seconds, metres; ``rest_kinds``: hot spot kinds where keeping still is rest)."""
 
-    inactivity_s: float = 1800.0
+    inactivity_s: float = default_of(EventSettings, "inactivity_s")
     window_s: float = 30.0
     std_m: float = 0.15
     rest_kinds: frozenset[str] = frozenset({"bed"})
 
     def __post_init__(self) -> None:
+        # positive, not the site file's 30 s floor: that floor is the default window below which
+        # stillness cannot be judged; here the window is a parameter too
         _common.positive(self, "inactivity_s", "window_s", "std_m")
         _common.names(self, "rest_kinds")
 
