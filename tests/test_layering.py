@@ -1,4 +1,4 @@
-"""The packages' layering: which package may import which (the contracts in pyproject.toml).
+"""The packages' layering (the import contracts in pyproject.toml) and the lint configuration.
 
 ``common`` is the shared kernel and imports no other package of the project;
 the runtime (``camera_worker``, ``fusion_server``) imports only what is below
@@ -35,3 +35,11 @@ def test_the_kernel_imports_no_other_package_of_the_project() -> None:
                 [node.module] if isinstance(node, ast.ImportFrom) and node.module and node.level == 0 else [])
             found += [f"{path.relative_to(ROOT)}:{node.lineno} imports {n}" for n in names if n.split(".")[0] in others]
     assert not found, "\n".join(found)
+
+
+def test_ruff_finds_nothing_on_the_whole_tree() -> None:
+    """The lint configuration in pyproject.toml ([tool.ruff]) holds for every file."""
+    tool = Path(sys.executable).with_name("ruff")
+    run = subprocess.run([str(tool), "check", "--no-cache", "--output-format", "concise", "."], cwd=ROOT,
+                         capture_output=True, text=True, timeout=120)
+    assert run.returncode == 0, run.stdout[-3000:] + run.stderr[-2000:]
