@@ -34,7 +34,7 @@ from fusion_server.events import EventReasoner, FallParams, InactivityParams
 from fusion_server.grid import CarveResult
 from fusion_server.hotspots import Hotspot
 from fusion_server.identity import IdentityKeeper, IdentityParams, Resident
-from fusion_server.posture import PostureEstimator, PostureReading
+from fusion_server.posture import PostureBank, PostureReading
 from fusion_server.tracker import PopulationParams, TrackEstimate, Tracker
 
 log = logging.getLogger("voxelwatch.fusion")
@@ -138,9 +138,7 @@ class FusionPipeline:
         self.consistency_errors = 0
         """Frame sets on which the moved-camera check failed (they are fused all the same)."""
         self.identity = identity if identity is not None else IdentityKeeper(self.cameras)
-        self.posture_settings = dict(voxel_m=carver.grid.voxel_m, decisions=decisions, viterbi_lag_s=viterbi_lag_s)
-        PostureEstimator(**self.posture_settings)  # validate once, up front
-        self._postures: dict[int, PostureEstimator] = {}
+        self.postures = PostureBank(voxel_m=carver.grid.voxel_m, decisions=decisions, viterbi_lag_s=viterbi_lag_s)
         self._labels: dict[int, int] = {}  # target id -> label, as of the last frame
 
     @classmethod
@@ -230,7 +228,7 @@ class FusionPipeline:
         renames = {self._labels.get(tid, -tid): label for tid, label in labels.items()
                    if self._labels.get(tid, -tid) != label and label > 0}
         if renames:
-            self._postures = _rekey(self._postures, renames)
+            self.postures.rename(renames)
             self.reasoner.rename(renames)
         self._labels = labels
         # a body waiting for its identity is not reported (nor taken for a person) yet
@@ -296,18 +294,12 @@ class FusionPipeline:
         """Feed each track's posture estimator this frame's estimate (a new track gets a new
         estimator, a gone one loses its own). Returns track id -> reading, for the tracks
         whose posture is known."""
-        live = {e.id for e in estimates}
-        for tid in [t for t in self._postures if t not in live]:
-            del self._postures[tid]
-        readings: dict[int, PostureReading] = {}
-        for est in estimates:
-            estimator = self._postures.get(est.id)
-            if estimator is None:
-                estimator = self._postures[est.id] = PostureEstimator(**self.posture_settings)
-            reading = estimator.update(stamp_ns, est.height_profile, speed_mps=float(np.hypot(est.vx, est.vy)))
-            if reading is not None:
-                readings[est.id] = reading
-        return readings
+        return self.postures.update(stamp_ns, estimates)
+
+    @property
+    def posture_settings(self) -> dict:
+        """The keyword arguments every track's posture estimator is made with."""
+        return self.postures.settings
 
 
 def build_carver(site: Site, cameras: Mapping[str, Camera], *, cache_dir: str | Path | None = None) -> Carver:
@@ -373,11 +365,6 @@ def _entry_edges(site: Site) -> tuple[float, float, float, float] | None:
         return None
     lo, hi = site.volume.min_m, site.volume.max_m
     return (lo[0], lo[1], hi[0], hi[1])
-
-
-def _rekey(states: dict, renames: Mapping[int, int]) -> dict:
-    """``states`` with the keys in ``renames`` renamed at once (a swap is two renames)."""
-    return {renames.get(k, k): v for k, v in states.items()}
 
 
 def _output(est: TrackEstimate, reading: PostureReading | None, person: str | None = None) -> TrackOutput:

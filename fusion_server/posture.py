@@ -50,7 +50,7 @@ import math
 from collections import deque
 from dataclasses import dataclass, field
 from functools import lru_cache
-from typing import Iterable, Protocol, Sequence
+from typing import Iterable, Mapping, Protocol, Sequence
 
 import numpy as np
 import scipy.linalg
@@ -776,9 +776,11 @@ class PostureEstimator:
 
 class PostureBank:
     """One :class:`PostureEstimator` per track id, created on first sight and
-    forgotten when the track is no longer reported.
+    forgotten when the track is no longer reported; the fusion pipeline's own.
 
-    estimator_kwargs: passed to every :class:`PostureEstimator`.
+    estimator_kwargs: passed to every :class:`PostureEstimator`. A track with a
+    velocity (``vx``, ``vy`` in m/s, as the tracker's estimates carry) tells its
+    estimator its speed; one without is taken as still.
     """
 
     def __init__(self, **estimator_kwargs) -> None:
@@ -796,12 +798,22 @@ class PostureBank:
             est = self._estimators.get(tid)
             if est is None:
                 est = self._estimators[tid] = PostureEstimator(**self._kwargs)
-            reading = est.update(stamp_ns, track.height_profile)
+            vx, vy = getattr(track, "vx", 0.0), getattr(track, "vy", 0.0)
+            reading = est.update(stamp_ns, track.height_profile, speed_mps=float(np.hypot(vx, vy)))
             if reading is not None:
                 out[tid] = reading
         for tid in [t for t in self._estimators if t not in seen]:
             del self._estimators[tid]
         return out
+
+    @property
+    def settings(self) -> dict:
+        """The keyword arguments every estimator is made with."""
+        return dict(self._kwargs)
+
+    def rename(self, renames: Mapping[int, int]) -> None:
+        """Carry estimators over to the tracks' new ids at once (a swap is two renames)."""
+        self._estimators = {renames.get(k, k): v for k, v in self._estimators.items()}
 
     def estimator(self, track_id: int) -> PostureEstimator | None:
         return self._estimators.get(int(track_id))
