@@ -140,7 +140,7 @@ def bench_codec(quick: bool) -> list[dict[str, Any]]:
 
 
 def bench_worker(quick: bool) -> list[dict[str, Any]]:
-    from camera_worker.worker import measure_worker
+    from evaluation.worker_bench import measure_worker
 
     n = 100 if quick else 300
     rows = []
@@ -330,7 +330,7 @@ def bench_looks(quick: bool, *, cameras: int = 5, width: int = 640, height: int 
     people, per frame at ``width`` x ``height``."""
     import tempfile
 
-    from camera_worker.worker import measure_worker
+    from evaluation.worker_bench import measure_worker
     from evaluation.carving_bench import MaskRenderer, room_rig
     from fusion_server.identity import IdentityParams
     from fusion_server.pipeline import FusionPipeline, build_carver, build_reasoner

@@ -34,7 +34,7 @@ zenoh = pytest.importorskip("zenoh")
 
 from procs import Listener, Proc, Router, start_camera, start_fusion, stop_all, wait_for  # noqa: E402
 
-from camera_worker.worker import looks_bytes  # noqa: E402
+from evaluation.worker_bench import looks_bytes  # noqa: E402
 from common import appearance, keys, maskcodec, messages  # noqa: E402
 
 SCENARIO = "two_pass"

@@ -26,13 +26,12 @@ from camera_worker.worker import (
     HoldBook,
     WorkerSettings,
     build_mask_frame,
-    looks_bytes,
-    measure_worker,
     step,
 )
 from camera_worker.worker import HoldRegionsRejected
 from common import appearance, keys, maskcodec, messages
 from common.messages import HoldRegions, LookRequest, MaskFrame, PersonRegion
+from evaluation.worker_bench import looks_bytes, measure_worker
 from common.transport import zenoh_config
 
 CAMERA = Path(sys.executable).parent / "voxelwatch-camera"
