@@ -18,7 +18,7 @@ from typing import Annotated, Any
 
 from pydantic import BaseModel, ConfigDict, TypeAdapter, ValidationError
 
-__all__ = ["Settings", "SettingError", "check_setting", "default_of", "field_name", "problem", "validated"]
+__all__ = ["Settings", "SettingError", "check_declared", "check_setting", "default_of", "field_name", "problem", "validated"]
 
 
 class SettingError(ValueError):
@@ -57,6 +57,13 @@ def check_setting(model: type[BaseModel], name: str, value: Any, *, flag: str) -
     except ValidationError as exc:
         err = exc.errors()[0]
         raise SettingError(f"{flag}: {problem(err)}, got {value!r}") from None
+
+
+def check_declared(params: Any, model: type[BaseModel], *names: str) -> None:
+    """Check each named field of the frozen parameter group ``params`` against ``model``'s
+    declaration of it (:func:`check_setting`) and store the checked value."""
+    for name in names:
+        object.__setattr__(params, name, check_setting(model, name, getattr(params, name), flag=name))
 
 
 def validated(model: type[BaseModel], **values: Any) -> BaseModel:

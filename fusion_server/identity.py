@@ -48,7 +48,7 @@ from common import appearance
 from common.appearance import AppearanceModel, Resident, View
 from common.camera import Camera
 from common.messages import Appearance, PersonRegion
-from common.settings import check_setting, default_of
+from common.settings import check_declared, default_of
 from common.site import IdentitySettings
 
 __all__ = ["IdentityKeeper", "IdentityParams"]
@@ -134,8 +134,7 @@ class IdentityParams:
     drift_evidence: float = 1.0
 
     def __post_init__(self) -> None:
-        for name in ("rate_hz", "reid_window_s"):   # the site file's [identity] declares them
-            object.__setattr__(self, name, check_setting(IdentitySettings, name, getattr(self, name), flag=name))
+        check_declared(self, IdentitySettings, "rate_hz", "reid_window_s")   # the site file's [identity] declares them
         for name in ("body_radius_m", "learn_rate"):
             value = float(getattr(self, name))
             if not (math.isfinite(value) and value > 0):

@@ -34,15 +34,6 @@ def positive(params: Any, *names: str) -> None:
         object.__setattr__(params, name, float(value))
 
 
-def declared(params: Any, model: type, *names: str) -> None:
-    """Check each named field of ``params`` against ``model``'s declaration of it (the site
-    file's, :func:`common.settings.check_setting`: one range, one message), and store it."""
-    from common.settings import check_setting
-
-    for name in names:
-        object.__setattr__(params, name, check_setting(model, name, getattr(params, name), flag=name))
-
-
 def non_negative(params: Any, *names: str) -> None:
     """Check that each named field of ``params`` is a finite number >= 0, and store it as float."""
     for name in names:

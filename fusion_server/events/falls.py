@@ -46,7 +46,7 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from common.settings import default_of
+from common.settings import check_declared, default_of
 from common.site import EventSettings
 from fusion_server.events import _common
 from fusion_server.events._common import median, ns
@@ -75,7 +75,7 @@ class FallParams:
 
     def __post_init__(self) -> None:
         _common.positive(self, "window_s", "min_drop_m", "min_speed_mps", "max_accel_mps2", "standing_height_m")
-        _common.declared(self, EventSettings, "long_lie_s")   # the site file's [events] declares it
+        check_declared(self, EventSettings, "long_lie_s")   # the site file's [events] declares it
         _common.non_negative(self, "height_tol_m", "confirm_s", "upright_s", "low_gap_s")
         _common.fraction(self, "low_top_frac", "low_centre_frac", "flat_top_frac")
 
