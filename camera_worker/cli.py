@@ -10,6 +10,7 @@ import argparse
 import logging
 import sys
 from collections.abc import Sequence
+from pathlib import Path
 
 from common import maskcodec
 from common.shell import add_logging_arguments, add_zenoh_arguments, configure_logging, serve
@@ -64,9 +65,14 @@ def build_parser() -> argparse.ArgumentParser:
                    help="frame rate of a recording, overriding its own (default: the file's, else the camera's fps)")
     g.add_argument("--fast", action="store_true", help="play recordings as fast as possible instead of at their rate")
     g.add_argument("--loop", action="store_true", help="play a recording again and again instead of exiting at its end")
-    g.add_argument("--start-ns", type=int, metavar="NS",
+    start = g.add_mutually_exclusive_group()
+    start.add_argument("--start-ns", type=int, metavar="NS",
                    help="stamp of a recording's first frame (default: now); give every worker the same to replay "
                         "several cameras in step")
+    start.add_argument("--start-file", type=Path, metavar="FILE",
+                   help="read that stamp from FILE once ready (liveliness token out, background learned), waiting "
+                        "for it to be written: how a launcher starts workers in step however long each takes to "
+                        "get ready")
     g.add_argument("--seed", type=int, default=0, help="seed of the synthetic house (default 0)")
     g.add_argument("--max-frames", type=int, metavar="N", help="stop after N frames")
 
@@ -143,6 +149,7 @@ def _configure(args: argparse.Namespace):
         fps=args.fps,
         default_fps=spec.fps,
         start_ns=args.start_ns,
+        start_file=args.start_file,
         paced=not args.fast,
         loop=args.loop,
         seed=args.seed,
@@ -171,8 +178,6 @@ def _configure(args: argparse.Namespace):
 
 def _view_reference(args: argparse.Namespace, site, spec):
     """The reference picture's file (None: none), checked to be a picture when it exists."""
-    from pathlib import Path
-
     from camera_worker.viewcheck import load_reference
 
     if args.view_reference is not None:

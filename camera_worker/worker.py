@@ -46,7 +46,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Sequence
 
-from pydantic import Field, field_validator
+from pydantic import Field, field_validator, model_validator
 
 import numpy as np
 
@@ -61,7 +61,7 @@ from camera_worker.sources import (
     SourceError,
     open_source,
 )
-from common import keys, maskcodec, messages
+from common import keys, maskcodec, messages, sharedstart
 from common.messages import Appearance, HoldRegions, LookRequest, MaskFrame, WireError
 from common.ratelog import RateLimitedLog
 from common.settings import Settings
@@ -96,7 +96,9 @@ class WorkerSettings(Settings):
     sources at their rate -- from the first frame read, or, when ``start_ns``
     is given, on the host clock (each frame at its stamp, so workers given the
     same start stay in step; frames already late are skipped where the source
-    can seek). ``modality``: the camera's (site ``cameras[].modality``), which picks the
+    can seek). ``start_file``: instead of ``start_ns``, a file the shared start
+    is read from once the worker is ready (:mod:`common.sharedstart`).
+    ``modality``: the camera's (site ``cameras[].modality``), which picks the
     segmenter (:func:`camera_worker.segmenters.segmenter_for`); a depth camera's
     messages carry the foreground range. ``segmenter``: keyword arguments of
     :class:`ForegroundSegmenter` (the thermal and depth segmenters take the common ones). ``max_frames``: stop after this many frames
@@ -117,6 +119,7 @@ class WorkerSettings(Settings):
     fps: float | None = None
     default_fps: float = 15.0
     start_ns: int | None = None
+    start_file: Path | None = None
     paced: bool = True
     loop: bool = False
     seed: int = 0
@@ -133,6 +136,12 @@ class WorkerSettings(Settings):
     modality: str = "colour"
     view_check: bool = True
     view_reference: Path | None = None
+
+    @model_validator(mode="after")
+    def _one_start(self) -> WorkerSettings:
+        if self.start_ns is not None and self.start_file is not None:
+            raise ValueError("give the shared start as start_ns or start_file, not both")
+        return self
 
     @field_validator("cam")
     @classmethod
@@ -337,6 +346,14 @@ def run(session: Any, settings: WorkerSettings, *, stop: threading.Event | None 
         return 1
 
     token = session.liveliness().declare_token(keys.alive_camera_key(settings.prefix, settings.cam))
+    if settings.start_file is not None:
+        try:
+            settings = _await_shared_start(settings, source, stop)
+        except ValueError as exc:
+            log.error("camera %s: %s", settings.cam, exc)
+            token.undeclare()
+            source.close()
+            return 1
     publisher = session.declare_publisher(
         keys.mask_key(settings.prefix, settings.cam), encoding=messages.MSGPACK_ENCODING,
         congestion_control=zenoh.CongestionControl.DROP, express=True)
@@ -577,13 +594,17 @@ class _Loop:
         """Take the look requests that arrived and answer the newest on this frame ([] when none is
         pending: one ``try_recv`` is all a frame without a request costs)."""
         while (sample := self.look_sub.try_recv()) is not None:
+            # broken messages and requests for another camera are two faults (a bad sender, a fusion
+            # server with the wrong site file): each is reported on its own line
+            reason = "broken look"
             try:
                 msg = messages.decode(sample.payload.to_bytes(), LookRequest)
                 if msg.cam != self.s.cam:
+                    reason = "look for another camera"
                     raise WireError(f"LookRequest for camera {msg.cam!r} received by camera {self.s.cam!r}")
             except WireError as exc:
                 self.c.looks_rejected += 1
-                self._bad_looks.warn(f"camera {self.s.cam}", "look",
+                self._bad_looks.warn(f"camera {self.s.cam}", reason,
                                      f"look request on {self.look_key} dropped: {exc}", time.monotonic())
                 continue
             self.answerer.ask(msg)
@@ -650,6 +671,18 @@ def _view_check(settings: WorkerSettings, segmenter: Segmenter) -> ViewCheck | N
             check.set_reference(picture)
             log.info("camera %s: checking the view against %s", settings.cam, settings.view_reference)
     return check
+
+
+def _await_shared_start(settings: WorkerSettings, source: FrameSource, stop: threading.Event) -> WorkerSettings:
+    """Ready (the liveliness token is out): wait for the shared start in the settings' start file
+    and stamp the source from it; the settings returned carry it as ``start_ns``."""
+    if sharedstart.read_start(settings.start_file) is None:
+        log.info("camera %s: ready; waiting for the shared start in %s", settings.cam, settings.start_file)
+    start_ns = sharedstart.wait_start(settings.start_file, stop)
+    if start_ns is None:       # stopped while waiting: the loop ends at once
+        return settings
+    source.start_ns = start_ns
+    return settings.model_copy(update={"start_ns": start_ns})
 
 
 def _learn_background(segmenter: Segmenter, settings: WorkerSettings, start_ns: int,

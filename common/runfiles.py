@@ -34,6 +34,8 @@ from common.plain import plain_value
 TRACKS_FILE = "tracks.csv"
 EVENTS_FILE = "events.jsonl"
 META_FILE = "meta.json"
+START_FILE = "start_ns"
+"""The shared start of workers replaying in step (:mod:`common.sharedstart`)."""
 
 TRACK_COLUMNS: tuple[str, ...] = ("frame", "stamp_ns", "id", "x", "y", "z_top", "posture", "person")
 """The columns of a tracks file, in the order they are written."""

@@ -20,6 +20,7 @@ per reply as ``z_get.py`` does; both take the payload with
 
 from __future__ import annotations
 
+import io
 import os
 import re
 import signal
@@ -153,16 +154,29 @@ def start_fusion(site_file: Path, *, endpoint: str, store: Path, out: Path | Non
     return Proc(name, argv, Path(log_dir) / f"{name}.log")
 
 
-def start_camera(site_file: Path, cam: str, *, endpoint: str, scenario: str, start_ns: int, max_frames: int,
-                 log_dir: Path, seed: int = 0, background_frames: int = 45, name: str | None = None) -> Proc:
+def start_camera(site_file: Path, cam: str, *, endpoint: str, scenario: str, max_frames: int, log_dir: Path,
+                 start_ns: int | None = None, start_file: Path | None = None, seed: int = 0,
+                 background_frames: int = 45, name: str | None = None) -> Proc:
     """A ``voxelwatch-camera`` rendering and segmenting its view of a synthetic scenario, paced on the
-    host clock from ``start_ns`` (frames it is late for are skipped), after learning the empty room."""
+    host clock from ``start_ns`` or the stamp in ``start_file`` once it is ready (frames it is late
+    for are skipped), after learning the empty room."""
+    if (start_ns is None) == (start_file is None):
+        raise ValueError("give start_ns or start_file")
     name = name or cam
+    start = ["--start-ns", str(start_ns)] if start_ns is not None else ["--start-file", str(start_file)]
     argv = [sys.executable, "-m", "camera_worker.cli", "--site", str(site_file), "--camera", cam,
             "--source", f"synthetic:{scenario}", "--background", f"synthetic:{scenario}",
-            "--background-frames", str(background_frames), "--seed", str(seed), "--start-ns", str(start_ns),
+            "--background-frames", str(background_frames), "--seed", str(seed), *start,
             "--max-frames", str(max_frames), "--mode", "client", "--connect", endpoint, "-q"]
     return Proc(name, argv, Path(log_dir) / f"{name}.log")
+
+
+def start_in_step(session, prefix: str, workers: dict[str, Proc], start_file: Path) -> int:
+    """Wait until every worker started with ``start_file`` is ready, then write their shared start
+    (as the demo does); returns it."""
+    from voxelwatch.demo import start_in_step as start
+
+    return start(session, prefix, {cam: w.popen for cam, w in workers.items()}, start_file, io.StringIO())
 
 
 def start_stock_sub(endpoint: str, key: str, log_dir: Path, name: str = "z_sub") -> Proc:

@@ -26,22 +26,12 @@ from common.site import load_site
 from evaluation import evaluate, read_events
 from tests.procs import ROOT
 
-WORKER_START_S = 40.0
-"""The workers' shared start after launch in these tests (the demo's own is 10 s). Each synthetic
-worker spends some 6 s of processor time before its first frame (it builds its renderer for the
-empty room and for the scenario and learns 45 frames of background); with five of them on two
-cores shared with another test session they were live 12-23 s after launch. A worker that misses
-the shared start joins it at the frame for the time it is ready: with the demo's 10 s the cameras
-joined between frames 91 and 109, the person was first tracked by two of five cameras, and the
-frames fused scored MOTA 0.85 with 3 identity switches."""
-
 
 @pytest.fixture
 def heard(monkeypatch):
     """frame -> cameras of every fused frame the demo's reader hears on the tracks key (each
     fused frame set is published there, with the cameras whose masks it fused, even when it
-    holds no track). The demo's own callback still runs: this only records what it is given.
-    Also gives the workers :data:`WORKER_START_S` to start."""
+    holds no track). The demo's own callback still runs: this only records what it is given."""
     from voxelwatch import demo
 
     frames: dict[int, list[str]] = {}
@@ -57,7 +47,6 @@ def heard(monkeypatch):
         real(sample, live, t_launch)
 
     monkeypatch.setattr(demo, "_on_tracks", on_tracks)
-    monkeypatch.setattr(demo, "START_DELAY_S", WORKER_START_S)
     return frames
 
 

@@ -49,6 +49,7 @@ from procs import (  # noqa: E402
     Router,
     start_camera,
     start_fusion,
+    start_in_step,
     start_stock_sub,
     stock_get,
     stock_sub_payloads,
@@ -105,7 +106,6 @@ def fused_after(listener: Listener, frame: int) -> list[messages.TrackFrame]:
 
 SCENARIO = "fall_forward"
 N_FRAMES = 450          # 30 s of the 40 s scenario; the truth fall is at frame 101, its long lie at 551
-START_DELAY_S = 10.0    # workers' frame 0 is stamped this long after launch (start-up, background learning)
 KILL_AFTER_FRAME = 135  # the fall has had time to be confirmed
 VICTIM = "cam3"
 
@@ -128,15 +128,16 @@ def test_fall_is_raised_over_processes_and_a_killed_camera_is_left_out_then_rejo
                                   cache_dir=cache, log_dir=logs)
             procs.append(fusion)
             listener.wait_fusion(fusion)
-            start_ns = time.time_ns() + int(START_DELAY_S * 1e9)
+            start_file = tmp_path / "start_ns"   # written once all five are ready, as the demo does
             workers = {cam: start_camera(site_file, cam, endpoint=router.endpoint, scenario=SCENARIO,
-                                         start_ns=start_ns, max_frames=N_FRAMES, log_dir=logs)
+                                         start_file=start_file, max_frames=N_FRAMES, log_dir=logs)
                        for cam in site.camera_ids}
             procs.extend(workers.values())
+            start_ns = start_in_step(router.session, prefix, workers, start_file)
             everyone = [fusion, *(w for c, w in workers.items() if c != VICTIM)]
 
             # -- the fall, with all five cameras
-            wait_for(lambda: listener.last_frame() >= KILL_AFTER_FRAME, START_DELAY_S + 120,
+            wait_for(lambda: listener.last_frame() >= KILL_AFTER_FRAME, 120,
                      f"fused frame {KILL_AFTER_FRAME}", procs=everyone + [workers[VICTIM]])
             before = [h.msg for h in listener.track_frames()][-30:]
             # (a mask that comes too late for its set leaves a camera out of that one set)
@@ -164,9 +165,9 @@ def test_fall_is_raised_over_processes_and_a_killed_camera_is_left_out_then_rejo
             assert sum(near_truth(f, truth) for f in without) >= 0.9 * len(without), \
                 [(f.frame, f.tracks) for f in without]
 
-            # -- restart it with the same start stamp: back in the frame sets
+            # -- restart it with the same start file: back in the frame sets
             restart_ns = time.time_ns()
-            again = start_camera(site_file, VICTIM, endpoint=router.endpoint, scenario=SCENARIO, start_ns=start_ns,
+            again = start_camera(site_file, VICTIM, endpoint=router.endpoint, scenario=SCENARIO, start_file=start_file,
                                  max_frames=N_FRAMES, log_dir=logs, name=f"{VICTIM}-again")
             procs.append(again)
             wait_for(lambda: any(e.details.get("camera") == VICTIM for e in listener.events_of("camera_back")),
@@ -185,7 +186,7 @@ def test_fall_is_raised_over_processes_and_a_killed_camera_is_left_out_then_rejo
             # -- the recording ends; then ask the history like z_get.py does
             for cam, worker in workers.items():
                 if cam != VICTIM:
-                    assert worker.popen.wait(timeout=START_DELAY_S + N_FRAMES / 15 + 120) == 0, worker.tail()
+                    assert worker.popen.wait(timeout=N_FRAMES / 15 + 120) == 0, worker.tail()
             assert again.stop() == 0, again.tail()
             assert fusion.alive(), fusion.tail()
             # workers that end on purpose say so: camera_stopped, never camera_lost
@@ -678,13 +679,6 @@ SKEW_NS = 1_000_000_000
 RESTART_SCENARIO = "enter_exit"
 RESTART_FRAMES = 345        # 23 s: enters at frame 62, stands still 150..220, leaves through the door at 303
 RESTART_AFTER_FRAME = 95
-RESTART_START_DELAY_S = 30.0
-"""The workers' shared start, after launch, for this test. The person enters 62 frames (4 s) after it,
-and the first server must publish that enter before it is killed; a worker that is not ready by the
-shared start joins it at the frame for the time it is ready, and misses the entrance. Each worker spends
-some 6.5 s of processor time before its first frame (rendering and learning the empty room), five of
-them share two cores: they were live 13-17 s after launch here (another test session running, load
-average 6-9), and with START_DELAY_S (10 s) each run lost the enter event."""
 
 
 def history(session, prefix: str, parameters: str = "") -> list[messages.Event]:
@@ -712,13 +706,14 @@ def test_a_restarted_fusion_server_answers_the_whole_history_and_tracks_again(ho
                                  cache_dir=cache, log_dir=logs)
             procs.append(first)
             listener.wait_fusion(first)
-            start_ns = time.time_ns() + int(RESTART_START_DELAY_S * 1e9)
+            start_file = tmp_path / "start_ns"   # the person enters 62 frames after it: every worker must be ready
             workers = [start_camera(site_file, cam, endpoint=router.endpoint, scenario=RESTART_SCENARIO,
-                                    start_ns=start_ns, max_frames=RESTART_FRAMES, log_dir=logs)
+                                    start_file=start_file, max_frames=RESTART_FRAMES, log_dir=logs)
                        for cam in site.camera_ids]
             procs.extend(workers)
+            start_in_step(router.session, prefix, dict(zip(site.camera_ids, workers)), start_file)
             wait_for(lambda: listener.events_of("enter") and listener.last_frame() >= RESTART_AFTER_FRAME,
-                     RESTART_START_DELAY_S + 120, "an enter event and fused frames past the restart point",
+                     120, "an enter event and fused frames past the restart point",
                      procs=[first, *workers])
 
             # -- SIGKILL the server mid-run, start another on the same store
@@ -740,7 +735,7 @@ def test_a_restarted_fusion_server_answers_the_whole_history_and_tracks_again(ho
             measured["tracking_again_after_s"] = (time.time_ns() - restart_ns) / 1e9
             measured["frames_missed"] = resumed[0].frame - mark
             for worker in workers:
-                assert worker.popen.wait(timeout=RESTART_START_DELAY_S + RESTART_FRAMES / 15 + 120) == 0, worker.tail()
+                assert worker.popen.wait(timeout=RESTART_FRAMES / 15 + 120) == 0, worker.tail()
             time.sleep(1.0)
             frames = fused_after(listener, mark)
             heard = {h.msg.id: h.msg for h in listener.event_list()}

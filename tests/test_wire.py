@@ -32,7 +32,7 @@ import pytest
 
 zenoh = pytest.importorskip("zenoh")
 
-from procs import Listener, Proc, Router, start_camera, start_fusion, stop_all, wait_for  # noqa: E402
+from procs import Listener, Proc, Router, start_camera, start_fusion, start_in_step, stop_all, wait_for  # noqa: E402
 
 from evaluation.worker_bench import looks_bytes  # noqa: E402
 from common import appearance, keys, maskcodec, messages  # noqa: E402
@@ -40,8 +40,6 @@ from common import appearance, keys, maskcodec, messages  # noqa: E402
 SCENARIO = "two_pass"
 PEOPLE = 2
 """People in the scenario, both in the room from its first frame."""
-START_DELAY_S = 10.0
-"""The workers' frame 0 is stamped this long after launch (start-up, background learning)."""
 SMALL_BOUND = 4096
 """Largest payload, bytes, of any message but a MaskFrame."""
 BUDGET_B = 1024
@@ -173,12 +171,14 @@ def run_house(house, tmp_path, n_frames: int) -> tuple[list[tuple[str, bytes]], 
                                   cache_dir=cache, log_dir=logs)
             procs.append(fusion)
             listener.wait_fusion(fusion)
-            start_ns = time.time_ns() + int(START_DELAY_S * 1e9)
-            workers = [start_camera(site_file, cam, endpoint=router.endpoint, scenario=SCENARIO, start_ns=start_ns,
-                                    max_frames=n_frames, log_dir=logs) for cam in site.camera_ids]
+            start_file = tmp_path / "start_ns"
+            workers = [start_camera(site_file, cam, endpoint=router.endpoint, scenario=SCENARIO,
+                                    start_file=start_file, max_frames=n_frames, log_dir=logs)
+                       for cam in site.camera_ids]
             procs.extend(workers)
+            start_in_step(router.session, site.prefix, dict(zip(site.camera_ids, workers)), start_file)
             for worker in workers:
-                assert worker.popen.wait(timeout=START_DELAY_S + n_frames / 15 + 120) == 0, worker.tail()
+                assert worker.popen.wait(timeout=n_frames / 15 + 120) == 0, worker.tail()
             # the workers say they stop on purpose: camera_stopped, not camera_lost
             wait_for(lambda: len(listener.events_of("camera_stopped")) >= len(workers), 30,
                      "camera_stopped events as the workers end", procs=[fusion])

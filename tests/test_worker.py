@@ -323,7 +323,7 @@ def test_worker_process_publishes_decodable_masks_in_order(tmp_path, listener):
     """A recorded clip played at its own rate from a given start stamp: every mask decodes, seq
     increases, stamps are start + seq / fps, the walker is in the masks; holds over zenoh are taken (a broken one is
     counted and dropped); look requests are answered in the masks' ``looks`` with the walker's colours (a broken
-    one and one for another camera are refused, counted and logged once with the key); the process exits 0 at the
+    one and one for another camera are refused, counted, and each fault logged once with the key); the process exits 0 at the
     end of the clip and its liveliness goes."""
     _write_clips(tmp_path)
     site = _write_site(tmp_path)
@@ -368,11 +368,53 @@ def test_worker_process_publishes_decodable_masks_in_order(tmp_path, listener):
     looks = re.search(r"stopped: .*looks answered (\d+) \(expired (\d+), rejected (\d+)\)", err)
     assert looks and int(looks.group(1)) >= len(answered) and int(looks.group(3)) >= 2, err
     look_key = keys.look_key(Listener.prefix, "cam1")
-    assert f"look request on {look_key} dropped" in err and "camera 'cam2'" in err and "Traceback" not in err
+    assert f"look request on {look_key} dropped" in err and "camera 'cam2'" in err and "Traceback" not in err, err
     assert "learned the background from 15 frames" in err
     alive_key = keys.alive_camera_key(Listener.prefix, "cam1")
     assert _wait(lambda: ("SampleKind.DELETE", alive_key) in listener.alive, 5.0), listener.alive
     assert listener.alive[0] == ("SampleKind.PUT", alive_key)
+
+
+def test_a_worker_given_a_start_file_is_ready_first_and_starts_at_the_stamp_written_there(tmp_path, listener):
+    """Started with ``--start-file`` and no file there, the worker learns the background, puts out
+    its liveliness token and publishes nothing; once the file holds a stamp, its frame 0 carries
+    that stamp and the rest follow on the lattice, none skipped."""
+    from common import sharedstart
+
+    _write_clips(tmp_path)
+    site = _write_site(tmp_path)
+    start_file = tmp_path / "start_ns"
+    proc = _start(site, listener, "--start-file", str(start_file))
+    try:
+        alive_key = keys.alive_camera_key(Listener.prefix, "cam1")
+        assert _wait(lambda: ("SampleKind.PUT", alive_key) in listener.alive), \
+            proc.stderr.read() if proc.poll() is not None else "no liveliness token"
+        time.sleep(1.0)             # ready, and waiting: nothing goes out
+        assert listener.count() == 0 and proc.poll() is None
+        start_ns = time.time_ns() + 300_000_000
+        sharedstart.write_start(start_file, start_ns)
+        out, err = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    assert proc.returncode == 0, err
+    masks = listener.masks()
+    assert [m.seq for m in masks][:1] == [0] and len(masks) >= 55, [m.seq for m in masks]
+    _check_masks(masks, start_ns, int(1e9 / FPS))
+    assert f"waiting for the shared start in {start_file}" in err and "skipped 0" in err, err
+
+
+def test_a_broken_start_file_stops_the_worker_naming_the_file(tmp_path, listener):
+    _write_clips(tmp_path)
+    site = _write_site(tmp_path)
+    start_file = tmp_path / "start_ns"
+    start_file.write_text("soon\n")
+    proc = _start(site, listener, "--start-file", str(start_file))
+    out, err = proc.communicate(timeout=60)
+    assert proc.returncode == 1, err
+    assert f"start file {start_file}: expected one integer" in err and "Traceback" not in err, err
+    assert listener.count() == 0
 
 
 def test_worker_process_sends_how_far_its_view_moved(tmp_path, listener):

@@ -35,11 +35,13 @@ from pathlib import Path
 from typing import TextIO
 
 from common.certs import ROUTER
-from common.runfiles import EVENTS_FILE, TRACKS_FILE
+from common.runfiles import EVENTS_FILE, START_FILE, TRACKS_FILE
 from common.transport import free_port, site_config
 
-START_DELAY_S = 10.0
-"""Workers' first frame is stamped this long after launch, so all start in step."""
+START_MARGIN_S = 1.0
+"""The workers' shared first frame is stamped this long after the last of them is ready."""
+READY_TIMEOUT_S = 300.0
+"""How long the camera workers may take to get ready (open the source, learn the background)."""
 BACKGROUND_FRAMES = 45
 """Frames of the empty room each worker learns before the scenario (as replay does)."""
 
@@ -152,14 +154,17 @@ def run_demo(
                 logs / "fusion.log",
             )
             _wait_alive(session, keys.alive_fusion_key(site.prefix), procs["fusion"], stream)
-            start_ns = time.time_ns() + int(START_DELAY_S * 1e9)
+            start_file = run_dir / START_FILE
+            start_file.unlink(missing_ok=True)
             for cam in site.camera_ids:
                 procs[cam] = _spawn(
                     ["voxelwatch-camera", "--site", str(site_path), "--camera", cam, "--source", source,
                      "--background", source, "--background-frames", str(BACKGROUND_FRAMES),
-                     "--seed", str(seed), "--start-ns", str(start_ns), "--max-frames", str(n_frames), "-q", *zenoh_args],
+                     "--seed", str(seed), "--start-file", str(start_file), "--max-frames", str(n_frames), "-q",
+                     *zenoh_args],
                     logs / f"{cam}.log",
                 )
+            start_in_step(router, site.prefix, {cam: procs[cam] for cam in site.camera_ids}, start_file, stream)
             print(f"started {len(site.camera_ids)} camera workers and the fusion server; logs in {logs}", file=stream, flush=True)
             _watch(procs, live, site.camera_ids, n_frames, sc.fps, stream)
         except KeyboardInterrupt:
@@ -293,6 +298,38 @@ def _wait_alive(session, key: str, proc: subprocess.Popen, stream: TextIO, timeo
             return
         time.sleep(0.2)
     raise RuntimeError(f"the fusion server did not come up within {timeout_s:.0f} s")
+
+
+def start_in_step(session, prefix: str, workers: dict[str, subprocess.Popen], start_file: Path, stream: TextIO,
+                  timeout_s: float = READY_TIMEOUT_S) -> int:
+    """Wait until every camera worker launched with ``--start-file start_file`` is ready (its
+    liveliness token is out), then write their shared start, :data:`START_MARGIN_S` from now, and
+    return it. Raises RuntimeError when a worker exits first or they are not all ready in time."""
+    from common import keys, sharedstart
+
+    deadline = time.monotonic() + timeout_s
+    ready: set[str] = set()
+    while True:
+        for cam, proc in workers.items():
+            if proc.poll() is not None:
+                raise RuntimeError(f"camera worker {cam} exited with code {proc.returncode} while getting ready "
+                                   "(see its log)")
+        for reply in session.liveliness().get(keys.alive_cameras_wildcard(prefix), timeout=1.0):
+            if reply.ok is not None:
+                try:
+                    ready.add(keys.camera_of(str(reply.ok.key_expr), prefix))
+                except ValueError:
+                    continue
+        waiting = sorted(set(workers) - ready)
+        print(f"\r\033[Kcameras ready {len(workers) - len(waiting)}/{len(workers)}", end="", file=stream, flush=True)
+        if not waiting:
+            print(file=stream, flush=True)
+            start_ns = time.time_ns() + int(START_MARGIN_S * 1e9)
+            sharedstart.write_start(start_file, start_ns)
+            return start_ns
+        if time.monotonic() > deadline:
+            raise RuntimeError(f"camera workers {', '.join(waiting)} were not ready within {timeout_s:.0f} s")
+        time.sleep(0.2)
 
 
 def _watch(procs, live: _Live, cam_ids, n_frames: int, fps: float, stream: TextIO) -> None:

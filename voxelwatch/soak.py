@@ -33,8 +33,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, TextIO
 
-from voxelwatch.demo import BACKGROUND_FRAMES, START_DELAY_S, _spawn, _stop_all, _wait_alive
+from common.runfiles import START_FILE
 from common.transport import free_port, zenoh_config
+from voxelwatch.demo import BACKGROUND_FRAMES, _spawn, _stop_all, _wait_alive, start_in_step
 
 __all__ = ["run_soak"]
 
@@ -87,10 +88,13 @@ def run_soak(*, minutes: float = 30.0, speed: float = 4.0, kill_every_s: float =
         return _spawn(["voxelwatch-fusion", "--site", str(site_path), "--store", str(store),
                        "--cache-dir", str(out / "cache"), *zenoh_args], logs / f"fusion-{restarts.get('fusion', 0)}.log")
 
-    def worker(cam: str, start_ns: int) -> subprocess.Popen:
+    start_file = out / START_FILE
+    start_file.unlink(missing_ok=True)
+
+    def worker(cam: str) -> subprocess.Popen:
         return _spawn(["voxelwatch-camera", "--site", str(site_path), "--camera", cam, "--source", f"synthetic:{name}",
                        "--background", f"synthetic:{name}", "--background-frames", str(BACKGROUND_FRAMES),
-                       "--fps", str(fps), "--loop", "--start-ns", str(start_ns), "-q", *zenoh_args],
+                       "--fps", str(fps), "--loop", "--start-file", str(start_file), "-q", *zenoh_args],
                       logs / f"{cam}-{restarts.get(cam, 0)}.log")
 
     print(f"voxelwatch soak: {name} at {speed:g}x ({fps:g} frames/s), {minutes:g} min, a camera killed every "
@@ -105,9 +109,9 @@ def run_soak(*, minutes: float = 30.0, speed: float = 4.0, kill_every_s: float =
         try:
             procs["fusion"], started["fusion"] = fusion(), time.monotonic()
             _wait_alive(session, keys.alive_fusion_key(fast.prefix), procs["fusion"], stream)
-            start_ns = time.time_ns() + int(START_DELAY_S * 1e9)
             for cam in cams:
-                procs[cam], started[cam] = worker(cam, start_ns), time.monotonic()
+                procs[cam], started[cam] = worker(cam), time.monotonic()
+            start_in_step(session, fast.prefix, {cam: procs[cam] for cam in cams}, start_file, stream)
             end = time.monotonic() + minutes * 60
             next_kill = time.monotonic() + kill_every_s
             fusion_kill = time.monotonic() + minutes * 30
@@ -137,7 +141,7 @@ def run_soak(*, minutes: float = 30.0, speed: float = 4.0, kill_every_s: float =
                     restarts[cam] = restarts.get(cam, 0) + 1
                     print(f"[{now - t0:6.0f} s] camera {cam} killed; starting it again", file=stream, flush=True)
                     time.sleep(RESTART_DELAY_S)
-                    procs[cam], started[cam] = worker(cam, start_ns), time.monotonic()
+                    procs[cam], started[cam] = worker(cam), time.monotonic()
                 with heard.lock:
                     n, events = len(heard.frames), len(heard.events)
                 print(f"\r\033[K[{now - t0:6.0f} s] {n} frames fused, {events} events", end="", file=stream, flush=True)
