@@ -10,7 +10,7 @@ came out 0.04-0.20 px from the truth on average, the fitted board's 0.01-0.10 px
 It is asked for (``calibrate floor --fit-board``), not the default: on the lab's recording, whose black squares
 are lighter at their tops and whose white ones are clipped, the fitted corners lie 0.24-0.65 px from the
 detector's, which fit a flat board within 0.13-0.22 px, and which of them is nearer the truth the recording
-cannot tell (the README).
+cannot tell (docs/guides/calibrating.md, "Fitting the whole board").
 
 The model of a pixel: the printed checker pattern where the pixel's centre ray meets the board's plane,
 blurred by a Gaussian of ``blur_px`` across each edge (the lens's blur and the pixel's own width), times a

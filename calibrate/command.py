@@ -36,7 +36,7 @@ def register(sub) -> None:
     f.add_argument("--dry-run", action="store_true", help="print the result, write nothing")
     f.add_argument("--fit-board", action="store_true",
                    help="take a chessboard's corners from the board fitted to each still frame as a whole (for boards "
-                        "seen small, their rows a few pixels apart; the README says when it helps)")
+                        "seen small, their rows a few pixels apart; docs/guides/calibrating.md says when it helps)")
     f.set_defaults(handler=_floor)
 
 

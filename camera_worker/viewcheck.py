@@ -37,7 +37,7 @@ of the camera) there is no measurement and the previous one stands.
 On the tuning worlds an untouched camera reads under 0.13 degree, also in
 crowds of 11-12 people (with the masks' own faults), a 2 degree turn 1.5-2.4
 degrees and a 10 cm shift 0.6-3.5 (the nearer the room, the more); the lab
-recording's untouched cameras read under 0.16 degree (README, "Keeping
+recording's untouched cameras read under 0.16 degree (docs/guides/calibrating.md, "Keeping
 cameras calibrated").
 
 Pure apart from OpenCV; no clock (time is the frames' capture stamps).

@@ -147,3 +147,108 @@ def test_a_broken_link_or_anchor_is_found(tmp_path):
     assert any("docs/missing.png does not exist" in p for p in problems)
     assert any("no heading #nowhere in docs/a.md" in p for p in problems)
     assert any("no heading #nowhere in README.md" in p for p in problems)
+
+
+_DOC_PATH = re.compile(r"\b(?:README\.md|docs/[\w./-]+?\.md)\b")
+_CODE_SUFFIXES = {".py", ".toml", ".service", ".js", ".html", ".sh"}
+
+
+def code_pointers(repo: Path = REPO) -> list[tuple[str, str]]:
+    """``(file, pointer)`` for every ``docs/....md`` a code, configuration or deployment file names
+    that does not exist (``README.md`` itself always does)."""
+    missing = []
+    for path in sorted(repo.rglob("*")):
+        rel = path.relative_to(repo)
+        if path.suffix not in _CODE_SUFFIXES or rel.parts[0] in {".venv", ".git", "build", "docs"} or \
+                rel == Path("tests/test_docs.py") or not path.is_file():   # this file's examples are made up
+            continue
+        for found in _DOC_PATH.findall(path.read_text(errors="replace")):
+            if not (repo / found).is_file():
+                missing.append((str(rel), found))
+    return missing
+
+
+def test_the_documents_code_points_to_exist():
+    """Comments, help texts and unit files send readers to pages of docs/: each page is there."""
+    assert code_pointers() == []
+
+
+def test_a_pointer_to_a_missing_page_is_found(tmp_path):
+    (tmp_path / "docs").mkdir()
+    (tmp_path / "docs" / "here.md").write_text("# Here\n")
+    (tmp_path / "run.py").write_text('"""See docs/here.md and docs/gone.md."""\n')
+    assert code_pointers(tmp_path) == [("run.py", "docs/gone.md")]
+
+
+COMMANDS_PAGE = REPO / "docs" / "reference" / "commands.md"
+_USAGE_BLOCK = re.compile(r"^```\n(usage: .*?)^```$", re.S | re.M)
+
+
+def _command_of(usage: str) -> list[str]:
+    """The command words of a usage line: ``usage: voxelwatch calibrate floor [-h] ...`` ->
+    ``["voxelwatch", "calibrate", "floor"]``."""
+    line = usage.split("\n", 1)[0].split()[1:]
+    if line[:2] == ["python", "-m"]:
+        return line[:3]
+    words = []
+    for word in line:
+        if word.startswith(("[", "-", "{")) or word.isupper():
+            break
+        words.append(word)
+    return words
+
+
+def help_text(command: list[str]) -> str:
+    """The ``--help`` of a documented command, as an 80-column terminal shows it (run in this
+    process: each command's ``main`` prints its help and exits)."""
+    import contextlib
+    import importlib
+    import io
+    import os
+
+    if command[:2] == ["python", "-m"]:
+        main, argv = importlib.import_module(command[2]).main, command[3:]
+    elif command[0] == "voxelwatch-camera":
+        main, argv = importlib.import_module("camera_worker.cli").main, command[1:]
+    elif command[0] == "voxelwatch-fusion":
+        main, argv = importlib.import_module("fusion_server.cli").main, command[1:]
+    else:
+        assert command[0] == "voxelwatch", command
+        main, argv = importlib.import_module("voxelwatch.cli").main, command[1:]
+    out = io.StringIO()
+    columns = os.environ.get("COLUMNS")
+    os.environ["COLUMNS"] = "80"
+    try:
+        with contextlib.redirect_stdout(out), pytest.raises(SystemExit):
+            main([*argv, "--help"])
+    finally:
+        if columns is None:
+            del os.environ["COLUMNS"]
+        else:
+            os.environ["COLUMNS"] = columns
+    return out.getvalue()
+
+
+def commands_page(text: str) -> str:
+    """The commands page with every usage block replaced by its command's help today."""
+    return _USAGE_BLOCK.sub(lambda m: "```\n" + help_text(_command_of(m.group(1))).rstrip("\n") + "\n```", text)
+
+
+def test_the_commands_page_shows_each_commands_help_as_it_is():
+    """docs/reference/commands.md quotes every command's --help; a flag added, renamed or given new
+    bounds shows there (rewrite the page with ``python tests/test_docs.py``)."""
+    text = COMMANDS_PAGE.read_text()
+    documented = {" ".join(_command_of(block)[:2]) for block in _USAGE_BLOCK.findall(text)}
+    subcommands = re.findall(r"^    (\w+) ", help_text(["voxelwatch"]), re.M)
+    assert len(subcommands) >= 14, subcommands
+    named = {"camera": "voxelwatch-camera", "fusion": "voxelwatch-fusion"}
+    assert {named.get(c, f"voxelwatch {c}") for c in subcommands} <= documented, documented
+    assert commands_page(text) == text, "the commands page is stale: run python tests/test_docs.py"
+
+
+if __name__ == "__main__":
+    import sys
+
+    sys.path.insert(0, str(REPO))
+    COMMANDS_PAGE.write_text(commands_page(COMMANDS_PAGE.read_text()))
+    print(f"wrote {COMMANDS_PAGE.relative_to(REPO)}")

@@ -150,7 +150,7 @@ def _network_lines(site) -> list[str]:
         return [f"zenoh: {z.mode} mode, {', '.join([*z.listen, *z.connect]) or 'no endpoints'}",
                 "WARNING: zenoh runs over plain TCP: anyone on the network can read tracks and events and publish "
                 "fake ones. Make certificates with 'voxelwatch certs' and add a [zenoh.tls] section "
-                "(README: Securing a home)."]
+                "(docs/guides/securing.md)."]
     acl = "the router lets each host do only its part" if z.tls.access_control else "no access control"
     lines = [f"zenoh: {z.mode} mode over TLS with mutual authentication (authority {site.resolve(z.tls.ca)}); {acl}; "
              f"readers {', '.join(z.tls.readers)}"]

@@ -69,7 +69,8 @@ class Carver:
         a camera does not vote on a voxel it sees only through one of them.
       fusion: ``"vote"`` keeps the finest voxels that pass the vote; ``"graphcut"`` labels
         the voted voxels and their 6-neighbours by the graph cut of :mod:`.graphcut`.
-      smoothing: the graph cut's Potts weight lambda (0.1: see the README; the paper's 0.01 is for a data term of another scale), >= 0.
+      smoothing: the graph cut's Potts weight lambda, >= 0 (0.1: see docs/reference/fusion-server.md;
+        the paper's 0.01 is for a data term of another scale).
       free_space: depth images given to :meth:`carve` carve the space in front of the
         measured surfaces (:mod:`.freespace`); False ignores them.
 
