@@ -4,7 +4,9 @@
 sleeps. Per frame it calls the pure pieces: :meth:`HoldBook.boxes` (hold
 regions still in force), ``ForegroundSegmenter.apply``,
 :meth:`~camera_worker.looks.LookAnswerer.answer` (only while a look request
-is pending) and :func:`build_mask_frame` (:func:`step` is them together).
+is pending), the view check and :func:`build_mask_frame`: :func:`step` is them
+together, the one per-frame path that the worker, its tests and its benchmark
+(``evaluation/worker_bench.py``) all run.
 
 What :func:`run` does:
 
@@ -27,8 +29,8 @@ What :func:`run` does:
   travelling in that frame's ``MaskFrame.looks`` (a request older than its
   time to live by then is counted as expired and left unanswered);
 * counts frames read, dropped and published, look requests answered,
-  expired and rejected, and the time of each stage (read, segment, looks,
-  encode, publish), logged every ``stats_period_s``;
+  expired and rejected, and the time of each stage (:data:`STAGES`), logged
+  every ``stats_period_s``;
 * when it stops on purpose (the recording ended, or SIGTERM/SIGINT), sends a
   DELETE on its mask key before withdrawing its token: the fusion server then
   reports the camera ``stopped`` (event ``camera_stopped``), not ``lost``.
@@ -44,7 +46,7 @@ import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any, Callable, Sequence
 
 from pydantic import Field, field_validator, model_validator
 
@@ -285,15 +287,33 @@ def step(
     holds: Sequence[Box] = (),
     codec: str = maskcodec.DEFAULT_CODEC,
     answerer: LookAnswerer | None = None,
+    view: Callable[[Frame, np.ndarray, SegmentStats], float | None] | None = None,
+    stage_s: dict[str, float] | None = None,
 ) -> tuple[MaskFrame, np.ndarray, SegmentStats]:
-    """Segment one frame and wrap its mask for the wire: ``(message, mask, stats)``; with an
-    ``answerer`` holding a request, the message carries its answer on this frame."""
+    """Segment one frame and wrap its mask for the wire: ``(message, mask, stats)``.
+
+    With an ``answerer`` holding a request, the message carries its answer on this frame (a
+    thermal or range camera has no colours: the request is taken and left unanswered). ``view``:
+    the view check, given the frame, its mask and stats, returning the view's latest shift in
+    pixels (None: none yet). ``stage_s``: the seconds of the ``segment``, ``looks``, ``view`` and
+    ``encode`` stages are added to it. Raises ValueError when the frame's size differs from the
+    background model's (nothing else is done then)."""
+    t0 = time.perf_counter()
     mask, stats = segmenter.apply(frame.image, holds=holds)
-    h, w = frame.image.shape[:2]
+    t1 = time.perf_counter()
     image = frame.image if isinstance(segmenter, ForegroundSegmenter) else None   # thermal, range: no colours
     looks = answerer.answer(image, mask, frame.stamp_ns) if answerer is not None and answerer.pending else []
+    t2 = time.perf_counter()
+    shift = view(frame, mask, stats) if view is not None else None
+    t3 = time.perf_counter()
+    h, w = frame.image.shape[:2]
     msg = build_mask_frame(mask, cam=cam, seq=seq, stamp_ns=frame.stamp_ns, src_size=(w, h), codec=codec,
-                           fg_fraction=stats.fg_fraction, looks=looks, depth_mm=foreground_depth(segmenter))
+                           fg_fraction=stats.fg_fraction, looks=looks, depth_mm=foreground_depth(segmenter),
+                           view_shift_px=shift)
+    if stage_s is not None:
+        for name, dt in (("segment", t1 - t0), ("looks", t2 - t1), ("view", t3 - t2),
+                         ("encode", time.perf_counter() - t3)):
+            stage_s[name] += dt
     return msg, mask, stats
 
 
@@ -437,40 +457,37 @@ class _Loop:
                 if self.source.live:
                     continue
                 return 0 if self.stop.is_set() or not self._failed_recorded else 1
-            t1 = time.perf_counter()
+            frame_s = dict.fromkeys(STAGES, 0.0)
+            frame_s["read"] = time.perf_counter() - t0
             self._check_size(frame)
             self._take_holds(frame.stamp_ns)
+            self._take_looks()
             try:
-                mask, stats = self.segmenter.apply(frame.image, holds=self.holds.boxes(frame.stamp_ns))
+                msg, _, stats = step(self.segmenter, frame, cam=self.s.cam, seq=self.seq_offset + frame.index,
+                                     holds=self.holds.boxes(frame.stamp_ns), codec=self.s.codec,
+                                     answerer=self.answerer, view=self._check_view, stage_s=frame_s)
             except ValueError as exc:   # the frame size changed (a camera reopened at another size)
                 log.warning("camera %s: %s; starting a new background model", self.s.cam, exc)
                 self.segmenter.reset()
                 continue
-            t2 = time.perf_counter()
-            looks = self._answer_looks(frame, mask)
-            t3 = time.perf_counter()
-            view_px = self._check_view(frame, mask, stats)
-            t3v = time.perf_counter()
-            h, w = frame.image.shape[:2]
-            self.last_seq = self.seq_offset + frame.index
-            msg = build_mask_frame(mask, cam=self.s.cam, seq=self.last_seq,
-                                   stamp_ns=frame.stamp_ns, src_size=(w, h), codec=self.s.codec,
-                                   fg_fraction=stats.fg_fraction, looks=looks,
-                                   depth_mm=foreground_depth(self.segmenter), view_shift_px=view_px)
+            self.c.looks_answered, self.c.looks_expired = self.answerer.answered, self.answerer.expired
+            self.last_seq = msg.seq
+            t = time.perf_counter()
             payload = messages.encode(msg)
-            t4 = time.perf_counter()
+            t_put = time.perf_counter()
+            frame_s["encode"] += t_put - t
             try:
                 self.publisher.put(payload)
                 self.c.published += 1
             except Exception as exc:  # noqa: BLE001 - zenoh errors must not stop the camera
                 self.c.publish_errors += 1
                 log.warning("camera %s: publish failed: %s", self.s.cam, exc)
-            t5 = time.perf_counter()
+            frame_s["publish"] = time.perf_counter() - t_put
             if stats.light_change:
                 self.c.light_changes += 1
                 log.info("camera %s: sudden light change at frame %d: re-learning the background",
                          self.s.cam, msg.seq)
-            for name, dt in zip(STAGES, (t1 - t0, t2 - t1, t3 - t2, t3v - t3, t4 - t3v, t5 - t4)):
+            for name, dt in frame_s.items():
                 self.c.stage_s[name] += dt
             self.c.timed += 1
             frames += 1
@@ -590,9 +607,9 @@ class _Loop:
                 self.c.holds_rejected += 1
                 self._bad_holds.warn(f"camera {self.s.cam}", "hold", f"hold message dropped: {exc}", time.monotonic())
 
-    def _answer_looks(self, frame: Frame, mask: np.ndarray) -> list[Appearance]:
-        """Take the look requests that arrived and answer the newest on this frame ([] when none is
-        pending: one ``try_recv`` is all a frame without a request costs)."""
+    def _take_looks(self) -> None:
+        """Take the look requests that arrived (the newest is answered on the next frame): one
+        ``try_recv`` is all a frame without a request costs."""
         while (sample := self.look_sub.try_recv()) is not None:
             # broken messages and requests for another camera are two faults (a bad sender, a fusion
             # server with the wrong site file): each is reported on its own line
@@ -608,13 +625,6 @@ class _Loop:
                                      f"look request on {self.look_key} dropped: {exc}", time.monotonic())
                 continue
             self.answerer.ask(msg)
-        if not self.answerer.pending:
-            return []
-        # a thermal or range camera has no colours to describe: the request is taken and left unanswered
-        image = frame.image if isinstance(self.segmenter, ForegroundSegmenter) else None
-        looks = self.answerer.answer(image, mask, frame.stamp_ns)
-        self.c.looks_answered, self.c.looks_expired = self.answerer.answered, self.answerer.expired
-        return looks
 
     def _check_view(self, frame: Frame, mask: np.ndarray, stats: SegmentStats) -> float | None:
         """The view's latest shift (:mod:`camera_worker.viewcheck`); a reference picture taken on the

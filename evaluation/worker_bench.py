@@ -1,7 +1,7 @@
 """The camera worker's benchmark: its stages timed on one core over a synthetic clip.
 
-:func:`measure_worker` runs the worker's own stages (read, segment, looks, view, encode,
-publish; :data:`camera_worker.worker.STAGES`) on a clip of walking figures it writes to a
+:func:`measure_worker` runs the worker's own per-frame path (:func:`camera_worker.worker.step`,
+timed by stage as the worker times it: :data:`camera_worker.worker.STAGES`) on a clip of walking figures it writes to a
 temporary MJPG video; ``voxelwatch bench --sections worker`` reports it.
 """
 
@@ -22,7 +22,7 @@ from camera_worker.looks import LookAnswerer
 from camera_worker.segmentation import Box, ForegroundSegmenter
 from camera_worker.sources import VideoFileSource
 from camera_worker.viewcheck import ViewCheck
-from camera_worker.worker import STAGES, build_mask_frame
+from camera_worker.worker import STAGES, step
 from common import maskcodec, messages
 from common.messages import Appearance, LookRequest, PersonRegion
 
@@ -98,27 +98,27 @@ def measure_worker(
                     if looks:   # what arrived from the fusion server before this frame (not timed)
                         answerer.ask(LookRequest(cam="bench", stamp_ns=frame.stamp_ns,
                                                  people=[f.region(width, height) for f in figures[i]]))
-                    mask, stats = segmenter.apply(frame.image, holds=[figures[i][0].box(width, height)] if holds else ())
-                    t2 = time.perf_counter()
-                    described = answerer.answer(frame.image, mask, frame.stamp_ns) if answerer.pending else []
+                    frame_s = dict.fromkeys(STAGES, 0.0)
+                    frame_s["read"] = t1 - t0
+                    msg, mask, stats = step(segmenter, frame, cam="bench", seq=i,
+                                            holds=[figures[i][0].box(width, height)] if holds else (), codec=codec,
+                                            answerer=answerer, stage_s=frame_s,
+                                            view=lambda f, m, st: view.follow(segmenter, f.image, m, st.fg_fraction,
+                                                                              st.relearning, f.stamp_ns))
                     t3 = time.perf_counter()
-                    shift = view.observe(frame.image, mask, frame.stamp_ns)
-                    t3v = time.perf_counter()
-                    msg = build_mask_frame(mask, cam="bench", seq=i, stamp_ns=frame.stamp_ns,
-                                           src_size=(width, height), codec=codec, fg_fraction=stats.fg_fraction,
-                                           looks=described, view_shift_px=shift)
                     payload = messages.encode(msg)
                     t4 = time.perf_counter()
+                    frame_s["encode"] += t4 - t3
                     publisher.put(payload)
-                    t5 = time.perf_counter()
+                    frame_s["publish"] = time.perf_counter() - t4
                     if i >= 5:   # the first frames initialise the model and the codec
-                        for name, dt in zip(STAGES, (t1 - t0, t2 - t1, t3 - t2, t3v - t3, t4 - t3v, t5 - t4)):
+                        for name, dt in frame_s.items():
                             stage_s[name] += dt
                         sizes.append(len(msg.data))
                         msg_sizes.append(len(payload))
                         fg.append(stats.fg_fraction)
-                        if described:
-                            look_sizes.append(looks_bytes(described) / len(described))
+                        if msg.looks:
+                            look_sizes.append(looks_bytes(msg.looks) / len(msg.looks))
                     i += 1
         publisher.undeclare()
     finally:

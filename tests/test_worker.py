@@ -101,6 +101,26 @@ def test_step_segments_and_wraps_one_frame():
     assert np.count_nonzero(mask[15:45, 30:40]) >= 296 and np.count_nonzero(mask) == np.count_nonzero(mask[15:45, 30:40])
 
 
+def test_step_runs_the_view_check_on_the_mask_and_times_each_stage():
+    """The view check is handed the frame and the mask it was segmented into, and its shift goes
+    out in the message; each stage's seconds are added to the caller's table (the worker's own
+    counters and the benchmark read them so); the holds reach the segmenter."""
+    seg, person = _learnt_room_with_person()
+    seen = []
+
+    def view(frame, mask, stats):
+        seen.append((frame.index, mask.shape, stats.fg_fraction))
+        return 2.345
+
+    stage_s = {"read": 0.5, "segment": 0.0, "looks": 0.0, "view": 0.0, "encode": 0.0, "publish": 0.0}
+    msg, mask, stats = step(seg, Frame(4, 99, person), cam="cam1", seq=4, view=view, stage_s=stage_s,
+                            holds=[(60, 30, 70, 90)])
+    assert seen == [(4, mask.shape, stats.fg_fraction)] and msg.view_shift_px == 2.35
+    assert stage_s["read"] == 0.5 and stage_s["publish"] == 0.0
+    assert all(stage_s[k] > 0 for k in ("segment", "looks", "view", "encode")), stage_s
+    assert stats.holds == 1 and np.count_nonzero(mask[15:45, 30:40]) >= 296   # held, and still foreground
+
+
 def test_step_of_a_depth_camera_ships_the_foreground_range_and_a_thermal_one_none():
     """A drawn range scene: a wall at 4 m, a person at 2.5 m (30 x 10 pixels at mask size);
     the message's range decodes to the person's readings. A thermal camera sends no range and
