@@ -50,6 +50,9 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+from pydantic import Field
+
+from common.settings import Settings
 
 DARK = 12
 """Grey level under which a reference pixel shows nothing (a border, a fisheye's corners)."""
@@ -68,27 +71,14 @@ TILE_TEXTURE = 3.0
 """... and its room pixels vary by at least this many grey levels (standard deviation)."""
 
 
-@dataclass(frozen=True)
-class ViewCheckParams:
-    """Settings of :class:`ViewCheck` (module text); checked once."""
+class ViewCheckParams(Settings):
+    """Settings of :class:`ViewCheck` (module text), each declared with its range."""
 
-    every_s: float = 1.0
-    width_px: int = 320
-    min_fit: float = 0.7
-    min_tiles: int = 6
-    iterations: int = 50
-
-    def __post_init__(self) -> None:
-        if not (np.isfinite(self.every_s) and self.every_s >= 0):
-            raise ValueError(f"every_s must be a number of seconds >= 0, got {self.every_s!r}")
-        if isinstance(self.width_px, bool) or not isinstance(self.width_px, int) or not 32 <= self.width_px <= 1024:
-            raise ValueError(f"width_px must be an int in 32..1024, got {self.width_px!r}")
-        if not 0.0 < self.min_fit < 1.0:
-            raise ValueError(f"min_fit must lie in (0, 1), got {self.min_fit!r}")
-        for name, low in (("min_tiles", 3), ("iterations", 1)):
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, int) or value < low:
-                raise ValueError(f"{name} must be an int >= {low}, got {value!r}")
+    every_s: float = Field(1.0, ge=0.0, allow_inf_nan=False)
+    width_px: int = Field(320, ge=32, le=1024, strict=True)
+    min_fit: float = Field(0.7, gt=0.0, lt=1.0)
+    min_tiles: int = Field(6, ge=3, strict=True)
+    iterations: int = Field(50, ge=1, strict=True)
 
 
 @dataclass(frozen=True)

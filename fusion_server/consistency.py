@@ -99,8 +99,10 @@ from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
+from pydantic import Field, model_validator
 
 from common.camera import Camera
+from common.settings import Settings
 from fusion_server.carving import Carver
 from fusion_server.carving.distance import FOREGROUND_THRESHOLD, mask_pixels, needed_votes
 from fusion_server.carving.lut import RADIUS_UNITS_PER_PX
@@ -123,45 +125,37 @@ OTHER_HALF_M = 0.45
 """Half-width of the floor box of another body whose image box must stay clear of the window."""
 
 
-@dataclass(frozen=True)
-class ConsistencyParams:
-    """Settings of :class:`ConsistencyMonitor` (module text); checked once."""
+_SECONDS = dict(ge=0.0, allow_inf_nan=False)
+_COUNT = dict(ge=1, strict=True)
+_SHARE = dict(gt=0.0, le=1.0)
 
-    every_s: float = 0.25
-    max_people: int = 2
-    min_reliability: float = 0.8
-    min_voxels: int = 40
-    window: int = 15
-    baseline_count: int = 20
-    baseline_s: float = 40.0
-    remeasure_m: float = 0.2
-    remeasure_s: float = 10.0
-    offset_share: float = 0.04
-    drop_ratio: float = 0.6
-    recover_ratio: float = 0.85
-    alarm_count: int = 10
-    alarm_s: float = 10.0
-    flood_share: float = 0.5
-    view_deg: float = 0.3
-    view_s: float = 10.0
 
-    def __post_init__(self) -> None:
-        if not (isinstance(self.view_deg, (int, float)) and 0.0 < self.view_deg <= 45.0):
-            raise ValueError(f"view_deg must lie in (0, 45] degrees, got {self.view_deg!r}")
-        for name in ("every_s", "baseline_s", "alarm_s", "remeasure_m", "remeasure_s", "view_s"):
-            value = getattr(self, name)
-            if not (isinstance(value, (int, float)) and np.isfinite(value) and value >= 0):
-                raise ValueError(f"{name} must be a number of seconds >= 0, got {value!r}")
-        for name in ("max_people", "min_voxels", "window", "baseline_count", "alarm_count"):
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
-                raise ValueError(f"{name} must be an int >= 1, got {value!r}")
-        for name in ("min_reliability", "offset_share", "drop_ratio", "recover_ratio", "flood_share"):
-            value = getattr(self, name)
-            if not (isinstance(value, (int, float)) and 0.0 < value <= 1.0):
-                raise ValueError(f"{name} must lie in (0, 1], got {value!r}")
+class ConsistencyParams(Settings):
+    """Settings of :class:`ConsistencyMonitor` (module text), each declared with its range."""
+
+    every_s: float = Field(0.25, **_SECONDS)
+    max_people: int = Field(2, **_COUNT)
+    min_reliability: float = Field(0.8, **_SHARE)
+    min_voxels: int = Field(40, **_COUNT)
+    window: int = Field(15, **_COUNT)
+    baseline_count: int = Field(20, **_COUNT)
+    baseline_s: float = Field(40.0, **_SECONDS)
+    remeasure_m: float = Field(0.2, **_SECONDS)
+    remeasure_s: float = Field(10.0, **_SECONDS)
+    offset_share: float = Field(0.04, **_SHARE)
+    drop_ratio: float = Field(0.6, **_SHARE)
+    recover_ratio: float = Field(0.85, **_SHARE)
+    alarm_count: int = Field(10, **_COUNT)
+    alarm_s: float = Field(10.0, **_SECONDS)
+    flood_share: float = Field(0.5, **_SHARE)
+    view_deg: float = Field(0.3, gt=0.0, le=45.0)
+    view_s: float = Field(10.0, **_SECONDS)
+
+    @model_validator(mode="after")
+    def _recover_above_drop(self) -> ConsistencyParams:
         if self.recover_ratio < self.drop_ratio:
             raise ValueError(f"recover_ratio ({self.recover_ratio}) must not be under drop_ratio ({self.drop_ratio})")
+        return self
 
 
 @dataclass(frozen=True)
