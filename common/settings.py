@@ -14,11 +14,13 @@ flag that overrides a site file's setting (``--mask-scale`` and ``carving.mask_s
 
 from __future__ import annotations
 
+import copy
 from typing import Annotated, Any
 
 from pydantic import BaseModel, ConfigDict, TypeAdapter, ValidationError
 
-__all__ = ["Settings", "SettingError", "check_declared", "check_setting", "default_of", "field_name", "problem", "validated"]
+__all__ = ["Settings", "SettingError", "check_declared", "check_setting", "declared", "default_of", "field_name", "problem",
+           "validated"]
 
 
 class SettingError(ValueError):
@@ -74,6 +76,12 @@ def validated(model: type[BaseModel], **values: Any) -> BaseModel:
         return model(**values)
     except ValidationError as exc:
         raise SettingError(one_line(exc)) from None
+
+
+def declared(model: type[BaseModel], name: str) -> Any:
+    """``model``'s declaration of the field ``name`` (default, bounds, description), for a stage's
+    parameter group to take as its own: ``long_lie_s: float = declared(EventSettings, "long_lie_s")``."""
+    return copy.copy(model.model_fields[name])
 
 
 def default_of(model: type[BaseModel], name: str) -> Any:

@@ -43,12 +43,13 @@ from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
+from pydantic import Field
 
 from common import appearance
 from common.appearance import AppearanceModel, Resident, View
 from common.camera import Camera
 from common.messages import Appearance, PersonRegion
-from common.settings import check_declared, default_of
+from common.settings import Settings, declared
 from common.site import IdentitySettings
 
 __all__ = ["IdentityKeeper", "IdentityParams"]
@@ -58,8 +59,11 @@ log = logging.getLogger("voxelwatch.identity")
 _N_BANDS = len(appearance.BANDS)
 
 
-@dataclass(frozen=True)
-class IdentityParams:
+_SHARE = dict(ge=0.0, le=1.0)
+_AMOUNT = dict(ge=0.0, allow_inf_nan=False)
+
+
+class IdentityParams(Settings):
     """Settings of :class:`IdentityKeeper` (defaults in brackets).
 
     rate_hz: descriptor requests per body per second, to every camera [3 Hz:
@@ -108,50 +112,30 @@ class IdentityParams:
         mature model learns only views within ``agree`` of it.
     """
 
-    rate_hz: float = default_of(IdentitySettings, "rate_hz")
-    body_radius_m: float = 0.22
-    min_pixels: int = 40
-    min_visible: float = 0.7
-    max_farther_overlap: float = 0.15
-    learn_rate: float = 0.05
-    settle_s: float = 3.0
-    close_m: float = 1.0
-    agree: float = 0.3
-    reid_window_s: float = default_of(IdentitySettings, "reid_window_s")
-    reid_distance: float = 0.3
-    reid_margin: float = 0.08
-    near_s: float = 4.0
-    near_m: float = 1.2
-    near_distance: float = 0.45
-    height_tolerance_m: float = 0.06
-    swap_margin: float = 0.05
-    swap_evidence: float = 0.6
-    min_model_frames: int = 5
-    decide_s: float = 0.5
-    decide_views: float = 3.0
-    same_person: float = 0.2
-    drift_level: float = 0.3
-    drift_evidence: float = 1.0
-
-    def __post_init__(self) -> None:
-        check_declared(self, IdentitySettings, "rate_hz", "reid_window_s")   # the site file's [identity] declares them
-        for name in ("body_radius_m", "learn_rate"):
-            value = float(getattr(self, name))
-            if not (math.isfinite(value) and value > 0):
-                raise ValueError(f"{name} must be a positive number, got {getattr(self, name)!r}")
-        for name in ("min_visible", "max_farther_overlap", "agree", "reid_distance", "reid_margin",
-                     "near_distance", "swap_margin", "learn_rate"):
-            value = float(getattr(self, name))
-            if not 0 <= value <= 1:
-                raise ValueError(f"{name} must lie in [0, 1], got {getattr(self, name)!r}")
-        for name in ("settle_s", "close_m", "near_s", "near_m", "height_tolerance_m", "swap_evidence", "decide_s",
-                     "decide_views", "same_person", "drift_level", "drift_evidence"):
-            value = float(getattr(self, name))
-            if not (math.isfinite(value) and value >= 0):
-                raise ValueError(f"{name} must be a finite non-negative number, got {getattr(self, name)!r}")
-        for name in ("min_pixels", "min_model_frames"):
-            if int(getattr(self, name)) < 0:
-                raise ValueError(f"{name} must be a non-negative int, got {getattr(self, name)!r}")
+    rate_hz: float = declared(IdentitySettings, "rate_hz")   # the site file's [identity] declares it
+    body_radius_m: float = Field(0.22, gt=0.0, allow_inf_nan=False)
+    min_pixels: int = Field(40, ge=0)
+    min_visible: float = Field(0.7, **_SHARE)
+    max_farther_overlap: float = Field(0.15, **_SHARE)
+    learn_rate: float = Field(0.05, gt=0.0, le=1.0)
+    settle_s: float = Field(3.0, **_AMOUNT)
+    close_m: float = Field(1.0, **_AMOUNT)
+    agree: float = Field(0.3, **_SHARE)
+    reid_window_s: float = declared(IdentitySettings, "reid_window_s")
+    reid_distance: float = Field(0.3, **_SHARE)
+    reid_margin: float = Field(0.08, **_SHARE)
+    near_s: float = Field(4.0, **_AMOUNT)
+    near_m: float = Field(1.2, **_AMOUNT)
+    near_distance: float = Field(0.45, **_SHARE)
+    height_tolerance_m: float = Field(0.06, **_AMOUNT)
+    swap_margin: float = Field(0.05, **_SHARE)
+    swap_evidence: float = Field(0.6, **_AMOUNT)
+    min_model_frames: int = Field(5, ge=0)
+    decide_s: float = Field(0.5, **_AMOUNT)
+    decide_views: float = Field(3.0, **_AMOUNT)
+    same_person: float = Field(0.2, **_AMOUNT)
+    drift_level: float = Field(0.3, **_AMOUNT)
+    drift_evidence: float = Field(1.0, **_AMOUNT)
 
 
 @dataclass
