@@ -1,4 +1,4 @@
-"""Shared test fixtures: where the real recordings are."""
+"""Shared test fixtures: where the real recordings are, and one carving-table cache for the run."""
 
 from __future__ import annotations
 
@@ -34,12 +34,82 @@ def pets_calibration(data_dir: Path) -> Path:
     return path
 
 
+@pytest.fixture(scope="session")
+def lut_cache(tmp_path_factory) -> Path:
+    """One carving-table cache for the whole run, shared by the test sessions of every xdist worker:
+    the tables of a rig are computed once and read by every module and process that carves it.
+    Tables are keyed by everything they are computed from and written whole (temporary file,
+    rename), so two workers computing the same one at once both write a good file. A test of the
+    cache itself uses a folder of its own."""
+    path = _run_root(tmp_path_factory) / "carving-tables"
+    path.mkdir(exist_ok=True)
+    return path
+
+
 @pytest.fixture(scope="module")
-def house(tmp_path_factory):
+def house(tmp_path_factory, lut_cache):
     """(site, site file, carving-table cache dir) of the synthetic house, for tests that run it
     as processes (modules with a house of their own override this one)."""
     import synth
 
     root = tmp_path_factory.mktemp("house")
     site = synth.default_site(root / "site")
-    return site, site.base_dir / "site.toml", root / "cache"
+    return site, site.base_dir / "site.toml", lut_cache
+
+
+# ---------------------------------------------------------------- the machine to itself
+
+_held_alone = False
+
+
+def _run_root(tmp_path_factory) -> Path:
+    """The run's own folder, shared by the test sessions of every xdist worker."""
+    base = tmp_path_factory.getbasetemp()
+    return base.parent if os.environ.get("PYTEST_XDIST_WORKER") else base
+
+
+@pytest.fixture(autouse=True)
+def _beside_others(request, tmp_path_factory):
+    """Every test shares the machine (a shared lock on the run's lock file), except while a test
+    that has it to itself runs (:func:`machine_to_itself`): then the other worker waits between two
+    of its tests."""
+    if _held_alone:
+        yield
+        return
+    import fcntl
+    import time
+
+    root = _run_root(tmp_path_factory)
+    while (root / "alone.wanted").exists():   # a test waits to have the machine: let it in first
+        time.sleep(0.1)
+    with open(root / "alone.lock", "a+") as f:
+        fcntl.flock(f, fcntl.LOCK_SH)
+        try:
+            yield
+        finally:
+            fcntl.flock(f, fcntl.LOCK_UN)
+
+
+@pytest.fixture(scope="module")
+def machine_to_itself(tmp_path_factory):
+    """For live runs of every process at real time (the demo with its view, the fall over
+    processes): while the fixture lasts, no other test runs beside it on the other worker, so a
+    busy neighbour cannot make the fusion server drop the frame sets of a fall. Module-scoped:
+    the tests of the module run alone too."""
+    global _held_alone
+    import fcntl
+
+    root = _run_root(tmp_path_factory)
+    wanted = root / "alone.wanted"
+    wanted.touch()
+    with open(root / "alone.lock", "a+") as f:
+        try:
+            fcntl.flock(f, fcntl.LOCK_EX)
+        finally:
+            wanted.unlink(missing_ok=True)
+        _held_alone = True
+        try:
+            yield
+        finally:
+            _held_alone = False
+            fcntl.flock(f, fcntl.LOCK_UN)

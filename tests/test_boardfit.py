@@ -103,6 +103,7 @@ def test_a_board_too_small_to_fit_is_left_as_found():
     assert np.array_equal(refined_corners(gray, corners, board, cam), corners)
 
 
+@pytest.mark.slow
 def test_the_fit_takes_a_real_lens_blur():
     """A board rendered sharp and then blurred by a Gaussian of 1.2 px (a lens out of focus), seen by tuning seed 0's
     cam1 (320x240, 232 px) 2 m away: the detector's corners come out 0.53 px from the truth, the fitted board's
@@ -128,6 +129,7 @@ def test_the_fit_takes_a_real_lens_blur():
     assert fit.blur_px > 1.0
 
 
+@pytest.mark.slow
 def test_floor_sightings_take_the_fitted_board_on_request_and_keep_the_detectors_corners(tmp_path):
     """Tuning seed 0's cam6 records the mat at two places on the floor (a clip, as the floor command reads it):
     by default the sightings' corners are the detector's; with fit_board they are the fitted board's, closer to the

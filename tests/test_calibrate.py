@@ -116,6 +116,7 @@ def test_floor_recovers_the_true_cameras_of_a_random_world(tmp_path):
         assert result.reports[cam_id].mean_px < 0.5
 
 
+@pytest.mark.slow
 def test_a_lens_fit_knows_how_far_its_centre_may_be_off_and_asks_for_the_board_nearer(tmp_path, capsys):
     """A 320x240 lens of 234 px (tuning seed 0's cam5) from a board spanning a quarter to three fifths of the
     image's width leaves the principal point about half a pixel uncertain: the fit says so (its standard
@@ -212,6 +213,7 @@ def test_charuco_intrinsics_recover_the_true_lens(tmp_path):
     assert diff.mean() < 1.0
 
 
+@pytest.mark.slow
 def test_charuco_is_found_partly_out_of_a_fisheye_view_where_a_chessboard_is_not():
     """Boards held where only part of them is in the ceiling fisheye's image: the chessboard of the same
     squares (6x4 inner corners) is found in none of those views; the ChArUco board in each, its corners
@@ -344,6 +346,7 @@ def _exact_sightings(world, poses, *, noise_px: float = 0.0, rng=None, min_area:
     return out
 
 
+@pytest.mark.slow
 def test_the_bounds_cover_the_errors_of_noisy_corners():
     """The 95 % bounds the calibration gives against its actual errors over repeated noisy recordings:
     corners with 0.25 px of noise (the bounds' noise floor), 20 recordings of a random world's rig: the
@@ -366,6 +369,7 @@ def test_the_bounds_cover_the_errors_of_noisy_corners():
         assert 0.5 * said < seen < 1.5 * said
 
 
+@pytest.mark.slow
 def test_the_bounds_cover_a_lens_files_uncertain_principal_point():
     """Lens files whose principal points are off by the noise their fits reported (0.5 px a coordinate, a
     320x240 lens's from a board held far), corners without noise: the board places cannot take the error back,
@@ -454,6 +458,7 @@ def test_a_view_found_a_square_off_is_left_out():
         assert res.reports[c].mean_px < 0.5
 
 
+@pytest.mark.slow
 def test_a_view_a_square_off_is_found_though_its_camera_sees_few_places():
     """Tuning seed 2, cameras that see three places: one of their views (not of the first place) has its
     corners named one square along. The adjustment spreads that view's error over the camera's other views
@@ -714,6 +719,7 @@ def test_the_places_laid_again_for_a_camera_spread_across_its_view():
         more_floor_positions(world.cameras, world.room, BOARD, np.random.default_rng(1), "cam1", poses, rule="near")
 
 
+@pytest.mark.slow
 def test_the_first_board_place_is_the_one_its_cameras_see_largest_of_those_most_see():
     """Tuning world 12, the PETS 2009 rig (cameras 8-40 m from the square): no place of the floor is seen by more
     than two cameras, at 0.3 % of their images or more. The first place is the floor frame every camera is
@@ -782,6 +788,7 @@ def test_a_floor_view_the_detector_takes_wrongly_is_looked_for_again_until_a_fla
     assert err.mean() < 0.3
 
 
+@pytest.mark.slow
 def test_a_floor_view_takes_the_way_of_looking_whose_corners_best_fit_a_flat_board():
     """Tuning seed 3's cam2 (640x480) sees the A0 board at the suite's first place: the detector on the image as it
     is finds corners 0.18 px off a flat board (well within GOOD_FIT_PX) and 0.24 px from the truth; the view from
@@ -826,6 +833,7 @@ def test_a_board_that_looks_the_same_turned_half_round_is_refused_on_a_stand(sta
                         rough=_rough(world.cameras))
 
 
+@pytest.mark.slow
 def test_a_board_on_a_stand_bent_by_the_lens_is_found_in_a_straightened_view():
     """Tuning seed 20's cam3 (a wide 640x480 lens, k1 strongly negative) sees the board on a stand near its
     image's edge, its rows bent: neither detector finds it in the image; in a view straightened through the
@@ -912,6 +920,7 @@ def test_command_writes_the_site_calibrations_with_backups(tmp_path, capsys):
         assert np.linalg.norm(got.center - true.center) < WORLD_POSITION_M
 
 
+@pytest.mark.slow
 def test_a_clip_without_the_board_is_refused_and_nothing_written(tmp_path, capsys):
     world, site_path = _synthetic_site(tmp_path)
     before = _snapshot(site_path)
@@ -1112,6 +1121,7 @@ def _shipped_board_error(cam, corners: np.ndarray) -> float:
 
 
 @pytest.mark.realdata
+@pytest.mark.slow
 def test_lab_floor_calibration_fits_the_board(lab4cam, tmp_path, capsys):
     site_path = _lab_site(lab4cam, tmp_path)
     shipped = load_site(site_path).load_cameras()

@@ -34,11 +34,11 @@ def world():
 
 
 @pytest.fixture(scope="module")
-def site_and_carver(world, tmp_path_factory):
+def site_and_carver(world, tmp_path_factory, lut_cache):
     out = tmp_path_factory.mktemp("moved")
     site = load_site(write_world_site(world, out / "world").site)
     cameras = site.load_cameras()
-    return site, cameras, build_carver(site, cameras, cache_dir=out / "cache")
+    return site, cameras, build_carver(site, cameras, cache_dir=lut_cache)
 
 
 def _truth_bodies(world, i: int) -> list[TrackEstimate]:

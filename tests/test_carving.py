@@ -55,7 +55,7 @@ def renderer(rig):
 
 @pytest.fixture(scope="module")
 def lut_dir(tmp_path_factory):
-    return tmp_path_factory.mktemp("lut")
+    return tmp_path_factory.mktemp("lut")   # its own: a test here sees the tables computed, then read
 
 
 @pytest.fixture(scope="module")

@@ -168,11 +168,6 @@ def cameras():
 
 
 @pytest.fixture(scope="module")
-def lut_cache(tmp_path_factory):
-    return tmp_path_factory.mktemp("lut")
-
-
-@pytest.fixture(scope="module")
 def carver_for(site, cameras, lut_cache):
     """Camera count -> carver over those cameras (tables built once, cached on disk)."""
     cache = lut_cache

@@ -108,7 +108,7 @@ def events_written(demo_dir: Path) -> Counter:
 
 
 @pytest.mark.slow
-def test_secure_demo_tracks_the_person_over_tls_and_access_control(tmp_path, monkeypatch, heard):
+def test_secure_demo_tracks_the_person_over_tls_and_access_control(tmp_path, monkeypatch, heard, lut_cache):
     """Masks, tracks and events cross a TLS router enforcing access control, and the person is
     tracked: scored against the truth on the frames the fusion server fused (as its reader heard
     them on the tracks key), not on every frame of the scenario.
@@ -130,7 +130,7 @@ def test_secure_demo_tracks_the_person_over_tls_and_access_control(tmp_path, mon
     fusion server stored."""
     monkeypatch.setenv("PYTHONPATH", str(ROOT))  # the workers and the server run this tree's code
     out = io.StringIO()
-    code = run_demo(out_dir=tmp_path / "demo", frames=150, secure=True, stream=out)
+    code = run_demo(out_dir=tmp_path / "demo", frames=150, secure=True, stream=out, cache_dir=lut_cache)
     text = out.getvalue()
     assert code == 0, text
     assert re.search(r"zenoh router tls/localhost:\d+ \(TLS, access control", text), text

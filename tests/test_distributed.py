@@ -110,7 +110,7 @@ KILL_AFTER_FRAME = 135  # the fall has had time to be confirmed
 VICTIM = "cam3"
 
 
-def test_fall_is_raised_over_processes_and_a_killed_camera_is_left_out_then_rejoins(house, tmp_path):
+def test_fall_is_raised_over_processes_and_a_killed_camera_is_left_out_then_rejoins(house, tmp_path, machine_to_itself):
     site, site_file, cache = house
     prefix = site.prefix
     truth_dir, run_dir, logs = tmp_path / "truth", tmp_path / "run", tmp_path / "logs"

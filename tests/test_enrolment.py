@@ -76,8 +76,8 @@ def house(tmp_path_factory) -> Path:
 
 
 @pytest.fixture(scope="module")
-def cache(tmp_path_factory) -> Path:
-    return tmp_path_factory.mktemp("lut")
+def cache(lut_cache) -> Path:
+    return lut_cache
 
 
 def _enrol(site: Path, cache: Path, scenario: str, frames: int, out: Path) -> int:

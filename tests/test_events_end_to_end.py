@@ -111,11 +111,12 @@ class Scene:
 
 
 @pytest.fixture(scope="module")
-def house(tmp_path_factory):
+def house(tmp_path_factory, lut_cache):
     """Half-size cameras of the synthetic house, a folder with their calibrations, and a
     function giving the house's site with an ``[events]`` section (validated as a site
-    file is)."""
+    file is). ``root / "cache"`` is the run's shared carving-table cache."""
     root = tmp_path_factory.mktemp("events_e2e")
+    (root / "cache").symlink_to(lut_cache, target_is_directory=True)
     cameras = synth.default_cameras(scale=HALF)
     base = synth.default_site(root / "site", cameras=cameras)
 
@@ -307,9 +308,10 @@ LIBRARY = {"hotspot_dwell": ("dwell_start", "dwell_end"), "dinner_visit": ("dwel
 
 
 @pytest.fixture(scope="module")
-def library_house(tmp_path_factory):
+def library_house(tmp_path_factory, lut_cache):
     """The synthetic house's own site: full-size cameras, half-size masks, as the suite runs it."""
     root = tmp_path_factory.mktemp("events_library")
+    (root / "cache").symlink_to(lut_cache, target_is_directory=True)   # the run's shared tables
     return synth.default_site(root / "site"), root
 
 

@@ -152,7 +152,7 @@ def test_lazy_greedy_cover_takes_what_the_plain_greedy_takes(seed):
 
 
 
-@pytest.mark.parametrize("offset_m, people", [(0.35, 1), (0.4, 1), (1.0, 2)])
+@pytest.mark.parametrize("offset_m, people", [pytest.param(0.35, 1, marks=pytest.mark.slow), (0.4, 1), (1.0, 2)])
 def test_a_low_piece_beside_a_standing_person_is_part_of_them_not_a_person(tmp_path, offset_m, people):
     """A person whose legs are hidden (a body from 0.7 to 1.75 m) and a low piece (0.1 m radius,
     0.5 m tall, carved as 0.03-0.04 m^3 under 0.6 m) ``offset_m`` from their axis, five cameras:

@@ -187,9 +187,9 @@ def rig_and_masks():
     return rig, masks
 
 
-def test_carver_graph_cut_at_lambda_zero_is_the_vote_on_its_region(rig_and_masks, tmp_path_factory):
+def test_carver_graph_cut_at_lambda_zero_is_the_vote_on_its_region(rig_and_masks, lut_cache):
     rig, masks = rig_and_masks
-    cache = tmp_path_factory.mktemp("lut")
+    cache = lut_cache
     vote = Carver(cameras=rig, voxel_sizes_m=(0.4, 0.2, 0.1), cache_dir=cache, **VOLUME)
     cut = Carver(cameras=rig, voxel_sizes_m=(0.4, 0.2, 0.1), cache_dir=cache, fusion="graphcut", smoothing=0.0,
                  **VOLUME)
@@ -200,9 +200,9 @@ def test_carver_graph_cut_at_lambda_zero_is_the_vote_on_its_region(rig_and_masks
     assert voted <= labelled <= dense
 
 
-def test_carver_graph_cut_removes_noise_and_keeps_the_bodies(rig_and_masks, tmp_path_factory):
+def test_carver_graph_cut_removes_noise_and_keeps_the_bodies(rig_and_masks, lut_cache):
     rig, masks = rig_and_masks
-    cache = tmp_path_factory.mktemp("lut")
+    cache = lut_cache
     vote = Carver(cameras=rig, voxel_sizes_m=(0.4, 0.2, 0.1), cache_dir=cache, **VOLUME)
     # 6 lambda = 0.9 outweighs even a speck all five cameras find (margin 2 (5 - 4 + 1/2) / 5 = 0.6)
     cut = Carver(cameras=rig, voxel_sizes_m=(0.4, 0.2, 0.1), cache_dir=cache, fusion="graphcut", smoothing=0.15,

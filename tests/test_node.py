@@ -34,9 +34,9 @@ def site(tmp_path_factory) -> tuple[Path, dict[str, Camera]]:
 
 
 @pytest.fixture(scope="module")
-def pipeline_cache(site) -> Path:
-    """Build the tiny site's lookup tables once for the module."""
-    cache = site[0].parent / "cache"
+def pipeline_cache(site, lut_cache) -> Path:
+    """Build the tiny site's lookup tables once for the run."""
+    cache = lut_cache
     FusionPipeline.from_site(load_site(site[0]), cache_dir=cache)
     return cache
 

@@ -353,7 +353,7 @@ def test_synthetic_source_names_an_unknown_scenario_or_camera():
         open_source("synthetic", cam_id="cam9").open()
 
 
-@pytest.mark.parametrize("modality", ["thermal", "depth"])
+@pytest.mark.parametrize("modality", [pytest.param("thermal", marks=pytest.mark.slow), "depth"])
 def test_synthetic_source_serves_a_thermal_or_depth_camera_its_segmenter_reads(modality):
     """The house's cam2 as a thermal or range camera: 16-bit frames, the true masks beside them,
     and the worker's own segmenter for that modality finds the person in them."""

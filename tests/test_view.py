@@ -142,7 +142,7 @@ def alerts(tmp_path_factory):
 
 
 @pytest.fixture(scope="module")
-def demo(tmp_path_factory, alerts):
+def demo(tmp_path_factory, alerts, lut_cache, machine_to_itself):
     """The demo system with its view; with ``alerts``, the notifier joins the demo's router and
     connects to the broker, and the broker is stopped before the workers' first frame: the fall
     happens while it is down."""
@@ -152,7 +152,8 @@ def demo(tmp_path_factory, alerts):
     port = free_port()
     router = alerts.port if alerts is not None else free_port()
     proc = Proc("demo", [*PYTHON_CLI, "demo", "--view", f"127.0.0.1:{port}", "--scenario", SCENARIO,
-                         "--frames", str(FRAMES), "--out", str(out / "demo"), "--port", str(router)],
+                         "--frames", str(FRAMES), "--out", str(out / "demo"), "--port", str(router),
+                         "--cache-dir", str(lut_cache)],
                 out / "demo.log", env={"PYTHONPATH": str(ROOT)})
     try:
         if alerts is not None:

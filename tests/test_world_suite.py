@@ -1,7 +1,7 @@
 """The random-world suite: short tuning worlds written, replayed and scored, tables and JSON.
 
 The figures are printed, not held to targets: these worlds are the test bed
-the pipeline is measured on, and a few seconds of three tuning worlds say
+the pipeline is measured on, and a few seconds of two tuning worlds say
 little. What is held: every world is run and scored, the totals are the sums
 of the worlds, the bands by people present add up to the whole, and the
 command line gives one clear message for bad seeds.
@@ -20,9 +20,8 @@ import pytest
 from evaluation.world_suite import parse_seeds, run_world_suite
 
 VOXELWATCH = Path(sys.executable).with_name("voxelwatch")
-SEEDS = (3, 11, 27)
-"""Tuning worlds: one person with a dark and a late camera, two people hugging in an L-shaped room,
-seven people in a talking cluster."""
+SEEDS = (11, 27)
+"""Tuning worlds: two people hugging in an L-shaped room, seven people in a talking cluster."""
 FRAMES = 30
 
 
@@ -54,7 +53,7 @@ def test_every_world_is_run_and_scored(suite):
         # the media are gone once scored, the truth stays
         assert not list((out / "worlds" / f"world-{w['seed']}").glob("cam*"))
         assert (out / "worlds" / f"world-{w['seed']}" / "truth" / "meta.json").is_file()
-    assert "tuning seeds 3,11,27" in text
+    assert "tuning seeds 11,27" in text
     for seed in SEEDS:
         assert any(line.startswith(f"{seed} ") for line in text.splitlines())
 

@@ -550,6 +550,9 @@ def _register_demo(sub) -> None:
                    help="TLS with mutual authentication and the site's access control (certificates made in OUT/certs)")
     p.add_argument("--view", nargs="?", const="127.0.0.1:8080", default=None, metavar="HOST:PORT",
                    help="also serve the live view (default 127.0.0.1:8080); its token goes to OUT/view.token")
+    p.add_argument("--cache-dir", type=Path, default=None, metavar="DIR",
+                   help="where the fusion server keeps its carving tables (default OUT/cache: computed on the first "
+                        "run, read on the next)")
     p.set_defaults(handler=_demo)
 
 
@@ -563,7 +566,7 @@ def _demo(args: argparse.Namespace) -> int:
         print("voxelwatch demo: --sensors is for --world random", file=sys.stderr)
         return 2
     return run_demo(scenario=args.scenario, world=args.world, out_dir=args.out, seed=args.seed, frames=args.frames, port=args.port,
-                    secure=args.secure, sensors=args.sensors, view=args.view)
+                    secure=args.secure, sensors=args.sensors, view=args.view, cache_dir=args.cache_dir)
 
 
 def _register_bench(sub) -> None:

@@ -70,12 +70,14 @@ def run_demo(
     secure: bool = False,
     sensors: str = "colour",
     view: str | None = None,
+    cache_dir: str | Path | None = None,
     stream: TextIO = sys.stdout,
 ) -> int:
     """Run the scenario (or ``world="random"``: the randomised world of ``seed``, each worker
     rendering its own camera of it; ``sensors="mixed"``: its rig with a depth and a thermal
     camera) end to end; returns the process exit code. ``view``: ``HOST:PORT`` where the live
-    view is served as well (None: no view)."""
+    view is served as well (None: no view). ``cache_dir``: the fusion server's carving tables
+    (None: ``out_dir/cache``)."""
     import zenoh
 
     import synth
@@ -150,7 +152,8 @@ def run_demo(
                 procs["view"] = _start_view(view, site_path, out, zenoh_args, logs, stream)
             procs["fusion"] = _spawn(
                 ["voxelwatch-fusion", "--site", str(site_path), "--out", str(run_dir), "--store", str(run_dir / "events.sqlite"),
-                 "--cache-dir", str(out / "cache"), "--exit-after-idle", "4", *zenoh_args],
+                 "--cache-dir", str(Path(cache_dir) if cache_dir is not None else out / "cache"),
+                 "--exit-after-idle", "4", *zenoh_args],
                 logs / "fusion.log",
             )
             _wait_alive(session, keys.alive_fusion_key(site.prefix), procs["fusion"], stream)
