@@ -35,12 +35,14 @@ def write_start(path: str | Path, start_ns: int) -> None:
 
 def read_start(path: str | Path) -> int | None:
     """The stamp in ``path``; None while there is no file. Raises ValueError naming the file when
-    it holds anything but one non-negative integer."""
+    it cannot be read or holds anything but one non-negative integer."""
     path = Path(path)
     try:
         text = path.read_text()
     except FileNotFoundError:
         return None
+    except (OSError, UnicodeDecodeError) as exc:   # a folder, no permission, not text
+        raise ValueError(f"start file {path}: cannot be read ({exc.__class__.__name__}: {exc})") from None
     try:
         value = int(text.strip())
     except ValueError:

@@ -425,6 +425,28 @@ def test_a_worker_given_a_start_file_is_ready_first_and_starts_at_the_stamp_writ
     assert f"waiting for the shared start in {start_file}" in err and "skipped 0" in err, err
 
 
+def test_a_start_file_that_cannot_be_read_is_named():
+    """Not there yet: None (the worker waits); a folder or bytes that are not text: one message
+    naming the file; a negative stamp likewise."""
+    import tempfile
+
+    from common import sharedstart
+
+    with tempfile.TemporaryDirectory() as tmp:
+        folder = Path(tmp)
+        assert sharedstart.read_start(folder / "start_ns") is None
+        with pytest.raises(ValueError, match=rf"start file {re.escape(str(folder))}: cannot be read"):
+            sharedstart.read_start(folder)
+        (folder / "bytes").write_bytes(b"\xff\xfe1")
+        with pytest.raises(ValueError, match="start file .*bytes: cannot be read"):
+            sharedstart.read_start(folder / "bytes")
+        sharedstart.write_start(folder / "start_ns", 5)
+        assert sharedstart.read_start(folder / "start_ns") == 5 and not list(folder.glob(".*tmp"))
+        (folder / "start_ns").write_text("-3\n")
+        with pytest.raises(ValueError, match="must not be negative"):
+            sharedstart.read_start(folder / "start_ns")
+
+
 def test_a_broken_start_file_stops_the_worker_naming_the_file(tmp_path, listener):
     _write_clips(tmp_path)
     site = _write_site(tmp_path)
