@@ -19,8 +19,13 @@ from typing import Annotated, Any
 
 from pydantic import BaseModel, ConfigDict, TypeAdapter, ValidationError
 
-__all__ = ["Settings", "SettingError", "check_declared", "check_setting", "declared", "default_of", "field_name", "problem",
+__all__ = ["NON_NEGATIVE", "Settings", "SettingError", "check_declared", "check_setting", "declared", "default_of", "field_name", "problem",
            "validated"]
+
+
+NON_NEGATIVE = {"ge": 0.0, "allow_inf_nan": False}
+"""Field bounds of an amount that may be zero but is finite (seconds, metres, evidence):
+``settle_s: float = Field(3.0, **NON_NEGATIVE)``."""
 
 
 class SettingError(ValueError):

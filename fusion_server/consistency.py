@@ -102,7 +102,7 @@ import numpy as np
 from pydantic import Field, model_validator
 
 from common.camera import Camera
-from common.settings import Settings
+from common.settings import NON_NEGATIVE, Settings
 from fusion_server.carving import Carver
 from fusion_server.carving.distance import FOREGROUND_THRESHOLD, mask_pixels, needed_votes
 from fusion_server.carving.lut import RADIUS_UNITS_PER_PX
@@ -125,31 +125,30 @@ OTHER_HALF_M = 0.45
 """Half-width of the floor box of another body whose image box must stay clear of the window."""
 
 
-_SECONDS = dict(ge=0.0, allow_inf_nan=False)
 _COUNT = dict(ge=1, strict=True)
-_SHARE = dict(gt=0.0, le=1.0)
+_SHARE = dict(gt=0.0, le=1.0)   # (0, 1]
 
 
 class ConsistencyParams(Settings):
     """Settings of :class:`ConsistencyMonitor` (module text), each declared with its range."""
 
-    every_s: float = Field(0.25, **_SECONDS)
+    every_s: float = Field(0.25, **NON_NEGATIVE)
     max_people: int = Field(2, **_COUNT)
     min_reliability: float = Field(0.8, **_SHARE)
     min_voxels: int = Field(40, **_COUNT)
     window: int = Field(15, **_COUNT)
     baseline_count: int = Field(20, **_COUNT)
-    baseline_s: float = Field(40.0, **_SECONDS)
-    remeasure_m: float = Field(0.2, **_SECONDS)
-    remeasure_s: float = Field(10.0, **_SECONDS)
+    baseline_s: float = Field(40.0, **NON_NEGATIVE)
+    remeasure_m: float = Field(0.2, **NON_NEGATIVE)
+    remeasure_s: float = Field(10.0, **NON_NEGATIVE)
     offset_share: float = Field(0.04, **_SHARE)
     drop_ratio: float = Field(0.6, **_SHARE)
     recover_ratio: float = Field(0.85, **_SHARE)
     alarm_count: int = Field(10, **_COUNT)
-    alarm_s: float = Field(10.0, **_SECONDS)
+    alarm_s: float = Field(10.0, **NON_NEGATIVE)
     flood_share: float = Field(0.5, **_SHARE)
     view_deg: float = Field(0.3, gt=0.0, le=45.0)
-    view_s: float = Field(10.0, **_SECONDS)
+    view_s: float = Field(10.0, **NON_NEGATIVE)
 
     @model_validator(mode="after")
     def _recover_above_drop(self) -> ConsistencyParams:

@@ -49,7 +49,7 @@ from common import appearance
 from common.appearance import AppearanceModel, Resident, View
 from common.camera import Camera
 from common.messages import Appearance, PersonRegion
-from common.settings import Settings, declared
+from common.settings import NON_NEGATIVE, Settings, declared
 from common.site import IdentitySettings
 
 __all__ = ["IdentityKeeper", "IdentityParams"]
@@ -59,8 +59,7 @@ log = logging.getLogger("voxelwatch.identity")
 _N_BANDS = len(appearance.BANDS)
 
 
-_SHARE = dict(ge=0.0, le=1.0)
-_AMOUNT = dict(ge=0.0, allow_inf_nan=False)
+_SHARE = dict(ge=0.0, le=1.0)   # [0, 1]
 
 
 class IdentityParams(Settings):
@@ -118,24 +117,24 @@ class IdentityParams(Settings):
     min_visible: float = Field(0.7, **_SHARE)
     max_farther_overlap: float = Field(0.15, **_SHARE)
     learn_rate: float = Field(0.05, gt=0.0, le=1.0)
-    settle_s: float = Field(3.0, **_AMOUNT)
-    close_m: float = Field(1.0, **_AMOUNT)
+    settle_s: float = Field(3.0, **NON_NEGATIVE)
+    close_m: float = Field(1.0, **NON_NEGATIVE)
     agree: float = Field(0.3, **_SHARE)
     reid_window_s: float = declared(IdentitySettings, "reid_window_s")
     reid_distance: float = Field(0.3, **_SHARE)
     reid_margin: float = Field(0.08, **_SHARE)
-    near_s: float = Field(4.0, **_AMOUNT)
-    near_m: float = Field(1.2, **_AMOUNT)
+    near_s: float = Field(4.0, **NON_NEGATIVE)
+    near_m: float = Field(1.2, **NON_NEGATIVE)
     near_distance: float = Field(0.45, **_SHARE)
-    height_tolerance_m: float = Field(0.06, **_AMOUNT)
+    height_tolerance_m: float = Field(0.06, **NON_NEGATIVE)
     swap_margin: float = Field(0.05, **_SHARE)
-    swap_evidence: float = Field(0.6, **_AMOUNT)
+    swap_evidence: float = Field(0.6, **NON_NEGATIVE)
     min_model_frames: int = Field(5, ge=0)
-    decide_s: float = Field(0.5, **_AMOUNT)
-    decide_views: float = Field(3.0, **_AMOUNT)
-    same_person: float = Field(0.2, **_AMOUNT)
-    drift_level: float = Field(0.3, **_AMOUNT)
-    drift_evidence: float = Field(1.0, **_AMOUNT)
+    decide_s: float = Field(0.5, **NON_NEGATIVE)
+    decide_views: float = Field(3.0, **NON_NEGATIVE)
+    same_person: float = Field(0.2, **NON_NEGATIVE)
+    drift_level: float = Field(0.3, **NON_NEGATIVE)
+    drift_evidence: float = Field(1.0, **NON_NEGATIVE)
 
 
 @dataclass
