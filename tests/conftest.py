@@ -68,24 +68,24 @@ def _run_root(tmp_path_factory) -> Path:
     return base.parent if os.environ.get("PYTEST_XDIST_WORKER") else base
 
 
-@pytest.fixture(autouse=True)
-def _beside_others(request, tmp_path_factory):
-    """Every test shares the machine (a shared lock on the run's lock file), except while a test
-    that has it to itself runs (:func:`machine_to_itself`): then the other worker waits between two
-    of its tests."""
-    if _held_alone:
-        yield
-        return
+@pytest.hookimpl(wrapper=True)
+def pytest_runtest_protocol(item, nextitem):
+    """Every test shares the machine (a shared lock on the run's lock file, held from the setup of
+    its fixtures, module and session ones included, to their teardown), except while a test that
+    has it to itself runs (:func:`machine_to_itself`): then the other worker waits between two of
+    its tests."""
+    if _held_alone or "machine_to_itself" in item.fixturenames:
+        return (yield)
     import fcntl
     import time
 
-    root = _run_root(tmp_path_factory)
+    root = _run_root(item.session.config._tmp_path_factory)
     while (root / "alone.wanted").exists():   # a test waits to have the machine: let it in first
         time.sleep(0.1)
     with open(root / "alone.lock", "a+") as f:
         fcntl.flock(f, fcntl.LOCK_SH)
         try:
-            yield
+            return (yield)
         finally:
             fcntl.flock(f, fcntl.LOCK_UN)
 
