@@ -553,11 +553,14 @@ def _register_demo(sub) -> None:
     p.add_argument("--cache-dir", type=Path, default=None, metavar="DIR",
                    help="where the fusion server keeps its carving tables (default OUT/cache: computed on the first "
                         "run, read on the next)")
+    p.add_argument("--cameras", default=None, metavar="IDS",
+                   help="the house with only these of its cameras, comma-separated (e.g. cam1,cam3,cam5: a "
+                        "lighter demo for a small machine; default all five)")
     p.set_defaults(handler=_demo)
 
 
 def _demo(args: argparse.Namespace) -> int:
-    from voxelwatch.demo import run_demo
+    from voxelwatch.demo import UnknownCameras, run_demo
 
     if args.world and args.scenario:
         print("voxelwatch demo: give --scenario or --world, not both", file=sys.stderr)
@@ -565,8 +568,17 @@ def _demo(args: argparse.Namespace) -> int:
     if args.sensors != "colour" and not args.world:
         print("voxelwatch demo: --sensors is for --world random", file=sys.stderr)
         return 2
-    return run_demo(scenario=args.scenario, world=args.world, out_dir=args.out, seed=args.seed, frames=args.frames, port=args.port,
-                    secure=args.secure, sensors=args.sensors, view=args.view, cache_dir=args.cache_dir)
+    if args.cameras and args.world:
+        print("voxelwatch demo: --cameras is for the house, not --world", file=sys.stderr)
+        return 2
+    cameras = [c.strip() for c in args.cameras.split(",") if c.strip()] if args.cameras else None
+    try:
+        return run_demo(scenario=args.scenario, world=args.world, out_dir=args.out, seed=args.seed, frames=args.frames,
+                        port=args.port, secure=args.secure, sensors=args.sensors, view=args.view,
+                        cache_dir=args.cache_dir, cameras=cameras)
+    except UnknownCameras as exc:
+        print(f"voxelwatch demo: --cameras: {exc}", file=sys.stderr)
+        return 2
 
 
 def _register_bench(sub) -> None:

@@ -46,6 +46,23 @@ BACKGROUND_FRAMES = 45
 """Frames of the empty room each worker learns before the scenario (as replay does)."""
 
 
+class UnknownCameras(ValueError):
+    """A camera asked for that the house does not have."""
+
+
+def _house_cameras(wanted: list[str] | None):
+    """The house's cameras, or only the ``wanted`` ones (in the house's order); None for all."""
+    import synth
+
+    if not wanted:
+        return None
+    cameras = synth.default_cameras()
+    unknown = [c for c in wanted if c not in cameras]
+    if unknown:
+        raise UnknownCameras(f"the house has no camera {', '.join(unknown)} (it has {', '.join(cameras)})")
+    return {k: v for k, v in cameras.items() if k in wanted}
+
+
 @dataclass
 class _Live:
     """What the demo has heard, updated from zenoh callbacks."""
@@ -71,13 +88,15 @@ def run_demo(
     sensors: str = "colour",
     view: str | None = None,
     cache_dir: str | Path | None = None,
+    cameras: list[str] | None = None,
     stream: TextIO = sys.stdout,
 ) -> int:
     """Run the scenario (or ``world="random"``: the randomised world of ``seed``, each worker
     rendering its own camera of it; ``sensors="mixed"``: its rig with a depth and a thermal
     camera) end to end; returns the process exit code. ``view``: ``HOST:PORT`` where the live
     view is served as well (None: no view). ``cache_dir``: the fusion server's carving tables
-    (None: ``out_dir/cache``)."""
+    (None: ``out_dir/cache``). ``cameras``: the house with only these of its cameras (None: all;
+    :class:`UnknownCameras` names one it does not have)."""
     import zenoh
 
     import synth
@@ -93,7 +112,7 @@ def run_demo(
             raise ValueError("sensors other than colour are for a random world")
         name = scenario or synth.DEFAULT_SCENARIO
         spec = synth.scenario_spec(name)  # unknown names stop here with the list
-        site = synth.default_site(out / "site")
+        site = synth.default_site(out / "site", cameras=_house_cameras(cameras))
         sc = synth.get_scenario(name, seed, utc_offset_hours=site.utc_offset_hours)
         n_frames = sc.n_frames if frames is None else min(frames, sc.n_frames)
         synth.write_truth(sc, out / "truth", n_frames=n_frames)
@@ -104,6 +123,8 @@ def run_demo(
             raise ValueError(f"world must be 'random', got {world!r}")
         if scenario is not None:
             raise ValueError("give a scenario or a world, not both")
+        if cameras:
+            raise ValueError("cameras are for the house, not a world")
         from common.site import load_site
         from synth.world import random_world, write_world_site
 
