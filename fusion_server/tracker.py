@@ -38,11 +38,13 @@ from dataclasses import dataclass
 from typing import Protocol
 
 import numpy as np
+from pydantic import Field, model_validator
 
 from fusion_server.association import associate, floor_distance_cost
 from fusion_server.detection import Blob
 from fusion_server.grid import CarveResult
 from fusion_server.particle_filter import FloorEvidence, ParticleFilter, floor_evidence
+from common.settings import NON_NEGATIVE, Settings
 
 __all__ = [
     "AssociationParams",
@@ -68,8 +70,7 @@ class FilterFactory(Protocol):
     def __call__(self, x_m: float, y_m: float, alpha_m: float, *, rng: np.random.Generator) -> ParticleFilter: ...
 
 
-@dataclass(frozen=True)
-class AssociationParams:
+class AssociationParams(Settings):
     """How targets take this frame's blobs.
 
     gate_m: largest cost of a target-blob pair that can match, in the unit of
@@ -95,23 +96,13 @@ class AssociationParams:
         pelvis. Standing, sitting and kneeling bodies reach higher.
     """
 
-    gate_m: float = 0.6
+    gate_m: float = Field(0.6, **NON_NEGATIVE)
     share_blobs: bool = True
-    share_min_age_frames: int = 15
-    low_top_m: float = 0.8
-
-    def __post_init__(self) -> None:
-        _non_negative("gate_m", self.gate_m)
-        _non_negative("low_top_m", self.low_top_m)
-        if int(self.share_min_age_frames) < 0:
-            raise ValueError(f"share_min_age_frames must be non-negative, got {self.share_min_age_frames}")
-        _hold_as(self, float, "gate_m", "low_top_m")
-        _hold_as(self, int, "share_min_age_frames")
-        _hold_as(self, bool, "share_blobs")
+    share_min_age_frames: int = Field(15, ge=0)
+    low_top_m: float = Field(0.8, **NON_NEGATIVE)
 
 
-@dataclass(frozen=True)
-class ConfirmationParams:
+class ConfirmationParams(Settings):
     """When a target is trusted as a person and when it is destroyed.
 
     The reliability follows ``r = r + l (M - r)`` with ``M`` = 1 on a matched
@@ -131,28 +122,24 @@ class ConfirmationParams:
         gone, not hidden.
     """
 
-    learning_rate_max: float = 0.3
-    learning_rate_min: float = 0.05
-    confirm_reliability: float = 0.6
-    delete_reliability: float = 0.1
-    leave_margin_m: float = 0.1
+    learning_rate_max: float = Field(0.3, gt=0.0, le=1.0)
+    learning_rate_min: float = Field(0.05, ge=0.0, le=1.0)
+    confirm_reliability: float = Field(0.6, ge=0.0, le=1.0)
+    delete_reliability: float = Field(0.1, ge=0.0, le=1.0)
+    leave_margin_m: float = Field(0.1, **NON_NEGATIVE)
 
-    def __post_init__(self) -> None:
-        if not 0 < self.learning_rate_max <= 1:
-            raise ValueError(f"learning_rate_max must be in (0, 1], got {self.learning_rate_max}")
-        if not 0 <= self.learning_rate_min <= self.learning_rate_max:
-            raise ValueError(f"learning_rate_min must be in [0, learning_rate_max], got {self.learning_rate_min}")
-        if not 0 <= self.delete_reliability < self.confirm_reliability <= 1:
-            raise ValueError(
-                "need 0 <= delete_reliability < confirm_reliability <= 1, "
-                f"got {self.delete_reliability} and {self.confirm_reliability}"
-            )
-        _non_negative("leave_margin_m", self.leave_margin_m)
-        _hold_as(self, float, "learning_rate_max", "learning_rate_min", "confirm_reliability", "delete_reliability", "leave_margin_m")
+    @model_validator(mode="after")
+    def _ordered(self) -> "ConfirmationParams":
+        if self.learning_rate_min > self.learning_rate_max:
+            raise ValueError(f"learning_rate_min must be at most learning_rate_max ({self.learning_rate_max}), "
+                             f"got {self.learning_rate_min}")
+        if self.confirm_reliability <= self.delete_reliability:
+            raise ValueError(f"confirm_reliability must be above delete_reliability ({self.delete_reliability}), "
+                             f"got {self.confirm_reliability}")
+        return self
 
 
-@dataclass(frozen=True)
-class PopulationParams:
+class PopulationParams(Settings):
     """Which blobs start new targets and when two targets become one.
 
     new_target_min_distance_m: an unmatched blob this close to an existing
@@ -167,23 +154,13 @@ class PopulationParams:
         half a second.
     """
 
-    new_target_min_distance_m: float = 0.3
-    new_target_min_volume_m3: float = 0.0
-    merge_distance_m: float = 0.3
-    merge_frames: int = 8
-
-    def __post_init__(self) -> None:
-        _non_negative("new_target_min_distance_m", self.new_target_min_distance_m)
-        _non_negative("new_target_min_volume_m3", self.new_target_min_volume_m3)
-        _non_negative("merge_distance_m", self.merge_distance_m)
-        if int(self.merge_frames) < 1:
-            raise ValueError(f"merge_frames must be at least 1, got {self.merge_frames}")
-        _hold_as(self, float, "new_target_min_distance_m", "new_target_min_volume_m3", "merge_distance_m")
-        _hold_as(self, int, "merge_frames")
+    new_target_min_distance_m: float = Field(0.3, **NON_NEGATIVE)
+    new_target_min_volume_m3: float = Field(0.0, **NON_NEGATIVE)
+    merge_distance_m: float = Field(0.3, **NON_NEGATIVE)
+    merge_frames: int = Field(8, ge=1)
 
 
-@dataclass(frozen=True)
-class MotionParams:
+class MotionParams(Settings):
     """The smoothed velocity of a target and when it counts as still.
 
     velocity_tau_s: time constant of the velocity smoothing [0.3 s].
@@ -193,16 +170,9 @@ class MotionParams:
         still_window_s`` [0.15 m/s, 1.0 s].
     """
 
-    velocity_tau_s: float = 0.3
-    still_speed_mps: float = 0.15
-    still_window_s: float = 1.0
-
-    def __post_init__(self) -> None:
-        if not self.velocity_tau_s > 0:
-            raise ValueError(f"velocity_tau_s must be positive, got {self.velocity_tau_s}")
-        _non_negative("still_speed_mps", self.still_speed_mps)
-        _non_negative("still_window_s", self.still_window_s)
-        _hold_as(self, float, "velocity_tau_s", "still_speed_mps", "still_window_s")
+    velocity_tau_s: float = Field(0.3, gt=0.0, allow_inf_nan=False)
+    still_speed_mps: float = Field(0.15, **NON_NEGATIVE)
+    still_window_s: float = Field(1.0, **NON_NEGATIVE)
 
 
 @dataclass(frozen=True, eq=False)
@@ -614,14 +584,3 @@ def _keep_window(samples: deque, sample: tuple, window_ns: int) -> None:
     samples.append(sample)
     while len(samples) > 1 and samples[1][0] <= sample[0] - window_ns:
         samples.popleft()
-
-
-def _non_negative(name: str, value: float) -> None:
-    if not (np.isfinite(value) and value >= 0):
-        raise ValueError(f"{name} must be a finite non-negative number, got {value}")
-
-
-def _hold_as(params, cast: type, *names: str) -> None:
-    """Hold the named fields of a frozen parameter group as ``cast`` of the values given."""
-    for name in names:
-        object.__setattr__(params, name, cast(getattr(params, name)))

@@ -4,7 +4,7 @@ synthetic articulated bodies of tests/test_posture.py."""
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from functools import lru_cache
 
 import numpy as np
@@ -521,7 +521,7 @@ def test_visit_needs_people_gathered_at_one_hotspot():
     visits = VisitParams(visit_min_s=5.0, dwell_window_s=5.0)
     assert not kinds(run(apart, EventReasoner(**cfg, visits=visits)), "visit")
     # without the gathering rule, extra people for visit_min_s are enough; the hot spot is where they spent most time
-    v = kinds(run(apart, EventReasoner(**cfg, visits=replace(visits, visit_gathering=False))), "visit")
+    v = kinds(run(apart, EventReasoner(**cfg, visits=visits.model_copy(update={"visit_gathering": False}))), "visit")
     assert len(v) == 1 and t_s(v[0].stamp_ns) == pytest.approx(5.0 + 0.8, abs=0.15)
     # gathered: at the moment the second of them has dwelt a window at the table
     together = _table_guests(2, 40.0) + [Person(3).hold(40.0, xy=(5.0, 0.5))]

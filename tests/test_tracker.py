@@ -294,8 +294,8 @@ def test_parameter_groups_hold_the_types_they_state():
     merge_frames = PopulationParams(merge_frames=8.0).merge_frames
     assert merge_frames == 8 and type(merge_frames) is int
     assert type(AssociationParams(gate_m=1).gate_m) is float
-    with pytest.raises(AttributeError):
-        AssociationParams().gate_m = 1.0  # frozen
+    with pytest.raises(ValueError, match="frozen"):
+        AssociationParams().gate_m = 1.0
 
 
 @pytest.mark.parametrize(

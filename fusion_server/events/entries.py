@@ -19,25 +19,22 @@ entries and exits, and so keeps no state of its own per track.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
 from typing import Iterable, Sequence
 
-from fusion_server.events import _common
-from fusion_server.events._common import ns
+from pydantic import Field
+
+from common.settings import Settings
+from fusion_server.events._common import NUMBER, ns
 from fusion_server.events.records import Emitter
 from fusion_server.hotspots import Hotspot, hotspot_at
 
 
-@dataclass(frozen=True)
-class EntryParams:
+class EntryParams(Settings):
     """Settings of :class:`EntryDetector`: ``edge_margin_m`` (metres) and
     ``startup_s`` (seconds), as the module text describes them."""
 
-    edge_margin_m: float = 0.4
-    startup_s: float = 1.0
-
-    def __post_init__(self) -> None:
-        _common.non_negative(self, "edge_margin_m", "startup_s")
+    edge_margin_m: float = Field(0.4, ge=0.0, **NUMBER)
+    startup_s: float = Field(1.0, ge=0.0, **NUMBER)
 
 
 class EntryDetector:

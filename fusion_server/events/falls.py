@@ -45,39 +45,32 @@ from dataclasses import dataclass
 from typing import Any, Sequence
 
 import numpy as np
+from pydantic import Field
 
-from common.settings import check_declared, default_of
+from common.settings import Settings, declared
 from common.site import EventSettings
-from fusion_server.events import _common
-from fusion_server.events._common import median, ns
+from fusion_server.events._common import NUMBER, median, ns, rekey
 from fusion_server.events.records import Emitter
 from fusion_server.events.track import TopSample, TrackSnapshot
 
 
-@dataclass(frozen=True)
-class FallParams:
+class FallParams(Settings):
     """Thresholds of :class:`FallDetector`, each described in the module text
     (seconds, metres, m/s, m/s², fractions of the standing height)."""
 
-    window_s: float = 2.0
-    min_drop_m: float = 0.5
-    min_speed_mps: float = 0.8
-    max_accel_mps2: float = 1.5 * 9.81
-    height_tol_m: float = 0.15
-    confirm_s: float = 1.0
-    upright_s: float = 0.5
-    low_top_frac: float = 0.55
-    low_centre_frac: float = 0.25
-    flat_top_frac: float = 0.45
-    low_gap_s: float = 0.5
-    long_lie_s: float = default_of(EventSettings, "long_lie_s")
-    standing_height_m: float = 1.70
-
-    def __post_init__(self) -> None:
-        _common.positive(self, "window_s", "min_drop_m", "min_speed_mps", "max_accel_mps2", "standing_height_m")
-        check_declared(self, EventSettings, "long_lie_s")   # the site file's [events] declares it
-        _common.non_negative(self, "height_tol_m", "confirm_s", "upright_s", "low_gap_s")
-        _common.fraction(self, "low_top_frac", "low_centre_frac", "flat_top_frac")
+    window_s: float = Field(2.0, gt=0.0, **NUMBER)
+    min_drop_m: float = Field(0.5, gt=0.0, **NUMBER)
+    min_speed_mps: float = Field(0.8, gt=0.0, **NUMBER)
+    max_accel_mps2: float = Field(1.5 * 9.81, gt=0.0, **NUMBER)
+    height_tol_m: float = Field(0.15, ge=0.0, **NUMBER)
+    confirm_s: float = Field(1.0, ge=0.0, **NUMBER)
+    upright_s: float = Field(0.5, ge=0.0, **NUMBER)
+    low_top_frac: float = Field(0.55, gt=0.0, lt=1.0, **NUMBER)
+    low_centre_frac: float = Field(0.25, gt=0.0, lt=1.0, **NUMBER)
+    flat_top_frac: float = Field(0.45, gt=0.0, lt=1.0, **NUMBER)
+    low_gap_s: float = Field(0.5, ge=0.0, **NUMBER)
+    long_lie_s: float = declared(EventSettings, "long_lie_s")   # the site file's [events] declares it
+    standing_height_m: float = Field(1.70, gt=0.0, **NUMBER)
 
     @property
     def tops_s(self) -> float:
@@ -170,7 +163,7 @@ class FallDetector:
 
     def rename(self, renames: Mapping[int, int]) -> None:
         """Tracks change ids ({old: new}, at once); their state goes with them."""
-        self._tracks = _common.rekey(self._tracks, renames)
+        self._tracks = rekey(self._tracks, renames)
 
     def forget(self, track: int) -> None:
         """The track is gone."""

@@ -14,30 +14,26 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Iterable
 
-from common.settings import default_of
+from pydantic import Field
+
+from common.settings import Settings, default_of
 from common.site import EventSettings
-from fusion_server.events import _common
-from fusion_server.events._common import ns
+from fusion_server.events._common import NUMBER, ns, rekey
 from fusion_server.events.records import Emitter
 from fusion_server.events.track import TrackSnapshot
 from fusion_server.hotspots import Hotspot, PositionWindow, hotspot_at
 
 
-@dataclass(frozen=True)
-class InactivityParams:
+class InactivityParams(Settings):
     """Settings of :class:`InactivityDetector`, each described in the module text
     (seconds, metres; ``rest_kinds``: hot spot kinds where keeping still is rest)."""
 
-    inactivity_s: float = default_of(EventSettings, "inactivity_s")
-    window_s: float = 30.0
-    std_m: float = 0.15
+    # positive, not the site file's 30 s floor: that floor is the default window below which
+    # stillness cannot be judged; here the window is a parameter too
+    inactivity_s: float = Field(default_of(EventSettings, "inactivity_s"), gt=0.0, **NUMBER)
+    window_s: float = Field(30.0, gt=0.0, **NUMBER)
+    std_m: float = Field(0.15, gt=0.0, **NUMBER)
     rest_kinds: frozenset[str] = frozenset({"bed"})
-
-    def __post_init__(self) -> None:
-        # positive, not the site file's 30 s floor: that floor is the default window below which
-        # stillness cannot be judged; here the window is a parameter too
-        _common.positive(self, "inactivity_s", "window_s", "std_m")
-        _common.names(self, "rest_kinds")
 
 
 class InactivityDetector:
@@ -94,7 +90,7 @@ class InactivityDetector:
 
     def rename(self, renames: Mapping[int, int]) -> None:
         """Tracks change ids ({old: new}, at once); their state goes with them."""
-        self._tracks = _common.rekey(self._tracks, renames)
+        self._tracks = rekey(self._tracks, renames)
 
     def forget(self, track: int) -> None:
         """The track is gone."""

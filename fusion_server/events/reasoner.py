@@ -21,11 +21,13 @@ from __future__ import annotations
 import math
 from collections import deque
 from dataclasses import dataclass, field
+
+from pydantic import Field
 from typing import Any, Iterable, Mapping, Sequence
 
 from common.messages import Event
-from fusion_server.events import _common
-from fusion_server.events._common import ns
+from common.settings import Settings
+from fusion_server.events._common import NUMBER, ns, rekey
 from fusion_server.events.entries import EntryDetector, EntryParams
 from fusion_server.events.falls import FallDetector, FallParams
 from fusion_server.events.inactivity import InactivityDetector, InactivityParams
@@ -38,16 +40,12 @@ from fusion_server.hotspots import Hotspot
 from fusion_server.posture import PostureReading
 
 
-@dataclass(frozen=True)
-class PresenceParams:
+class PresenceParams(Settings):
     """When a track counts as a person: confirmed for ``establish_s`` seconds in a
     row with a body of at least ``min_volume_m3`` (unknown volumes pass)."""
 
-    establish_s: float = 0.8
-    min_volume_m3: float = 0.04
-
-    def __post_init__(self) -> None:
-        _common.non_negative(self, "establish_s", "min_volume_m3")
+    establish_s: float = Field(0.8, ge=0.0, **NUMBER)
+    min_volume_m3: float = Field(0.04, ge=0.0, **NUMBER)
 
 
 class EventReasoner:
@@ -86,7 +84,7 @@ class EventReasoner:
         names = [h.name for h in self.hotspots]
         if len(set(names)) != len(names):
             raise ValueError(f"hotspots names must be unique, got {names}")
-        if not (_common.is_number(utc_offset_h) and -14 <= utc_offset_h <= 14):
+        if isinstance(utc_offset_h, bool) or not (isinstance(utc_offset_h, (int, float)) and -14 <= utc_offset_h <= 14):
             raise ValueError(f"utc_offset_h must lie in [-14, 14], got {utc_offset_h!r}")
         groups = dict(presence=(presence, PresenceParams), falls=(falls, FallParams),
                       sit_stand=(sit_stand, SitStandParams), entries=(entries, EntryParams),
@@ -165,7 +163,7 @@ class EventReasoner:
     def rename(self, renames: Mapping[int, int]) -> None:
         """Tracks change ids (``{old: new}``, applied at once, so a swap is two renames):
         what the reasoner and its detectors keep of each goes with it."""
-        self._tracks = _common.rekey(self._tracks, renames)
+        self._tracks = rekey(self._tracks, renames)
         for detector in (self.sit_stand, self.falls, self.visits, self.inactivity):
             detector.rename(renames)
 

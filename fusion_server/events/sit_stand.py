@@ -27,12 +27,13 @@ from __future__ import annotations
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import Iterable, Sequence
+from typing import Iterable, Literal, Sequence
 
 import numpy as np
+from pydantic import Field, model_validator
 
-from fusion_server.events import _common
-from fusion_server.events._common import median, ns
+from common.settings import Settings
+from fusion_server.events._common import NUMBER, median, ns, rekey
 from fusion_server.events.records import Emitter
 from fusion_server.events.track import TrackSnapshot
 from fusion_server.hotspots import Hotspot, hotspot_at
@@ -43,8 +44,7 @@ CHANGE_BEFORE_S = (4.0, 0.3)
 before the filter switched (the switch lags the movement by about a second)."""
 
 
-@dataclass(frozen=True)
-class SitStandParams:
+class SitStandParams(Settings):
     """Settings of :class:`SitStandDetector`, each described in the module text.
 
     stand_up_from: postures whose change to standing is a ``stand_up``, out
@@ -52,19 +52,18 @@ class SitStandParams:
     seat_kinds: hot spot kinds where a body floating at seat height sits.
     """
 
-    stand_up_from: frozenset[str] = frozenset({"sitting", "lying"})
-    min_change_frac: float = 0.07
-    max_change_frac: float = 0.65
-    hold_s: float = 2.0
+    stand_up_from: frozenset[Literal["sitting", "lying", "bending"]] = frozenset({"sitting", "lying"})
+    min_change_frac: float = Field(0.07, ge=0.0, **NUMBER)
+    max_change_frac: float = Field(0.65, **NUMBER)
+    hold_s: float = Field(2.0, ge=0.0, **NUMBER)
     seat_kinds: frozenset[str] = frozenset({"sofa", "table", "chair", "armchair", "bench", "bed"})
 
-    def __post_init__(self) -> None:
-        _common.names(self, "stand_up_from", ("sitting", "lying", "bending"))
-        _common.names(self, "seat_kinds")
-        _common.non_negative(self, "min_change_frac", "hold_s")
-        if not (_common.is_number(self.max_change_frac) and self.max_change_frac > self.min_change_frac):
-            raise ValueError(f"max_change_frac must be a number above min_change_frac, got {self.max_change_frac!r}")
-        object.__setattr__(self, "max_change_frac", float(self.max_change_frac))
+    @model_validator(mode="after")
+    def _change_range(self) -> "SitStandParams":
+        if not self.max_change_frac > self.min_change_frac:
+            raise ValueError(f"max_change_frac must be above min_change_frac ({self.min_change_frac}), "
+                             f"got {self.max_change_frac}")
+        return self
 
     @property
     def tops_s(self) -> float:
@@ -128,7 +127,7 @@ class SitStandDetector:
 
     def rename(self, renames: Mapping[int, int]) -> None:
         """Tracks change ids ({old: new}, at once); their state goes with them."""
-        self._tracks = _common.rekey(self._tracks, renames)
+        self._tracks = rekey(self._tracks, renames)
 
     def forget(self, track: int) -> None:
         """The track is gone."""

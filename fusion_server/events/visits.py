@@ -21,49 +21,49 @@
 from __future__ import annotations
 
 from collections.abc import Mapping
-from dataclasses import dataclass
 from typing import Any, Iterable, Sequence
 
 import numpy as np
+from pydantic import Field, field_validator, model_validator
 
-from fusion_server.events import _common
-from fusion_server.events._common import ns
+from common.settings import Settings
+from fusion_server.events._common import NUMBER, ns, rekey
 from fusion_server.events.local_time import DEFAULT_MEALS, time_of_day_label
 from fusion_server.events.records import Emitter
 from fusion_server.events.track import TrackSnapshot
 from fusion_server.hotspots import DwellChange, DwellDetector, Hotspot, hotspot_index
 
 
-@dataclass(frozen=True)
-class VisitParams:
+class VisitParams(Settings):
     """Settings of :class:`VisitDetector`, each described in the module text.
 
     meals: ``(label, first local hour, end local hour)`` of each meal window,
         ``0 <= first < end <= 24``.
     """
 
-    dwell_window_s: float = 10.0
-    dwell_still_std_m: float = 0.15
-    dwell_move_std_m: float = 0.30
-    visit_min_s: float = 10.0
-    visit_gap_s: float = 30.0
+    dwell_window_s: float = Field(10.0, gt=0.0, **NUMBER)
+    dwell_still_std_m: float = Field(0.15, gt=0.0, **NUMBER)
+    dwell_move_std_m: float = Field(0.30, **NUMBER)
+    visit_min_s: float = Field(10.0, gt=0.0, **NUMBER)
+    visit_gap_s: float = Field(30.0, ge=0.0, **NUMBER)
     visit_gathering: bool = True
     meals: tuple[tuple[str, float, float], ...] = DEFAULT_MEALS
 
-    def __post_init__(self) -> None:
-        _common.positive(self, "dwell_window_s", "dwell_still_std_m", "visit_min_s")
-        _common.non_negative(self, "visit_gap_s")
-        if not (_common.is_number(self.dwell_move_std_m) and self.dwell_move_std_m >= self.dwell_still_std_m):
-            raise ValueError(f"dwell_move_std_m ({self.dwell_move_std_m!r}) must be a number at least "
-                             f"dwell_still_std_m ({self.dwell_still_std_m!r})")
-        object.__setattr__(self, "dwell_move_std_m", float(self.dwell_move_std_m))
-        object.__setattr__(self, "visit_gathering", bool(self.visit_gathering))
-        for m in self.meals:
-            if not (isinstance(m, (tuple, list)) and len(m) == 3 and isinstance(m[0], str)
-                    and _common.is_number(m[1]) and _common.is_number(m[2]) and 0 <= m[1] < m[2] <= 24):
-                raise ValueError(f"meals entries must be (label, start_hour, end_hour) with 0 <= start < end <= 24, "
-                                 f"got {m!r}")
-        object.__setattr__(self, "meals", tuple(tuple(m) for m in self.meals))
+    @field_validator("meals")
+    @classmethod
+    def _meal_hours(cls, meals: tuple) -> tuple:
+        for label, start, end in meals:
+            if not 0 <= start < end <= 24:
+                raise ValueError(f"({label!r}, {start:g}, {end:g}) is not (label, start hour, end hour) "
+                                 "with 0 <= start < end <= 24")
+        return meals
+
+    @model_validator(mode="after")
+    def _stillness_bounds(self) -> "VisitParams":
+        if self.dwell_move_std_m < self.dwell_still_std_m:
+            raise ValueError(f"dwell_move_std_m ({self.dwell_move_std_m}) must be at least "
+                             f"dwell_still_std_m ({self.dwell_still_std_m})")
+        return self
 
 
 class VisitDetector:
@@ -106,7 +106,7 @@ class VisitDetector:
 
     def rename(self, renames: Mapping[int, int]) -> None:
         """Tracks change ids ({old: new}, at once); their state goes with them."""
-        self._dwell = _common.rekey(self._dwell, renames)
+        self._dwell = rekey(self._dwell, renames)
 
     def forget(self, track: int) -> None:
         """The track is gone."""
