@@ -20,8 +20,10 @@ import pytest
 from evaluation.world_suite import parse_seeds, run_world_suite
 
 VOXELWATCH = Path(sys.executable).with_name("voxelwatch")
-SEEDS = (11, 27)
-"""Tuning worlds: two people hugging in an L-shaped room, seven people in a talking cluster."""
+SEEDS = (11, 9)
+"""Tuning worlds: two people dressed alike under five level-wall cameras in an L-shaped room, six
+people under four high-corner cameras (small rigs: the suite's cost is mostly each camera's
+carving table and renderer)."""
 FRAMES = 30
 
 
@@ -53,7 +55,7 @@ def test_every_world_is_run_and_scored(suite):
         # the media are gone once scored, the truth stays
         assert not list((out / "worlds" / f"world-{w['seed']}").glob("cam*"))
         assert (out / "worlds" / f"world-{w['seed']}" / "truth" / "meta.json").is_file()
-    assert "tuning seeds 11,27" in text
+    assert "tuning seeds 11,9" in text
     for seed in SEEDS:
         assert any(line.startswith(f"{seed} ") for line in text.splitlines())
 
@@ -69,7 +71,7 @@ def test_totals_are_the_sums_of_the_worlds(suite):
     assert sum(b["frames"] for b in bands.values()) == FRAMES * len(SEEDS)
     assert sum(b["gt"] for b in bands.values()) == total["tracking"]["gt"]
     assert sum(b["fp"] for b in bands.values()) == total["tracking"]["fp"]
-    # the seven people of world 27 are in the 4-7 band for at least part of the run
+    # the six people of world 9 are in the 4-7 band for at least part of the run
     assert "4-7" in bands
     groups = report["groups"]
     assert sum(g["frames"]["count"] for label, g in groups.items() if label in ("high corners", "level walls")) == \
