@@ -33,6 +33,8 @@ lenses beyond that get NaN rays.
 
 from __future__ import annotations
 
+import threading
+from collections import OrderedDict
 from dataclasses import dataclass, field
 from functools import cached_property
 
@@ -44,6 +46,12 @@ PINHOLE_DIST_LENGTHS = (0, 4, 5, 8, 12, 14)
 MIN_DEPTH_M = 1e-6
 
 _ROT_TOL = 1e-6
+RAYS_CACHE_BYTES = 256 * 2**20
+"""At most this much of :meth:`Camera.pixel_rays` results is kept per process (the least recently
+used go first): a renderer per camera per scenario asks again for the same rays, which take about
+half a second per 640x480 camera to undistort."""
+_rays_cache: OrderedDict[tuple, np.ndarray] = OrderedDict()
+_rays_lock = threading.Lock()
 
 
 @dataclass(frozen=True)
@@ -262,10 +270,25 @@ class Camera:
 
     def pixel_rays(self) -> np.ndarray:
         """(height, width, 3) float32 world ray directions through every pixel centre
-        (``[i, j]`` through ``(u, v) = (j, i)``); NaN where :meth:`rays` is NaN."""
-        v, u = np.mgrid[0 : self.height, 0 : self.width].astype(np.float64)
-        uv = np.stack([u.ravel(), v.ravel()], axis=1)
-        return self.rays(uv).reshape(self.height, self.width, 3).astype(np.float32)
+        (``[i, j]`` through ``(u, v) = (j, i)``); NaN where :meth:`rays` is NaN. A fresh array
+        each call; the values are kept for the next camera with the same lens, size and
+        orientation (:data:`RAYS_CACHE_BYTES`)."""
+        key = (self.model, self.width, self.height, self.K.tobytes(), self.dist.tobytes(), self.R.tobytes(),
+               repr(self.tsai))
+        with _rays_lock:
+            rays = _rays_cache.get(key)
+            if rays is not None:
+                _rays_cache.move_to_end(key)
+        if rays is None:
+            v, u = np.mgrid[0 : self.height, 0 : self.width].astype(np.float64)
+            uv = np.stack([u.ravel(), v.ravel()], axis=1)
+            rays = self.rays(uv).reshape(self.height, self.width, 3).astype(np.float32)
+            rays.setflags(write=False)
+            with _rays_lock:
+                _rays_cache[key] = rays
+                while sum(r.nbytes for r in _rays_cache.values()) > RAYS_CACHE_BYTES and len(_rays_cache) > 1:
+                    _rays_cache.popitem(last=False)
+        return rays.copy()
 
     # ------------------------------------------------------------------ derived cameras
 

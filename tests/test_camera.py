@@ -119,6 +119,18 @@ def test_pixel_rays_leave_unreachable_corners_nan():
     np.testing.assert_allclose(back, pix, atol=1e-3)
 
 
+def test_pixel_rays_kept_for_the_same_camera_are_its_own_and_a_fresh_copy():
+    cam = Camera.pinhole("c", 160, 120, dist=LAB_DIST, **LAB_K)
+    first = cam.pixel_rays()
+    first[:] = 7.0                                   # a caller's change stays its own
+    again = Camera.pinhole("other id", 160, 120, dist=LAB_DIST, **LAB_K).pixel_rays()
+    v, u = np.mgrid[0:120, 0:160].astype(np.float64)
+    direct = cam.rays(np.stack([u.ravel(), v.ravel()], axis=1)).reshape(120, 160, 3).astype(np.float32)
+    np.testing.assert_array_equal(again, direct)      # the same lens and pose: the same rays
+    turned = Camera.pinhole("c", 160, 120, dist=LAB_DIST, R=rodrigues_to_matrix([0.0, 0.3, 0.0]), **LAB_K)
+    assert not np.allclose(turned.pixel_rays(), direct, equal_nan=True)   # another pose: other rays
+
+
 @pytest.mark.parametrize("model", ["pinhole", "fisheye", "tsai"])
 def test_rays_and_project_round_trip(model):
     dist = {"pinhole": LAB_DIST, "fisheye": FISHEYE_DIST, "tsai": ()}[model]
