@@ -25,7 +25,9 @@ Units: world metres; pixels in OpenCV convention (integer = pixel centre).
 
 from __future__ import annotations
 
+import threading
 import zlib
+from collections import OrderedDict
 from dataclasses import dataclass, field
 
 import cv2
@@ -51,6 +53,12 @@ SURF_CORRIDOR = 6
 SURF_FURNITURE = 10
 SURF_NONE = -1
 _DOOR_SURFACE = {"x0": SURF_WALL_X0, "x1": SURF_WALL_X1, "y0": SURF_WALL_Y0, "y1": SURF_WALL_Y1}
+HITS_CACHE_BYTES = 256 * 2**20
+"""At most this much of the empty room seen through each camera (:func:`room_hits`) is kept per
+process, the least recently used going first: a scenario renders every camera afresh, and casting
+a 640x480 camera's rays into the room takes most of a second."""
+_hits_cache: OrderedDict[tuple, "BackgroundHits"] = OrderedDict()
+_hits_lock = threading.Lock()
 
 
 @dataclass(frozen=True)
@@ -104,6 +112,28 @@ def raycast_room(room: Room, origin_m, dirs) -> BackgroundHits:
     t = np.where(ok, t, 0.0)
     surface = np.where(ok, surface, SURF_NONE).astype(np.int16)
     return BackgroundHits(t=t, surface=surface, normal=normal, point=o + t[:, None] * d)
+
+
+def room_hits(room: Room, camera: Camera, rays: np.ndarray) -> BackgroundHits:
+    """:func:`raycast_room` of ``rays`` ((H, W, 3), ``camera.pixel_rays()`` with the invalid ones
+    set to its forward axis) from the camera's centre; the (read-only) result is kept for the next
+    renderer of the same room and camera (:data:`HITS_CACHE_BYTES`)."""
+    key = (repr(room), camera.model, camera.width, camera.height, camera.K.tobytes(), camera.dist.tobytes(),
+           camera.R.tobytes(), camera.t.tobytes(), repr(camera.tsai))
+    with _hits_lock:
+        hits = _hits_cache.get(key)
+        if hits is not None:
+            _hits_cache.move_to_end(key)
+            return hits
+    hits = raycast_room(room, camera.center.astype(np.float64), rays.reshape(-1, 3).astype(np.float64))
+    for arr in (hits.t, hits.surface, hits.normal, hits.point):
+        arr.setflags(write=False)
+    size = sum(a.nbytes for a in (hits.t, hits.surface, hits.normal, hits.point))
+    with _hits_lock:
+        _hits_cache[key] = hits
+        while len(_hits_cache) > 1 and size * len(_hits_cache) > HITS_CACHE_BYTES:
+            _hits_cache.popitem(last=False)
+    return hits
 
 
 def background_colour(room: Room, hits: BackgroundHits) -> np.ndarray:
@@ -177,7 +207,7 @@ class CameraRenderer:
         self.rays = rays
         dx, dy, dz = rays[..., 0], rays[..., 1], rays[..., 2]
         self.rays6 = np.stack([dx * dx, dy * dy, dz * dz, 2 * dx * dy, 2 * dx * dz, 2 * dy * dz], axis=2)
-        hits = raycast_room(room, self.center, rays.reshape(-1, 3).astype(np.float64))
+        hits = room_hits(room, camera, rays)
         depth = hits.t.reshape(H, W).astype(np.float32)
         depth[~self.valid] = 0.0
         self.bg_depth = depth
