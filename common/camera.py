@@ -525,20 +525,28 @@ def _pinhole_undistort(dist, xd, yd, max_radius) -> tuple[np.ndarray, np.ndarray
     criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 50, 1e-14)
     start = cv2.undistortPoints(src, np.eye(3), dist, criteria=criteria).reshape(-1, 2)
     x, y = start[:, 0].copy(), start[:, 1].copy()
+    xd_all, yd_all = np.broadcast_to(xd, x.shape), np.broadcast_to(yd, y.shape)
     h = 1e-7
+    todo = np.arange(x.size)   # points still being refined: a point whose distortion is exact is done
     for _ in range(8):
-        fx, fy = pinhole_distort(dist, x, y)
-        ex, ey = fx - xd, fy - yd
-        ax, ay = pinhole_distort(dist, x + h, y)
-        bx, by = pinhole_distort(dist, x - h, y)
-        cx_, cy_ = pinhole_distort(dist, x, y + h)
-        dx_, dy_ = pinhole_distort(dist, x, y - h)
+        xa, ya, xt, yt = x[todo], y[todo], xd_all[todo], yd_all[todo]
+        fx, fy = pinhole_distort(dist, xa, ya)
+        ex, ey = fx - xt, fy - yt
+        exact = (ex == 0.0) & (ey == 0.0)
+        if exact.any():
+            todo, xa, ya, ex, ey = todo[~exact], xa[~exact], ya[~exact], ex[~exact], ey[~exact]
+            if not todo.size:
+                break
+        ax, ay = pinhole_distort(dist, xa + h, ya)
+        bx, by = pinhole_distort(dist, xa - h, ya)
+        cx_, cy_ = pinhole_distort(dist, xa, ya + h)
+        dx_, dy_ = pinhole_distort(dist, xa, ya - h)
         j11, j21 = (ax - bx) / (2 * h), (ay - by) / (2 * h)
         j12, j22 = (cx_ - dx_) / (2 * h), (cy_ - dy_) / (2 * h)
         det = j11 * j22 - j12 * j21
         det = np.where(np.abs(det) > 1e-12, det, np.nan)
-        x = x - (j22 * ex - j12 * ey) / det
-        y = y - (-j21 * ex + j11 * ey) / det
+        x[todo] = xa - (j22 * ex - j12 * ey) / det
+        y[todo] = ya - (-j21 * ex + j11 * ey) / det
     fx, fy = pinhole_distort(dist, x, y)
     ok = (
         fin.ravel()
