@@ -1,15 +1,15 @@
 """The camera worker's benchmark: its stages timed on one core over a synthetic clip.
 
-:func:`measure_worker` runs the worker's own per-frame path (:func:`camera_worker.worker.step`,
-timed by stage as the worker times it: :data:`camera_worker.worker.STAGES`) on a clip of walking figures it writes to a
-temporary MJPG video; ``voxelwatch bench --sections worker`` reports it.
+:func:`measure_worker` runs the worker's own frame loop (:class:`camera_worker.worker._Loop`, timed by
+stage as the worker times it: :data:`camera_worker.worker.STAGES`) with stand-in subscribers on a clip of
+walking figures it writes to a temporary MJPG video; ``voxelwatch bench --sections worker`` reports it.
 """
 
 from __future__ import annotations
 
 import statistics
 import tempfile
-import time
+import threading
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Sequence
@@ -18,13 +18,12 @@ import cv2
 import msgpack
 import numpy as np
 
-from camera_worker.looks import LookAnswerer
 from camera_worker.segmentation import Box, ForegroundSegmenter
-from camera_worker.sources import VideoFileSource
+from camera_worker.sources import VideoFileSource, recorded_stamp_ns
 from camera_worker.viewcheck import ViewCheck
-from camera_worker.worker import STAGES, step
-from common import maskcodec, messages
-from common.messages import Appearance, LookRequest, PersonRegion
+from camera_worker.worker import STAGES, WorkerCounters, WorkerSettings, _Loop
+from common import keys, maskcodec, messages
+from common.messages import Appearance, HoldRegions, LookRequest, MaskFrame, PersonRegion
 
 
 def measure_worker(
@@ -43,15 +42,17 @@ def measure_worker(
     """Time the worker's stages on one core; return figures (nothing is printed).
 
     A synthetic clip of a room with ``n_people`` walking figures (``seed``) is
-    written to a temporary MJPG video and read back, so ``read`` is a real
-    decode; the empty room is learned first, untimed. Each frame is segmented (with a hold box over the first figure
-    when ``holds``), answers a look request naming every figure when ``looks``
-    (the worst case: the fusion server asks about each person a few times a
-    second, not every frame), has its view checked against the empty room (a
-    registration once a second of the clip's 15 frames/s, so ``view`` is that
-    cost spread over the frames), is encoded as a MaskFrame, and put on a zenoh publisher
-    (``session``, or a private peer session with no network). OpenCV runs
-    with one thread for the measurement.
+    written to a temporary MJPG video; the worker's own frame loop
+    (:class:`camera_worker.worker._Loop`, as :func:`camera_worker.worker.run` runs it, unpaced)
+    reads it back, so ``read`` is a real decode, after the empty room is learned (untimed).
+    Before each frame the loop's subscribers hand it a hold box over the first figure when
+    ``holds``, and a look request naming every figure when ``looks`` (the worst case: the
+    fusion server asks about each person a few times a second, not every frame); the view is
+    checked against the empty room (a registration once a second of the clip's 15 frames/s,
+    so ``view`` is that cost spread over the frames); each MaskFrame is put on a zenoh
+    publisher (``session``, or a private peer session with no network). The first 5 frames
+    (the model and the codec warming up) are not timed. OpenCV runs with one thread for the
+    measurement.
 
     Returns ``{"frames", "people", "looks", "width", "height", "mask_width", "mask_height",
     "ms": {stage: mean ms, "total": ...}, "fps": {stage: frames/s, "total": ...},
@@ -72,8 +73,9 @@ def measure_worker(
     try:
         if session is None:
             own_session = session = zenoh.open(private_config())
-        publisher = session.declare_publisher("voxelwatch/bench/cam/bench/mask",
-                                              congestion_control=zenoh.CongestionControl.DROP, express=True)
+        prefix = "voxelwatch/bench"
+        publisher = _Recording(session.declare_publisher(keys.mask_key(prefix, CAM),
+                                                         congestion_control=zenoh.CongestionControl.DROP, express=True))
         segmenter = ForegroundSegmenter(window_frames=500, mask_scale=mask_scale)
         with tempfile.TemporaryDirectory(prefix="vw-bench-") as tmp:
             path = Path(tmp) / "clip.avi"
@@ -81,70 +83,100 @@ def measure_worker(
             for _ in range(30):   # the empty room first, as a background clip would give it (not timed)
                 segmenter.learn(np.clip(room + rng.normal(0, 2.0, room.shape), 0, 255).astype(np.uint8))
             view = ViewCheck(reference=segmenter.background_image())
-            stage_s = {s: 0.0 for s in STAGES}
-            sizes: list[int] = []
-            msg_sizes: list[int] = []
-            fg: list[float] = []
-            look_sizes: list[float] = []
-            answerer = LookAnswerer()
-            with VideoFileSource(path, fps=15.0) as source:
-                i = 0
-                while True:
-                    t0 = time.perf_counter()
-                    frame = source.read()
-                    if frame is None:
-                        break
-                    t1 = time.perf_counter()
-                    if looks:   # what arrived from the fusion server before this frame (not timed)
-                        answerer.ask(LookRequest(cam="bench", stamp_ns=frame.stamp_ns,
-                                                 people=[f.region(width, height) for f in figures[i]]))
-                    frame_s = dict.fromkeys(STAGES, 0.0)
-                    frame_s["read"] = t1 - t0
-                    msg, mask, stats = step(segmenter, frame, cam="bench", seq=i,
-                                            holds=[figures[i][0].box(width, height)] if holds else (), codec=codec,
-                                            answerer=answerer, stage_s=frame_s,
-                                            view=lambda f, m, st: view.follow(segmenter, f.image, m, st.fg_fraction,
-                                                                              st.relearning, f.stamp_ns))
-                    t3 = time.perf_counter()
-                    payload = messages.encode(msg)
-                    t4 = time.perf_counter()
-                    frame_s["encode"] += t4 - t3
-                    publisher.put(payload)
-                    frame_s["publish"] = time.perf_counter() - t4
-                    if i >= 5:   # the first frames initialise the model and the codec
-                        for name, dt in frame_s.items():
-                            stage_s[name] += dt
-                        sizes.append(len(msg.data))
-                        msg_sizes.append(len(payload))
-                        fg.append(stats.fg_fraction)
-                        if msg.looks:
-                            look_sizes.append(looks_bytes(msg.looks) / len(msg.looks))
-                    i += 1
+            with VideoFileSource(path, fps=15.0, start_ns=0) as source:
+                stamp = lambda i: recorded_stamp_ns(0, i, source.fps)  # noqa: E731 - the frame the loop reads next
+                hold_sub = _PerFrame(lambda i: HoldRegions(cam=CAM, stamp_ns=stamp(i),
+                                                           boxes=[figures[i][0].box(width, height)], ttl_ms=500)
+                                     if holds else None)
+                look_sub = _PerFrame(lambda i: LookRequest(cam=CAM, stamp_ns=stamp(i),
+                                                           people=[f.region(width, height) for f in figures[i]])
+                                     if looks else None)
+                timed = None
+                for frames in (5, n_frames - 5):   # warming up, then timed
+                    settings = WorkerSettings(cam=CAM, prefix=prefix, source=str(path), paced=False, codec=codec,
+                                              max_frames=frames, stats_period_s=3600.0)
+                    counters = WorkerCounters()
+                    loop = _Loop(settings, segmenter, source, publisher, hold_sub, look_sub, counters,
+                                 threading.Event(), view=view)
+                    publisher.sent.clear()
+                    loop.run()
+                    timed = counters
+            payloads = list(publisher.sent)
         publisher.undeclare()
     finally:
         cv2.setNumThreads(threads)
         if own_session is not None:
             own_session.close()
-    n = len(sizes)
-    ms = {s: 1e3 * stage_s[s] / n for s in STAGES}
+    sent = [messages.decode(p, MaskFrame) for p in payloads]
+    n = timed.timed
+    ms = {s: 1e3 * timed.stage_s[s] / n for s in STAGES}
     ms["total"] = sum(ms.values())
-    mh, mw = mask.shape
+    look_sizes = [looks_bytes(m.looks) / len(m.looks) for m in sent if m.looks]
     return {
         "frames": n,
         "people": n_people,
         "looks": looks,
         "width": width,
         "height": height,
-        "mask_width": mw,
-        "mask_height": mh,
+        "mask_width": sent[-1].width,
+        "mask_height": sent[-1].height,
         "ms": ms,
         "fps": {k: (1e3 / v if v > 0 else float("inf")) for k, v in ms.items()},
-        "mask_bytes_median": float(statistics.median(sizes)),
-        "mask_bytes_p95": float(np.percentile(sizes, 95)),
-        "message_bytes_median": float(statistics.median(msg_sizes)),
-        "fg_fraction_median": float(statistics.median(fg)),
+        "mask_bytes_median": float(statistics.median(len(m.data) for m in sent)),
+        "mask_bytes_p95": float(np.percentile([len(m.data) for m in sent], 95)),
+        "message_bytes_median": float(statistics.median(len(p) for p in payloads)),
+        "fg_fraction_median": float(statistics.median(m.fg_fraction for m in sent)),
         "look_bytes_per_person": float(statistics.median(look_sizes)) if look_sizes else 0.0,
     }
+
+
+CAM = "bench"
+
+
+class _Recording:
+    """The loop's publisher: puts each payload on the real one and keeps it (read after the run)."""
+
+    def __init__(self, publisher: Any) -> None:
+        self.publisher = publisher
+        self.sent: list[bytes] = []
+
+    def put(self, payload: bytes) -> None:
+        self.publisher.put(payload)
+        self.sent.append(payload)
+
+    def undeclare(self) -> None:
+        self.publisher.undeclare()
+
+
+class _Payload(bytes):
+    def to_bytes(self) -> bytes:
+        return bytes(self)
+
+
+@dataclass
+class _Sample:
+    payload: _Payload
+
+
+class _PerFrame:
+    """A subscriber stand-in the loop polls before each frame: the message ``make(i)`` for frame
+    ``i`` (None: nothing), then nothing until the next frame."""
+
+    def __init__(self, make: Any) -> None:
+        self.make, self.frame, self.given = make, 0, False
+
+    def try_recv(self) -> _Sample | None:
+        if self.given:
+            self.given = False
+            self.frame += 1
+            return None
+        self.given = True
+        msg = self.make(self.frame)
+        if msg is None:
+            self.given = False
+            self.frame += 1
+            return None
+        return _Sample(_Payload(messages.encode(msg)))
 
 
 def looks_bytes(looks: Sequence[Appearance]) -> int:
