@@ -19,8 +19,8 @@ from typing import Annotated, Any
 
 from pydantic import BaseModel, ConfigDict, TypeAdapter, ValidationError
 
-__all__ = ["NON_NEGATIVE", "Settings", "SettingError", "check_declared", "check_setting", "declared", "default_of", "field_name", "problem",
-           "validated"]
+__all__ = ["NON_NEGATIVE", "Settings", "SettingError", "check_declared", "check_setting", "declared", "default_of", "field_name",
+           "group_of", "problem", "validated"]
 
 
 NON_NEGATIVE = {"ge": 0.0, "allow_inf_nan": False}
@@ -71,6 +71,14 @@ def check_declared(params: Any, model: type[BaseModel], *names: str) -> None:
     declaration of it (:func:`check_setting`) and store the checked value."""
     for name in names:
         object.__setattr__(params, name, check_setting(model, name, getattr(params, name), flag=name))
+
+
+def group_of(value: Any, model: type[BaseModel], *, name: str = "params") -> Any:
+    """``value`` when it is a ``model`` (a stage takes its own parameter group only); a
+    SettingError naming ``name`` and both types otherwise."""
+    if not isinstance(value, model):
+        raise SettingError(f"{name} must be {model.__name__}, got {type(value).__name__}")
+    return value
 
 
 def validated(model: type[BaseModel], **values: Any) -> BaseModel:

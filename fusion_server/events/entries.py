@@ -23,7 +23,7 @@ from typing import Iterable, Sequence
 
 from pydantic import Field
 
-from common.settings import Settings
+from common.settings import Settings, group_of
 from fusion_server.events._common import NUMBER, ns
 from fusion_server.events.records import Emitter
 from fusion_server.hotspots import Hotspot, hotspot_at
@@ -52,8 +52,7 @@ class EntryDetector:
         doors: Iterable[Hotspot] = (),
         bounds_xy_m: Sequence[float] | None = None,
     ) -> None:
-        if not isinstance(params, EntryParams):
-            raise ValueError(f"params must be EntryParams, got {type(params).__name__}")
+        group_of(params, EntryParams)
         self.params = params
         self.doors = tuple(doors)
         for h in self.doors:

@@ -47,7 +47,7 @@ from typing import Any, Sequence
 import numpy as np
 from pydantic import Field
 
-from common.settings import Settings, declared
+from common.settings import Settings, declared, group_of
 from common.site import EventSettings
 from fusion_server.events._common import NUMBER, median, ns, rekey
 from fusion_server.events.records import Emitter
@@ -83,8 +83,7 @@ class FallDetector:
     """``fall`` and ``long_lie`` per track, from the track's tops and posture."""
 
     def __init__(self, params: FallParams = FallParams()) -> None:
-        if not isinstance(params, FallParams):
-            raise ValueError(f"params must be FallParams, got {type(params).__name__}")
+        group_of(params, FallParams)
         self.params = params
         self._window_ns = ns(params.window_s)
         self._confirm_ns = ns(params.confirm_s)

@@ -16,7 +16,7 @@ from typing import Iterable
 
 from pydantic import Field
 
-from common.settings import Settings, default_of
+from common.settings import Settings, default_of, group_of
 from common.site import EventSettings
 from fusion_server.events._common import NUMBER, ns, rekey
 from fusion_server.events.records import Emitter
@@ -43,8 +43,7 @@ class InactivityDetector:
     """
 
     def __init__(self, params: InactivityParams = InactivityParams(), *, hotspots: Iterable[Hotspot] = ()) -> None:
-        if not isinstance(params, InactivityParams):
-            raise ValueError(f"params must be InactivityParams, got {type(params).__name__}")
+        group_of(params, InactivityParams)
         self.params = params
         self.hotspots = tuple(hotspots)
         self._inactivity_ns = ns(params.inactivity_s)

@@ -26,7 +26,7 @@ from pydantic import Field
 from typing import Any, Iterable, Mapping, Sequence
 
 from common.messages import Event
-from common.settings import Settings
+from common.settings import Settings, group_of
 from fusion_server.events._common import NUMBER, ns, rekey
 from fusion_server.events.entries import EntryDetector, EntryParams
 from fusion_server.events.falls import FallDetector, FallParams
@@ -90,8 +90,7 @@ class EventReasoner:
                       sit_stand=(sit_stand, SitStandParams), entries=(entries, EntryParams),
                       visits=(visits, VisitParams), inactivity=(inactivity, InactivityParams))
         for name, (group, cls) in groups.items():
-            if not isinstance(group, cls):
-                raise ValueError(f"{name} must be {cls.__name__}, got {type(group).__name__}")
+            group_of(group, cls, name=name)
         self.utc_offset_h = float(utc_offset_h)
         self.presence = presence
         self.entries = EntryDetector(entries, doors=doors, bounds_xy_m=bounds_xy_m)

@@ -32,7 +32,7 @@ from typing import Iterable, Literal, Sequence
 import numpy as np
 from pydantic import Field, model_validator
 
-from common.settings import Settings
+from common.settings import Settings, group_of
 from fusion_server.events._common import NUMBER, median, ns, rekey
 from fusion_server.events.records import Emitter
 from fusion_server.events.track import TrackSnapshot
@@ -78,8 +78,7 @@ class SitStandDetector:
     """
 
     def __init__(self, params: SitStandParams = SitStandParams(), *, hotspots: Iterable[Hotspot] = ()) -> None:
-        if not isinstance(params, SitStandParams):
-            raise ValueError(f"params must be SitStandParams, got {type(params).__name__}")
+        group_of(params, SitStandParams)
         self.params = params
         self._seats = tuple(h for h in hotspots if h.kind in params.seat_kinds)
         self._hold_ns = ns(params.hold_s)

@@ -26,7 +26,7 @@ from typing import Any, Iterable, Sequence
 import numpy as np
 from pydantic import Field, field_validator, model_validator
 
-from common.settings import Settings
+from common.settings import Settings, group_of
 from fusion_server.events._common import NUMBER, ns, rekey
 from fusion_server.events.local_time import DEFAULT_MEALS, time_of_day_label
 from fusion_server.events.records import Emitter
@@ -76,8 +76,7 @@ class VisitDetector:
     def __init__(
         self, params: VisitParams = VisitParams(), *, hotspots: Iterable[Hotspot] = (), residents: int = 1
     ) -> None:
-        if not isinstance(params, VisitParams):
-            raise ValueError(f"params must be VisitParams, got {type(params).__name__}")
+        group_of(params, VisitParams)
         if isinstance(residents, bool) or not isinstance(residents, int) or residents < 0:
             raise ValueError(f"residents must be an int >= 0, got {residents!r}")
         self.params = params
