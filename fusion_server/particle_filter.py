@@ -37,10 +37,13 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from pydantic import Field, model_validator
 
+from common.settings import NON_NEGATIVE, Settings
 from fusion_server.grid import FloorMaps, VoxelGrid
 
 __all__ = [
+    "FilterParams",
     "FloorEvidence",
     "ParticleFilter",
     "box_count",
@@ -194,6 +197,26 @@ def effective_sample_size(weights: np.ndarray) -> float:
     return float(1.0 / np.sum(w * w))
 
 
+class FilterParams(Settings):
+    """The bounds of :class:`ParticleFilter`'s keyword settings (described there), declared once."""
+
+    n_particles: int = Field(200, ge=1)
+    k_m: float = Field(0.1, gt=0.0, allow_inf_nan=False)
+    alpha_range_m: tuple[float, float] = (0.15, 0.6)
+    position_noise_m: float = Field(0.3, **NON_NEGATIVE)
+    alpha_noise_m: float = Field(0.1, **NON_NEGATIVE)
+    init_spread_m: float = Field(0.05, **NON_NEGATIVE)
+    resample_below: float = Field(0.5, ge=0.0, le=1.0)
+    max_dt_s: float = Field(0.5, gt=0.0, allow_inf_nan=False)
+
+    @model_validator(mode="after")
+    def _alpha_range(self) -> "FilterParams":
+        lo, hi = self.alpha_range_m
+        if not 0 < lo <= hi:
+            raise ValueError(f"alpha_range_m must be 0 < min <= max, got {self.alpha_range_m}")
+        return self
+
+
 class ParticleFilter:
     """Particles, weights and generator of one target's 2.5D filter.
 
@@ -232,31 +255,21 @@ class ParticleFilter:
     ):
         if not isinstance(rng, np.random.Generator):
             raise ValueError(f"rng must be a numpy Generator, got {type(rng).__name__}")
-        if not max_dt_s > 0:
-            raise ValueError(f"max_dt_s must be positive, got {max_dt_s}")
-        if int(n_particles) < 1:
-            raise ValueError(f"n_particles must be at least 1, got {n_particles}")
-        if not k_m > 0:
-            raise ValueError(f"k_m must be positive, got {k_m}")
-        lo, hi = (float(v) for v in alpha_range_m)
-        if not 0 < lo <= hi:
-            raise ValueError(f"alpha_range_m must be 0 < min <= max, got {alpha_range_m}")
-        for name, value in (("position_noise_m", position_noise_m), ("alpha_noise_m", alpha_noise_m), ("init_spread_m", init_spread_m)):
-            if not value >= 0:
-                raise ValueError(f"{name} must be non-negative, got {value}")
-        if not 0 <= resample_below <= 1:
-            raise ValueError(f"resample_below must be in [0, 1], got {resample_below}")
+        p = FilterParams(n_particles=n_particles, k_m=k_m, alpha_range_m=alpha_range_m,
+                         position_noise_m=position_noise_m, alpha_noise_m=alpha_noise_m, init_spread_m=init_spread_m,
+                         resample_below=resample_below, max_dt_s=max_dt_s)
+        lo, hi = p.alpha_range_m
         self.rng = rng
-        self.k_m = float(k_m)
+        self.k_m = p.k_m
         self.alpha_range_m = (lo, hi)
-        self.position_noise_m = float(position_noise_m)
-        self.alpha_noise_m = float(alpha_noise_m)
-        self.resample_below = float(resample_below)
-        self.max_dt_s = float(max_dt_s)
-        n = int(n_particles)
+        self.position_noise_m = p.position_noise_m
+        self.alpha_noise_m = p.alpha_noise_m
+        self.resample_below = p.resample_below
+        self.max_dt_s = p.max_dt_s
+        n = p.n_particles
         self.particles = np.empty((n, 3), dtype=np.float64)
-        self.particles[:, :2] = np.array([x_m, y_m], dtype=np.float64) + rng.standard_normal((n, 2)) * init_spread_m
-        self.particles[:, 2] = np.clip(alpha_m + rng.standard_normal(n) * init_spread_m, lo, hi)
+        self.particles[:, :2] = np.array([x_m, y_m], dtype=np.float64) + rng.standard_normal((n, 2)) * p.init_spread_m
+        self.particles[:, 2] = np.clip(alpha_m + rng.standard_normal(n) * p.init_spread_m, lo, hi)
         self.weights = np.full(n, 1.0 / n)
         self.last_stamp_ns: int | None = None
         self.supported = False

@@ -50,12 +50,15 @@ import math
 from collections import deque
 from dataclasses import dataclass, field
 from functools import lru_cache
-from typing import Iterable, Mapping, Protocol, Sequence
+from typing import Iterable, Literal, Mapping, Protocol, Sequence
 
 import numpy as np
 import scipy.linalg
+from pydantic import Field, model_validator
 
 from common.postures import BODY_POSTURES
+from common.settings import Settings, declared
+from common.site import EventSettings
 from fusion_server.viterbi import FixedLagViterbi
 
 POSTURES: tuple[str, ...] = BODY_POSTURES
@@ -494,6 +497,47 @@ class PostureReading:
         return self.probabilities[POSTURES.index(self.posture)]
 
 
+_FINITE = {"allow_inf_nan": False}
+
+
+class PostureParams(Settings):
+    """The bounds of :class:`PostureEstimator`'s keyword settings (described there), declared once;
+    ``decisions`` and ``viterbi_lag_s`` are the site file's ``[events]`` declarations."""
+
+    voxel_m: float = Field(gt=0.0, **_FINITE)
+    standing_height_m: float = Field(1.70, **_FINITE)
+    height_sigma_m: float = Field(0.10, gt=0.0, **_FINITE)
+    anyone_weight: float = Field(0.15, ge=0.0, le=1.0)
+    height_limits_m: tuple[float, float] = (0.9, 2.2)
+    height_step_m: float = Field(0.05, gt=0.0, **_FINITE)
+    height_evidence_weight: float = Field(0.3, gt=0.0, le=1.0)
+    height_evidence_cap: float = Field(3.0, gt=0.0, **_FINITE)
+    relearn_time_s: float = Field(60.0, gt=0.0, **_FINITE)
+    fir_taps: tuple[float, ...] | None = None
+    switch_rate_hz: float = Field(0.5, gt=0.0, **_FINITE)
+    evidence_weight: float = Field(0.5, gt=0.0, **_FINITE)
+    min_duration_s: float = Field(0.4, ge=0.0, **_FINITE)
+    walking_speed_mps: float = Field(0.5, gt=0.0, **_FINITE)
+    walking_log_odds: float = Field(4.0, ge=0.0, **_FINITE)
+    decisions: Literal["frame", "viterbi"] = declared(EventSettings, "decisions")
+    viterbi_lag_s: float = declared(EventSettings, "viterbi_lag_s")
+
+    @model_validator(mode="after")
+    def _consistent(self) -> "PostureParams":
+        lo, hi = self.height_limits_m
+        if not 0 < lo < hi:
+            raise ValueError(f"height_limits_m must be 0 < low < high, got {self.height_limits_m}")
+        if not lo <= self.standing_height_m <= hi:
+            raise ValueError(f"standing_height_m {self.standing_height_m} must lie in height_limits_m "
+                             f"{self.height_limits_m}")
+        if self.height_step_m > hi - lo:
+            raise ValueError(f"height_step_m must be at most the limits' span, got {self.height_step_m}")
+        taps = self.fir_taps
+        if taps is not None and (not taps or any(t < 0 for t in taps) or not sum(taps) > 0):
+            raise ValueError("fir_taps must be a non-empty list of non-negative weights with a positive sum")
+        return self
+
+
 class PostureEstimator:
     """Posture of one tracked person over time.
 
@@ -580,42 +624,22 @@ class PostureEstimator:
         decisions: str = "frame",
         viterbi_lag_s: float = 0.6,
     ) -> None:
-        if decisions not in DECISIONS:
-            raise ValueError(f"decisions must be one of {', '.join(DECISIONS)}, got {decisions!r}")
-        if not (isinstance(viterbi_lag_s, (int, float)) and 0 <= viterbi_lag_s <= MAX_VITERBI_LAG_S):
-            raise ValueError(f"viterbi_lag_s must lie in [0, {MAX_VITERBI_LAG_S}], got {viterbi_lag_s!r}")
-        if not voxel_m > 0:
-            raise ValueError(f"voxel_m must be positive, got {voxel_m}")
-        lo, hi = (float(v) for v in height_limits_m)
-        if not 0 < lo < hi:
-            raise ValueError(f"height_limits_m must be 0 < low < high, got {height_limits_m}")
-        if not lo <= standing_height_m <= hi:
-            raise ValueError(f"standing_height_m {standing_height_m} must lie in height_limits_m {height_limits_m}")
-        if not height_sigma_m > 0:
-            raise ValueError(f"height_sigma_m must be positive, got {height_sigma_m}")
-        if not 0 <= anyone_weight <= 1:
-            raise ValueError(f"anyone_weight must lie in [0, 1], got {anyone_weight}")
-        if not 0 < height_step_m <= hi - lo:
-            raise ValueError(f"height_step_m must be positive and at most the limits' span, got {height_step_m}")
-        if not 0 < height_evidence_weight <= 1:
-            raise ValueError(f"height_evidence_weight must lie in (0, 1], got {height_evidence_weight}")
-        if not height_evidence_cap > 0:
-            raise ValueError(f"height_evidence_cap must be positive, got {height_evidence_cap}")
-        if not relearn_time_s > 0:
-            raise ValueError(f"relearn_time_s must be positive, got {relearn_time_s}")
-        taps = np.ones(5) if fir_taps is None else np.asarray(fir_taps, dtype=np.float64)
-        if taps.ndim != 1 or len(taps) == 0 or np.any(taps < 0) or not taps.sum() > 0:
-            raise ValueError("fir_taps must be a non-empty list of non-negative weights with a positive sum")
-        if not switch_rate_hz > 0:
-            raise ValueError(f"switch_rate_hz must be positive, got {switch_rate_hz}")
-        if not evidence_weight > 0:
-            raise ValueError(f"evidence_weight must be positive, got {evidence_weight}")
-        if not min_duration_s >= 0:
-            raise ValueError(f"min_duration_s must be >= 0, got {min_duration_s}")
-        if not walking_speed_mps > 0:
-            raise ValueError(f"walking_speed_mps must be positive, got {walking_speed_mps}")
-        if not walking_log_odds >= 0:
-            raise ValueError(f"walking_log_odds must be >= 0, got {walking_log_odds}")
+        p = PostureParams(voxel_m=voxel_m, standing_height_m=standing_height_m, height_sigma_m=height_sigma_m,
+                          anyone_weight=anyone_weight, height_limits_m=height_limits_m, height_step_m=height_step_m,
+                          height_evidence_weight=height_evidence_weight, height_evidence_cap=height_evidence_cap,
+                          relearn_time_s=relearn_time_s, fir_taps=fir_taps, switch_rate_hz=switch_rate_hz,
+                          evidence_weight=evidence_weight, min_duration_s=min_duration_s,
+                          walking_speed_mps=walking_speed_mps, walking_log_odds=walking_log_odds,
+                          decisions=decisions, viterbi_lag_s=viterbi_lag_s)
+        lo, hi = p.height_limits_m
+        taps = np.ones(5) if p.fir_taps is None else np.asarray(p.fir_taps, dtype=np.float64)
+        voxel_m, standing_height_m, height_sigma_m, anyone_weight = (p.voxel_m, p.standing_height_m, p.height_sigma_m,
+                                                                     p.anyone_weight)
+        height_step_m, height_evidence_weight, height_evidence_cap = (p.height_step_m, p.height_evidence_weight,
+                                                                      p.height_evidence_cap)
+        relearn_time_s, switch_rate_hz, evidence_weight = p.relearn_time_s, p.switch_rate_hz, p.evidence_weight
+        min_duration_s, walking_speed_mps, walking_log_odds = p.min_duration_s, p.walking_speed_mps, p.walking_log_odds
+        decisions, viterbi_lag_s = p.decisions, p.viterbi_lag_s
         self.voxel_m = float(voxel_m)
         self.height_limits_m = (lo, hi)
         self.heights_m = np.arange(lo, hi + 0.5 * height_step_m, height_step_m)
