@@ -845,11 +845,6 @@ class PostureBank:
 
 # --------------------------------------------------------------------------- helpers
 
-MAX_VITERBI_LAG_S = 1.0
-"""Longest Viterbi decision delay, seconds. A fall is confirmed after a second
-low on the floor (:mod:`fusion_server.events.falls`); a lying state committed
-within a second of the body reaching the floor keeps the alarm within
-1.5 s of it (the FIR smoothing adds a few frames)."""
 
 
 @lru_cache(maxsize=256)
