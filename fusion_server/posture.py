@@ -846,7 +846,6 @@ class PostureBank:
 # --------------------------------------------------------------------------- helpers
 
 
-
 @lru_cache(maxsize=256)
 def _log_transitions_ms(dt_ms: int) -> np.ndarray:
     names = [POSTURES[p] for p in STATE_POSTURE] + ["outside"]
