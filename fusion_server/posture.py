@@ -633,27 +633,20 @@ class PostureEstimator:
                           decisions=decisions, viterbi_lag_s=viterbi_lag_s)
         lo, hi = p.height_limits_m
         taps = np.ones(5) if p.fir_taps is None else np.asarray(p.fir_taps, dtype=np.float64)
-        voxel_m, standing_height_m, height_sigma_m, anyone_weight = (p.voxel_m, p.standing_height_m, p.height_sigma_m,
-                                                                     p.anyone_weight)
-        height_step_m, height_evidence_weight, height_evidence_cap = (p.height_step_m, p.height_evidence_weight,
-                                                                      p.height_evidence_cap)
-        relearn_time_s, switch_rate_hz, evidence_weight = p.relearn_time_s, p.switch_rate_hz, p.evidence_weight
-        min_duration_s, walking_speed_mps, walking_log_odds = p.min_duration_s, p.walking_speed_mps, p.walking_log_odds
-        decisions, viterbi_lag_s = p.decisions, p.viterbi_lag_s
-        self.voxel_m = float(voxel_m)
+        self.voxel_m = p.voxel_m
         self.height_limits_m = (lo, hi)
-        self.heights_m = np.arange(lo, hi + 0.5 * height_step_m, height_step_m)
-        adult = np.exp(-0.5 * ((self.heights_m - standing_height_m) / height_sigma_m) ** 2)
-        self.height_prior = (1.0 - anyone_weight) * adult / adult.sum() + anyone_weight / len(self.heights_m)
-        self.height_evidence_weight = float(height_evidence_weight)
-        self.height_evidence_cap = float(height_evidence_cap)
-        self.relearn_time_s = float(relearn_time_s)
+        self.heights_m = np.arange(lo, hi + 0.5 * p.height_step_m, p.height_step_m)
+        adult = np.exp(-0.5 * ((self.heights_m - p.standing_height_m) / p.height_sigma_m) ** 2)
+        self.height_prior = (1.0 - p.anyone_weight) * adult / adult.sum() + p.anyone_weight / len(self.heights_m)
+        self.height_evidence_weight = p.height_evidence_weight
+        self.height_evidence_cap = p.height_evidence_cap
+        self.relearn_time_s = p.relearn_time_s
         self.taps = taps
-        self.switch_rate_hz = float(switch_rate_hz)
-        self.evidence_weight = float(evidence_weight)
-        self.min_duration_ns = int(round(min_duration_s * 1e9))
-        self.walking_speed_mps = float(walking_speed_mps)
-        self.walking_log_odds = float(walking_log_odds)
+        self.switch_rate_hz = p.switch_rate_hz
+        self.evidence_weight = p.evidence_weight
+        self.min_duration_ns = int(round(p.min_duration_s * 1e9))
+        self.walking_speed_mps = p.walking_speed_mps
+        self.walking_log_odds = p.walking_log_odds
         self.model = model or default_model()
         self.height_posterior = self.height_prior.copy()
         self._history: deque[tuple[np.ndarray, np.ndarray]] = deque(maxlen=len(taps))
@@ -664,8 +657,8 @@ class PostureEstimator:
         self._candidate: int | None = None
         self._candidate_ns = 0
         self._last: PostureReading | None = None
-        self.decisions = decisions
-        self.viterbi_lag_ns = int(round(float(viterbi_lag_s) * 1e9))
+        self.decisions = p.decisions
+        self.viterbi_lag_ns = int(round(p.viterbi_lag_s * 1e9))
         self._decoder: FixedLagViterbi | None = None
         # per frame not yet committed: (stamp_ns, per-posture filtered probabilities)
         self._pending: deque[tuple[int, np.ndarray]] = deque()
