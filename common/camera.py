@@ -33,13 +33,13 @@ lenses beyond that get NaN rays.
 
 from __future__ import annotations
 
-import threading
-from collections import OrderedDict
 from dataclasses import dataclass, field
 from functools import cached_property
 
 import cv2
 import numpy as np
+
+from common.memo import BytesMemo
 
 MODELS = ("pinhole", "fisheye", "tsai")
 PINHOLE_DIST_LENGTHS = (0, 4, 5, 8, 12, 14)
@@ -50,8 +50,7 @@ RAYS_CACHE_BYTES = 256 * 2**20
 """At most this much of :meth:`Camera.pixel_rays` results is kept per process (the least recently
 used go first): a renderer per camera per scenario asks again for the same rays, which take about
 half a second per 640x480 camera to undistort."""
-_rays_cache: OrderedDict[tuple, np.ndarray] = OrderedDict()
-_rays_lock = threading.Lock()
+_rays = BytesMemo(RAYS_CACHE_BYTES)
 
 
 @dataclass(frozen=True)
@@ -275,20 +274,14 @@ class Camera:
         orientation (:data:`RAYS_CACHE_BYTES`)."""
         key = (self.model, self.width, self.height, self.K.tobytes(), self.dist.tobytes(), self.R.tobytes(),
                repr(self.tsai))
-        with _rays_lock:
-            rays = _rays_cache.get(key)
-            if rays is not None:
-                _rays_cache.move_to_end(key)
-        if rays is None:
-            v, u = np.mgrid[0 : self.height, 0 : self.width].astype(np.float64)
-            uv = np.stack([u.ravel(), v.ravel()], axis=1)
-            rays = self.rays(uv).reshape(self.height, self.width, 3).astype(np.float32)
-            rays.setflags(write=False)
-            with _rays_lock:
-                _rays_cache[key] = rays
-                while sum(r.nbytes for r in _rays_cache.values()) > RAYS_CACHE_BYTES and len(_rays_cache) > 1:
-                    _rays_cache.popitem(last=False)
-        return rays.copy()
+        return _rays.get(key, self._pixel_rays, lambda r: r.nbytes).copy()
+
+    def _pixel_rays(self) -> np.ndarray:
+        v, u = np.mgrid[0 : self.height, 0 : self.width].astype(np.float64)
+        uv = np.stack([u.ravel(), v.ravel()], axis=1)
+        rays = self.rays(uv).reshape(self.height, self.width, 3).astype(np.float32)
+        rays.setflags(write=False)
+        return rays
 
     # ------------------------------------------------------------------ derived cameras
 

@@ -25,15 +25,14 @@ Units: world metres; pixels in OpenCV convention (integer = pixel centre).
 
 from __future__ import annotations
 
-import threading
 import zlib
-from collections import OrderedDict
 from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
 
 from common.camera import Camera
+from common.memo import BytesMemo
 from synth.body import FOREARM_PARTS, HEAD_PART, HAIR, PART_MATERIAL, SKIN, Body
 from synth.scene import Room
 from synth.sensors import (
@@ -57,8 +56,7 @@ HITS_CACHE_BYTES = 256 * 2**20
 """At most this much of the empty room seen through each camera (:func:`room_hits`) is kept per
 process, the least recently used going first: a scenario renders every camera afresh, and casting
 a 640x480 camera's rays into the room takes most of a second."""
-_hits_cache: OrderedDict[tuple, "BackgroundHits"] = OrderedDict()
-_hits_lock = threading.Lock()
+_hits = BytesMemo(HITS_CACHE_BYTES)
 
 
 @dataclass(frozen=True)
@@ -120,20 +118,18 @@ def room_hits(room: Room, camera: Camera, rays: np.ndarray) -> BackgroundHits:
     renderer of the same room and camera (:data:`HITS_CACHE_BYTES`)."""
     key = (repr(room), camera.model, camera.width, camera.height, camera.K.tobytes(), camera.dist.tobytes(),
            camera.R.tobytes(), camera.t.tobytes(), repr(camera.tsai))
-    with _hits_lock:
-        hits = _hits_cache.get(key)
-        if hits is not None:
-            _hits_cache.move_to_end(key)
-            return hits
+    return _hits.get(key, lambda: _cast(room, camera, rays), _hits_bytes)
+
+
+def _cast(room: Room, camera: Camera, rays: np.ndarray) -> BackgroundHits:
     hits = raycast_room(room, camera.center.astype(np.float64), rays.reshape(-1, 3).astype(np.float64))
     for arr in (hits.t, hits.surface, hits.normal, hits.point):
         arr.setflags(write=False)
-    size = sum(a.nbytes for a in (hits.t, hits.surface, hits.normal, hits.point))
-    with _hits_lock:
-        _hits_cache[key] = hits
-        while len(_hits_cache) > 1 and size * len(_hits_cache) > HITS_CACHE_BYTES:
-            _hits_cache.popitem(last=False)
     return hits
+
+
+def _hits_bytes(hits: BackgroundHits) -> int:
+    return sum(a.nbytes for a in (hits.t, hits.surface, hits.normal, hits.point))
 
 
 def background_colour(room: Room, hits: BackgroundHits) -> np.ndarray:
