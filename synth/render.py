@@ -211,6 +211,7 @@ class CameraRenderer:
         self._zbuf = np.full((H, W), np.inf, dtype=np.float32)
         self._part = np.full((H, W), -1, dtype=np.int16)
         self._sensor: _SensorBackground | None = None   # range and thermal models' view, on first use
+        self._still: tuple | None = None   # (the bodies' pose, scene, labels) last drawn
         if not colour:  # silhouettes only (:meth:`labels`)
             return
         look = np.random.default_rng([self.seed, self.cam_key, 11])
@@ -254,9 +255,18 @@ class CameraRenderer:
         is visible at each pixel, 0 for background.
         """
         H, W = self.camera.height, self.camera.width
-        labels = np.zeros((H, W), dtype=np.uint8)
         if not bodies:
-            return self.background(gain, key), labels
+            return self.background(gain, key), np.zeros((H, W), dtype=np.uint8)
+        pose = tuple((b.person_id, b.centers_m.tobytes(), b.axes.tobytes(), b.shape) for b in bodies)
+        if self._still is None or self._still[0] != pose:
+            # A person holding still is drawn once: the frames differ only by gain and noise.
+            self._still = (pose, *self._draw(bodies))
+        _, scene, labels = self._still
+        return cv2.addWeighted(scene, float(gain), self.noise(key), 1.0, -float(NOISE_OFFSET)), labels.copy()
+
+    def _draw(self, bodies: list[Body]) -> tuple[np.ndarray, np.ndarray]:
+        """The noiseless scene (H, W, 3) uint8 at gain 1 and its person ids (H, W) uint8."""
+        labels = np.zeros((self.camera.height, self.camera.width), dtype=np.uint8)
         scene = self.bg_bgr.copy()
         plans = [self._plan(b) for b in bodies]
         plans = [p for p in plans if p is not None]
@@ -266,7 +276,7 @@ class CameraRenderer:
         self._raycast_all(plans)
         for pi, plan in enumerate(plans):
             self._shade(scene, labels, plan, pi, plans)
-        return cv2.addWeighted(scene, float(gain), self.noise(key), 1.0, -float(NOISE_OFFSET)), labels
+        return scene, labels
 
     def labels(self, bodies: list[Body]) -> np.ndarray:
         """(H, W) uint8 the person id whose body is visible at each pixel (furniture and walls
