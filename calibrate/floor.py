@@ -43,6 +43,7 @@ stretches of different cameras that overlap in time show the same board position
 
 from __future__ import annotations
 
+import hashlib
 import math
 import tomllib
 from collections import deque
@@ -233,11 +234,16 @@ class FloorResult:
 
 
 def find_sightings(clips: dict[str, str], intrinsics: dict[str, Camera], board: Board | CharucoBoard,
-                   rough: dict[str, Camera | None], *, fit_board: bool = False) -> list[Sighting]:
+                   rough: dict[str, Camera | None], *, fit_board: bool = False,
+                   looked: dict[tuple, tuple] | None = None) -> list[Sighting]:
     """Every camera's board sightings, one per still stretch of its clip in which the board is found;
     FloorError when a camera never sees it or sees it too small; ClipError for a clip that cannot be read.
     fit_board: a chessboard's corners from the board fitted to the still frame as a whole
-    (:mod:`calibrate.boardfit`), the detector's kept in :attr:`Sighting.detected`."""
+    (:mod:`calibrate.boardfit`), the detector's kept in :attr:`Sighting.detected`.
+    looked: what was found in still frames looked at before, by camera and frame; a caller that looks
+    again at clips grown by more places (the board laid again where a camera was warned of) passes the
+    same dict, and only the new stills are searched (a thorough search of a still the board is not in
+    takes seconds)."""
     out: list[Sighting] = []
     finder = CharucoFinder(board) if isinstance(board, CharucoBoard) else None
     for cam_id, clip in clips.items():
@@ -250,7 +256,15 @@ def find_sightings(clips: dict[str, str], intrinsics: dict[str, Camera], board: 
         pose = None if rough.get(cam_id) is None else (rough[cam_id].R, rough[cam_id].t)
         found, small = [], []
         for still in still_stretches(frames, index):
-            ids, corners, detected = _find_floor_board(still.gray, board, finder, cam, pose, fit_board)
+            key = (cam_id, fit_board, hashlib.blake2b(still.gray.tobytes(), digest_size=16).digest())
+            if looked is None or key not in looked:
+                found_here = _find_floor_board(still.gray, board, finder, cam, pose, fit_board)
+                if looked is None:
+                    ids, corners, detected = found_here
+                else:
+                    looked[key] = found_here
+            if looked is not None:
+                ids, corners, detected = (None if a is None else a.copy() for a in looked[key])
             if corners is None:
                 continue
             area = board_area_fraction(corners, w, h)

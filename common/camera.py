@@ -272,9 +272,13 @@ class Camera:
         (``[i, j]`` through ``(u, v) = (j, i)``); NaN where :meth:`rays` is NaN. A fresh array
         each call; the values are kept for the next camera with the same lens, size and
         orientation (:data:`RAYS_CACHE_BYTES`)."""
-        key = (self.model, self.width, self.height, self.K.tobytes(), self.dist.tobytes(), self.R.tobytes(),
-               repr(self.tsai))
-        return _rays.get(key, self._pixel_rays, lambda r: r.nbytes).copy()
+        return _rays.get(self.fingerprint(), self._pixel_rays, lambda r: r.nbytes).copy()
+
+    def fingerprint(self) -> tuple:
+        """A hashable value equal for cameras of the same model, size, lens, orientation and position (the
+        key under which what is computed once per camera is kept)."""
+        return (self.model, self.width, self.height, self.K.tobytes(), self.dist.tobytes(), self.R.tobytes(),
+                self.t.tobytes(), repr(self.tsai))
 
     def _pixel_rays(self) -> np.ndarray:
         v, u = np.mgrid[0 : self.height, 0 : self.width].astype(np.float64)

@@ -191,7 +191,8 @@ def _floor_world(world, intrinsics, board, work: Path, *, heed: bool, stand: boo
     try:
         if poses is None:
             raise FloorError(f"no chain of board places: {why}")
-        result = _calibrate(world, intrinsics, board, poses, work / "floor", lens_tilt, fit_board)
+        looked: dict = {}   # the stills of the places laid so far, searched once
+        result = _calibrate(world, intrinsics, board, poses, work / "floor", lens_tilt, fit_board, looked)
         warned = [c for c, rep in result.reports.items() if not rep.pinned]
         out["warned_first"] = warned
         rounds = HEED_ROUNDS if heed else 0
@@ -206,7 +207,8 @@ def _floor_world(world, intrinsics, board, work: Path, *, heed: bool, stand: boo
                                                      well_seen=WELL_SEEN)
             if len(poses) == before:
                 break   # nowhere left to lay it for them
-            result = _calibrate(world, intrinsics, board, poses, work / f"floor-again{k + 1}", lens_tilt, fit_board)
+            result = _calibrate(world, intrinsics, board, poses, work / f"floor-again{k + 1}", lens_tilt, fit_board,
+                                looked)
             warned = [c for c, rep in result.reports.items() if not rep.pinned]
             out["heed_rounds"] = k + 1
     except FloorError as exc:
@@ -228,14 +230,16 @@ def _floor_world(world, intrinsics, board, work: Path, *, heed: bool, stand: boo
 
 
 def _calibrate(world, intrinsics, board, poses, folder: Path, lens_tilt: dict[str, float] | None = None,
-               fit_board: bool = False):
-    """Every camera records the board at every place; the floor calibration of what they found."""
+               fit_board: bool = False, looked: dict | None = None):
+    """Every camera records the board at every place; the floor calibration of what they found (``looked``:
+    :func:`calibrate.floor.find_sightings`'s stills already searched)."""
     from calibrate.floor import calibrate_floor, find_sightings
     from synth.board import BoardRenderer, floor_clip, write_frames
 
     clips = {c: str(write_frames(floor_clip(BoardRenderer(cam, world.room, seed=world.seed), board, poses), folder / c))
              for c, cam in world.cameras.items()}
-    sightings = find_sightings(clips, intrinsics, board, rough_cameras(world.cameras), fit_board=fit_board)
+    sightings = find_sightings(clips, intrinsics, board, rough_cameras(world.cameras), fit_board=fit_board,
+                               looked=looked)
     return calibrate_floor(sightings, intrinsics, board, plan_points=plan_points(board, poses[0]),
                            lens_tilt_95_deg=lens_tilt)
 

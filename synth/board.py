@@ -31,6 +31,7 @@ import numpy as np
 from calibrate.board import Board
 from calibrate.charuco import FACE_UP, CharucoBoard
 from common.camera import Camera
+from common.memo import BytesMemo
 from synth.render import SURF_FLOOR, CameraRenderer, raycast_room
 from synth.scene import Room
 
@@ -57,31 +58,49 @@ STAND_TILTS_DEG = (0.0, 35.0)
 high in the corners)."""
 
 
+VIEW_CACHE_BYTES = 256 * 2**20
+"""At most this much of the cameras' supersampled views of the empty room (:class:`BoardRenderer`) is kept
+per process, the least recently used going first: a calibration run renders every camera again for each
+round of places, and casting a 640x480 camera's samples into the room takes about six seconds."""
+_views = BytesMemo(VIEW_CACHE_BYTES)
+
+
+def _view(camera: Camera, room: Room | None, ss: int, seed: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(read-only) every sample's ray (H, W, ss * ss, 3), the empty room's grey (H, W) and its depth along every
+    sample's ray (H, W, ss * ss) (a plain grey background at infinity without a room)."""
+    H, W = camera.height, camera.width
+    off = (np.arange(ss) + 0.5) / ss - 0.5
+    v, u = np.mgrid[0:H, 0:W].astype(np.float64)
+    uu = (u[:, :, None, None] + off[None, None, None, :]).repeat(ss, axis=2)
+    vv = (v[:, :, None, None] + off[None, None, :, None]).repeat(ss, axis=3)
+    rays = camera.rays(np.stack([uu.ravel(), vv.ravel()], axis=1)).astype(np.float32)
+    if room is not None:
+        bg = CameraRenderer(camera, room, seed=seed, noise_std=0.0, shadows=False)
+        background = cv2.cvtColor(bg.bg_bgr, cv2.COLOR_BGR2GRAY).astype(np.float32)
+        # the room's depth along every sample's own ray: a board lying on the floor is as far as the floor
+        # along each of them, where the pixel's one depth would hide part of its far squares (seen at a
+        # grazing angle a pixel spans tens of centimetres of floor)
+        hits = raycast_room(room, camera.center, rays.astype(np.float64))
+        depth = hits.t.reshape(H, W, ss * ss).astype(np.float32)
+    else:
+        background = np.full((H, W), 110.0, dtype=np.float32)
+        depth = np.full((H, W, ss * ss), np.inf, dtype=np.float32)
+    view = (rays.reshape(H, W, ss * ss, 3), background, depth)
+    for a in view:
+        a.setflags(write=False)
+    return view
+
+
 class BoardRenderer:
     """One camera's renderer of a board over the empty room (or a plain grey background)."""
 
     def __init__(self, camera: Camera, room: Room | None = None, *, supersample: int = 2, seed: int = 0) -> None:
         self.camera = camera
         self.ss = int(supersample)
-        H, W, s = camera.height, camera.width, self.ss
-        off = (np.arange(s) + 0.5) / s - 0.5
-        v, u = np.mgrid[0:H, 0:W].astype(np.float64)
-        uu = (u[:, :, None, None] + off[None, None, None, :]).repeat(s, axis=2)
-        vv = (v[:, :, None, None] + off[None, None, :, None]).repeat(s, axis=3)
-        rays = camera.rays(np.stack([uu.ravel(), vv.ravel()], axis=1)).astype(np.float32)
-        self.rays = rays.reshape(H, W, s * s, 3)
+        key = (camera.fingerprint(), repr(room), self.ss, int(seed))
+        self.rays, self.background, self.bg_depth = _views.get(key, lambda: _view(camera, room, self.ss, seed),
+                                                               lambda v: sum(a.nbytes for a in v))
         self.centre = camera.center
-        if room is not None:
-            bg = CameraRenderer(camera, room, seed=seed, noise_std=0.0, shadows=False)
-            self.background = cv2.cvtColor(bg.bg_bgr, cv2.COLOR_BGR2GRAY).astype(np.float32)
-            # the room's depth along every sample's own ray: a board lying on the floor is as far as the floor
-            # along each of them, where the pixel's one depth would hide part of its far squares (seen at a
-            # grazing angle a pixel spans tens of centimetres of floor)
-            hits = raycast_room(room, self.centre, rays.astype(np.float64))
-            self.bg_depth = hits.t.reshape(H, W, s * s).astype(np.float32)
-        else:
-            self.background = np.full((H, W), 110.0, dtype=np.float32)
-            self.bg_depth = np.full((H, W, s * s), np.inf, dtype=np.float32)
         self.seed = seed
         self._sheets: dict[CharucoBoard, np.ndarray] = {}
 

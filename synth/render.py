@@ -116,9 +116,7 @@ def room_hits(room: Room, camera: Camera, rays: np.ndarray) -> BackgroundHits:
     """:func:`raycast_room` of ``rays`` ((H, W, 3), ``camera.pixel_rays()`` with the invalid ones
     set to its forward axis) from the camera's centre; the (read-only) result is kept for the next
     renderer of the same room and camera (:data:`HITS_CACHE_BYTES`)."""
-    key = (repr(room), camera.model, camera.width, camera.height, camera.K.tobytes(), camera.dist.tobytes(),
-           camera.R.tobytes(), camera.t.tobytes(), repr(camera.tsai))
-    return _hits.get(key, lambda: _cast(room, camera, rays), _hits_bytes)
+    return _hits.get((repr(room), camera.fingerprint()), lambda: _cast(room, camera, rays), _hits_bytes)
 
 
 def _cast(room: Room, camera: Camera, rays: np.ndarray) -> BackgroundHits:

@@ -96,6 +96,42 @@ def test_floor_recovers_the_true_cameras_of_the_house(tmp_path):
         assert err_m < POSITION_M and err_deg < ANGLE_DEG
 
 
+def test_stills_searched_before_are_not_searched_again_when_the_clip_grows(tmp_path):
+    """A clip grown by one more place (the board laid again for a warned camera): with the same ``looked``,
+    the stills of the first places are taken from it (a planted answer comes back) and only the new one is
+    searched; the sightings of a fresh search are the same (a ChArUco mat: a chessboard's thorough search takes
+    seconds a still)."""
+    from synth.scene import default_cameras, default_room
+
+    room = default_room()
+    cam = default_cameras()["cam2"]
+    cameras = {"cam2": cam}
+    poses = floor_positions({c: v for c, v in default_cameras().items() if c in ("cam2", "cam3")}, room, MAT,
+                            np.random.default_rng(0), min_area=HOUSE_MIN_AREA, well_seen=WELL_SEEN)
+    R, t = max(poses, key=lambda p: cam.project(corners_world(MAT, p))[1].mean())   # cam2's best place
+    seen = [(R, t), (R, np.asarray(t) + np.array([0.3, -0.2, 0.0]))]   # and the board moved a little on the floor
+    renderer = BoardRenderer(cam, room, supersample=1)
+    assert BoardRenderer(cam, room, supersample=1).bg_depth is renderer.bg_depth   # the room cast once a camera
+
+    def clip(places, name):
+        return {"cam2": str(write_frames(floor_clip(renderer, MAT, places), tmp_path / name))}
+
+    looked: dict = {}
+    first = find_sightings(clip(seen[:1], "one"), cameras, MAT, _rough(cameras), looked=looked)
+    assert len(first) == 1 and len(looked) == 1
+    key = next(iter(looked))
+    ids, corners, detected = looked[key]
+    looked[key] = (ids, corners + 1.0, detected)   # planted: an answer no search gives
+    grown = clip(seen, "two")
+    again = find_sightings(grown, cameras, MAT, _rough(cameras), looked=looked)
+    fresh = find_sightings(grown, cameras, MAT, _rough(cameras))
+    assert len(looked) == 2 and len(again) == len(fresh) >= 1
+    np.testing.assert_array_equal(again[0].corners, fresh[0].corners + 1.0)
+    for a, f in zip(again[1:], fresh[1:]):
+        np.testing.assert_array_equal(a.corners, f.corners)
+        assert (a.start, a.stop) == (f.start, f.stop)
+
+
 @pytest.mark.slow
 def test_floor_recovers_the_true_cameras_of_a_random_world(tmp_path):
     world = random_world(FLOOR_SEED)
