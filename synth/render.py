@@ -210,6 +210,7 @@ class CameraRenderer:
         self._part = np.full((H, W), -1, dtype=np.int16)
         self._sensor: _SensorBackground | None = None   # range and thermal models' view, on first use
         self._still: tuple | None = None   # (the bodies' pose, scene, labels) last drawn
+        self._still_surfaces: tuple | None = None   # (the bodies' pose, surfaces, labels) last cast
         if not colour:  # silhouettes only (:meth:`labels`)
             return
         look = np.random.default_rng([self.seed, self.cam_key, 11])
@@ -255,7 +256,7 @@ class CameraRenderer:
         H, W = self.camera.height, self.camera.width
         if not bodies:
             return self.background(gain, key), np.zeros((H, W), dtype=np.uint8)
-        pose = tuple((b.person_id, b.centers_m.tobytes(), b.axes.tobytes(), b.shape) for b in bodies)
+        pose = _pose(bodies)
         if self._still is None or self._still[0] != pose:
             # A person holding still is drawn once: the frames differ only by gain and noise.
             self._still = (pose, *self._draw(bodies))
@@ -340,7 +341,15 @@ class CameraRenderer:
     # ------------------------------------------------------------------ internals
 
     def _body_surfaces(self, bodies: list[Body]) -> tuple[list, np.ndarray]:
-        """Raycast ``bodies``: [(plan, visible surface)] and the (H, W) uint8 person ids."""
+        """Raycast ``bodies``: [(plan, visible surface)] (not to be changed) and the (H, W) uint8 person ids;
+        the bodies of the last frame again (people holding still) are not cast again."""
+        pose = _pose(bodies)
+        if self._still_surfaces is None or self._still_surfaces[0] != pose:
+            self._still_surfaces = (pose, *self._cast_surfaces(bodies))
+        _, out, labels = self._still_surfaces
+        return out, labels.copy()
+
+    def _cast_surfaces(self, bodies: list[Body]) -> tuple[list, np.ndarray]:
         labels = np.zeros((self.camera.height, self.camera.width), dtype=np.uint8)
         plans = self._raycast_bodies(bodies)
         out = []
@@ -545,6 +554,11 @@ class CameraRenderer:
 
 MODALITIES = ("colour", "thermal", "infrared", "depth")
 """What a site camera can be (``cameras[].modality``); :func:`frame_for` renders each."""
+
+
+def _pose(bodies: list[Body]) -> tuple:
+    """A hashable value equal for the same people in the same pose."""
+    return tuple((b.person_id, b.centers_m.tobytes(), b.axes.tobytes(), b.shape) for b in bodies)
 
 
 def frame_for(renderer: CameraRenderer, modality: str, bodies: list[Body], key: tuple[int, ...], *,
