@@ -663,6 +663,7 @@ def _run_synthetic(name: str, seed: int = 0):
     seen: dict[int, int] = {}
     gone: dict[int, int] = {}
     last: dict[int, Est] = {}
+    profiles: dict[tuple, np.ndarray] = {}
     events = []
     for f in range(sc.n_frames):
         tracks = []
@@ -670,7 +671,10 @@ def _run_synthetic(name: str, seed: int = 0):
             pid = person.person_id
             if st["present"][f] and room.inside_volume(st["xy"][f: f + 1])[0]:
                 seen[pid], gone[pid] = seen.get(pid, 0) + 1, 0
-                prof = _synth_profile(pose_body(person.shape, st["q"][f], pid))
+                pose = (pid, st["q"][f].tobytes())   # a person holding still is voxelised once
+                if pose not in profiles:
+                    profiles[pose] = _synth_profile(pose_body(person.shape, st["q"][f], pid))
+                prof = profiles[pose]
                 last[pid] = Est(pid, float(st["xy"][f, 0]), float(st["xy"][f, 1]), prof, confirmed=seen[pid] >= 3)
                 tracks.append(last[pid])
             elif pid in seen:
