@@ -220,7 +220,8 @@ class FilterParams(Settings):
 class ParticleFilter:
     """Particles, weights and generator of one target's 2.5D filter.
 
-    Parameters (keyword):
+    Parameters (keyword; the settings are :class:`FilterParams`'s fields, declared there with their
+    defaults and bounds):
     rng: the generator all randomness is drawn from.
     n_particles: particles per target (default 200).
     k_m: ring half-width of the likelihood (default 0.1 m: two 5 cm cells).
@@ -237,27 +238,10 @@ class ParticleFilter:
         and spread of a blind half second is all the filter assumes.
     """
 
-    def __init__(
-        self,
-        x_m: float,
-        y_m: float,
-        alpha_m: float,
-        *,
-        rng: np.random.Generator,
-        n_particles: int = 200,
-        k_m: float = 0.1,
-        alpha_range_m: tuple[float, float] = (0.15, 0.6),
-        position_noise_m: float = 0.3,
-        alpha_noise_m: float = 0.1,
-        init_spread_m: float = 0.05,
-        resample_below: float = 0.5,
-        max_dt_s: float = 0.5,
-    ):
+    def __init__(self, x_m: float, y_m: float, alpha_m: float, *, rng: np.random.Generator, **settings) -> None:
         if not isinstance(rng, np.random.Generator):
             raise ValueError(f"rng must be a numpy Generator, got {type(rng).__name__}")
-        p = FilterParams(n_particles=n_particles, k_m=k_m, alpha_range_m=alpha_range_m,
-                         position_noise_m=position_noise_m, alpha_noise_m=alpha_noise_m, init_spread_m=init_spread_m,
-                         resample_below=resample_below, max_dt_s=max_dt_s)
+        p = FilterParams(**settings)
         lo, hi = p.alpha_range_m
         self.rng = rng
         self.k_m = p.k_m

@@ -565,7 +565,8 @@ class PostureEstimator:
     mass centre tell their height too, and walking (upright) pins it from
     the top. The reported standing height is the belief's mean.
 
-    Keyword arguments (all validated, ValueError names the bad one):
+    Keyword arguments (:class:`PostureParams`'s fields, declared there with their defaults and bounds;
+    ValueError names the bad one):
 
     voxel_m: layer thickness of the height profiles, metres.
     standing_height_m, height_sigma_m: the adult part of the height prior,
@@ -602,35 +603,8 @@ class PostureEstimator:
         [0, 1]; frames older than this are final.
     """
 
-    def __init__(
-        self,
-        *,
-        voxel_m: float,
-        standing_height_m: float = 1.70,
-        height_sigma_m: float = 0.10,
-        anyone_weight: float = 0.15,
-        height_limits_m: tuple[float, float] = (0.9, 2.2),
-        height_step_m: float = 0.05,
-        height_evidence_weight: float = 0.3,
-        height_evidence_cap: float = 3.0,
-        relearn_time_s: float = 60.0,
-        fir_taps: Sequence[float] | None = None,
-        switch_rate_hz: float = 0.5,
-        evidence_weight: float = 0.5,
-        min_duration_s: float = 0.4,
-        walking_speed_mps: float = 0.5,
-        walking_log_odds: float = 4.0,
-        model: PostureModel | None = None,
-        decisions: str = "frame",
-        viterbi_lag_s: float = 0.6,
-    ) -> None:
-        p = PostureParams(voxel_m=voxel_m, standing_height_m=standing_height_m, height_sigma_m=height_sigma_m,
-                          anyone_weight=anyone_weight, height_limits_m=height_limits_m, height_step_m=height_step_m,
-                          height_evidence_weight=height_evidence_weight, height_evidence_cap=height_evidence_cap,
-                          relearn_time_s=relearn_time_s, fir_taps=fir_taps, switch_rate_hz=switch_rate_hz,
-                          evidence_weight=evidence_weight, min_duration_s=min_duration_s,
-                          walking_speed_mps=walking_speed_mps, walking_log_odds=walking_log_odds,
-                          decisions=decisions, viterbi_lag_s=viterbi_lag_s)
+    def __init__(self, *, model: PostureModel | None = None, **settings) -> None:
+        p = PostureParams(**settings)
         lo, hi = p.height_limits_m
         taps = np.ones(5) if p.fir_taps is None else np.asarray(p.fir_taps, dtype=np.float64)
         self.voxel_m = p.voxel_m
