@@ -108,7 +108,8 @@ def events_written(demo_dir: Path) -> Counter:
 
 
 @pytest.mark.slow
-def test_secure_demo_tracks_the_person_over_tls_and_access_control(tmp_path, monkeypatch, heard, lut_cache):
+def test_secure_demo_tracks_the_person_over_tls_and_access_control(tmp_path, monkeypatch, heard, lut_cache,
+                                                                    machine_to_itself):
     """Masks, tracks and events cross a TLS router enforcing access control, and the person is
     tracked: scored against the truth on the frames the fusion server fused (as its reader heard
     them on the tracks key), not on every frame of the scenario.
@@ -150,7 +151,8 @@ def test_secure_demo_tracks_the_person_over_tls_and_access_control(tmp_path, mon
 
 
 @pytest.mark.slow
-def test_demo_of_a_mixed_rig_carries_masks_and_range_from_separate_workers(tmp_path, monkeypatch, heard):
+def test_demo_of_a_mixed_rig_carries_masks_and_range_from_separate_workers(tmp_path, monkeypatch, heard,
+                                                                           machine_to_itself):
     """World 5 (tuning seed) with a depth and a thermal camera: each worker process renders and
     segments its own modality, and the depth camera's range crosses zenoh with its masks.
 

@@ -693,7 +693,7 @@ def history(session, prefix: str, parameters: str = "") -> list[messages.Event]:
 
 
 @pytest.mark.slow
-def test_a_restarted_fusion_server_answers_the_whole_history_and_tracks_again(house, tmp_path):
+def test_a_restarted_fusion_server_answers_the_whole_history_and_tracks_again(house, tmp_path, machine_to_itself):
     site, site_file, cache = house
     prefix = site.prefix
     truth = write_truth(RESTART_SCENARIO, RESTART_FRAMES, tmp_path / "truth")

@@ -512,7 +512,7 @@ FALL_FRAMES = 620
 
 @pytest.mark.slow
 @needs_mosquitto
-def test_the_demo_fall_reaches_mqtt_after_a_broker_restart_and_the_webhook(tmp_path):
+def test_the_demo_fall_reaches_mqtt_after_a_broker_restart_and_the_webhook(tmp_path, machine_to_itself):
     """``voxelwatch demo`` (five camera workers and the fusion server as processes) and
     ``voxelwatch notify`` connected to the demo's router; the broker goes down while the person
     is tracked, before the fall, and comes back after the webhook has had the fall."""
