@@ -66,13 +66,19 @@ def blocked(center_m: np.ndarray, points_m: np.ndarray, occluders: Sequence[Occl
     if not len(p):
         return out
     d = p - c
-    box_lo, box_hi = np.minimum(p, c), np.maximum(p, c)  # each segment's bounding box
+    # each segment's bounding box, one contiguous row per axis; an occluder's candidates are narrowed
+    # axis by axis, most of them gone after the first
+    box_lo, box_hi = np.minimum(p, c).T.copy(), np.maximum(p, c).T.copy()
     for occ in occluders:
         poly = np.asarray(occ.polygon_m, dtype=np.float64)
-        near = ~out
+        idx = None
         for axis, (a, b) in enumerate(zip([*poly.min(axis=0), occ.z_min_m], [*poly.max(axis=0), occ.z_max_m])):
-            near &= (box_hi[:, axis] >= a) & (box_lo[:, axis] <= b)
-        idx = np.flatnonzero(near)
+            if idx is None:
+                idx = np.flatnonzero((box_hi[axis] >= a) & (box_lo[axis] <= b) & ~out)
+            else:
+                idx = idx[(box_hi[axis, idx] >= a) & (box_lo[axis, idx] <= b)]
+            if not len(idx):
+                break
         if len(idx):
             out[idx] = _through(c, d[idx], occ, margin_m)
     return out
