@@ -256,14 +256,12 @@ def find_sightings(clips: dict[str, str], intrinsics: dict[str, Camera], board: 
         pose = None if rough.get(cam_id) is None else (rough[cam_id].R, rough[cam_id].t)
         found, small = [], []
         for still in still_stretches(frames, index):
-            key = (cam_id, fit_board, hashlib.blake2b(still.gray.tobytes(), digest_size=16).digest())
-            if looked is None or key not in looked:
-                found_here = _find_floor_board(still.gray, board, finder, cam, pose, fit_board)
-                if looked is None:
-                    ids, corners, detected = found_here
-                else:
-                    looked[key] = found_here
-            if looked is not None:
+            if looked is None:
+                ids, corners, detected = _find_floor_board(still.gray, board, finder, cam, pose, fit_board)
+            else:
+                key = (cam_id, fit_board, hashlib.blake2b(still.gray.tobytes(), digest_size=16).digest())
+                if key not in looked:
+                    looked[key] = _find_floor_board(still.gray, board, finder, cam, pose, fit_board)
                 ids, corners, detected = (None if a is None else a.copy() for a in looked[key])
             if corners is None:
                 continue

@@ -270,8 +270,8 @@ class Camera:
     def pixel_rays(self) -> np.ndarray:
         """(height, width, 3) float32 world ray directions through every pixel centre
         (``[i, j]`` through ``(u, v) = (j, i)``); NaN where :meth:`rays` is NaN. A fresh array
-        each call; the values are kept for the next camera with the same lens, size and
-        orientation (:data:`RAYS_CACHE_BYTES`)."""
+        each call; the values are kept for the next camera with the same :meth:`fingerprint`
+        (:data:`RAYS_CACHE_BYTES`)."""
         return _rays.get(self.fingerprint(), self._pixel_rays, lambda r: r.nbytes).copy()
 
     def fingerprint(self) -> tuple:

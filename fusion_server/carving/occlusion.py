@@ -71,14 +71,10 @@ def blocked(center_m: np.ndarray, points_m: np.ndarray, occluders: Sequence[Occl
     box_lo, box_hi = np.minimum(p, c).T.copy(), np.maximum(p, c).T.copy()
     for occ in occluders:
         poly = np.asarray(occ.polygon_m, dtype=np.float64)
-        idx = None
-        for axis, (a, b) in enumerate(zip([*poly.min(axis=0), occ.z_min_m], [*poly.max(axis=0), occ.z_max_m])):
-            if idx is None:
-                idx = np.flatnonzero((box_hi[axis] >= a) & (box_lo[axis] <= b) & ~out)
-            else:
-                idx = idx[(box_hi[axis, idx] >= a) & (box_lo[axis, idx] <= b)]
-            if not len(idx):
-                break
+        lo, hi = [*poly.min(axis=0), occ.z_min_m], [*poly.max(axis=0), occ.z_max_m]
+        idx = np.flatnonzero((box_hi[0] >= lo[0]) & (box_lo[0] <= hi[0]) & ~out)
+        for axis in (1, 2):
+            idx = idx[(box_hi[axis, idx] >= lo[axis]) & (box_lo[axis, idx] <= hi[axis])]
         if len(idx):
             out[idx] = _through(c, d[idx], occ, margin_m)
     return out
