@@ -33,13 +33,14 @@ lenses beyond that get NaN rays.
 
 from __future__ import annotations
 
+import threading
 from dataclasses import dataclass, field
 from functools import cached_property
 
 import cv2
 import numpy as np
 
-from common.memo import BytesMemo
+from common.memo import BytesMemo, kept_on_disk
 
 MODELS = ("pinhole", "fisheye", "tsai")
 PINHOLE_DIST_LENGTHS = (0, 4, 5, 8, 12, 14)
@@ -51,6 +52,9 @@ RAYS_CACHE_BYTES = 256 * 2**20
 used go first): a renderer per camera per scenario asks again for the same rays, which take about
 half a second per 640x480 camera to undistort."""
 _rays = BytesMemo(RAYS_CACHE_BYTES)
+_radii: dict[tuple, float] = {}   # lens (model, distortion, Tsai parameters) -> max_radius
+_radius_lock = threading.Lock()
+_RADII_KEPT = 4096
 
 
 @dataclass(frozen=True)
@@ -218,8 +222,18 @@ class Camera:
     @cached_property
     def max_radius(self) -> float:
         """Largest normalised radius ``sqrt(x^2 + y^2) / z`` (camera frame) over which the
-        distortion is monotonic; ``inf`` when it is monotonic everywhere in front."""
-        return _max_radius(self)
+        distortion is monotonic; ``inf`` when it is monotonic everywhere in front. Depends on the
+        lens alone: computed once per lens in a process (a search over a million directions)."""
+        lens = (self.model, self.dist.tobytes(), repr(self.tsai))
+        with _radius_lock:
+            radius = _radii.get(lens)
+        if radius is None:
+            radius = _max_radius(self)
+            with _radius_lock:
+                if len(_radii) >= _RADII_KEPT:   # a lens fit makes a new lens per step: keep it bounded
+                    _radii.clear()
+                _radii[lens] = radius
+        return radius
 
     def project(self, points_w) -> tuple[np.ndarray, np.ndarray]:
         """World points to pixels.
@@ -271,8 +285,11 @@ class Camera:
         """(height, width, 3) float32 world ray directions through every pixel centre
         (``[i, j]`` through ``(u, v) = (j, i)``); NaN where :meth:`rays` is NaN. A fresh array
         each call; the values are kept for the next camera with the same :meth:`fingerprint`
-        (:data:`RAYS_CACHE_BYTES`)."""
-        return _rays.get(self.fingerprint(), self._pixel_rays, lambda r: r.nbytes).copy()
+        (:data:`RAYS_CACHE_BYTES`), and shared with other processes through
+        :func:`common.memo.kept_on_disk`."""
+        key = self.fingerprint()
+        return _rays.get(key, lambda: kept_on_disk("pixel-rays", key, self._pixel_rays, lambda r: {"rays": r},
+                                                   lambda stored: stored["rays"]), lambda r: r.nbytes).copy()
 
     def fingerprint(self) -> tuple:
         """A hashable value equal for cameras of the same model, size, lens, orientation and position (the

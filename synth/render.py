@@ -32,7 +32,7 @@ import cv2
 import numpy as np
 
 from common.camera import Camera
-from common.memo import BytesMemo
+from common.memo import BytesMemo, kept_on_disk
 from synth.body import FOREARM_PARTS, HEAD_PART, HAIR, PART_MATERIAL, SKIN, Body
 from synth.scene import Room
 from synth.sensors import (
@@ -116,7 +116,9 @@ def room_hits(room: Room, camera: Camera, rays: np.ndarray) -> BackgroundHits:
     """:func:`raycast_room` of ``rays`` ((H, W, 3), ``camera.pixel_rays()`` with the invalid ones
     set to its forward axis) from the camera's centre; the (read-only) result is kept for the next
     renderer of the same room and camera (:data:`HITS_CACHE_BYTES`)."""
-    return _hits.get((repr(room), camera.fingerprint()), lambda: _cast(room, camera, rays), _hits_bytes)
+    key = (repr(room), camera.fingerprint())
+    return _hits.get(key, lambda: kept_on_disk("room-hits", key, lambda: _cast(room, camera, rays), _hits_arrays,
+                                               _hits_of), _hits_bytes)
 
 
 def _cast(room: Room, camera: Camera, rays: np.ndarray) -> BackgroundHits:
@@ -124,6 +126,14 @@ def _cast(room: Room, camera: Camera, rays: np.ndarray) -> BackgroundHits:
     for arr in (hits.t, hits.surface, hits.normal, hits.point):
         arr.setflags(write=False)
     return hits
+
+
+def _hits_arrays(hits: BackgroundHits) -> dict[str, np.ndarray]:
+    return {"t": hits.t, "surface": hits.surface, "normal": hits.normal, "point": hits.point}
+
+
+def _hits_of(arrays: dict[str, np.ndarray]) -> BackgroundHits:
+    return BackgroundHits(**arrays)
 
 
 def _hits_bytes(hits: BackgroundHits) -> int:

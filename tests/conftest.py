@@ -7,6 +7,13 @@ from pathlib import Path
 
 import pytest
 
+# Two workers already fill the two cores: each test process, and every process a test starts (they
+# inherit the environment), runs OpenCV and OpenBLAS on one thread. Their thread pools would only
+# contend for the same cores (about a sixth more processor time for a replay) and the results do not
+# depend on it.
+os.environ.setdefault("OPENCV_FOR_THREADS_NUM", "1")
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
 DATA_DIR = Path(os.environ.get("VOXELWATCH_DATA", Path(__file__).resolve().parents[1] / ".." / "shared" / "data")).resolve()
 
 
@@ -66,6 +73,28 @@ def _run_root(tmp_path_factory) -> Path:
     """The run's own folder, shared by the test sessions of every xdist worker."""
     base = tmp_path_factory.getbasetemp()
     return base.parent if os.environ.get("PYTEST_XDIST_WORKER") else base
+
+
+@pytest.hookimpl(trylast=True)
+def pytest_configure(config):
+    """One memo folder for the run (:func:`common.memo.kept_on_disk`), set before the xdist workers
+    start so that they and every process a test starts share it: the synthetic house's rooms and
+    rays are computed once per camera, not once per process."""
+    from common.memo import MEMO_DIR_ENV
+
+    if os.environ.get("PYTEST_XDIST_WORKER") or os.environ.get(MEMO_DIR_ENV):
+        return
+    os.environ[MEMO_DIR_ENV] = str(config._tmp_path_factory.getbasetemp() / "memo")
+
+
+@pytest.hookimpl(tryfirst=True)
+def pytest_collection_modifyitems(config, items):
+    """Tests that take the machine to themselves (:func:`machine_to_itself`) are marked ``alone``
+    before ``-m`` selects, so a run can leave them out (``-m 'slow and not alone'``) and run them one
+    after the other (``-m 'slow and alone' -n 0``) instead of making the other worker wait."""
+    for item in items:
+        if "machine_to_itself" in getattr(item, "fixturenames", ()):
+            item.add_marker(pytest.mark.alone)
 
 
 @pytest.hookimpl(wrapper=True)

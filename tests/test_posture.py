@@ -118,8 +118,12 @@ def body_points(
 def body_profile(angles: dict[str, float] | str = "standing", *, voxel_m: float = VOXEL_M, nz: int = NZ, **kw) -> np.ndarray:
     """(nz,) int32 foreground voxels per layer of a voxelised synthetic body."""
     p = body_points(angles, **kw)
-    ijk = np.unique(np.floor(p / voxel_m).astype(np.int64), axis=0)
-    k = ijk[:, 2]
+    ijk = np.floor(p / voxel_m).astype(np.int64)
+    # each occupied voxel once: one integer per voxel (a 1-D unique is many times faster than rows)
+    ijk -= ijk.min(axis=0)
+    span = ijk.max(axis=0) + 1
+    cells = np.unique((ijk[:, 0] * span[1] + ijk[:, 1]) * span[2] + ijk[:, 2])
+    k = cells % span[2] + int(np.floor(p[:, 2] / voxel_m).min())
     return np.bincount(k[(k >= 0) & (k < nz)], minlength=nz).astype(np.int32)
 
 
