@@ -33,7 +33,6 @@ lenses beyond that get NaN rays.
 
 from __future__ import annotations
 
-import threading
 from dataclasses import dataclass, field
 from functools import cached_property
 
@@ -52,9 +51,8 @@ RAYS_CACHE_BYTES = 256 * 2**20
 used go first): a renderer per camera per scenario asks again for the same rays, which take about
 half a second per 640x480 camera to undistort."""
 _rays = BytesMemo(RAYS_CACHE_BYTES)
-_radii: dict[tuple, float] = {}   # lens (model, distortion, Tsai parameters) -> max_radius
-_radius_lock = threading.Lock()
-_RADII_KEPT = 4096
+_radii = BytesMemo(8 * 4096)   # lens (model, distortion, Tsai parameters) -> max_radius: a lens fit makes a
+                               # new lens per step, so the 4096 most recent are kept
 
 
 @dataclass(frozen=True)
@@ -225,15 +223,7 @@ class Camera:
         distortion is monotonic; ``inf`` when it is monotonic everywhere in front. Depends on the
         lens alone: computed once per lens in a process (a search over a million directions)."""
         lens = (self.model, self.dist.tobytes(), repr(self.tsai))
-        with _radius_lock:
-            radius = _radii.get(lens)
-        if radius is None:
-            radius = _max_radius(self)
-            with _radius_lock:
-                if len(_radii) >= _RADII_KEPT:   # a lens fit makes a new lens per step: keep it bounded
-                    _radii.clear()
-                _radii[lens] = radius
-        return radius
+        return _radii.get(lens, lambda: _max_radius(self), lambda radius: 8)
 
     def project(self, points_w) -> tuple[np.ndarray, np.ndarray]:
         """World points to pixels.

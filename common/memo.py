@@ -71,10 +71,8 @@ def kept_on_disk(name: str, key: Hashable, make: Callable[[], Any], pack: Callab
     try:
         with np.load(path, allow_pickle=False) as stored:
             arrays = {k: stored[k] for k in stored.files}
-    except FileNotFoundError:
-        pass
     except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile):
-        pass   # written by a process that died mid-way, or by another version: made again below
+        pass   # none yet, or one that cannot be read (another version, a full disk): made again below
     else:
         for array in arrays.values():
             array.setflags(write=False)

@@ -120,10 +120,11 @@ def body_profile(angles: dict[str, float] | str = "standing", *, voxel_m: float 
     p = body_points(angles, **kw)
     ijk = np.floor(p / voxel_m).astype(np.int64)
     # each occupied voxel once: one integer per voxel (a 1-D unique is many times faster than rows)
-    ijk -= ijk.min(axis=0)
+    low = ijk.min(axis=0)
+    ijk -= low
     span = ijk.max(axis=0) + 1
     cells = np.unique((ijk[:, 0] * span[1] + ijk[:, 1]) * span[2] + ijk[:, 2])
-    k = cells % span[2] + int(np.floor(p[:, 2] / voxel_m).min())
+    k = cells % span[2] + low[2]
     return np.bincount(k[(k >= 0) & (k < nz)], minlength=nz).astype(np.int32)
 
 
