@@ -57,6 +57,10 @@ HITS_CACHE_BYTES = 256 * 2**20
 process, the least recently used going first: a scenario renders every camera afresh, and casting
 a 640x480 camera's rays into the room takes most of a second."""
 _hits = BytesMemo(HITS_CACHE_BYTES)
+_colours = BytesMemo(HITS_CACHE_BYTES // 4)   # the lit empty room (:func:`room_colour`): a fifth of its hits' bytes
+_BOX_CHUNK = 2**19
+"""Rays times furniture boxes cast against at once in :func:`raycast_room` (its memory: a few arrays of this many
+float64)."""
 
 
 @dataclass(frozen=True)
@@ -100,13 +104,12 @@ def raycast_room(room: Room, origin_m, dirs) -> BackgroundHits:
             t[through] = tc
             surface[through] = SURF_CORRIDOR
             normal[through] = _axis_normal(ac, d[through])
-    for k, box in enumerate(room.boxes):
-        tn, an, hit = _slab_near(o, d, np.asarray(box.min_m), np.asarray(box.max_m))
-        hit &= tn < t
-        if hit.any():
-            t[hit] = tn[hit]
-            surface[hit] = SURF_FURNITURE + k
-            normal[hit] = _axis_normal(an[hit], d[hit])
+    if room.boxes:
+        lo = np.array([box.min_m for box in room.boxes], dtype=np.float64)
+        hi = np.array([box.max_m for box in room.boxes], dtype=np.float64)
+        step = max(1, _BOX_CHUNK // len(room.boxes))
+        for a in range(0, d.shape[0], step):
+            _nearest_box(o, d[a:a + step], lo, hi, t[a:a + step], surface[a:a + step], normal[a:a + step])
     t = np.where(ok, t, 0.0)
     surface = np.where(ok, surface, SURF_NONE).astype(np.int16)
     return BackgroundHits(t=t, surface=surface, normal=normal, point=o + t[:, None] * d)
@@ -119,6 +122,20 @@ def room_hits(room: Room, camera: Camera, rays: np.ndarray) -> BackgroundHits:
     key = (repr(room), camera.fingerprint())
     return _hits.get(key, lambda: kept_on_disk("room-hits", key, lambda: _cast(room, camera, rays), _hits_arrays,
                                                _hits_of), _hits_bytes)
+
+
+def room_colour(room: Room, camera: Camera, hits: BackgroundHits) -> np.ndarray:
+    """:func:`background_colour` of ``hits`` (:func:`room_hits` of ``room`` and ``camera``), kept like them
+    (read-only)."""
+    key = (repr(room), camera.fingerprint())
+
+    def make() -> np.ndarray:
+        colour = background_colour(room, hits)
+        colour.setflags(write=False)
+        return colour
+
+    return _colours.get(key, lambda: kept_on_disk("room-colour", key, make, lambda c: {"colour": c},
+                                                  lambda a: a["colour"]), lambda c: c.nbytes)
 
 
 def _cast(room: Room, camera: Camera, rays: np.ndarray) -> BackgroundHits:
@@ -229,7 +246,7 @@ class CameraRenderer:
         cos_off = np.clip(rays.reshape(-1, 3) @ fwd, 0.0, 1.0).reshape(H, W)
         angle = np.arccos(cos_off)
         self.vignette = (1.0 - 0.22 * (angle / (np.pi / 2)) ** 2).astype(np.float32)
-        colour = background_colour(room, hits).reshape(H, W, 3) * self.white_balance[None, None, :]
+        colour = room_colour(room, camera, hits).reshape(H, W, 3) * self.white_balance[None, None, :]
         colour *= self.vignette[..., None]
         colour[~self.valid] = 0.0
         self.bg_bgr = np.clip(np.rint(colour), 0, 255).astype(np.uint8)
@@ -377,9 +394,9 @@ class CameraRenderer:
         if sb is None:
             H, W = self.camera.height, self.camera.width
             rays = self.rays.reshape(-1, 3).astype(np.float64)
-            hits = raycast_room(self.room, self.center, rays)
+            hits = room_hits(self.room, self.camera, self.rays)
             cos = np.abs(np.einsum("ni,ni->n", hits.normal, rays)).reshape(H, W).astype(np.float32)
-            refl = (background_colour(self.room, hits).mean(axis=1) / 255.0).reshape(H, W).astype(np.float32)
+            refl = (room_colour(self.room, self.camera, hits).mean(axis=1) / 255.0).reshape(H, W).astype(np.float32)
             offset = surface_offsets_k(self.room, hits.surface, hits.point, self.seed).reshape(H, W)
             offset[~self.valid] = 0.0
             rng = np.random.default_rng([self.seed, self.cam_key, 43])
@@ -699,18 +716,35 @@ def _slab_far(o, d, lo, hi) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _slab_near(o, d, lo, hi) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Entry distance into box [lo, hi], entry axis and whether the ray hits it in front."""
+    """Entry distance of rays ``d`` (N, 3) into boxes [lo, hi] (K, 3 each), entry axis and whether the
+    ray hits the box in front, each (N, K)."""
     tmin, tmax = [], []
     for ax in range(3):
-        da = np.where(np.abs(d[:, ax]) < 1e-12, 1e-12, d[:, ax])
-        t1 = (lo[ax] - o[ax]) / da
-        t2 = (hi[ax] - o[ax]) / da
+        da = np.where(np.abs(d[:, ax]) < 1e-12, 1e-12, d[:, ax])[:, None]
+        t1 = (lo[None, :, ax] - o[ax]) / da
+        t2 = (hi[None, :, ax] - o[ax]) / da
         tmin.append(np.minimum(t1, t2))
         tmax.append(np.maximum(t1, t2))
     near = np.maximum(np.maximum(tmin[0], tmin[1]), tmin[2])
     far = np.minimum(np.minimum(tmax[0], tmax[1]), tmax[2])
     axis = np.where(near == tmin[0], 0, np.where(near == tmin[1], 1, 2))
     return near, axis, (near <= far) & (near > 1e-9)
+
+
+def _nearest_box(o, d, lo, hi, t, surface, normal) -> None:
+    """Where a ray ``d`` (N, 3) meets one of the boxes [lo, hi] (K, 3 each) nearer than ``t`` (N,), set
+    (in place) ``t``, ``surface`` (``SURF_FURNITURE`` + the box's index) and ``normal`` to that box's;
+    of boxes met at the same distance, the first."""
+    near, axis, hit = _slab_near(o, d, lo, hi)
+    near = np.where(hit, near, np.inf)
+    k = np.argmin(near, axis=1)
+    rows = np.arange(d.shape[0])
+    tn = near[rows, k]
+    won = tn < t
+    if won.any():
+        t[won] = tn[won]
+        surface[won] = SURF_FURNITURE + k[won]
+        normal[won] = _axis_normal(axis[rows, k][won], d[won])
 
 
 def _axis_normal(axis: np.ndarray, d: np.ndarray) -> np.ndarray:
