@@ -153,7 +153,7 @@ def test_lazy_greedy_cover_takes_what_the_plain_greedy_takes(seed):
 
 
 @pytest.mark.parametrize("offset_m, people", [pytest.param(0.35, 1, marks=pytest.mark.slow), (0.4, 1), (1.0, 2)])
-def test_a_low_piece_beside_a_standing_person_is_part_of_them_not_a_person(tmp_path, offset_m, people):
+def test_a_low_piece_beside_a_standing_person_is_part_of_them_not_a_person(lut_cache, offset_m, people):
     """A person whose legs are hidden (a body from 0.7 to 1.75 m) and a low piece (0.1 m radius,
     0.5 m tall, carved as 0.03-0.04 m^3 under 0.6 m) ``offset_m`` from their axis, five cameras:
     the piece is carved apart (a gap of 0.2 m in height) and covers foreground of its own in
@@ -162,7 +162,7 @@ def test_a_low_piece_beside_a_standing_person_is_part_of_them_not_a_person(tmp_p
     from evaluation.carving_bench import Cylinder, MaskRenderer, room_rig
 
     rig = room_rig(n_cameras=5, width=320, height=240)
-    carver = Carver(cameras=rig, volume_min_m=(0, 0, 0), volume_max_m=(8, 6, 2.5), cache_dir=tmp_path)
+    carver = Carver(cameras=rig, volume_min_m=(0, 0, 0), volume_max_m=(8, 6, 2.5), cache_dir=lut_cache)
     masks = MaskRenderer(rig).render([Cylinder(3.0, 3.0, 0.2, 1.05, z0_m=0.7), Cylinder(3.0 + offset_m, 3.0, 0.1, 0.5)])
     carve = carver.carve(masks, 0)
     blobs = detect_blobs(carve)

@@ -119,15 +119,15 @@ def test_tables_with_hidden_voxels_are_read_back_from_the_cache(rig, tmp_path):
     assert any(np.any(p == HIDDEN) for p in written.pixel)
 
 
-def test_a_person_behind_a_counter_is_carved_whole_only_when_the_counter_is_known(rig, tmp_path):
+def test_a_person_behind_a_counter_is_carved_whole_only_when_the_counter_is_known(rig, lut_cache):
     """A person 0.25 m from a 1.1 m counter that hides their legs from the cameras on the other
     side: without the counter those cameras vote against the legs, with it they do not vote."""
     person = Cylinder(3.0, 3.0, 0.25, 1.75)
     counter = Box((3.3, 1.5, 0.0), (3.9, 4.5, 1.1))
     masks = MaskRenderer(rig).render([person], hidden_by=[counter])
     known = Occluder("counter", ((3.3, 1.5), (3.9, 1.5), (3.9, 4.5), (3.3, 4.5)), 0.0, 1.1)
-    plain = Carver(cameras=rig, cache_dir=tmp_path, **VOLUME)
-    aware = Carver(cameras=rig, cache_dir=tmp_path, occluders=[known], **VOLUME)
+    plain = Carver(cameras=rig, cache_dir=lut_cache, **VOLUME)
+    aware = Carver(cameras=rig, cache_dir=lut_cache, occluders=[known], **VOLUME)
     truth = body_voxels(plain, [person])
     legs = truth.copy()
     legs[:, :, int(1.0 / plain.grid.voxel_m):] = False
