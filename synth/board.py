@@ -415,14 +415,19 @@ def floor_pose(board: Board | CharucoBoard, x: float, y: float, yaw: float) -> t
 def _floor_candidates(cameras, room, board, rng, step_m: float, min_area: float) -> list:
     """``[(pose, cameras seeing it, camera -> area)]`` over a lattice of the room's floor, each at a random yaw."""
     (x0, y0), (x1, y1) = room.volume_rect_m
+    poses = [floor_pose(board, x, y, rng.uniform(0, 2 * math.pi))
+             for x in np.arange(x0 + 0.2, x1 - 0.2, step_m) for y in np.arange(y0 + 0.2, y1 - 0.2, step_m)]
+    if isinstance(board, CharucoBoard):
+        by_camera = {c: [floor_area(cam, room, board, pose, min_area=min_area) for pose in poses]
+                     for c, cam in cameras.items()}
+    else:
+        by_camera = {c: _sheet_areas(cam, room, board, poses, min_area, on_floor=True) for c, cam in cameras.items()}
     cands = []
-    for x in np.arange(x0 + 0.2, x1 - 0.2, step_m):
-        for y in np.arange(y0 + 0.2, y1 - 0.2, step_m):
-            R, t = floor_pose(board, x, y, rng.uniform(0, 2 * math.pi))
-            areas = {c: floor_area(cam, room, board, (R, t), min_area=min_area) for c, cam in cameras.items()}
-            seen = {c for c, a in areas.items() if a >= min_area}
-            if seen:
-                cands.append(((R, t), seen, areas))
+    for k, pose in enumerate(poses):
+        areas = {c: float(by_camera[c][k]) for c in cameras}
+        seen = {c for c, a in areas.items() if a >= min_area}
+        if seen:
+            cands.append((pose, seen, areas))
     return cands
 
 
@@ -477,6 +482,54 @@ def _sheet_area(camera: Camera, room: Room | None, board: Board, pose, min_area:
     return area
 
 
+def _sheet_areas(camera: Camera, room: Room | None, board: Board, poses: list, min_area: float, *,
+                 on_floor: bool) -> np.ndarray:
+    """:func:`_sheet_area` of each of ``poses`` ((N,) float64, the same numbers), the camera's projections
+    and the rays into the room of all of them at once."""
+    out = np.zeros(len(poses))
+    if not poses:
+        return out
+    sheets = [_sheet_corners(board, pose) for pose in poses]
+    uv, valid = camera.project(np.concatenate(sheets))
+    uv, valid = uv.reshape(-1, 4, 2), valid.reshape(-1, 4)
+    m = 6
+    with np.errstate(invalid="ignore"):
+        framed = valid.all(axis=1) & (uv[..., 0].min(axis=1) >= m) & (uv[..., 1].min(axis=1) >= m) & \
+            (uv[..., 0].max(axis=1) <= camera.width - 1 - m) & (uv[..., 1].max(axis=1) <= camera.height - 1 - m)
+    todo, rays = [], []
+    for k in np.flatnonzero(framed):
+        R = np.asarray(poses[k][0], dtype=np.float64)
+        d = sheets[k] - camera.center
+        slant = np.degrees(np.arccos(np.clip(-(d @ R[:, 2]) / np.linalg.norm(d, axis=1), -1, 1)))
+        if slant.max() <= FLOOR_MAX_SLANT_DEG:
+            todo.append(k)
+            rays.append(d)
+    if not todo:
+        return out
+    inner_w = [corners_world(board, poses[k]) for k in todo]
+    inner, _ = camera.project(np.concatenate(inner_w))
+    n = len(inner_w[0])
+    kept = []
+    for j, k in enumerate(todo):
+        hull = cv2.convexHull(inner[j * n:(j + 1) * n].astype(np.float32).reshape(-1, 1, 2))
+        area = float(cv2.contourArea(hull)) / (camera.width * camera.height)
+        if area >= min_area:
+            out[k] = area
+            kept.append(j)
+    if room is None or not kept:
+        return out
+    # nothing in the room (a chair, a table, a wall) stands on or in front of the sheet
+    d = np.concatenate([np.concatenate([rays[j], inner_w[j] - camera.center]) for j in kept])
+    dist = np.linalg.norm(d, axis=1)
+    hits = raycast_room(room, camera.center, d / dist[:, None])
+    clear = (hits.surface == SURF_FLOOR) & (np.abs(hits.t - dist) < 0.02) if on_floor else hits.t > dist - 0.02
+    per = 4 + n
+    for i, j in enumerate(kept):
+        if not np.all(clear[i * per:(i + 1) * per]):
+            out[todo[j]] = 0.0
+    return out
+
+
 def _stand_free(room: Room, board: Board, pose) -> bool:
     """Whether a board on a stand at ``pose`` stands clear: nothing under its centre down to the floor,
     nothing between its centre and its sheet's corners (furniture, a wall)."""
@@ -495,21 +548,31 @@ def _stand_candidates(cameras, room, board, rng, step_m: float, min_area: float)
     if not isinstance(board, Board):
         return []
     (x0, y0), (x1, y1) = room.volume_rect_m
-    cands = []
+    poses = []
     for x in np.arange(x0 + 0.5, x1 - 0.5, step_m):
         for y in np.arange(y0 + 0.5, y1 - 0.5, step_m):
             start = rng.uniform(0, 2 * math.pi)
-            for k in range(12):
-                for tilt in STAND_TILTS_DEG:
-                    pose = stand_pose(board, x, y, start + k * math.pi / 6, tilt)
-                    areas = {c: stand_area(cam, None, board, pose, min_area=min_area) for c, cam in cameras.items()}
-                    if sum(a >= min_area for a in areas.values()) < 2 or not _stand_free(room, board, pose):
-                        continue
-                    areas = {c: stand_area(cameras[c], room, board, pose, min_area=min_area) if a >= min_area else 0.0
-                             for c, a in areas.items()}
-                    seen = {c for c, a in areas.items() if a >= min_area}
-                    if len(seen) >= 2:
-                        cands.append((pose, seen, areas))
+            poses += [stand_pose(board, x, y, start + k * math.pi / 6, tilt) for k in range(12) for tilt in STAND_TILTS_DEG]
+    # first without the room (cheap), then the room's rays for the places two cameras or more see and where the
+    # stand stands clear
+    bare = {c: _sheet_areas(cam, None, board, poses, min_area, on_floor=False) for c, cam in cameras.items()}
+    seen_bare = np.stack([bare[c] >= min_area for c in cameras]) if cameras else np.zeros((0, len(poses)), bool)
+    keep = [k for k in np.flatnonzero(seen_bare.sum(axis=0) >= 2) if _stand_free(room, board, poses[k])]
+    roomed = {c: _sheet_areas(cam, room, board, [poses[k] for k in keep if bare[c][k] >= min_area], min_area,
+                              on_floor=False) for c, cam in cameras.items()}
+    at = {c: 0 for c in cameras}
+    cands = []
+    for k in keep:
+        areas = {}
+        for c in cameras:
+            if bare[c][k] >= min_area:
+                areas[c] = float(roomed[c][at[c]])
+                at[c] += 1
+            else:
+                areas[c] = 0.0
+        seen = {c for c, a in areas.items() if a >= min_area}
+        if len(seen) >= 2:
+            cands.append((poses[k], seen, areas))
     return cands
 
 
