@@ -58,9 +58,13 @@ def house(tmp_path_factory, lut_cache):
     """(site, site file, carving-table cache dir) of the synthetic house, for tests that run it
     as processes (modules with a house of their own override this one)."""
     import synth
+    from fusion_server.pipeline import build_carver
 
     root = tmp_path_factory.mktemp("house")
     site = synth.default_site(root / "site")
+    # the carving tables the fusion servers of these tests read, computed here, before a test takes the
+    # machine to itself, rather than by the first server it starts
+    build_carver(site, site.load_cameras(), cache_dir=lut_cache)
     return site, site.base_dir / "site.toml", lut_cache
 
 
