@@ -309,7 +309,7 @@ def test_a_child_beside_an_adult_is_counted_and_keeps_their_identity(replayed):
     assert run.tracking["pred_ids"] == 2
 
 
-@pytest.mark.slow  # the same fall over real processes is held by test_distributed.py
+@pytest.mark.slow  # the same fall over real processes is held by test_distributed.py (slow) and test_view.py
 def test_fall_forward_is_detected_and_the_lying_person_located(replayed):
     run = replayed("fall_forward", SHORT["fall_forward"])
     check_counts_and_positions(run, min_count_accuracy=0.98)
