@@ -63,10 +63,11 @@ def settings_from_args(args: argparse.Namespace) -> "FusionSettings":
     naming the command-line flag."""
     from common import keys
     from common.site import load_site
+
+    site = load_site(args.site)   # a bad site file says so before the server's modules are loaded
     from fusion_server.node import FusionSettings
     from fusion_server.server import DEFAULT_STORE_NAME
 
-    site = load_site(args.site)
     prefix = args.prefix or site.prefix
     try:
         keys.validate_prefix(prefix)
@@ -94,13 +95,13 @@ def settings_from_args(args: argparse.Namespace) -> "FusionSettings":
 def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     configure_logging(args.verbose, args.quiet)
-    from fusion_server.server import run_forever
-
     try:
         settings = settings_from_args(args)
     except ValueError as exc:
         print(f"voxelwatch-fusion: {exc}", file=sys.stderr)
         return 2
+    from fusion_server.server import run_forever
+
     return run_forever(settings)
 
 
