@@ -132,10 +132,12 @@ def test_a_held_still_person_is_kept_and_one_who_left_the_clip_is_forgotten(rend
     labels = r.labels([person])
     box = hold_box(labels)
 
+    empty = [r.range_mm([], (1, i)) for i in range(20)]
+    frames = [r.range_mm([person], (0, i)) for i in range(600)]   # rendered once for both runs
+
     def run(holds):
-        return still_person_ious(DepthSegmenter(window_frames=20, fg_rate_factor=1.0),
-                                 lambda i: r.range_mm([], (1, i)), lambda i: r.range_mm([person], (0, i)),
-                                 labels, holds=holds, n_frames=600)
+        return still_person_ious(DepthSegmenter(window_frames=20, fg_rate_factor=1.0), empty.__getitem__,
+                                 frames.__getitem__, labels, holds=holds, n_frames=600)
 
     early, late = run([box])
     assert early > 0.6 and late > early - 0.05
