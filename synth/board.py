@@ -455,37 +455,13 @@ def _sheet_area(camera: Camera, room: Room | None, board: Board, pose, min_area:
     """The share of the image a chessboard's inner corners' hull covers, or 0 (see :func:`floor_area` and
     :func:`stand_area`). ``on_floor``: the rays to the sheet must meet the floor there (nothing standing on
     or in front of it); else only nothing in front of it."""
-    R = np.asarray(pose[0], dtype=np.float64)
-    pts = _sheet_corners(board, pose)
-    uv, valid = camera.project(pts)
-    m = 6
-    if not valid.all() or uv[:, 0].min() < m or uv[:, 1].min() < m or uv[:, 0].max() > camera.width - 1 - m \
-            or uv[:, 1].max() > camera.height - 1 - m:
-        return 0.0
-    d = pts - camera.center
-    slant = np.degrees(np.arccos(np.clip(-(d @ R[:, 2]) / np.linalg.norm(d, axis=1), -1, 1)))
-    if slant.max() > FLOOR_MAX_SLANT_DEG:
-        return 0.0
-    inner_w = corners_world(board, pose)
-    inner, _ = camera.project(inner_w)
-    hull = cv2.convexHull(inner.astype(np.float32).reshape(-1, 1, 2))
-    area = float(cv2.contourArea(hull)) / (camera.width * camera.height)
-    if area < min_area:
-        return 0.0
-    if room is not None:   # nothing in the room (a chair, a table, a wall) stands on or in front of the sheet
-        d = np.concatenate([d, inner_w - camera.center])
-        dist = np.linalg.norm(d, axis=1)
-        hits = raycast_room(room, camera.center, d / dist[:, None])
-        clear = (hits.surface == SURF_FLOOR) & (np.abs(hits.t - dist) < 0.02) if on_floor else hits.t > dist - 0.02
-        if not np.all(clear):
-            return 0.0
-    return area
+    return float(_sheet_areas(camera, room, board, [pose], min_area, on_floor=on_floor)[0])
 
 
 def _sheet_areas(camera: Camera, room: Room | None, board: Board, poses: list, min_area: float, *,
                  on_floor: bool) -> np.ndarray:
-    """:func:`_sheet_area` of each of ``poses`` ((N,) float64, the same numbers), the camera's projections
-    and the rays into the room of all of them at once."""
+    """:func:`_sheet_area` of each of ``poses`` ((N,) float64), the camera's projections and the rays into
+    the room of all of them at once."""
     out = np.zeros(len(poses))
     if not poses:
         return out
@@ -558,18 +534,13 @@ def _stand_candidates(cameras, room, board, rng, step_m: float, min_area: float)
     bare = {c: _sheet_areas(cam, None, board, poses, min_area, on_floor=False) for c, cam in cameras.items()}
     seen_bare = np.stack([bare[c] >= min_area for c in cameras]) if cameras else np.zeros((0, len(poses)), bool)
     keep = [k for k in np.flatnonzero(seen_bare.sum(axis=0) >= 2) if _stand_free(room, board, poses[k])]
-    roomed = {c: _sheet_areas(cam, room, board, [poses[k] for k in keep if bare[c][k] >= min_area], min_area,
-                              on_floor=False) for c, cam in cameras.items()}
-    at = {c: 0 for c in cameras}
+    roomed = {c: np.zeros(len(poses)) for c in cameras}
+    for c, cam in cameras.items():
+        seen_by = [k for k in keep if bare[c][k] >= min_area]
+        roomed[c][seen_by] = _sheet_areas(cam, room, board, [poses[k] for k in seen_by], min_area, on_floor=False)
     cands = []
     for k in keep:
-        areas = {}
-        for c in cameras:
-            if bare[c][k] >= min_area:
-                areas[c] = float(roomed[c][at[c]])
-                at[c] += 1
-            else:
-                areas[c] = 0.0
+        areas = {c: float(roomed[c][k]) for c in cameras}
         seen = {c for c, a in areas.items() if a >= min_area}
         if len(seen) >= 2:
             cands.append((poses[k], seen, areas))

@@ -119,7 +119,7 @@ def room_hits(room: Room, camera: Camera, rays: np.ndarray) -> BackgroundHits:
     """:func:`raycast_room` of ``rays`` ((H, W, 3), ``camera.pixel_rays()`` with the invalid ones
     set to its forward axis) from the camera's centre; the (read-only) result is kept for the next
     renderer of the same room and camera (:data:`HITS_CACHE_BYTES`)."""
-    key = (repr(room), camera.fingerprint())
+    key = _room_key(room, camera)
     return _hits.get(key, lambda: kept_on_disk("room-hits", key, lambda: _cast(room, camera, rays), _hits_arrays,
                                                _hits_of), _hits_bytes)
 
@@ -127,7 +127,7 @@ def room_hits(room: Room, camera: Camera, rays: np.ndarray) -> BackgroundHits:
 def room_colour(room: Room, camera: Camera, hits: BackgroundHits) -> np.ndarray:
     """:func:`background_colour` of ``hits`` (:func:`room_hits` of ``room`` and ``camera``), kept like them
     (read-only)."""
-    key = (repr(room), camera.fingerprint())
+    key = _room_key(room, camera)
 
     def make() -> np.ndarray:
         colour = background_colour(room, hits)
@@ -136,6 +136,11 @@ def room_colour(room: Room, camera: Camera, hits: BackgroundHits) -> np.ndarray:
 
     return _colours.get(key, lambda: kept_on_disk("room-colour", key, make, lambda c: {"colour": c},
                                                   lambda a: a["colour"]), lambda c: c.nbytes)
+
+
+def _room_key(room: Room, camera: Camera) -> tuple:
+    """What the empty room seen through a camera depends on: the room and the camera's fingerprint."""
+    return repr(room), camera.fingerprint()
 
 
 def _cast(room: Room, camera: Camera, rays: np.ndarray) -> BackgroundHits:
