@@ -486,13 +486,31 @@ def pinhole_distort(dist: np.ndarray, x: np.ndarray, y: np.ndarray) -> tuple[np.
     k = np.zeros(14)
     k[: dist.size] = dist
     k1, k2, p1, p2, k3, k4, k5, k6, s1, s2, s3, s4, tau_x, tau_y = k
-    r2 = x * x + y * y
-    radial = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
+    x = np.asarray(x, dtype=np.float64)
+    y = np.asarray(y, dtype=np.float64)
+    # The polynomials below, evaluated in place (the same operations in the same order, so the same
+    # bits as the plain expressions in the comments, without a temporary array per operation).
+    r2 = x * x
+    r2 += y * y                                 # r2 = x^2 + y^2
+    radial = _horner(r2, (1.0, k1, k2, k3))     # radial = 1 + r2 (k1 + r2 (k2 + r2 k3))
     if k4 or k5 or k6:
-        radial = radial / (1 + r2 * (k4 + r2 * (k5 + r2 * k6)))
-    xy2 = 2 * x * y
-    xd = x * radial + p1 * xy2 + p2 * (r2 + 2 * x * x)
-    yd = y * radial + p1 * (r2 + 2 * y * y) + p2 * xy2
+        radial /= _horner(r2, (1.0, k4, k5, k6))
+    xy2 = 2 * x
+    xy2 *= y                                    # xy2 = 2 x y
+    t = np.multiply(x, x)
+    t *= 2
+    t += r2
+    t *= p2
+    xd = x * radial
+    xd += np.multiply(xy2, p1)
+    xd += t                                     # xd = x radial + p1 xy2 + p2 (r2 + 2 x^2)
+    np.multiply(y, y, out=t)
+    t *= 2
+    t += r2
+    t *= p1
+    yd = y * radial
+    yd += t
+    yd += np.multiply(xy2, p2)                  # yd = y radial + p1 (r2 + 2 y^2) + p2 xy2
     if s1 or s2 or s3 or s4:
         r4 = r2 * r2
         xd = xd + s1 * r2 + s2 * r4
@@ -505,6 +523,16 @@ def pinhole_distort(dist: np.ndarray, x: np.ndarray, y: np.ndarray) -> tuple[np.
         inv = np.where(c != 0, 1.0 / np.where(c != 0, c, 1.0), 1.0)
         xd, yd = a * inv, b * inv
     return xd, yd
+
+
+def _horner(r2: np.ndarray, c: tuple) -> np.ndarray:
+    """``c0 + r2 (c1 + r2 (c2 + r2 c3))``, a new array."""
+    out = r2 * c[3]
+    for coef in (c[2], c[1]):
+        out += coef
+        out *= r2
+    out += c[0]
+    return out
 
 
 def _tilt_matrix(tau_x: float, tau_y: float) -> np.ndarray:

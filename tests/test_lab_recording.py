@@ -264,15 +264,15 @@ def lab_clip_frames(lab4cam: Path) -> int:
     return counts["cam1"]
 
 
-PREFIX_FRAMES = 150
-"""Frame sets the default run replays: the clip's first 3 s (the person sits still throughout); the slow
+PREFIX_FRAMES = 100
+"""Frame sets the default run replays: the clip's first 2 s (the person sits still throughout); the slow
 set replays the whole clip, at half and at full resolution."""
 
 
-@pytest.fixture(scope="module", params=[pytest.param(PREFIX_FRAMES, id="first-3-s"),
+@pytest.fixture(scope="module", params=[pytest.param(PREFIX_FRAMES, id="first-2-s"),
                                         pytest.param(None, id="whole", marks=pytest.mark.slow)])
 def half_run(request, lab4cam: Path, tmp_path_factory) -> LabRun:
-    """The clip (its first 3 s, or whole) with the workers' masks at half resolution (a site setting)."""
+    """The clip (its first 2 s, or whole) with the workers' masks at half resolution (a site setting)."""
     return run_lab(lab4cam, tmp_path_factory.mktemp("lab_half"), mask_scale=0.5, max_frames=request.param)
 
 

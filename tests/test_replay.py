@@ -103,7 +103,8 @@ def check_run(run: Path, tolerance_m: float) -> None:
     assert len(set(tracks.track_id.tolist())) == 1
 
 
-@pytest.mark.parametrize("kind", ["videos", pytest.param("images", marks=pytest.mark.slow), "masks"])
+@pytest.mark.parametrize("kind", [pytest.param("videos", marks=pytest.mark.slow),
+                                  pytest.param("images", marks=pytest.mark.slow), "masks"])
 def test_replay_from_recorded_inputs(kind, house, inputs, cache, tmp_path):
     run = tmp_path / "run"
     done = voxelwatch(

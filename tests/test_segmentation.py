@@ -354,8 +354,8 @@ def _lab_run(lab4cam: Path, cam: int, *, frames: int | None, hold: bool):
     return np.array(outside), np.array(torso_cov), np.array(box_cov)
 
 
-def _check_lab(lab4cam: Path, frames: int | None) -> None:
-    for cam in (1, 2, 3, 4):
+def _check_lab(lab4cam: Path, frames: int | None, cameras: tuple[int, ...] = (1, 2, 3, 4)) -> None:
+    for cam in cameras:
         outside, torso, box = _lab_run(lab4cam, cam, frames=frames, hold=True)
         assert torso.min() >= MIN_TORSO, (cam, torso.min())
         assert box.min() >= MIN_BOX, (cam, box.min())
@@ -364,8 +364,9 @@ def _check_lab(lab4cam: Path, frames: int | None) -> None:
 
 @pytest.mark.realdata
 def test_lab_recording_masks_cover_the_seated_person_and_little_else(lab4cam):
-    """Background clip learned, then the first 120 frames of each camera's video (all: slow)."""
-    _check_lab(lab4cam, frames=120)
+    """Background clip learned, then the first 120 frames of the videos of cam2 (in front of the chair)
+    and cam3 (at its side); every frame of every camera in the slow set."""
+    _check_lab(lab4cam, frames=120, cameras=(2, 3))
 
 
 @pytest.mark.realdata

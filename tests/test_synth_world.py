@@ -170,6 +170,10 @@ def test_people_step_out_through_a_door_and_come_back_after_a_pause():
     assert STEP_OUT_AWAY_S[0] < gap_s < STEP_OUT_AWAY_S[1] + 8.0
     # back for long enough to be seen again
     assert world.scenario.n_frames - events[k + 1].frame > 3 * fps
+
+
+@pytest.mark.slow  # forty worlds drawn: about 10 s
+def test_about_a_third_of_the_worlds_have_someone_step_out():
     shares = [bool(random_world(s).cast.step_outs) for s in range(40)]
     assert 6 <= sum(shares) <= 20
 

@@ -4,7 +4,8 @@ The figures are printed, not held to targets: these worlds are the test bed
 the pipeline is measured on, and a few seconds of two tuning worlds say
 little. What is held: every world is run and scored, the totals are the sums
 of the worlds, the bands by people present add up to the whole, and the
-command line gives one clear message for bad seeds.
+command line gives one clear message for bad seeds. Running the two worlds takes about 20 s: the tests
+that need them are in the slow set, the seeds and the command line's messages in the default run.
 """
 
 from __future__ import annotations
@@ -44,6 +45,7 @@ def suite(tmp_path_factory):
     return out, report, stream.getvalue()
 
 
+@pytest.mark.slow  # two worlds written, carved and scored: about 20 s (the suite fixture)
 def test_every_world_is_run_and_scored(suite):
     out, report, text = suite
     assert [w["seed"] for w in report["worlds"]] == list(SEEDS)
@@ -60,6 +62,7 @@ def test_every_world_is_run_and_scored(suite):
         assert any(line.startswith(f"{seed} ") for line in text.splitlines())
 
 
+@pytest.mark.slow  # two worlds written, carved and scored: about 20 s (the suite fixture)
 def test_totals_are_the_sums_of_the_worlds(suite):
     _, report, _ = suite
     total = report["total"]
@@ -83,6 +86,7 @@ def test_totals_are_the_sums_of_the_worlds(suite):
     assert report["dress"]["alike"]["frames"]["count"] == FRAMES
 
 
+@pytest.mark.slow  # two worlds written, carved and scored: about 20 s (the suite fixture)
 def test_the_report_is_written_as_json(suite):
     out, report, _ = suite
     saved = json.loads((out / "suite.json").read_text())

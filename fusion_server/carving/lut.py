@@ -237,13 +237,18 @@ def _project_level(camera: Camera, origin_m: np.ndarray, size_m: float, dims: tu
         uc = centre_uv[:, 0].reshape(ni, ny, nz)
         vc = centre_uv[:, 1].reshape(ni, ny, nz)
         r2 = np.zeros((ni, ny, nz))
+        du, dv = np.empty_like(r2), np.empty_like(r2)
         for a in (0, 1):
             for b in (0, 1):
                 for c in (0, 1):
-                    du = cu[a : a + ni, b : b + ny, c : c + nz] - uc
-                    dv = cv[a : a + ni, b : b + ny, c : c + nz] - vc
+                    # r2 = max(r2, du^2 + dv^2), in place
+                    np.subtract(cu[a : a + ni, b : b + ny, c : c + nz], uc, out=du)
+                    np.subtract(cv[a : a + ni, b : b + ny, c : c + nz], vc, out=dv)
+                    du *= du
+                    dv *= dv
+                    du += dv
                     # np.maximum propagates NaN: an unprojectable corner makes the radius NaN.
-                    r2 = np.maximum(r2, du * du + dv * dv)
+                    np.maximum(r2, du, out=r2)
         r = np.sqrt(r2).ravel()
         valid = valid & np.isfinite(uc.ravel()) & np.isfinite(vc.ravel())
         r = np.where(np.isnan(r), np.inf, r)
