@@ -92,16 +92,17 @@ def pytest_configure(config):
 
 
 FILE_SECONDS = {
-    "default": {"test_calibrate.py": 56, "test_segmentation.py": 51, "test_replay.py": 35, "test_server.py": 32,
-                "test_worker.py": 32, "test_events.py": 30, "test_synth_world.py": 29, "test_view.py": 22,
-                "test_node.py": 21, "test_depth_segmentation.py": 20, "test_wire.py": 18, "test_notify.py": 16,
-                "test_viewcheck.py": 13, "test_thermal_segmentation.py": 12, "test_camera_moved.py": 11},
-    "slow": {"test_scenarios.py": 1696, "test_calibrate.py": 1483, "test_events_end_to_end.py": 786,
-             "test_camera_moved.py": 300, "test_distributed.py": 212, "test_synth_world.py": 165,
-             "test_view.py": 140, "test_lab_recording.py": 120, "test_notify.py": 119, "test_demo.py": 118,
-             "test_segmentation.py": 115, "test_suite.py": 100, "test_enrolment.py": 80, "test_events.py": 66,
-             "test_replay.py": 57, "test_wire.py": 45, "test_boardfit.py": 45, "test_world_suite.py": 20,
-             "test_server.py": 20, "test_carving_synthetic.py": 11},
+    "default": {"test_calibrate.py": 56, "test_replay.py": 39, "test_events.py": 39, "test_segmentation.py": 38,
+                "test_server.py": 34, "test_worker.py": 32, "test_node.py": 28, "test_view.py": 27,
+                "test_synth_world.py": 25, "test_wire.py": 19, "test_notify.py": 17, "test_viewcheck.py": 15,
+                "test_thermal_segmentation.py": 14, "test_camera_moved.py": 13, "test_depth_segmentation.py": 13,
+                "test_lab_recording.py": 10},
+    "slow": {"test_scenarios.py": 1696, "test_calibrate.py": 1490, "test_events_end_to_end.py": 786,
+             "test_camera_moved.py": 300, "test_distributed.py": 212, "test_synth_world.py": 175,
+             "test_view.py": 140, "test_segmentation.py": 130, "test_lab_recording.py": 120, "test_notify.py": 119,
+             "test_demo.py": 118, "test_suite.py": 100, "test_enrolment.py": 80, "test_events.py": 66,
+             "test_replay.py": 62, "test_wire.py": 45, "test_boardfit.py": 45, "test_server.py": 30,
+             "test_world_suite.py": 20, "test_carving_synthetic.py": 11, "test_depth_segmentation.py": 10},
 }
 """Seconds the tests of each file took in the default run and in the slow set (``--durations=0``,
 2026-11-28: the default run once the world suite, the segmented carve and others had moved to the slow

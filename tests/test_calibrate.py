@@ -280,6 +280,7 @@ def test_charuco_is_found_partly_out_of_a_fisheye_view_where_a_chessboard_is_not
     assert min(partial.values()) >= 3
 
 
+@pytest.mark.slow  # the ChArUco lens of a pinhole camera is in the default run
 def test_charuco_fisheye_lens_from_partial_views(tmp_path, capsys):
     """The ceiling fisheye calibrated with the command from a ChArUco clip of which more than a third of
     the views show only part of the board: focal lengths within 0.5 % of the truth (0.1 % measured), the

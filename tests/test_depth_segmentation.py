@@ -126,6 +126,7 @@ def test_shipped_range_is_the_true_range_within_noise(renderers):
     assert abs(np.median(err)) < 15.0
 
 
+@pytest.mark.slow  # 600 frames rendered and segmented (the thermal camera's hold is in the default run)
 def test_a_held_still_person_is_kept_and_one_who_left_the_clip_is_forgotten(renderers):
     r = renderers["cam1"]
     person = standing_person()

@@ -216,6 +216,7 @@ def _panning_room(folder: Path, *, pan_at_s: float, length_s: float, shift_px: i
     return site_file, cams, {c: np.ascontiguousarray(room[:, 20:20 + W]) for c, room in rooms.items()}
 
 
+@pytest.mark.slow  # a moved camera is judged in the default run by tests/test_camera_moved.py
 def test_a_camera_whose_recorded_view_pans_raises_camera_moved_in_the_replay(tmp_path):
     """Three cameras of the tiny site recording a textured empty room (videos with their empty-room
     clips); c2's picture slides 8 px sideways 2 s in, as if the camera had been panned by about

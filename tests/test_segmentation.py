@@ -298,7 +298,7 @@ def test_without_hold_a_still_person_is_absorbed():
     assert recalls[30:].max() < 0.05
 
 
-@pytest.mark.parametrize("mask_scale", [1.0, 0.5])
+@pytest.mark.parametrize("mask_scale", [pytest.param(1.0, marks=pytest.mark.slow), 0.5])
 def test_hold_keeps_a_still_person_while_the_rest_keeps_learning(mask_scale):
     recalls, chair_fg = _still_person_run(hold=True, mask_scale=mask_scale)
     assert recalls.min() >= 0.95                      # 300 frames = 27 absorption times
@@ -506,7 +506,8 @@ def _truth_box(truth: np.ndarray, pad: int = 12) -> list[tuple[int, int, int, in
     return [(int(xs.min()) - pad, int(ys.min()) - pad, int(xs.max()) + 1 + pad, int(ys.max()) + 1 + pad)]
 
 
-@pytest.mark.parametrize("cam", ["cam2", pytest.param("cam5", marks=pytest.mark.slow)])
+@pytest.mark.slow  # holds and light changes are each in the default run; together, 160 frames twice
+@pytest.mark.parametrize("cam", ["cam2", "cam5"])
 def test_house_still_person_held_through_a_light_change(cam):
     """'lights' from frame 540: the person stands still; the lamp goes off at 45 s (frame 675).
 

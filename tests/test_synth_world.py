@@ -206,7 +206,8 @@ def test_walking_people_stay_off_the_furniture(seed):
         assert not out.any(), f"world {seed}: person {person.person_id} walks through a wall"
 
 
-@pytest.mark.parametrize("seed", (10, pytest.param(24, marks=pytest.mark.slow)))
+@pytest.mark.slow  # the renderer against brute-force ray casting of the house is in the default run (test_synth_render)
+@pytest.mark.parametrize("seed", (10, 24))
 def test_true_silhouettes_match_rays_cast_at_the_bodies(seed):
     """Oracle: a pixel is a person in the true mask exactly when its ray meets a body (Body.intersect)
     before the room or its furniture (raycast_room), each computed on its own."""
