@@ -15,11 +15,13 @@ flag that overrides a site file's setting (``--mask-scale`` and ``carving.mask_s
 from __future__ import annotations
 
 import copy
+import math
 from typing import Annotated, Any
 
 from pydantic import BaseModel, ConfigDict, TypeAdapter, ValidationError
 
-__all__ = ["NON_NEGATIVE", "Settings", "SettingError", "check_declared", "check_setting", "declared", "default_of", "field_name",
+__all__ = ["NON_NEGATIVE", "Settings", "SettingError", "bounds_of", "check_declared", "check_setting", "declared", "default_of",
+           "field_name",
            "group_of", "problem", "validated"]
 
 
@@ -95,6 +97,16 @@ def declared(model: type[BaseModel], name: str) -> Any:
     """``model``'s declaration of the field ``name`` (default, bounds, description), for a stage's
     parameter group to take as its own: ``long_lie_s: float = declared(EventSettings, "long_lie_s")``."""
     return copy.copy(model.model_fields[name])
+
+
+def bounds_of(model: type[BaseModel], name: str) -> tuple[float, float]:
+    """The closed range ``(low, high)`` ``model`` declares for its field ``name`` (``-inf`` or ``inf``
+    where it declares none; an open bound, ``gt`` or ``lt``, as its limit)."""
+    low, high = -math.inf, math.inf
+    for bound in model.model_fields[name].metadata:
+        low = max(low, getattr(bound, "ge", -math.inf), getattr(bound, "gt", -math.inf))
+        high = min(high, getattr(bound, "le", math.inf), getattr(bound, "lt", math.inf))
+    return float(low), float(high)
 
 
 def default_of(model: type[BaseModel], name: str) -> Any:

@@ -31,11 +31,13 @@ from typing import Any
 __all__ = [
     "LOG_FORMAT",
     "MODES",
+    "Stopped",
     "add_logging_arguments",
     "add_zenoh_arguments",
     "configure_logging",
     "serve",
     "stop_on_signals",
+    "stopped_raises",
 ]
 
 MODES = ("peer", "client")
@@ -81,6 +83,32 @@ def configure_logging(verbose: bool = False, quiet: bool = False) -> None:
     ``quiet``, else information."""
     level = logging.DEBUG if verbose else logging.WARNING if quiet else logging.INFO
     logging.basicConfig(level=level, format=LOG_FORMAT)
+
+
+class Stopped(BaseException):
+    """SIGINT or SIGTERM while a process was still getting ready (:func:`stopped_raises`)."""
+
+
+@contextmanager
+def stopped_raises(*, who: str, log: logging.Logger) -> Iterator[None]:
+    """While the block runs, SIGINT and SIGTERM log one line and raise :class:`Stopped` (at the next
+    Python instruction): for a process's start-up (loading its modules, building its tables), which
+    has no loop to look at a stop event. :func:`serve` inside the block takes the signals over while
+    it runs. The previous handlers come back after the block; off the main thread it does nothing."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def _raise(signum: int, _frame: object) -> None:
+        log.info("%s: %s received while starting, stopping", who, signal.Signals(signum).name)
+        raise Stopped(signum)
+
+    previous = {sig: signal.signal(sig, _raise) for sig in _SIGNALS}
+    try:
+        yield
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
 
 
 @contextmanager

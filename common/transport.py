@@ -13,8 +13,10 @@ within a second or so of SIGINT/SIGTERM; a port that cannot be listened on
 is one clear error. :func:`watch_links` says, once each way, when an open
 session loses its last zenoh link and when it has one again.
 
+zenoh's limit on one message is set to :data:`MAX_ZENOH_MESSAGE_BYTES`.
+
 Layers, later ones winning: the ``config`` file (zenoh's own JSON5), the
-section's fields and the command line, TLS from ``[zenoh.tls]`` (this host's
+message size limit, the section's fields and the command line, TLS from ``[zenoh.tls]`` (this host's
 certificate chosen by its name: ``router``, ``fusion`` or the camera id), the
 site's access control on a router, and last the ``settings`` table.
 """
@@ -31,6 +33,7 @@ from typing import TYPE_CHECKING, Any
 
 import zenoh
 
+from common.messages import MAX_MESSAGE_BYTES
 from common.site import ZenohSettings
 
 if TYPE_CHECKING:
@@ -40,6 +43,12 @@ if TYPE_CHECKING:
 class TransportError(ValueError):
     """A zenoh setting that zenoh refused, or an endpoint that cannot be used; the message names it."""
 
+
+MAX_ZENOH_MESSAGE_BYTES = 2 * MAX_MESSAGE_BYTES
+"""zenoh's own limit on one message (``transport/link/rx/max_message_size``; zenoh's default is
+1 GiB) on every session and router of a site: twice the largest message the project sends. zenoh
+assembles a whole message before any check of the project sees it, so without the limit a single
+put of hundreds of megabytes costs the router and the fusion server that much memory, kept."""
 
 PROTOCOLS = ("tcp", "udp", "tls", "quic", "ws", "unixsock-stream", "unixpipe", "serial", "vsock")
 """Link protocols an endpoint may name (``protocol/address``)."""
@@ -106,6 +115,7 @@ def zenoh_config(
         "connect/endpoints": list(connect if connect is not None else settings.connect),
         "scouting/multicast/enabled": settings.multicast_scouting,
         "transport/shared_memory/enabled": settings.shared_memory,
+        "transport/link/rx/max_message_size": MAX_ZENOH_MESSAGE_BYTES,
     }
     for key, is_listen in (("listen/endpoints", True), ("connect/endpoints", False)):
         for endpoint in values[key]:

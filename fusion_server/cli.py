@@ -3,12 +3,13 @@
 from __future__ import annotations
 
 import argparse
+import logging
 import sys
 from collections.abc import Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from common.shell import add_logging_arguments, add_zenoh_arguments, configure_logging
+from common.shell import Stopped, add_logging_arguments, add_zenoh_arguments, configure_logging, stopped_raises
 
 if TYPE_CHECKING:
     from fusion_server.node import FusionSettings
@@ -93,16 +94,23 @@ def settings_from_args(args: argparse.Namespace) -> "FusionSettings":
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    """Exit status 0 after a stop (a signal at any moment, the idle timeout), 2 for a bad site file,
+    setting or flag (one line), 1 when zenoh cannot be opened."""
     args = build_parser().parse_args(argv)
     configure_logging(args.verbose, args.quiet)
+    log = logging.getLogger("voxelwatch.fusion")
     try:
-        settings = settings_from_args(args)
-    except ValueError as exc:
-        print(f"voxelwatch-fusion: {exc}", file=sys.stderr)
-        return 2
-    from fusion_server.server import run_forever
+        with stopped_raises(who="fusion", log=log):
+            try:
+                settings = settings_from_args(args)
+            except ValueError as exc:
+                print(f"voxelwatch-fusion: {exc}", file=sys.stderr)
+                return 2
+            from fusion_server.server import run_forever
 
-    return run_forever(settings)
+            return run_forever(settings)
+    except Stopped:
+        return 0
 
 
 if __name__ == "__main__":

@@ -12,8 +12,9 @@ What the node does:
 
 * **masks** (:meth:`~FusionNode.on_mask`, one ``<p>/cam/<cam>/mask`` sample):
   decodes it (``WireError``, ``MaskCodecError``, a message whose ``cam``
-  differs from its key's camera, or a mask whose aspect ratio is not the
-  camera's, are counted per camera as ``undecodable`` with a log line at most
+  differs from its key's camera, or a mask of a size the camera cannot send
+  (:func:`mask_size_fits`, refused before it is inflated), are counted per
+  camera as ``undecodable`` with a log line at most
   once per ``log_every_s`` per camera and reason), drops masks of cameras the
   site does not know (counted), and pushes the rest into a
   :class:`~fusion_server.sync.FrameSynchroniser` (lattice period from the
@@ -103,8 +104,8 @@ from common.messages import (
     CameraStatus, Event, HoldRegions, LookRequest, MaskFrame, Status, TrackFrame, TrackState, WireError, event_id,
 )
 from common.ratelog import RateLimitedLog
-from common.settings import Settings
-from common.site import Site
+from common.settings import Settings, bounds_of
+from common.site import Carving, Site
 from fusion_server.event_store import EventStore, parse_history_selector
 from fusion_server.outputs import RunOutputs
 from fusion_server.pipeline import FusedFrame, FusionPipeline
@@ -692,13 +693,14 @@ class FusionNode:
         return health.last_offset_ms - statistics.median(others)
 
     def _check_shape(self, msg: MaskFrame) -> None:
+        """Refuse, before it is inflated, a mask of a size the camera cannot send."""
         cam = self.cameras.get(msg.cam)
         if cam is None:
             return
-        expected_w = msg.height * cam.width / cam.height
-        if abs(msg.width - expected_w) > 1.0 + 0.01 * expected_w:
-            raise _Shape(f"MaskFrame: a {msg.width}x{msg.height} mask does not have the {cam.width}x{cam.height} "
-                         f"aspect of camera {msg.cam!r}")
+        if not mask_size_fits(cam.width, cam.height, msg.width, msg.height):
+            low, high = bounds_of(Carving, "mask_scale")
+            raise _Shape(f"MaskFrame: a {msg.width}x{msg.height} mask is not a size camera {msg.cam!r} sends (its "
+                         f"{cam.width}x{cam.height} image scaled by a mask_scale in {low:g}..{high:g})")
 
     def _check_skew(self, health: _CameraHealth, now_ns: int, mono: float) -> None:
         if len(health.offset_ms) < min(10, health.offset_ms.maxlen):
@@ -819,6 +821,19 @@ def camera_event(kind: str, cam: str, stamp_ns: int, frame: int, **details: Any)
     server time (``camera_moved``: at its frame set's capture time)."""
     return Event(id=event_id(stamp_ns, f"{kind}-{cam}", -1), kind=kind, track=-1, stamp_ns=int(stamp_ns),
                  frame=int(frame), x=0.0, y=0.0, details={"camera": cam, **details})
+
+
+def mask_size_fits(image_width: int, image_height: int, width: int, height: int) -> bool:
+    """Whether a ``width`` x ``height`` mask is the size a worker makes of an ``image_width`` x
+    ``image_height`` image at some ``mask_scale`` the site file accepts: both sides rounded from the same
+    scale (``round(image side * scale)``, as ``Camera.scaled`` and the segmenter do). Bigger masks, and masks
+    of another shape, are refused before they are decoded: a camera cannot make the server inflate more
+    than its own image's pixels."""
+    low, high = bounds_of(Carving, "mask_scale")
+    # the scales that round to each side, closed at both ends (a half rounds either way)
+    lo = max(low, (width - 0.5) / image_width, (height - 0.5) / image_height)
+    hi = min(high, (width + 0.5) / image_width, (height + 0.5) / image_height)
+    return width >= 1 and height >= 1 and lo <= hi + 1e-12
 
 
 class _Mismatch(WireError):

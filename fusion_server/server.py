@@ -67,14 +67,14 @@ _MAX_ACKS_WAITING = 64
 def run_forever(settings: FusionSettings) -> int:
     """Build the pipeline, open the zenoh session and :func:`run` until stopped.
 
-    Returns the exit code: 0 after a stop (signal or idle, also while still
-    waiting for zenoh: an unreachable router is logged once and retried with
-    back-off), 1 when the zenoh session cannot be opened (a port that cannot
+    Returns the exit code: 0 after a stop (a signal at any moment, the lookup
+    tables' building included, or idle; also while still waiting for zenoh: an
+    unreachable router is logged once and retried with back-off), 1 when the zenoh session cannot be opened (a port that cannot
     be listened on), 2 when the calibrations, zenoh settings, event store or
     output folder are unusable (the reason is logged).
     """
     from common.certs import FUSION
-    from common.shell import serve
+    from common.shell import Stopped, serve, stopped_raises
     from common.transport import site_config
 
     z = settings.site.zenoh
@@ -86,16 +86,25 @@ def run_forever(settings: FusionSettings) -> int:
                            connect_timeout_ms=1000)
 
     try:
-        make_config()
-        pipeline = settings.build_pipeline()
-    except ValueError as exc:
-        log.error("%s", exc)
-        return 2
-    except KeyboardInterrupt:  # interrupted while the lookup tables were being built
-        log.info("fusion: interrupted before start")
-        return 130
-    return serve(make_config, who="fusion", endpoints=connect, log=log,
-                 work=lambda session, stop: run(session, settings, stop, pipeline))
+        with stopped_raises(who="fusion", log=log):   # a signal while the lookup tables are built
+            try:
+                make_config()
+                cameras = settings.site.load_cameras()
+            except ValueError as exc:
+                log.error("%s", exc)
+                return 2
+            # what it does before it can be reached: the tables take seconds to a minute when not cached
+            log.info("fusion: site %s, %d cameras: loading the carving tables, then zenoh (%s)", settings.site.name,
+                     len(cameras), ", ".join(connect) or "no router: peer")
+            try:
+                pipeline = settings.build_pipeline(cameras)
+            except ValueError as exc:
+                log.error("%s", exc)
+                return 2
+            return serve(make_config, who="fusion", endpoints=connect, log=log,
+                         work=lambda session, stop: run(session, settings, stop, pipeline))
+    except Stopped:
+        return 0
 
 
 def run(session: Any, settings: FusionSettings, stop_event: threading.Event, pipeline: FusionPipeline) -> int:

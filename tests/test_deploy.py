@@ -27,7 +27,7 @@ import zenoh
 
 from voxelwatch import cli as vw_cli
 from common.site import load_site
-from common.transport import zenoh_config
+from common.transport import MAX_ZENOH_MESSAGE_BYTES, zenoh_config
 from fusion_server import cli as fusion_cli
 
 REPO = Path(__file__).resolve().parents[1]
@@ -44,6 +44,7 @@ VERIFIED_ZENOH_KEYS = {
     "connect/timeout_ms",
     "scouting/multicast/enabled",
     "transport/shared_memory/enabled",
+    "transport/link/rx/max_message_size",
 }
 ZENOH_FILES = {"peer": "peer", "client": "client", "router": "router"}
 
@@ -154,6 +155,7 @@ def test_zenoh_file_is_accepted_and_sets_only_verified_keys(name):
     assert settings["mode"] == name
     assert settings["scouting/multicast/enabled"] is False
     assert settings["transport/shared_memory/enabled"] is False
+    assert settings["transport/link/rx/max_message_size"] == MAX_ZENOH_MESSAGE_BYTES
     for conf in (zenoh.Config.from_json5(text), zenoh.Config.from_file(str(path))):
         for key, value in settings.items():
             assert json.loads(conf.get_json(key)) == value, f"{path.name}: zenoh read {key} differently"

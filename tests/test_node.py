@@ -19,7 +19,7 @@ from common.camera import Camera
 from common.messages import Event, HoldRegions, Status, TrackFrame, decode, decode_event, encode
 from common.site import load_site
 from fusion_server.event_store import EventStore
-from fusion_server.node import FusionNode, FusionSettings, Outbox, camera_event, history_replies
+from fusion_server.node import FusionNode, FusionSettings, Outbox, camera_event, history_replies, mask_size_fits
 from fusion_server.outputs import RunOutputs
 from fusion_server.pipeline import FusionPipeline
 from tinysite import BOX_XY, H, PERIOD_NS, W, box_mask, mask_frame, write_site
@@ -270,6 +270,45 @@ def test_broken_masks_are_counted_per_camera_and_dropped_and_tracking_goes_on(ri
     r.clock.advance(2.5)
     r.frames(range(30, 33))
     assert r.cam_status()["c2"].state == "ok"
+
+
+@pytest.mark.parametrize("size, fits", [
+    ((640, 480), True), ((320, 240), True), ((80, 60), True),   # mask_scale 1, 0.5 and 0.125 (the least)
+    ((128, 96), True), ((427, 320), True),                      # 0.2, and 2/3 (426.67 and 320 rounded)
+    ((426, 320), True),                                         # 0.6656..0.6664 rounds to 426 and to 320 too
+    ((641, 481), False), ((1280, 960), False), ((4096, 3072), False),   # more than the image
+    ((79, 59), False), ((40, 30), False),                       # less than the least mask_scale
+    ((640, 479), False), ((320, 241), False), ((300, 240), False), ((100, 100), False),   # another shape
+])
+def test_a_mask_fits_only_at_a_size_some_mask_scale_gives_the_camera(size, fits):
+    """By hand for a 640x480 camera, mask_scale 0.125..1: both sides the image's rounded at one scale."""
+    assert mask_size_fits(640, 480, *size) is fits
+
+
+def test_a_valid_mask_bigger_than_the_camera_is_refused_before_it_is_decoded(rig, caplog):
+    """4096x3072 alternating columns (55 KB on the wire, about 0.3 s to decode), said to come from a
+    4096x3072 capture, on the key of a 160x120 camera: refused on its size against the calibration
+    alone and counted, and the camera reads degraded while the others track. The same header over a
+    broken body is refused for its size too, not as a broken encoding: nothing was inflated."""
+    r = rig()
+    big = np.zeros((3072, 4096), np.uint8)
+    big[:, ::2] = 255
+    data = maskcodec.encode_mask(big)
+    broken = data[:8] + bytes(len(data) - 8)
+    with pytest.raises(maskcodec.MaskCodecError):
+        maskcodec.decode_mask(broken, "rle-zlib", 4096, 3072)
+    before = r.node.health["c2"].undecodable
+    caplog.set_level("WARNING")
+    for seq, payload in enumerate((data, broken)):
+        r.put("c2", encode(mask_frame(r.cams["c2"], 2000 + seq, r.clock.ns, data=payload, width=4096, height=3072,
+                                      src_width=4096, src_height=3072)))   # the capture size a message says
+    assert r.node.health["c2"].undecodable == before + 2
+    # one line: a broken encoding would have had a line of its own (another reason)
+    said = [rec.getMessage() for rec in caplog.records if "undecodable mask dropped" in rec.getMessage()]
+    assert len(said) == 1 and "a 4096x3072 mask is not a size camera 'c2' sends" in said[0], said
+    r.frames(range(10))
+    assert r.cam_status()["c2"].state == "degraded"
+    assert sum(1 for f in r.tracks if _near_box(f)) >= 5
 
 
 def test_sequence_gaps_count_as_dropped_and_a_restarted_worker_counting_from_zero_does_not(rig):

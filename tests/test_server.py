@@ -8,6 +8,7 @@ reads what the server publishes: tracks, status, events and history.
 
 from __future__ import annotations
 
+import json
 import socket
 import subprocess
 import sys
@@ -496,6 +497,74 @@ def test_a_server_whose_router_is_unreachable_says_so_once_and_stops_on_a_signal
     assert code == 0 and took < 2.0, (code, took, out)
     assert out.count("cannot reach zenoh") == 1 and endpoint in out and "Traceback" not in out, out
     assert "stopped before zenoh could be reached" in out
+
+
+HUGE_BYTES = 300 * 1024 * 1024
+MEMORY_GROWTH_MAX_KB = 50 * 1024
+
+
+@pytest.mark.slow
+def test_huge_payloads_cost_the_router_and_the_server_no_lasting_memory(site, tmp_path, net, start_server):
+    """300 MB puts, from a client of the site's router and from a peer connected to the server itself, on a
+    mask key and on an events key: zenoh's message size limit (common.transport) refuses them while they
+    arrive, so neither the router nor the server holds them, and the server goes on tracking."""
+    router_endpoint = f"tcp/127.0.0.1:{_free_port()}"
+    router = Proc("router", [sys.executable, "-m", "voxelwatch", "router", "--listen", router_endpoint],
+                  tmp_path / "router.log")
+    hostile = []
+    try:
+        wait_for(lambda: "voxelwatch router listening" in router.output(), 30.0, "the router")
+        server = start_server("--connect", router_endpoint)
+        server_endpoint = server.argv[server.argv.index("--listen") + 1]
+        net.publish_box(site[1], range(20))
+        time.sleep(1.0)
+        before = {"router": router.rss_kb(), "fusion": server.rss_kb()}
+        for endpoint, mode in ((router_endpoint, "client"), (server_endpoint, "peer")):
+            conf = zenoh.Config()   # a host that does not keep to the site's settings: zenoh's defaults
+            for key, value in (("mode", mode), ("connect/endpoints", [endpoint]), ("scouting/multicast/enabled", False)):
+                conf.insert_json5(key, json.dumps(value))
+            session = zenoh.open(conf)
+            hostile.append(session)
+            for key in (keys.mask_key(net.prefix, "c1"), keys.event_key(net.prefix, "fall", 1)):
+                session.put(key, bytes(HUGE_BYTES))
+        time.sleep(3.0)
+        after = {"router": router.rss_kb(), "fusion": server.rss_kb()}
+        growth = {name: after[name] - before[name] for name in before}
+        assert all(kb < MEMORY_GROWTH_MAX_KB for kb in growth.values()), (before, after)
+        tracked = len(net.tracks)
+        net.publish_box(site[1], range(20, 40))
+        wait_for(lambda: len(net.tracks) >= tracked + 10, 10.0, "tracks after the huge payloads")
+        assert server.alive() and router.alive()
+        assert all(e.kind != "fall" or e.track != 1 for e in net.events)   # nothing came through as an event
+    finally:
+        for session in hostile:
+            session.close()
+        router.stop()
+
+
+@pytest.mark.parametrize("sig", ["SIGTERM", pytest.param("SIGINT", marks=pytest.mark.slow)])
+def test_a_signal_while_the_tables_are_built_stops_the_server_with_one_line_and_status_0(tmp_path, sig):
+    """The house's five cameras and an empty table cache: the server says first what it does and whom
+    it will connect to, then builds the tables (seconds); a signal then stops it within 2 s, exit status
+    0, one line saying so."""
+    import signal
+
+    import synth
+
+    site_file = synth.default_site(tmp_path / "site").base_dir / "site.toml"
+    endpoint = f"tcp/127.0.0.1:{_free_port()}"
+    argv = [sys.executable, "-m", "fusion_server.cli", "--site", str(site_file), "--mode", "client",
+            "--connect", endpoint, "--store", str(tmp_path / "events.sqlite"), "--cache-dir", str(tmp_path / "empty")]
+    server = Proc("fusion", argv, tmp_path / "server.log")
+    wait_for(lambda: "loading the carving tables" in server.output(), 30.0, "the server's first line")
+    assert endpoint in server.output() and "5 cameras" in server.output()
+    asked = time.monotonic()
+    code = server.stop(timeout_s=10.0, sig=getattr(signal, sig))
+    took = time.monotonic() - asked
+    out = server.output()
+    assert code == 0 and took < 2.0, (code, took, out)
+    assert f"{sig} received while starting, stopping" in out and "Traceback" not in out, out
+    assert "cannot reach zenoh" not in out   # stopped before it got that far
 
 
 def test_a_malformed_endpoint_stops_start_up_with_one_line(site, tmp_path):

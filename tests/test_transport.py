@@ -14,7 +14,8 @@ import pytest
 import zenoh
 
 from common.site import ZenohSettings
-from common.transport import TransportError, check_endpoint, open_session, private_config, watch_links, zenoh_config
+from common.transport import (MAX_ZENOH_MESSAGE_BYTES, TransportError, check_endpoint, open_session, private_config,
+                              watch_links, zenoh_config)
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -31,7 +32,8 @@ def test_router_config_is_the_routers_settings(multicast: bool) -> None:
     conf = zenoh_config(ZenohSettings(multicast_scouting=multicast), mode="router", listen=["tcp/0.0.0.0:7447"])
     assert str(conf) == str(_by_hand({"mode": "router", "listen/endpoints": ["tcp/0.0.0.0:7447"],
                                       "scouting/multicast/enabled": multicast,
-                                      "transport/shared_memory/enabled": False}))
+                                      "transport/shared_memory/enabled": False,
+                                      "transport/link/rx/max_message_size": MAX_ZENOH_MESSAGE_BYTES}))
 
 
 def test_default_settings_keep_scouting_and_shared_memory_off() -> None:
