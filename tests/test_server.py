@@ -530,6 +530,7 @@ def test_huge_payloads_cost_the_router_and_the_server_no_lasting_memory(site, tm
         time.sleep(3.0)
         after = {"router": router.rss_kb(), "fusion": server.rss_kb()}
         growth = {name: after[name] - before[name] for name in before}
+        print("rss growth kB", growth)
         assert all(kb < MEMORY_GROWTH_MAX_KB for kb in growth.values()), (before, after)
         tracked = len(net.tracks)
         net.publish_box(site[1], range(20, 40))
