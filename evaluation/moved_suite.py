@@ -51,7 +51,8 @@ def run_moved_world(seed: int, out_dir: str | Path, *, duration_s: float = 120.0
     from common.site import load_site
     from synth.degrade import CameraMove
     from synth.world import _bodies_at, iter_masks, random_world, with_camera_moved, write_world_site
-    from fusion_server.node import FusionNode, FusionSettings
+    from fusion_server.node import FusionNode
+    from fusion_server.settings import FusionSettings
     from fusion_server.pipeline import FusionPipeline
     from fusion_server.sync import FrameSet
 

@@ -12,7 +12,7 @@ from typing import TYPE_CHECKING
 from common.shell import Stopped, add_logging_arguments, add_zenoh_arguments, configure_logging, stopped_raises
 
 if TYPE_CHECKING:
-    from fusion_server.node import FusionSettings
+    from fusion_server.settings import FusionSettings
 
 DESCRIPTION = """\
 The voxelwatch fusion server: subscribes to every camera's foreground masks,
@@ -66,8 +66,7 @@ def settings_from_args(args: argparse.Namespace) -> "FusionSettings":
     from common.site import load_site
 
     site = load_site(args.site)   # a bad site file says so before the server's modules are loaded
-    from fusion_server.node import FusionSettings
-    from fusion_server.server import DEFAULT_STORE_NAME
+    from fusion_server.settings import DEFAULT_STORE_NAME, FusionSettings
 
     prefix = args.prefix or site.prefix
     try:
@@ -106,9 +105,14 @@ def main(argv: Sequence[str] | None = None) -> int:
             except ValueError as exc:
                 print(f"voxelwatch-fusion: {exc}", file=sys.stderr)
                 return 2
+            try:
+                cameras = settings.announce(log)   # before the server's modules: within a second or so
+            except ValueError as exc:
+                log.error("%s", exc)
+                return 2
             from fusion_server.server import run_forever
 
-            return run_forever(settings)
+            return run_forever(settings, cameras=cameras)
     except Stopped:
         return 0
 

@@ -92,10 +92,8 @@ import math
 import statistics
 from collections import Counter, deque
 from dataclasses import dataclass, field
-from pathlib import Path
-from typing import Any, Literal, Mapping
+from typing import Any, Mapping
 
-from pydantic import Field, field_validator, model_validator
 
 from common import keys, maskcodec, messages
 from common.camera import Camera
@@ -104,11 +102,12 @@ from common.messages import (
     CameraStatus, Event, HoldRegions, LookRequest, MaskFrame, Status, TrackFrame, TrackState, WireError, event_id,
 )
 from common.ratelog import RateLimitedLog
-from common.settings import Settings, bounds_of
-from common.site import Carving, Site
+from common.settings import bounds_of
+from common.site import Carving
 from fusion_server.event_store import EventStore, parse_history_selector
 from fusion_server.outputs import RunOutputs
 from fusion_server.pipeline import FusedFrame, FusionPipeline
+from fusion_server.settings import FusionSettings
 from fusion_server.sync import FrameSet, FrameSynchroniser
 
 __all__ = ["FusionCounters", "FusionNode", "FusionSettings", "Outbox", "camera_event", "history_replies"]
@@ -120,73 +119,6 @@ log = logging.getLogger("voxelwatch.fusion")
 _SYNC_DROPS = ("duplicate", "superseded", "dropped_overflow")
 _SYNC_LATE = ("out_of_order", "stale", "unmatched")
 _SKEW_EVENT_EVERY_S = 60.0
-
-
-class FusionSettings(Settings):
-    """Everything the fusion server needs; ``fusion_server.cli`` builds it from the command line.
-
-    site: the loaded site. prefix: the zenoh key prefix. store_path: the
-    SQLite event store (the live server needs one; the offline replay stores
-    nothing). out_dir: where tracks.csv/events.jsonl go (None: no files).
-    mode/listen/connect: zenoh overrides of the site (None: the site's).
-    tls_cert/tls_key: this host's certificate and key (None: ``fusion.pem`` and
-    ``fusion-key.pem`` in the site's ``[zenoh.tls] certs`` folder).
-    cache_dir: carving lookup-table cache (None: the carver's default).
-    min_cameras: fewest cameras a frame set needs (None: the
-    site's carving vote). exit_after_idle_s: stop after this long without
-    masks (None: never). free_timeline: let the frame-set timeline follow the
-    cameras' stamps instead of the server's clock, for recordings played over
-    zenoh faster than real time (a camera ahead of the others is still left
-    out, but the cameras' clocks are trusted). inbox_per_camera and history_queue size the
-    process's queues; the rest tune the node (see the module doc).
-    """
-
-    site: Site
-    prefix: str
-    store_path: Path | None = None
-    out_dir: Path | None = None
-    mode: Literal["peer", "client"] | None = None
-    listen: tuple[str, ...] | None = None
-    connect: tuple[str, ...] | None = None
-    tls_cert: Path | None = None
-    tls_key: Path | None = None
-    cache_dir: Path | None = None
-    min_cameras: int | None = Field(default=None, ge=1, strict=True)
-    exit_after_idle_s: float | None = Field(default=None, gt=0.0, allow_inf_nan=False)
-    seed: int = 0
-    status_period_s: float = Field(default=1.0, gt=0.0, allow_inf_nan=False)
-    hold_ttl_ms: int = Field(default=2000, ge=1, strict=True)
-    hold_slack_px: int = Field(default=2, ge=0, strict=True)
-    max_clock_skew_ms: float = Field(default=250.0, gt=0.0, allow_inf_nan=False)
-    free_timeline: bool = False
-    skew_window: int = Field(default=30, ge=1, strict=True)
-    inbox_per_camera: int = Field(default=32, ge=1, strict=True)
-    max_ready_sets: int = Field(default=4, ge=1, strict=True)
-    sync_buffer: int = Field(default=8, ge=1, strict=True)
-    stale_s: float = Field(default=2.0, gt=0.0, allow_inf_nan=False)
-    log_every_s: float = Field(default=10.0, gt=0.0, allow_inf_nan=False)
-    history_queue: int = Field(default=16, ge=1, strict=True)
-
-    @field_validator("prefix")
-    @classmethod
-    def _prefix_ok(cls, prefix: str) -> str:
-        keys.validate_prefix(prefix)
-        return prefix
-
-    @model_validator(mode="after")
-    def _cameras_enough(self) -> "FusionSettings":
-        n_cams = len(self.site.cameras)
-        if self.min_cameras is not None and self.min_cameras > n_cams:
-            raise ValueError(f"min_cameras must be an int in 1..{n_cams} (the site's cameras), got {self.min_cameras!r}")
-        if self.min_cameras is None and self.site.carving.min_cameras > n_cams:
-            raise ValueError(f"site file {self.site.source}: field carving.min_cameras: {self.site.carving.min_cameras} "
-                             f"exceeds the site's {n_cams} cameras: nothing could ever be carved")
-        return self
-
-    def build_pipeline(self, cameras: dict[str, Camera] | None = None) -> FusionPipeline:
-        """The pipeline these settings describe (calibrations loaded unless given)."""
-        return FusionPipeline.from_site(self.site, cameras=cameras, cache_dir=self.cache_dir, seed=self.seed,
-                                        min_cameras=self.min_cameras)
 
 
 @dataclass

@@ -50,7 +50,8 @@ from camera_worker.sources import FrameSource, SourceError, open_source
 from camera_worker.viewcheck import ViewCheck, load_reference
 from common.messages import LookRequest
 from common.site import Site
-from fusion_server.node import FusionNode, FusionSettings
+from fusion_server.node import FusionNode
+from fusion_server.settings import FusionSettings
 from fusion_server.outputs import RunOutputs
 from fusion_server.pipeline import FusedFrame, FusionPipeline
 from fusion_server.sync import FrameSet

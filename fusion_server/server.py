@@ -46,62 +46,49 @@ from typing import Any
 import zenoh
 
 from common import keys, messages
+from common.camera import Camera
 from common.messages import MaskFrame
 from fusion_server.event_store import EventStore
 from fusion_server.node import FusionCounters, FusionNode, FusionSettings, Outbox, history_replies
 from fusion_server.outputs import RunOutputs
 from fusion_server.pipeline import FusionPipeline
+from fusion_server.settings import DEFAULT_STORE_NAME
 
 __all__ = ["DEFAULT_STORE_NAME", "FusionCounters", "FusionSettings", "run", "run_forever"]
 
 log = logging.getLogger("voxelwatch.fusion")
-
-DEFAULT_STORE_NAME = "voxelwatch-events.sqlite"
-"""The event store's file name next to the site file when ``--store`` is not given."""
 
 _EVENT_PUBLISHERS = 32
 _MAX_ERROR = 400
 _MAX_ACKS_WAITING = 64
 
 
-def run_forever(settings: FusionSettings) -> int:
-    """Build the pipeline, open the zenoh session and :func:`run` until stopped.
+def run_forever(settings: FusionSettings, *, cameras: dict[str, Camera] | None = None) -> int:
+    """Build the pipeline, open the zenoh session and :func:`run` until stopped. ``cameras``: the
+    calibrations :meth:`FusionSettings.announce` loaded (else it is called here).
 
     Returns the exit code: 0 after a stop (a signal at any moment, the lookup
     tables' building included, or idle; also while still waiting for zenoh: an
-    unreachable router is logged once and retried with back-off), 1 when the zenoh session cannot be opened (a port that cannot
-    be listened on), 2 when the calibrations, zenoh settings, event store or
+    unreachable router is logged once and retried with back-off), 1 when the
+    zenoh session cannot be opened (a port that cannot be listened on), 2 when the calibrations, zenoh settings, event store or
     output folder are unusable (the reason is logged).
     """
-    from common.certs import FUSION
     from common.shell import Stopped, serve, stopped_raises
-    from common.transport import site_config
-
-    z = settings.site.zenoh
-    connect = list(settings.connect if settings.connect is not None else z.connect)
-
-    def make_config():
-        return site_config(settings.site, host=FUSION, mode=settings.mode, listen=settings.listen,
-                           connect=settings.connect, tls_cert=settings.tls_cert, tls_key=settings.tls_key,
-                           connect_timeout_ms=1000)
 
     try:
         with stopped_raises(who="fusion", log=log):   # a signal while the lookup tables are built
-            try:
-                make_config()
-                cameras = settings.site.load_cameras()
-            except ValueError as exc:
-                log.error("%s", exc)
-                return 2
-            # what it does before it can be reached: the tables take seconds to a minute when not cached
-            log.info("fusion: site %s, %d cameras: loading the carving tables, then zenoh (%s)", settings.site.name,
-                     len(cameras), ", ".join(connect) or "no router: peer")
+            if cameras is None:
+                try:
+                    cameras = settings.announce(log)
+                except ValueError as exc:
+                    log.error("%s", exc)
+                    return 2
             try:
                 pipeline = settings.build_pipeline(cameras)
             except ValueError as exc:
                 log.error("%s", exc)
                 return 2
-            return serve(make_config, who="fusion", endpoints=connect, log=log,
+            return serve(settings.zenoh_config, who="fusion", endpoints=list(settings.endpoints()), log=log,
                          work=lambda session, stop: run(session, settings, stop, pipeline))
     except Stopped:
         return 0

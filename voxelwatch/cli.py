@@ -110,7 +110,7 @@ def _register_site(sub) -> None:
 
 def _site_check(args: argparse.Namespace) -> int:
     from common.site import load_site
-    from fusion_server.node import FusionSettings
+    from fusion_server.settings import FusionSettings
 
     site = load_site(args.path)  # endpoints are checked here, as the processes check them
     cameras = site.load_cameras()
