@@ -16,9 +16,10 @@ session loses its last zenoh link and when it has one again.
 zenoh's limit on one message is set to :data:`MAX_ZENOH_MESSAGE_BYTES`.
 
 Layers, later ones winning: the ``config`` file (zenoh's own JSON5), the
-message size limit, the section's fields and the command line, TLS from ``[zenoh.tls]`` (this host's
-certificate chosen by its name: ``router``, ``fusion`` or the camera id), the
-site's access control on a router, and last the ``settings`` table.
+message size limit, the section's fields and the command line, TLS from
+``[zenoh.tls]`` (this host's certificate chosen by its name: ``router``,
+``fusion`` or the camera id), the site's access control on a router, and last
+the ``settings`` table.
 """
 
 from __future__ import annotations

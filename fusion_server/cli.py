@@ -112,7 +112,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                 return 2
             from fusion_server.server import run_forever
 
-            return run_forever(settings, cameras=cameras)
+            return run_forever(settings, cameras)
     except Stopped:
         return 0
 

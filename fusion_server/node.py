@@ -94,7 +94,6 @@ from collections import Counter, deque
 from dataclasses import dataclass, field
 from typing import Any, Mapping
 
-
 from common import keys, maskcodec, messages
 from common.camera import Camera
 from common.maskcodec import MaskCodecError
@@ -119,6 +118,8 @@ log = logging.getLogger("voxelwatch.fusion")
 _SYNC_DROPS = ("duplicate", "superseded", "dropped_overflow")
 _SYNC_LATE = ("out_of_order", "stale", "unmatched")
 _SKEW_EVENT_EVERY_S = 60.0
+_MASK_SCALES = bounds_of(Carving, "mask_scale")
+"""The range of ``mask_scale`` the site file accepts: a worker's masks are its image at one of these."""
 
 
 @dataclass
@@ -630,7 +631,7 @@ class FusionNode:
         if cam is None:
             return
         if not mask_size_fits(cam.width, cam.height, msg.width, msg.height):
-            low, high = bounds_of(Carving, "mask_scale")
+            low, high = _MASK_SCALES
             raise _Shape(f"MaskFrame: a {msg.width}x{msg.height} mask is not a size camera {msg.cam!r} sends (its "
                          f"{cam.width}x{cam.height} image scaled by a mask_scale in {low:g}..{high:g})")
 
@@ -761,7 +762,7 @@ def mask_size_fits(image_width: int, image_height: int, width: int, height: int)
     scale (``round(image side * scale)``, as ``Camera.scaled`` and the segmenter do). Bigger masks, and masks
     of another shape, are refused before they are decoded: a camera cannot make the server inflate more
     than its own image's pixels."""
-    low, high = bounds_of(Carving, "mask_scale")
+    low, high = _MASK_SCALES
     # the scales that round to each side, closed at both ends (a half rounds either way)
     lo = max(low, (width - 0.5) / image_width, (height - 0.5) / image_height)
     hi = min(high, (width + 0.5) / image_width, (height + 0.5) / image_height)

@@ -63,26 +63,21 @@ _MAX_ERROR = 400
 _MAX_ACKS_WAITING = 64
 
 
-def run_forever(settings: FusionSettings, *, cameras: dict[str, Camera] | None = None) -> int:
+def run_forever(settings: FusionSettings, cameras: dict[str, Camera]) -> int:
     """Build the pipeline, open the zenoh session and :func:`run` until stopped. ``cameras``: the
-    calibrations :meth:`FusionSettings.announce` loaded (else it is called here).
+    calibrations :meth:`FusionSettings.announce` checked and loaded.
 
     Returns the exit code: 0 after a stop (a signal at any moment, the lookup
     tables' building included, or idle; also while still waiting for zenoh: an
     unreachable router is logged once and retried with back-off), 1 when the
-    zenoh session cannot be opened (a port that cannot be listened on), 2 when the calibrations, zenoh settings, event store or
-    output folder are unusable (the reason is logged).
+    zenoh session cannot be opened (a port that cannot be listened on), 2 when
+    the pipeline cannot be built or the event store or output folder is unusable
+    (the reason is logged).
     """
     from common.shell import Stopped, serve, stopped_raises
 
     try:
         with stopped_raises(who="fusion", log=log):   # a signal while the lookup tables are built
-            if cameras is None:
-                try:
-                    cameras = settings.announce(log)
-                except ValueError as exc:
-                    log.error("%s", exc)
-                    return 2
             try:
                 pipeline = settings.build_pipeline(cameras)
             except ValueError as exc:
