@@ -231,6 +231,7 @@ class CameraRenderer:
         self.valid = np.all(np.isfinite(rays), axis=2)
         rays[~self.valid] = camera.forward.astype(np.float32)
         self.rays = rays
+        self._cells = _RayCells.of(rays, self.valid, RAY_CELL_PX)
         dx, dy, dz = rays[..., 0], rays[..., 1], rays[..., 2]
         self.rays6 = np.stack([dx * dx, dy * dy, dz * dz, 2 * dx * dy, 2 * dx * dz, 2 * dy * dz], axis=2)
         hits = room_hits(room, camera, rays)
@@ -445,10 +446,18 @@ class CameraRenderer:
         keep = (x1 > x0) & (y1 > y0)
         if not keep.any():
             return None
-        roi = (int(x0[keep].min()), int(y0[keep].min()), int(x1[keep].max()), int(y1[keep].max()))
+        if not finite.all():
+            # Bound those parts by the cone of rays that can meet them instead of the whole image
+            # (a person a step from the camera, under it or behind it): the same hits, found
+            # in a fraction of the pixels. The body keeps its plan, found or not.
+            cone = self._cells.boxes(body.centers_m[~finite] - self.center, np.linalg.norm(ext[~finite], axis=1))
+            x0[~finite], y0[~finite], x1[~finite], y1[~finite] = cone.T
+        cast = (x1 > x0) & (y1 > y0)
+        roi = ((int(x0[cast].min()), int(y0[cast].min()), int(x1[cast].max()), int(y1[cast].max()))
+               if cast.any() else (0, 0, 0, 0))
         inv = body.inverse_axes
         o = np.einsum("pij,pj->pi", inv, self.center[None, :] - body.centers_m)
-        return _BodyPlan(body=body, roi=roi, boxes=np.stack([x0, y0, x1, y1], axis=1), keep=keep, inv=inv, o=o)
+        return _BodyPlan(body=body, roi=roi, boxes=np.stack([x0, y0, x1, y1], axis=1), keep=cast, inv=inv, o=o)
 
     def _raycast_bodies(self, bodies: list[Body]) -> list["_BodyPlan"]:
         """Plan and raycast ``bodies`` (those out of view are dropped): the plans, in the order of
@@ -645,6 +654,54 @@ def soft_occlusion(body: Body, points_m: np.ndarray, light_m: np.ndarray) -> np.
 # ---------------------------------------------------------------------- helpers
 
 
+@dataclass(frozen=True)
+class _RayCells:
+    """The image cut into square cells of ``stride`` pixels: each cell's centre ray (unit,
+    float64) and ``spread``, the largest angle (radians) between it and the cell's valid rays,
+    so that a cone of rays can be bounded in pixels without a ray per pixel."""
+
+    stride: int
+    rays: np.ndarray     # (Hc, Wc, 3)
+    spread: np.ndarray   # (Hc, Wc)
+    shape: tuple[int, int]
+
+    @classmethod
+    def of(cls, rays: np.ndarray, valid: np.ndarray, stride: int) -> "_RayCells":
+        H, W = valid.shape
+        hc, wc = -(-H // stride), -(-W // stride)
+        cy = np.minimum(np.arange(hc) * stride + stride // 2, H - 1)
+        cx = np.minimum(np.arange(wc) * stride + stride // 2, W - 1)
+        centre = rays[cy][:, cx].astype(np.float64)
+        centre /= np.linalg.norm(centre, axis=2, keepdims=True)
+        padded = np.zeros((hc * stride, wc * stride, 3))
+        padded[:H, :W] = rays
+        seen = np.zeros((hc * stride, wc * stride), dtype=bool)
+        seen[:H, :W] = valid
+        dots = np.einsum("aibjk,abk->aibj", padded.reshape(hc, stride, wc, stride, 3), centre)
+        dots = np.where(seen.reshape(hc, stride, wc, stride), dots, 1.0)
+        spread = np.arccos(np.clip(dots.min(axis=(1, 3)), -1.0, 1.0))
+        return cls(stride, centre, spread, (H, W))
+
+    def boxes(self, offsets: np.ndarray, radii: np.ndarray) -> np.ndarray:
+        """(N, 4) int pixel boxes (x0, y0, x1, y1; empty where x1 <= x0) holding every pixel whose
+        ray can meet a sphere of radius ``radii[i]`` centred ``offsets[i]`` (N, 3) from the camera
+        centre: the whole image where the centre lies in the sphere."""
+        H, W = self.shape
+        out = np.zeros((len(offsets), 4), dtype=int)
+        for i, (off, r) in enumerate(zip(offsets, radii)):
+            dist = float(np.linalg.norm(off))
+            if dist <= r + 1e-3:
+                out[i] = (0, 0, W, H)
+                continue
+            # within the sphere's half-angle, widened by the cell's spread and a float32 margin
+            angle = np.arccos(np.clip(self.rays @ (off / dist), -1.0, 1.0))
+            rows, cols = np.nonzero(angle <= np.arcsin(r / dist) + self.spread + 1e-4)
+            if len(rows):
+                s = self.stride
+                out[i] = (cols.min() * s, rows.min() * s, min((cols.max() + 1) * s, W), min((rows.max() + 1) * s, H))
+        return out
+
+
 @dataclass
 class _BodyPlan:
     body: Body
@@ -705,6 +762,7 @@ def _box_points() -> np.ndarray:
 
 
 _BOX_POINTS = _box_points()
+RAY_CELL_PX = 8   # cell of the rays bounding the parts a lens cannot project (see _RayCells)
 
 
 def _slab_far(o, d, lo, hi) -> tuple[np.ndarray, np.ndarray]:
