@@ -12,8 +12,8 @@ import sys
 from collections.abc import Sequence
 from pathlib import Path
 
-from common import maskcodec
-from common.shell import add_logging_arguments, add_zenoh_arguments, configure_logging, serve
+from common.shell import (Stopped, add_logging_arguments, add_zenoh_arguments, configure_logging, serve,
+                          stop_if_asked, stopped_raises)
 
 log = logging.getLogger("voxelwatch.camera")
 
@@ -49,6 +49,8 @@ site file or option.
 
 
 def build_parser() -> argparse.ArgumentParser:
+    from common import maskcodec
+
     p = argparse.ArgumentParser(prog="voxelwatch-camera", description=DESCRIPTION, epilog=EPILOG,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--site", required=True, metavar="SITE.toml", help="the site file (cameras, zenoh settings)")
@@ -104,19 +106,33 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
-    configure_logging(args.verbose, args.quiet)
-    _quiet_opencv()
+    """Exit status 0 after a stop (a signal at any moment of start-up included) or the end of a
+    recording, 1 when the source or zenoh cannot be used, 2 for a bad site file or option."""
+    who = "camera"
     try:
-        settings, conf, connect = _configure(args)
-    except ValueError as exc:   # SiteError, TransportError and bad values carry their own clear message
-        print(f"voxelwatch-camera: {exc}", file=sys.stderr)
-        return 2
+        # from the first instruction: a signal while the modules load (a second or two on a small
+        # box) is a stop like any other, said in one line, exit status 0
+        with stopped_raises(who=who, log=None):
+            args = build_parser().parse_args(argv)
+            configure_logging(args.verbose, args.quiet)
+            who = f"camera {args.camera}"
+            _quiet_opencv()
+            try:
+                settings, conf, connect = _configure(args)
+            except ValueError as exc:   # SiteError, TransportError and bad values carry their own clear message
+                print(f"voxelwatch-camera: {exc}", file=sys.stderr)
+                return 2
+            log.info("%s: %s (%s), then zenoh (%s)", who, settings.source, settings.modality,
+                     ", ".join(connect) if connect else f"{args.mode or 'site'} mode, scouting")
+            from camera_worker.worker import run
 
-    from camera_worker.worker import run
-
-    return serve(conf, who=f"camera {settings.cam}", endpoints=connect, log=log,
-                 work=lambda session, stop: run(session, settings, stop=stop))
+            stop_if_asked()   # a signal during the imports: their own handlers may have eaten the exception
+            return serve(conf, who=who, endpoints=connect, log=log,
+                         work=lambda session, stop: run(session, settings, stop=stop))
+    except Stopped as stop:
+        configure_logging()   # no-op when set up already
+        log.info("%s: %s received while starting, stopping", who, stop.signame)
+        return 0
 
 
 def _configure(args: argparse.Namespace):

@@ -42,6 +42,7 @@ the benchmark command.
 from __future__ import annotations
 
 import logging
+import math
 import threading
 import time
 from dataclasses import dataclass, field
@@ -83,6 +84,8 @@ log = logging.getLogger("voxelwatch.camera")
 
 STAGES = ("read", "segment", "looks", "view", "encode", "publish")
 _STOP_NOTICE_S = 0.2
+ORPHAN_HOLD_S = 300.0
+"""How long hold boxes stay in force, at most, while no fusion server is live (:class:`HoldBook`)."""
 """The timed stages of one frame, in order (``looks``: answering a look request, nearly
 nothing on the frames without one)."""
 
@@ -133,6 +136,7 @@ class WorkerSettings(Settings):
     backoff_s: float = 0.5
     max_backoff_s: float = 30.0
     hold_queue: int = Field(default=8, ge=1)
+    orphan_hold_s: float = Field(default=ORPHAN_HOLD_S, ge=0.0, allow_inf_nan=False)
     look_queue: int = Field(default=4, ge=1)
     expected_size: tuple[int, int] | None = None
     modality: str = "colour"
@@ -222,13 +226,37 @@ class HoldBook:
     a fusion host whose clock differs cannot make a hold last forever.
     Messages for another camera, or older (``stamp_ns``) than the one in
     force, are rejected.
+
+    While no fusion server is live (:meth:`server_gone`: its liveliness token
+    went, a crash or a restart), the boxes in force do not lapse: nobody can
+    say the still person has gone, and a person lying on the floor must not
+    fade into the background before a server is back to watch. They last
+    ``orphan_s`` after the server went at most (then they lapse as usual),
+    and once a server is back (:meth:`server_back`), one time-to-live more,
+    for it to send its own.
     """
 
-    def __init__(self, cam: str) -> None:
+    def __init__(self, cam: str, orphan_s: float = ORPHAN_HOLD_S) -> None:
+        if not (math.isfinite(orphan_s) and orphan_s >= 0):
+            raise ValueError(f"orphan_s must be a non-negative number of seconds, got {orphan_s!r}")
         self.cam = cam
+        self.orphan_ns = int(round(orphan_s * 1e9))
         self._boxes: list[Box] = []
         self._stamp_ns = -1
         self._expires_ns = -1
+        self._ttl_ns = 0
+        self._gone_ns: int | None = None   # when the last fusion server went (this camera's time)
+
+    def server_gone(self, now_ns: int) -> None:
+        """No fusion server is live since ``now_ns``: the boxes in force stay, ``orphan_s`` at most."""
+        if self._gone_ns is None:
+            self._gone_ns = int(now_ns)
+
+    def server_back(self, now_ns: int) -> None:
+        """A fusion server is live again: the boxes held meanwhile last one time-to-live more."""
+        if self._gone_ns is not None and now_ns <= self._gone_ns + self.orphan_ns:
+            self._expires_ns = max(self._expires_ns, int(now_ns) + self._ttl_ns)
+        self._gone_ns = None
 
     def offer(self, msg: HoldRegions, now_ns: int) -> None:
         """Take ``msg`` into force at ``now_ns``; raise :class:`HoldRegionsRejected` if it does not apply."""
@@ -239,11 +267,15 @@ class HoldBook:
                                       f"({self._stamp_ns})")
         self._stamp_ns = msg.stamp_ns
         self._boxes = [tuple(int(v) for v in b) for b in msg.boxes]
-        self._expires_ns = int(now_ns) + int(msg.ttl_ms) * 1_000_000
+        self._ttl_ns = int(msg.ttl_ms) * 1_000_000
+        self._expires_ns = int(now_ns) + self._ttl_ns
 
     def boxes(self, now_ns: int) -> list[Box]:
         """Boxes ``(x0, y0, x1, y1)`` (full-resolution pixels, exclusive) in force at ``now_ns``."""
-        if not self._boxes or now_ns > self._expires_ns:
+        expires = self._expires_ns
+        if self._gone_ns is not None and self._expires_ns >= self._gone_ns:   # in force when the server went
+            expires = max(expires, self._gone_ns + self.orphan_ns)
+        if not self._boxes or now_ns > expires:
             return []
         return list(self._boxes)
 
@@ -379,9 +411,13 @@ def run(session: Any, settings: WorkerSettings, *, stop: threading.Event | None 
         congestion_control=zenoh.CongestionControl.DROP, express=True)
     hold_sub = session.declare_subscriber(keys.hold_key(settings.prefix, settings.cam),
                                           zenoh.handlers.RingChannel(settings.hold_queue))
+    server = _ServerPresence()
+    server_sub = session.liveliness().declare_subscriber(
+        keys.alive_fusion_key(settings.prefix), lambda sample: server.seen(sample.kind == zenoh.SampleKind.PUT),
+        history=True)
     look_sub = session.declare_subscriber(keys.look_key(settings.prefix, settings.cam),
                                           zenoh.handlers.RingChannel(settings.look_queue))
-    loop = _Loop(settings, segmenter, source, publisher, hold_sub, look_sub, counters, stop, view)
+    loop = _Loop(settings, segmenter, source, publisher, hold_sub, look_sub, counters, stop, view, server)
     code = 1
     try:
         code = loop.run()
@@ -391,7 +427,7 @@ def run(session: Any, settings: WorkerSettings, *, stop: threading.Event | None 
         loop.close()
         if code == 0:
             _say_stopping(session, settings)
-        for entity in (look_sub, hold_sub, publisher, token):
+        for entity in (server_sub, look_sub, hold_sub, publisher, token):
             try:
                 entity.undeclare()
             except Exception:  # noqa: BLE001 - the session may already be closing
@@ -413,12 +449,34 @@ def _say_stopping(session: Any, settings: WorkerSettings) -> None:
         log.debug("camera %s: stop notice not sent: %s", settings.cam, exc)
 
 
+class _ServerPresence:
+    """Whether a fusion server is live, from its liveliness token (set on zenoh's thread, taken
+    by the frame loop): :meth:`take` is the news since the last call, None for none."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._news: bool | None = None
+        self._live = False
+
+    def seen(self, live: bool) -> None:
+        with self._lock:
+            if live != self._live:
+                self._live = live
+                self._news = live
+
+    def take(self) -> bool | None:
+        with self._lock:
+            news, self._news = self._news, None
+            return news
+
+
 class _Loop:
     """The per-frame loop of :func:`run` (state that the loop shares between its stages)."""
 
     def __init__(self, settings: WorkerSettings, segmenter: Segmenter, source: FrameSource,
                  publisher: Any, hold_sub: Any, look_sub: Any, counters: WorkerCounters,
-                 stop: threading.Event, view: ViewCheck | None = None) -> None:
+                 stop: threading.Event, view: ViewCheck | None = None,
+                 server: "_ServerPresence | None" = None) -> None:
         self.s = settings
         self.segmenter = segmenter
         self.source = source
@@ -428,7 +486,8 @@ class _Loop:
         self.look_key = keys.look_key(settings.prefix, settings.cam)
         self.c = counters
         self.stop = stop
-        self.holds = HoldBook(settings.cam)
+        self.holds = HoldBook(settings.cam, settings.orphan_hold_s)
+        self.server = server if server is not None else _ServerPresence()
         self.answerer = LookAnswerer()
         self.view = view
         self.reader: LiveReader | None = None
@@ -595,6 +654,13 @@ class _Loop:
                         *self.s.expected_size)
 
     def _take_holds(self, now_ns: int) -> None:
+        live = self.server.take()
+        if live is True:
+            self.holds.server_back(now_ns)
+        elif live is False:
+            self.holds.server_gone(now_ns)
+            log.info("camera %s: no fusion server is live: the hold boxes in force stay (%.0f s at most)",
+                     self.s.cam, self.s.orphan_hold_s)
         while True:
             sample = self.hold_sub.try_recv()
             if sample is None:

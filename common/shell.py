@@ -37,6 +37,7 @@ __all__ = [
     "configure_logging",
     "serve",
     "stop_on_signals",
+    "stop_if_asked",
     "stopped_raises",
 ]
 
@@ -88,27 +89,61 @@ def configure_logging(verbose: bool = False, quiet: bool = False) -> None:
 class Stopped(BaseException):
     """SIGINT or SIGTERM while a process was still getting ready (:func:`stopped_raises`)."""
 
+    @property
+    def signame(self) -> str:
+        """The signal's name (``SIGTERM``), or ``a signal`` when unknown."""
+        try:
+            return signal.Signals(self.args[0]).name
+        except (IndexError, ValueError):
+            return "a signal"
+
+
+_STOP_ASKED = threading.Event()
+"""Set by :func:`stopped_raises`'s handler: a stop was asked while the process got ready."""
+
+
+_ASKED_BY: list[int] = []   # the signals asked with
+_ASKED_DEPTH: list[str] = []   # the start-ups (stopped_raises blocks) in progress
+
+
+def stop_if_asked() -> None:
+    """Raise :class:`Stopped` when a signal came while the process got ready, for the end of
+    each start-up step: the exception raised at the signal can be swallowed by code it lands in
+    (third-party modules import with bare ``except:`` clauses), the request cannot."""
+    if _STOP_ASKED.is_set():
+        raise Stopped(*_ASKED_BY[-1:])
+
 
 @contextmanager
-def stopped_raises(*, who: str, log: logging.Logger) -> Iterator[None]:
+def stopped_raises(*, who: str, log: logging.Logger | None) -> Iterator[None]:
     """While the block runs, SIGINT and SIGTERM log one line and raise :class:`Stopped` (at the next
     Python instruction): for a process's start-up (loading its modules, building its tables), which
     has no loop to look at a stop event. :func:`serve` inside the block takes the signals over while
-    it runs. The previous handlers come back after the block; off the main thread it does nothing."""
+    it runs. The previous handlers come back after the block; off the main thread it does nothing.
+    ``log=None``: no line from the handler (a process whose logging is not set up yet says it where
+    it catches :class:`Stopped`)."""
     if threading.current_thread() is not threading.main_thread():
         yield
         return
 
     def _raise(signum: int, _frame: object) -> None:
-        log.info("%s: %s received while starting, stopping", who, signal.Signals(signum).name)
+        _STOP_ASKED.set()
+        _ASKED_BY.append(signum)
+        if log is not None:
+            log.info("%s: %s received while starting, stopping", who, signal.Signals(signum).name)
         raise Stopped(signum)
 
+    if not _ASKED_DEPTH:   # a new start-up: what an earlier one was asked is done with
+        _STOP_ASKED.clear()
+        _ASKED_BY.clear()
+    _ASKED_DEPTH.append(who)
     previous = {sig: signal.signal(sig, _raise) for sig in _SIGNALS}
     try:
         yield
     finally:
         for sig, handler in previous.items():
             signal.signal(sig, handler)
+        _ASKED_DEPTH.pop()
 
 
 @contextmanager
@@ -118,6 +153,8 @@ def stop_on_signals(stop: threading.Event | None = None, *, who: str | None = No
     after it). Off the main thread, where Python takes no signal handlers, the event is only the
     caller's to set."""
     stop = stop if stop is not None else threading.Event()
+    if _ASKED_DEPTH and _STOP_ASKED.is_set():   # asked while getting ready (see stop_if_asked)
+        stop.set()
     if threading.current_thread() is not threading.main_thread():
         yield stop
         return

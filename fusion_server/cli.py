@@ -9,7 +9,8 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from common.shell import Stopped, add_logging_arguments, add_zenoh_arguments, configure_logging, stopped_raises
+from common.shell import (Stopped, add_logging_arguments, add_zenoh_arguments, configure_logging, stop_if_asked,
+                          stopped_raises)
 
 if TYPE_CHECKING:
     from fusion_server.settings import FusionSettings
@@ -112,6 +113,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                 return 2
             from fusion_server.server import run_forever
 
+            stop_if_asked()   # a signal during the imports: their own handlers may have eaten the exception
             return run_forever(settings, cameras)
     except Stopped:
         return 0

@@ -75,6 +75,11 @@ CREATE TABLE IF NOT EXISTS events (
 );
 CREATE INDEX IF NOT EXISTS events_by_stamp ON events (stamp_ns);
 CREATE INDEX IF NOT EXISTS events_by_kind ON events (kind, stamp_ns);
+CREATE TABLE IF NOT EXISTS snapshot (
+    id       INTEGER PRIMARY KEY CHECK (id = 1),
+    stamp_ns INTEGER NOT NULL,
+    body     TEXT NOT NULL
+);
 """
 
 
@@ -306,6 +311,27 @@ class EventStore:
         self.merged += added
         log.info("event store %s: %d events from %s merged into the store", self.path, added, path)
         return added
+
+    def save_snapshot(self, stamp_ns: int, body: str) -> None:
+        """Keep ``body`` (the server's :class:`~fusion_server.snapshot.Snapshot` as text) in place
+        of the last one; ValueError when the database cannot write it."""
+        with self._lock:
+            db = self._open()
+            try:
+                db.execute("INSERT OR REPLACE INTO snapshot VALUES (1, ?, ?)", (int(stamp_ns), str(body)))
+                db.commit()
+            except sqlite3.Error as exc:
+                _rollback(db)
+                raise ValueError(f"event store {self.path}: cannot write the snapshot: {exc}") from None
+
+    def load_snapshot(self) -> tuple[int, str] | None:
+        """The last snapshot kept, ``(stamp_ns, body)``, or None."""
+        with self._lock:
+            try:
+                row = self._open().execute("SELECT stamp_ns, body FROM snapshot WHERE id = 1").fetchone()
+            except sqlite3.Error as exc:
+                raise ValueError(f"event store {self.path}: cannot read the snapshot: {exc}") from None
+        return None if row is None else (int(row[0]), str(row[1]))
 
     def count(self) -> int:
         with self._lock:

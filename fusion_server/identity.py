@@ -193,6 +193,25 @@ class IdentityKeeper:
             person = _Person(label=label, model=r.model, name=r.name)
             self._lost[label] = _Lost(person=person, xy=(math.nan, math.nan), lost_ns=2**62, partner=None)
 
+    def restore(self, people: Sequence[tuple[int, str | None, tuple[float, float], AppearanceModel | None]],
+                stamp_ns: int) -> None:
+        """People a server watched before its restart, ``(label, name, (x, y), model)``: lost
+        right there at ``stamp_ns``, so the first body confirmed where each was takes their label
+        back (an enrolled resident keeps the enrolled name); new labels come after theirs."""
+        for label, name, xy, model in people:
+            lost = self._lost.get(label)
+            if lost is not None:
+                if model is not None:
+                    lost.person.model = model
+                lost.xy, lost.lost_ns, lost.partner = (float(xy[0]), float(xy[1])), int(stamp_ns), None
+                continue
+            if label in self._people:
+                continue
+            person = _Person(label=int(label), model=model if model is not None else AppearanceModel(), name=name)
+            self._lost[label] = _Lost(person=person, xy=(float(xy[0]), float(xy[1])), lost_ns=int(stamp_ns), partner=None)
+        top = max((int(label) for label, *_ in people), default=0)
+        self._labels = itertools.count(max(next(self._labels), top + 1))
+
     # ------------------------------------------------------------------ per frame
 
     def assign(self, estimates: Sequence, looks: Mapping[str, Iterable[Appearance]], stamp_ns: int) -> dict[int, int]:

@@ -107,6 +107,7 @@ from fusion_server.event_store import EventStore, parse_history_selector
 from fusion_server.outputs import RunOutputs
 from fusion_server.pipeline import FusedFrame, FusionPipeline
 from fusion_server.settings import FusionSettings
+from fusion_server.snapshot import SNAPSHOT_EVERY_S, Snapshot
 from fusion_server.sync import FrameSet, FrameSynchroniser
 
 __all__ = ["FusionCounters", "FusionNode", "FusionSettings", "Outbox", "camera_event", "history_replies"]
@@ -276,6 +277,9 @@ class FusionNode:
         self._out = Outbox()
         self._looks: dict[tuple[str, int], list] = {}  # (camera, mask stamp) -> its descriptors
         self._depths: dict[tuple[str, int], Any] = {}  # (camera, mask stamp) -> its foreground range
+        self.keep_snapshots = False   # the live server keeps one in its store (fusion_server.snapshot)
+        self._snapshot_ns = -math.inf
+        self._restored_holds: dict[str, list] = {}   # a restored snapshot's holds, sent while its people are sought
 
     # ------------------------------------------------------------------ inputs
 
@@ -521,7 +525,52 @@ class FusionNode:
                                     **alarm.details()))
         self._queue_holds(fused, mono)
         self._queue_looks(fused, mono)
+        if self.keep_snapshots and fused.stamp_ns - self._snapshot_ns >= SNAPSHOT_EVERY_S * 1e9:
+            self._save_snapshot(mono)
         return fused
+
+    def restore(self, now_ns: int, mono: float) -> Snapshot | None:
+        """Go on from the snapshot in the store (a restart): its people are sought where they were
+        and its holds sent at once and kept while they are sought. Nothing when the store has none,
+        or one older than ``restore_within_s`` or unreadable (said in the log). Returns it."""
+        found = self.store.load_snapshot() if self.store is not None else None
+        if found is None:
+            return None
+        stamp_ns, body = found
+        age_s = (now_ns - stamp_ns) * 1e-9
+        try:
+            snap = Snapshot.from_json(body, where=f"event store {self.store.path}: snapshot")
+        except ValueError as exc:
+            log.warning("fusion: %s; starting afresh", exc)
+            return None
+        if age_s > self.s.restore_within_s:
+            log.info("fusion: the snapshot in the store is %.0f s old (restore_within_s %.0f): starting afresh",
+                     age_s, self.s.restore_within_s)
+            return None
+        self.pipeline.restore(snap)
+        self._restored_holds = {cam: _clean_boxes(boxes) for cam, boxes in snap.holds.items()
+                                if cam in self.holds_sent and boxes}
+        for cam, boxes in self._restored_holds.items():
+            # stamped now: newer than what the workers hold from the last server, older than the
+            # frame sets this one will fuse
+            msg = HoldRegions(cam=cam, stamp_ns=int(now_ns), boxes=boxes, ttl_ms=self.s.hold_ttl_ms)
+            self._out.holds.append((cam, messages.encode(msg)))
+            self.holds_sent[cam] = (boxes, mono)
+        people = ", ".join(f"person {p.label}" + (f" ({p.name})" if p.name else "") + f" {p.posture or '?'}"
+                           f" at ({p.x:.1f}, {p.y:.1f})" for p in snap.people) or "nobody"
+        log.info("fusion: going on from the snapshot of %.1f s ago: %s; holds sent to %d camera(s)",
+                 age_s, people, len(self._restored_holds))
+        return snap
+
+    def _save_snapshot(self, mono: float) -> None:
+        snap = self.pipeline.snapshot()
+        if snap is None or self.store is None:
+            return
+        self._snapshot_ns = snap.stamp_ns
+        try:
+            self.store.save_snapshot(snap.stamp_ns, snap.to_json())
+        except ValueError as exc:
+            self.rlog.warn("fusion", "snapshot", str(exc), mono)
 
     def _fuse_next(self, now_ns: int, mono: float) -> None:
         """Fuse the oldest ready set; a set the pipeline fails on is counted and logged."""
@@ -563,8 +612,10 @@ class FusionNode:
                 self.rlog.warn(f"camera {cam}", "look", f"look request not published: {exc}", mono)
 
     def _queue_holds(self, fused: FusedFrame, mono: float) -> None:
+        if self._restored_holds and not self.pipeline.restoring:
+            self._restored_holds = {}
         for cam in self.camera_ids:
-            boxes = _clean_boxes(fused.holds.get(cam, []))
+            boxes = _clean_boxes(fused.holds.get(cam, []) + self._restored_holds.get(cam, []))
             last, sent_mono = self.holds_sent[cam]
             due = bool(boxes) and mono - sent_mono >= self.s.hold_ttl_ms / 2000.0
             if not due and _same_boxes(boxes, last, self.s.hold_slack_px):

@@ -22,6 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
+from common.appearance import AppearanceModel
 from common.camera import Camera
 from common.messages import Appearance, Event, PersonRegion
 from common.site import Site
@@ -35,11 +36,14 @@ from fusion_server.grid import CarveResult
 from fusion_server.hotspots import Hotspot
 from fusion_server.identity import IdentityKeeper, IdentityParams, Resident
 from fusion_server.posture import PostureBank, PostureReading
+from fusion_server.snapshot import Snapshot, Watched
 from fusion_server.tracker import PopulationParams, TrackEstimate, Tracker
 
 log = logging.getLogger("voxelwatch.fusion")
 
 
+RESTORE_WINDOW_S = 10.0
+"""After a restart, how long a restored person waits to be found again where they were (seconds)."""
 NEW_TARGET_MIN_VOLUME_M3 = 0.05
 """Smallest blob that starts a new track. A person carves 0.1-0.5 m^3 standing (a
 body lying half hidden by furniture about 0.05-0.1 m^3, but that person was tracked
@@ -140,6 +144,11 @@ class FusionPipeline:
         self.identity = identity if identity is not None else IdentityKeeper(self.cameras)
         self.postures = PostureBank(voxel_m=carver.grid.voxel_m, decisions=decisions, viterbi_lag_s=viterbi_lag_s)
         self._labels: dict[int, int] = {}  # target id -> label, as of the last frame
+        self._watched: tuple[int, list[TrackOutput], dict] | None = None   # (stamp, tracks, holds) of the last step
+        self._restore: Snapshot | None = None   # a snapshot to go on from, taken at the next step
+        self._restoring: dict[int, dict | None] = {}   # restored labels not taken back yet -> fall state
+        self._restoring_until_ns = 0
+        self._restored: dict[int, Watched] = {}   # the restored people, as the snapshot had them
 
     @classmethod
     def from_site(
@@ -181,6 +190,9 @@ class FusionPipeline:
         depths: camera id -> (H, W) uint16 range image, millimetres, at its mask's size,
             from depth cameras (0 = no measurement): carves free space in front of people.
         """
+        if self._restore is not None:
+            self._take_restore(self._restore, stamp_ns)
+            self._restore = None
         carve = self.carver.carve(masks, stamp_ns, depths=depths)
         blobs = self.detect_people(carve, masks)
         bodies = self.tracker.step(carve, blobs, stamp_ns)
@@ -205,6 +217,11 @@ class FusionPipeline:
         # learn exactly the people who must never fade, those on the floor.
         held = [e for e, t in zip(confirmed, tracks) if e.still or t.posture in ("sitting", "lying")]
         holds = self.hold_regions(held)
+        self._watched = (int(stamp_ns), tracks, holds)
+        if self._restoring and stamp_ns > self._restoring_until_ns:
+            log.info("restart: %s not found again within %.0f s; they are lost people now",
+                     ", ".join(f"person {label}" for label in sorted(self._restoring)), RESTORE_WINDOW_S)
+            self._restoring.clear()
         return FusedFrame(
             frame=int(frame),
             stamp_ns=int(stamp_ns),
@@ -230,9 +247,60 @@ class FusionPipeline:
         if renames:
             self.postures.rename(renames)
             self.reasoner.rename(renames)
+            for label in renames.values():
+                if label in self._restoring:
+                    self.reasoner.restore(label, self._restoring.pop(label))
+                    log.info("restart: person %d found again", label)
         self._labels = labels
         # a body waiting for its identity is not reported (nor taken for a person) yet
         return [dataclasses.replace(b, id=labels[b.id], confirmed=b.confirmed and labels[b.id] > 0) for b in bodies]
+
+    def snapshot(self) -> Snapshot | None:
+        """What a restarted server needs to go on from the last step (None before the first):
+        the confirmed people with their models and fall state, and the holds."""
+        if self._watched is None:
+            return None
+        stamp_ns, tracks, holds = self._watched
+        people = []
+        for t in tracks:
+            model = self.identity.model_of(t.id)
+            people.append(Watched(label=int(t.id), x=round(float(t.x), 3), y=round(float(t.y), 3), posture=t.posture,
+                                  name=t.person, model=model.to_dict() if model is not None else None,
+                                  fall=self.reasoner.state_of(t.id)))
+        people += [Watched(label=label, x=x, y=y, posture=None, name=name, model=model, fall=fall)
+                   for label, (x, y, name, model, fall) in self._unclaimed().items()]
+        return Snapshot(stamp_ns=stamp_ns, people=tuple(people), holds={c: list(b) for c, b in holds.items()})
+
+    def restore(self, snapshot: Snapshot) -> None:
+        """Go on from ``snapshot`` (a restarted server): at the next step its people are lost
+        right where they were, and the first body confirmed at each place within
+        :data:`RESTORE_WINDOW_S` takes their label, name and fall state back."""
+        self._restore = snapshot
+
+    @property
+    def restoring(self) -> tuple[int, ...]:
+        """Labels of a restored snapshot not taken back yet."""
+        return tuple(sorted(set(self._restoring) | ({p.label for p in self._restore.people} if self._restore else set())))
+
+    def _take_restore(self, snap: Snapshot, stamp_ns: int) -> None:
+        people = []
+        for p in snap.people:
+            model = None
+            if p.model is not None:
+                try:
+                    model = AppearanceModel.from_dict(p.model, where=f"snapshot person {p.label}")
+                except ValueError as exc:
+                    log.warning("restart: %s; their appearance is learnt afresh", exc)
+            people.append((p.label, p.name, (p.x, p.y), model))
+            self._restoring[p.label] = p.fall
+        self._restored = {p.label: p for p in snap.people}
+        self.identity.restore(people, stamp_ns)
+        self._restoring_until_ns = int(stamp_ns) + int(RESTORE_WINDOW_S * 1e9)
+
+    def _unclaimed(self) -> dict:
+        """Restored people not found again yet, kept in the next snapshot as they were."""
+        return {label: (p.x, p.y, p.name, p.model, p.fall)
+                for label, p in self._restored.items() if label in self._restoring}
 
     def _named(self, event: Event) -> Event:
         """``event`` with the enrolled resident's name in its details, when it is about one."""

@@ -74,7 +74,7 @@ def run_forever(settings: FusionSettings, cameras: dict[str, Camera]) -> int:
     the pipeline cannot be built or the event store or output folder is unusable
     (the reason is logged).
     """
-    from common.shell import Stopped, serve, stopped_raises
+    from common.shell import Stopped, serve, stop_if_asked, stopped_raises
 
     try:
         with stopped_raises(who="fusion", log=log):   # a signal while the lookup tables are built
@@ -83,6 +83,7 @@ def run_forever(settings: FusionSettings, cameras: dict[str, Camera]) -> int:
             except ValueError as exc:
                 log.error("%s", exc)
                 return 2
+            stop_if_asked()
             return serve(settings.zenoh_config, who="fusion", endpoints=list(settings.endpoints()), log=log,
                          work=lambda session, stop: run(session, settings, stop, pipeline))
     except Stopped:
@@ -111,6 +112,11 @@ def run(session: Any, settings: FusionSettings, stop_event: threading.Event, pip
         store.close()
         return 2
     node = FusionNode(settings, pipeline, store=store, outputs=outputs)
+    node.keep_snapshots = True
+    try:
+        node.restore(time.time_ns(), time.monotonic())
+    except ValueError as exc:   # a store that cannot be read: go on without
+        log.warning("fusion: %s; starting afresh", exc)
     server = _Server(session, node, stop_event)
     try:
         server.declare()

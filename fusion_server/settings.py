@@ -71,6 +71,7 @@ class FusionSettings(Settings):
     stale_s: float = Field(default=2.0, gt=0.0, allow_inf_nan=False)
     log_every_s: float = Field(default=10.0, gt=0.0, allow_inf_nan=False)
     history_queue: int = Field(default=16, ge=1, strict=True)
+    restore_within_s: float = Field(default=300.0, ge=0.0, allow_inf_nan=False)
 
     @field_validator("prefix")
     @classmethod

@@ -73,6 +73,33 @@ def test_hold_book_replaces_releases_and_rejects():
         book.offer(_hold(stamp=150), now_ns=2)
 
 
+def test_hold_book_keeps_its_boxes_while_no_fusion_server_is_live_for_a_bound():
+    s = 1_000_000_000
+    book = HoldBook("cam1", orphan_s=60.0)
+    book.offer(_hold(stamp=100, ttl_ms=2000), now_ns=10 * s)
+    book.server_gone(11 * s)                      # the server crashed while the hold was in force
+    assert book.boxes(40 * s) == [(1, 2, 30, 40)]  # long past its 2 s: nobody can release it
+    assert book.boxes(71 * s) == [(1, 2, 30, 40)]  # 60 s after the server went ...
+    assert book.boxes(71 * s + 1) == []            # ... and no longer
+    # a server back in time: one time-to-live more, for it to send its own
+    book.server_gone(11 * s)
+    book.server_back(30 * s)
+    assert book.boxes(32 * s) == [(1, 2, 30, 40)]
+    assert book.boxes(32 * s + 1) == []
+    # a hold that had lapsed before the server went is not revived; a release is final
+    late = HoldBook("cam1", orphan_s=60.0)
+    late.offer(_hold(stamp=100, ttl_ms=2000), now_ns=10 * s)
+    late.server_gone(13 * s)
+    assert late.boxes(13 * s) == []
+    released = HoldBook("cam1", orphan_s=60.0)
+    released.offer(_hold(stamp=100, ttl_ms=2000), now_ns=10 * s)
+    released.offer(_hold(stamp=200, boxes=(), ttl_ms=2000), now_ns=10 * s + 1)
+    released.server_gone(11 * s)
+    assert released.boxes(12 * s) == []
+    with pytest.raises(ValueError, match="orphan_s"):
+        HoldBook("cam1", orphan_s=-1.0)
+
+
 def test_build_mask_frame_round_trips_through_the_wire():
     mask = np.zeros((60, 80), np.uint8)
     mask[10:30, 20:35] = 255

@@ -164,6 +164,28 @@ class FallDetector:
         """Tracks change ids ({old: new}, at once); their state goes with them."""
         self._tracks = rekey(self._tracks, renames)
 
+    def state_of(self, track: int) -> dict[str, Any] | None:
+        """What a restarted server needs to go on with the track's fall and long lie (None
+        when it is not low): since when it is low and on the floor, its drop, what was raised."""
+        fs = self._tracks.get(track)
+        if fs is None or fs.low_since_ns is None:
+            return None
+        return {"low_since_ns": fs.low_since_ns, "floor_since_ns": fs.floor_since_ns, "drop": fs.drop,
+                "fall_emitted": fs.fall_emitted, "long_lie_emitted": fs.long_lie_emitted}
+
+    def restore(self, track: int, state: Mapping[str, Any], stamp_ns: int) -> None:
+        """Go on with a track as :meth:`state_of` described it before a restart, at ``stamp_ns``
+        (the track is low now, or the state lapses after ``low_gap_s`` as usual)."""
+        fs = self._tracks.setdefault(track, _FallTrack())
+        fs.low_since_ns = int(state["low_since_ns"])
+        fs.last_low_ns = int(stamp_ns)
+        floor = state.get("floor_since_ns")
+        fs.floor_since_ns = None if floor is None else int(floor)
+        fs.last_floor_ns = int(stamp_ns)
+        fs.drop = dict(state["drop"]) if state.get("drop") else None
+        fs.fall_emitted = bool(state.get("fall_emitted", False))
+        fs.long_lie_emitted = bool(state.get("long_lie_emitted", False))
+
     def forget(self, track: int) -> None:
         """The track is gone."""
         self._tracks.pop(track, None)

@@ -102,6 +102,7 @@ class EventReasoner:
         # The tops serve the fall test and the posture-change test.
         self._tops_ns = ns(max(falls.tops_s, sit_stand.tops_s))
         self._tracks: dict[int, _Track] = {}
+        self._restoring: dict[int, Mapping[str, Any] | None] = {}  # track -> state, taken on its next frame
         self._last_stamp_ns: int | None = None
         self._first_stamp_ns: int | None = None
         self.rejected_frames = 0
@@ -166,6 +167,21 @@ class EventReasoner:
         for detector in (self.sit_stand, self.falls, self.visits, self.inactivity):
             detector.rename(renames)
 
+    def state_of(self, tid: int) -> dict[str, Any] | None:
+        """What a restarted server needs of the track (:meth:`restore`): its fall state and the
+        time it was upright; None when it is not low."""
+        fall = self.falls.state_of(tid)
+        tr = self._tracks.get(tid)
+        if fall is None or tr is None:
+            return None
+        return {**fall, "upright_ns": tr.upright_ns}
+
+    def restore(self, tid: int, state: Mapping[str, Any] | None) -> None:
+        """The track is a person a server watched before its restart: already arrived (no entry
+        again), and with ``state`` (:meth:`state_of`), their fall and long lie go on, from the
+        track's next frame."""
+        self._restoring[int(tid)] = state
+
     # ------------------------------------------------------------------ per track
 
     def _track_step(self, tid: int, est: TrackLike, reading: Any, stamp_ns: int, emit: Emitter) -> None:
@@ -173,6 +189,12 @@ class EventReasoner:
         tr = self._tracks.get(tid)
         if tr is None:
             tr = self._tracks[tid] = _Track(first_xy=(x, y), first_ns=stamp_ns)
+        if tid in self._restoring:
+            restored = self._restoring.pop(tid)
+            tr.confirmed_once = True
+            if restored is not None:
+                tr.upright_ns = max(tr.upright_ns, int(restored.get("upright_ns", 0)))
+                self.falls.restore(tid, restored, stamp_ns)
         if not isinstance(reading, PostureReading):
             posture, reading = (reading if isinstance(reading, str) else None), None
         else:
