@@ -429,7 +429,10 @@ class Status(_Message):
     ``events_not_stored``: events the store could not write since the server
     started (each was published anyway and kept in the store's fallback file);
     ``events_pending``: those still waiting in the fallback file to be merged
-    back into the store.
+    back into the store. ``state``: ``overloaded`` while the server cannot keep up
+    (its masks wait in its own queue: late masks are then not taken for clocks
+    that lag), else ``ok``; ``load``: the share of its recent time the server
+    spent working (1.0: all of it).
     """
 
     TYPE: ClassVar[str] = "status"
@@ -440,6 +443,8 @@ class Status(_Message):
     frame_sets_dropped: NonNegInt
     events_not_stored: NonNegInt = 0
     events_pending: NonNegInt = 0
+    state: Literal["ok", "overloaded"] = "ok"
+    load: Annotated[float, Field(ge=0.0)] = 0.0
 
     @model_validator(mode="after")
     def _unique(self) -> Status:

@@ -54,10 +54,15 @@ What the node does:
   the frame periods between the two stamps as lost. With ``free_timeline``
   (recordings played faster than real time) the server's clock is not
   checked and the timeline follows the stamps.
-* **clock skew**: per camera, the median of ``stamp_ns - receive time`` over
-  the last ``skew_window`` masks (refused future ones included); beyond
-  ``max_clock_skew_ms`` the camera is ``skewed`` in the status; the mark
-  clears once the median is back under 80 % of the threshold. A camera
+* **clock skew**: per camera, the largest ``stamp_ns - receive time`` over
+  the last ``skew_window`` masks taken (the fastest one: queueing only
+  delays masks, so the median of a loaded server would be its own queue),
+  or the lead of the last mask refused as stamped ahead while they are
+  refused; beyond ``max_clock_skew_ms`` either way the camera is ``skewed``
+  in the status; the mark clears once the estimate is back under 80 % of
+  the threshold. A camera that seems to lag is judged so once it has for two
+  status periods in which the server was not ``overloaded`` (below): on a
+  busy server the masks wait in its own queue. A camera
   turning skewed emits a ``clock_skew`` event (at most one a minute per
   camera). A camera whose clock lags is left out by the synchroniser (its
   masks are stale). With ``free_timeline``, where the server's clock is not
@@ -66,6 +71,10 @@ What the node does:
   left out of the frame sets instead (counted ``late``, logged): one camera
   with a fast clock would otherwise push the synchroniser ahead and make
   every other camera's masks look stale.
+* **load**: the process adapter says how long it worked (:meth:`~FusionNode.note_work`:
+  decoding and fusing); over each status period the share of the time so spent is the
+  status's ``load``, and from 90 % (or a frame set dropped for being slow) the server
+  reads ``overloaded`` until the share is under 70 % with none dropped for a period.
 * **status** every ``status_period_s`` (:meth:`~FusionNode.status`).
 * **history** (:func:`history_replies`): the replies to one query on
   ``<p>/history/events/**``.
@@ -78,8 +87,8 @@ off the frame lattice, stamped ahead of the server's clock or of the other
 cameras), ``refused`` (future, replayed and repeated masks), ``rate_hz`` (masks per second over the
 last two seconds), ``latency_ms`` (mean receive time minus capture stamp; on
 one host this is the transport and worker latency, across hosts it includes
-the clock offset), ``clock_offset_ms`` (median capture stamp minus receive
-time: the camera clock's lead, less the latency), ``last_seen_ns`` (server
+the clock offset), ``clock_offset_ms`` (the largest capture stamp minus receive
+time of the recent masks: the camera clock's lead, less the shortest latency), ``last_seen_ns`` (server
 time of the last mask), ``state``: ``lost`` (its liveliness token went away,
 or no sign of life at all), ``skewed``, ``degraded`` (no mask for
 ``stale_s``, or undecodable masks within ``stale_s``), else ``ok``.
@@ -116,6 +125,10 @@ _MAX_PENDING_DEPTHS = 64
 """Depth images kept for frame sets not fused yet (a few sets of a few depth cameras)."""
 log = logging.getLogger("voxelwatch.fusion")
 
+OVERLOADED_LOAD = 0.9
+"""Share of its time the server works from which it reads ``overloaded`` ..."""
+RELIEVED_LOAD = 0.7
+"""... and under which it no longer does."""
 _SYNC_DROPS = ("duplicate", "superseded", "dropped_overflow")
 _SYNC_LATE = ("out_of_order", "stale", "unmatched")
 _SKEW_EVENT_EVERY_S = 60.0
@@ -176,6 +189,8 @@ class _CameraHealth:
     newest_stamp_ns: int | None = None  # of the newest mask taken (refused masks never count)
     last_offset_ms: float | None = None  # stamp - receive time of that mask
     refusing: bool = False  # its masks are stamped ahead of the server's clock
+    refused_lead_ms: float = 0.0  # stamp - receive time of the last mask refused for it
+    behind_since_mono: float | None = None  # its clock has seemed to lag since, on a server keeping up
     skew_event_mono: float | None = None
     last_seen_ns: int = 0
     last_mono: float | None = None
@@ -223,8 +238,15 @@ class _CameraHealth:
             return 0.0
         return (len(recent) - 1) / (recent[-1] - recent[0])
 
-    def median_offset_ms(self) -> float | None:
-        return statistics.median(self.offset_ms) if self.offset_ms else None
+    def clock_offset_ms(self) -> float | None:
+        """The camera clock's lead on the server's, from the fastest of its recent masks: every
+        mask's ``stamp - arrival`` is the lead less that mask's latency, which queueing only
+        lengthens, so the largest is the least delayed (the median of a loaded server's masks
+        is its queue, not the camera's clock). While its masks are refused as stamped ahead, the
+        lead of the last one refused."""
+        if self.refusing:
+            return self.refused_lead_ms
+        return max(self.offset_ms) if self.offset_ms else None
 
     def recent(self, mono: float, stale_s: float) -> bool:
         return self.last_mono is not None and mono - self.last_mono <= stale_s
@@ -277,6 +299,11 @@ class FusionNode:
         self._out = Outbox()
         self._looks: dict[tuple[str, int], list] = {}  # (camera, mask stamp) -> its descriptors
         self._depths: dict[tuple[str, int], Any] = {}  # (camera, mask stamp) -> its foreground range
+        self.load = 0.0            # share of the last status period spent working (note_work)
+        self.overloaded = False
+        self._busy_s = 0.0
+        self._load_since: float | None = None
+        self._dropped_then = 0
         self.keep_snapshots = False   # the live server keeps one in its store (fusion_server.snapshot)
         self._snapshot_ns = -math.inf
         self._restored_holds: dict[str, list] = {}   # a restored snapshot's holds, sent while its people are sought
@@ -419,7 +446,7 @@ class FusionNode:
         if not self.s.free_timeline and lead_ns > self.s.max_clock_skew_ms * 1e6:
             # time belongs to the server: a mask from the future never moves the frame-set timeline
             health.future += 1
-            health.offset_ms.append(lead_ns / 1e6)
+            health.refused_lead_ms = lead_ns / 1e6
             if not health.refusing:
                 health.refusing = True
                 log.warning("camera %s: mask %d is stamped %.0f ms ahead of the server's clock (limit %.0f ms): "
@@ -687,13 +714,21 @@ class FusionNode:
                          f"{cam.width}x{cam.height} image scaled by a mask_scale in {low:g}..{high:g})")
 
     def _check_skew(self, health: _CameraHealth, now_ns: int, mono: float) -> None:
-        if len(health.offset_ms) < min(10, health.offset_ms.maxlen):
+        if not health.refusing and len(health.offset_ms) < min(10, health.offset_ms.maxlen):
             return
-        offset = health.median_offset_ms()
+        offset = health.clock_offset_ms()
         limit = self.s.max_clock_skew_ms
-        if not health.skewed and abs(offset) > limit:
+        # Late masks on a busy server are its own queue: a camera that seems to lag is judged once it
+        # has for two status periods (the load is measured over one) in which the server kept up.
+        if offset < -limit and not self.overloaded:
+            if health.behind_since_mono is None:
+                health.behind_since_mono = mono
+        else:
+            health.behind_since_mono = None
+        behind = health.behind_since_mono is not None and mono - health.behind_since_mono >= 2 * self.s.status_period_s
+        if not health.skewed and (offset > limit or behind):
             health.skewed = True
-            log.warning("camera %s: clock off by %.0f ms (median of its last %d masks; limit %.0f ms)",
+            log.warning("camera %s: clock off by %.0f ms (the fastest of its last %d masks; limit %.0f ms)",
                         health.cam, offset, len(health.offset_ms), limit)
             self._skew_event(health, offset, now_ns, mono)
         elif health.skewed and abs(offset) < 0.8 * limit:
@@ -717,7 +752,7 @@ class FusionNode:
         for cam in self.camera_ids:
             h = self.health[cam]
             sc = self.sync.counters[cam]
-            offset = h.median_offset_ms()
+            offset = h.clock_offset_ms()
             cams.append(CameraStatus(
                 cam=cam,
                 state=h.state(mono, self.s.stale_s),
@@ -735,7 +770,34 @@ class FusionNode:
             ))
         return Status(stamp_ns=int(now_ns), cameras=cams, frame_sets=self.c.frames_fused,
                       frame_sets_dropped=self.c.frame_sets_dropped, events_not_stored=self.c.events_not_stored,
-                      events_pending=self.store.pending if self.store is not None else 0)
+                      events_pending=self.store.pending if self.store is not None else 0,
+                      state="overloaded" if self.overloaded else "ok", load=round(min(self.load, 100.0), 3))
+
+    def note_work(self, busy_s: float, mono: float) -> None:
+        """The process adapter spent ``busy_s`` on the node's work (decoding, fusing) up to ``mono``.
+        Over each ``status_period_s`` the share of the time so spent is :attr:`load`; the server
+        is :attr:`overloaded` from a share of :data:`OVERLOADED_LOAD` or a frame set dropped for
+        being slow, until the share is under :data:`RELIEVED_LOAD` with none dropped for a period."""
+        self._busy_s += max(0.0, float(busy_s))
+        if self._load_since is None:
+            self._load_since, self._dropped_then = mono, self.c.frame_sets_dropped
+            return
+        span = mono - self._load_since
+        if span < self.s.status_period_s:
+            return
+        self.load = self._busy_s / span
+        dropped = self.c.frame_sets_dropped > self._dropped_then
+        was = self.overloaded
+        if self.load >= OVERLOADED_LOAD or dropped:
+            self.overloaded = True
+        elif self.load < RELIEVED_LOAD:
+            self.overloaded = False
+        if self.overloaded != was:
+            (log.warning if self.overloaded else log.info)(
+                "fusion: %s (busy %.0f %% of the last %.1f s%s)", "overloaded: frame sets wait or are dropped"
+                if self.overloaded else "no longer overloaded", 100 * self.load, span,
+                f", {self.c.frame_sets_dropped - self._dropped_then} sets dropped" if dropped else "")
+        self._busy_s, self._load_since, self._dropped_then = 0.0, mono, self.c.frame_sets_dropped
 
     def _queue_status(self, now_ns: int, mono: float) -> None:
         try:

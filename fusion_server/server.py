@@ -333,12 +333,16 @@ class _Server:
                     node.on_stopping(key, now_ns)
                 else:
                     node.on_liveliness(key, present, now_ns)
+            work = time.monotonic()
             for key, data, recv_ns, arrived in self.masks.drain():
                 node.on_mask(key, data, recv_ns, arrived)
             node.c.inbox_dropped = self.masks.dropped
             if self._acks:
                 self._answer_acks()
-            self._publish(node.tick(time.time_ns(), time.monotonic()))
+            out = node.tick(time.time_ns(), time.monotonic())
+            done = time.monotonic()
+            node.note_work(done - work, done)
+            self._publish(out)
             if node.idle(time.monotonic()):
                 log.info("fusion: no mask for %.1f s: finishing", self.s.exit_after_idle_s)
                 self._publish(node.finish(time.time_ns(), time.monotonic()))

@@ -179,6 +179,25 @@ def start_in_step(session, prefix: str, workers: dict[str, Proc], start_file: Pa
     return start(session, prefix, {cam: w.popen for cam, w in workers.items()}, start_file, io.StringIO())
 
 
+def start_fusion_and_cameras(site, site_file: Path, *, router: "Router", listener: "Listener", store: Path,
+                             out: Path | None, cache_dir: Path, log_dir: Path, scenario: str, max_frames: int,
+                             procs: list[Proc]) -> tuple[Proc, dict[str, Proc]]:
+    """A fusion server on ``router`` (waited for until its token is out), then one worker per camera of
+    ``site`` playing ``scenario`` in step from a shared start file beside ``log_dir``; every process is
+    added to ``procs`` as it starts (for :func:`stop_all`). Returns ``(fusion, {camera: worker})``."""
+    fusion = start_fusion(site_file, endpoint=router.endpoint, store=store, out=out, cache_dir=cache_dir,
+                          log_dir=log_dir)
+    procs.append(fusion)
+    listener.wait_fusion(fusion)
+    start_file = Path(log_dir).parent / "start_ns"
+    workers = {cam: start_camera(site_file, cam, endpoint=router.endpoint, scenario=scenario, start_file=start_file,
+                                 max_frames=max_frames, log_dir=log_dir)
+               for cam in site.camera_ids}
+    procs.extend(workers.values())
+    start_in_step(router.session, site.prefix, workers, start_file)
+    return fusion, workers
+
+
 def start_stock_sub(endpoint: str, key: str, log_dir: Path, name: str = "z_sub") -> Proc:
     """This module's ``sub`` program (written like the stock ``z_sub.py``)."""
     return Proc(name, [sys.executable, str(THIS), "sub", "-e", endpoint, "-k", key], Path(log_dir) / f"{name}.log")

@@ -35,6 +35,7 @@ import json
 import math
 import re
 import signal
+import sys
 import time
 from pathlib import Path
 
@@ -50,6 +51,7 @@ from procs import (  # noqa: E402
     Router,
     start_camera,
     start_fusion,
+    start_fusion_and_cameras,
     start_in_step,
     start_stock_sub,
     stock_get,
@@ -804,16 +806,9 @@ def test_a_fusion_server_killed_after_a_fall_finds_the_person_on_the_floor_again
     with Router() as router:
         listener = Listener(router.session, prefix)
         try:
-            first = start_fusion(site_file, endpoint=router.endpoint, store=store, out=tmp_path / "run1",
-                                 cache_dir=cache, log_dir=logs)
-            procs.append(first)
-            listener.wait_fusion(first)
-            start_file = tmp_path / "start_ns"
-            workers = {cam: start_camera(site_file, cam, endpoint=router.endpoint, scenario=SCENARIO,
-                                         start_file=start_file, max_frames=LIE_FRAMES, log_dir=logs)
-                       for cam in site.camera_ids}
-            procs.extend(workers.values())
-            start_in_step(router.session, prefix, workers, start_file)
+            first, workers = start_fusion_and_cameras(site, site_file, router=router, listener=listener, store=store,
+                                                      out=tmp_path / "run1", cache_dir=cache, log_dir=logs,
+                                                      scenario=SCENARIO, max_frames=LIE_FRAMES, procs=procs)
             (fall,) = wait_for(lambda: listener.events_of("fall"), 120, "the fall", procs=[first, *workers.values()])
             after = fall.frame + int(KILL_AFTER_FALL_S * 15)
             wait_for(lambda: listener.last_frame() >= after, 60, f"fused frame {after}", procs=[first])
@@ -859,3 +854,57 @@ def test_a_fusion_server_killed_after_a_fall_finds_the_person_on_the_floor_again
     # every event heard is in the history once, and nothing else
     ids = [e.id for e in at_end]
     assert len(ids) == len(set(ids)) and set(ids) == {h.msg.id for h in heard}
+
+
+# --------------------------------------------------------------------------- 5: a loaded fusion host
+
+
+BURN_FRAMES = 330   # 22 s of 'fall_forward'
+
+
+@pytest.mark.slow
+def test_a_fusion_host_loaded_with_cpu_burners_reads_overloaded_and_no_camera_skewed(house, tmp_path, machine_to_itself):
+    """Two processes that burn a core each start once the cameras run: the fusion server, left a
+    fraction of a core, reads ``overloaded`` with its load, and no camera reads ``skewed``
+    (its masks wait in the server's queue; before, a loaded host put every camera at -660 ms)."""
+    import subprocess
+
+    site, site_file, cache = house
+    prefix = site.prefix
+    logs = tmp_path / "logs"
+    logs.mkdir()
+    procs: list[Proc] = []
+    burners: list[subprocess.Popen] = []
+    with Router() as router:
+        listener = Listener(router.session, prefix)
+        try:
+            fusion, workers = start_fusion_and_cameras(site, site_file, router=router, listener=listener,
+                                                       store=tmp_path / "events.sqlite", out=None, cache_dir=cache,
+                                                       log_dir=logs, scenario=SCENARIO, max_frames=BURN_FRAMES,
+                                                       procs=procs)
+            wait_for(lambda: listener.last_frame() >= 30, 60, "fused frame 30", procs=[fusion])
+            calm = len(listener.status)
+            burners = [subprocess.Popen([sys.executable, "-c", "while True: pass"]) for _ in range(2)]
+            wait_for(lambda: any(h.msg.state == "overloaded" for h in listener.status[calm:]), 30,
+                     "an 'overloaded' status", procs=[fusion])
+            time.sleep(5.0)
+            for worker in workers.values():
+                worker.popen.wait(timeout=BURN_FRAMES / 15 + 120)
+            loaded = [h.msg for h in listener.status[calm:]]
+            assert fusion.stop() == 0, fusion.tail()
+        finally:
+            for burner in burners:
+                burner.kill()
+                burner.wait()
+            stop_all(procs)
+            listener.close()
+    over = [st for st in loaded if st.state == "overloaded"]
+    skewed = sorted({c.cam for st in loaded for c in st.cameras if c.state == "skewed"})
+    offsets = [c.clock_offset_ms for st in loaded for c in st.cameras if c.state != "stopped"]
+    print("measured:", {"statuses": len(loaded), "overloaded": len(over), "max_load": max(st.load for st in loaded),
+                        "skewed": skewed, "clock_offset_ms_min": min(offsets),
+                        "latency_ms_max": max(c.latency_ms for st in loaded for c in st.cameras)})
+    # overloaded from a share of 90 % worked, or from frame sets dropped for being slow
+    assert over and max(st.load for st in over) >= 0.9, [(st.state, st.load, st.frame_sets_dropped) for st in loaded]
+    assert skewed == [], [(st.state, [(c.cam, c.state, c.clock_offset_ms) for c in st.cameras]) for st in loaded]
+    assert "clock off by" not in (logs / "fusion.log").read_text()

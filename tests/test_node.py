@@ -690,9 +690,9 @@ def test_a_camera_a_minute_slow_started_first_is_late_and_the_others_track(rig):
     slow = {"c3": -60 * 10**9}
     r.put("c3", encode(mask_frame(r.cams["c3"], 0, r.clock.ns + slow["c3"], r.masks["c3"])))
     r.clock.advance(PERIOD_NS / 1e9)
-    r.frames(range(1, 60), offsets_ns=slow)
+    r.frames(range(1, 90), offsets_ns=slow)   # a lag is judged after two status periods (3 s here)
     cams = r.cam_status()
-    assert cams["c3"].state == "skewed" and cams["c3"].late >= 58 and cams["c3"].refused == 0
+    assert cams["c3"].state == "skewed" and cams["c3"].late >= 88 and cams["c3"].refused == 0
     assert cams["c1"].state == cams["c2"].state == "ok" and cams["c1"].late == cams["c2"].late == 0
     assert len(r.tracks) >= 57 and all(f.cameras == ["c1", "c2"] for f in r.tracks)
     assert [e.details["camera"] for _, e in r.events if e.kind == "clock_skew"] == ["c3"]
@@ -784,3 +784,55 @@ def test_an_event_the_store_cannot_write_is_published_counted_and_merged_later(r
     assert st.events_not_stored == 1 and st.events_pending == 0
     assert [e.kind for e in store.query()] == ["camera_lost", "camera_back"]
     assert not store.fallback_path.exists()
+
+
+def _queued(r, seqs, latencies_s, *, offsets_ns=None) -> None:
+    """Every camera's masks of ``seqs`` arriving after the latency of their turn (one per frame,
+    cycling through ``latencies_s``): a server's own queue, the same for every camera."""
+    offsets_ns = offsets_ns or {}
+    for i, seq in enumerate(seqs):
+        latency = latencies_s[i % len(latencies_s)]
+        for cid in r.cams:
+            r.put(cid, encode(mask_frame(r.cams[cid], seq, r.clock.ns + offsets_ns.get(cid, 0), r.masks[cid])),
+                  latency_s=latency)
+        r.take(r.node.tick(r.clock.ns, r.clock.mono))
+        r.clock.advance(PERIOD_NS / 1e9)
+
+
+def test_a_queue_on_the_server_is_not_taken_for_cameras_whose_clocks_lag(rig):
+    """Masks that wait 400-700 ms in a busy server's queue, one in ten at 30 ms (the median the
+    status gave read -550 ms: every camera skewed): the fastest masks give the clock, 30 ms.
+    A camera whose clock really lags a second reads skewed all the same."""
+    r = rig()
+    latencies = [0.03, 0.45, 0.62, 0.7, 0.55, 0.4, 0.66, 0.5, 0.6, 0.48]
+    _queued(r, range(100), latencies, offsets_ns={"c3": -1_000_000_000})
+    cams = r.cam_status()
+    assert cams["c1"].state == cams["c2"].state == "ok", cams
+    assert -35.0 <= cams["c1"].clock_offset_ms <= -25.0 and -35.0 <= cams["c2"].clock_offset_ms <= -25.0
+    assert cams["c3"].state == "skewed" and -1035.0 <= cams["c3"].clock_offset_ms <= -1025.0
+    assert [e.details["camera"] for _, e in r.events if e.kind == "clock_skew"] == ["c3"]
+
+
+def test_an_overloaded_server_says_so_and_does_not_blame_the_cameras_clocks(rig):
+    """Every mask 650 ms late while the server works 95 % of its time: the status reads
+    ``overloaded`` with its load, no camera reads skewed; once it works 50 % it reads ok."""
+    r = rig()
+    r.frames(range(20))
+    assert r.node.status(r.clock.ns, r.clock.mono).state == "ok"
+    for seq in range(20, 80):
+        r.node.note_work(0.95 * PERIOD_NS / 1e9, r.clock.mono)   # most of each frame period spent working
+        _queued(r, [seq], [0.65])
+    status = r.node.status(r.clock.ns, r.clock.mono)
+    assert status.state == "overloaded" and 0.9 <= status.load <= 1.0, status
+    assert all(c.state == "ok" for c in status.cameras), status.cameras
+    assert "clock_skew" not in r.kinds()
+    for seq in range(80, 120):
+        r.node.note_work(0.5 * PERIOD_NS / 1e9, r.clock.mono)
+        _queued(r, [seq], [0.03])
+    status = r.node.status(r.clock.ns, r.clock.mono)
+    assert status.state == "ok" and 0.4 <= status.load <= 0.6, status
+    # the same late masks on a server that is not busy are a lagging clock
+    idle = rig()
+    idle.frames(range(20))
+    _queued(idle, range(20, 140), [0.65])
+    assert all(c.state == "skewed" for c in idle.cam_status().values())
