@@ -404,6 +404,8 @@ class CameraStatus(BaseModel):
     None until it has been measured); a camera that was moved or bumped drops.
     ``view_deg``: how far the camera's view has turned against its worker's
     reference picture of the room, in degrees (None until it reports one).
+    ``reason``: in a few words why the camera is not ``ok`` (None when it is):
+    ``undecodable masks (...)``, ``no mask for 2 s``, ``clock off by 900 ms``...
     """
 
     model_config = _CONFIG
@@ -421,6 +423,7 @@ class CameraStatus(BaseModel):
     refused: NonNegInt = 0
     consistency: Fraction | None = None
     view_deg: Annotated[float, Field(ge=0.0)] | None = None
+    reason: Annotated[str, StringConstraints(max_length=200)] | None = None
 
 
 class Status(_Message):

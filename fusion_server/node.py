@@ -125,6 +125,9 @@ _MAX_PENDING_DEPTHS = 64
 """Depth images kept for frame sets not fused yet (a few sets of a few depth cameras)."""
 log = logging.getLogger("voxelwatch.fusion")
 
+_BUDGET_RATE = 2.0
+"""A camera's masks are decoded at up to this many times its frame rate (see ``_within_budget``)."""
+_MAX_REASON = 160
 OVERLOADED_LOAD = 0.9
 """Share of its time the server works from which it reads ``overloaded`` ..."""
 RELIEVED_LOAD = 0.7
@@ -190,6 +193,10 @@ class _CameraHealth:
     last_offset_ms: float | None = None  # stamp - receive time of that mask
     refusing: bool = False  # its masks are stamped ahead of the server's clock
     refused_lead_ms: float = 0.0  # stamp - receive time of the last mask refused for it
+    bad_reason: str = ""  # why its last bad mask was dropped (the status's reason while degraded)
+    throttled: int = 0  # masks beyond its decoding budget, dropped before decoding
+    budget: float = -1.0  # masks it may still have decoded now (-1: full; see FusionNode._within_budget)
+    budget_mono: float | None = None
     behind_since_mono: float | None = None  # its clock has seemed to lag since, on a server keeping up
     skew_event_mono: float | None = None
     last_seen_ns: int = 0
@@ -263,6 +270,26 @@ class _CameraHealth:
             return "degraded"
         return "ok"
 
+    def reason(self, state: str, mono: float, stale_s: float) -> str | None:
+        """In a few words, why the camera is in ``state`` (None for ``ok``)."""
+        if state == "degraded":
+            if not self.recent(mono, stale_s):
+                return f"no mask for {stale_s:g} s"
+            return self.bad_reason or "bad masks"
+        if state == "skewed":
+            offset = self.clock_offset_ms()
+            return f"clock off by {offset:.0f} ms" if offset is not None else "clock off"
+        if state == "lost":
+            return "its liveliness token went away" if self.lost else "no sign of life"
+        if state == "stopped":
+            return "its worker stopped on purpose"
+        return None
+
+    def bad(self, reason: str, mono: float) -> None:
+        """A mask of this camera was dropped as bad (``reason``, a few words)."""
+        self.last_bad_mono = mono
+        self.bad_reason = reason[:_MAX_REASON]
+
 
 class FusionNode:
     """The fusion server between its inputs and its outputs; see the module doc.
@@ -287,6 +314,7 @@ class FusionNode:
         self.cameras: dict[str, Camera] = dict(pipeline.cameras)
         self.min_cameras = int(settings.min_cameras if settings.min_cameras is not None else pipeline.min_cameras)
         fps = min(spec.fps for spec in site.cameras)
+        self._fps = {spec.id: float(spec.fps) for spec in site.cameras}
         self.sync = FrameSynchroniser(camera_ids=self.camera_ids, fps=fps, max_buffer=settings.sync_buffer)
         self.health = {cam: _CameraHealth(cam, settings.skew_window) for cam in self.camera_ids}
         self.ready: deque[FrameSet] = deque()
@@ -329,6 +357,12 @@ class FusionNode:
             self.rlog.warn(f"mask on {key}", "unknown", "camera is not in the site: dropped "
                            f"(cameras: {', '.join(self.camera_ids)})", mono)
             return
+        if not self._within_budget(health, mono):
+            health.throttled += 1
+            health.bad(f"masks faster than {_BUDGET_RATE:g} times its frame rate: dropped before decoding", mono)
+            self.rlog.warn(f"camera {cam}", "budget", "masks arrive faster than the camera's frame rate allows: "
+                           "dropped before decoding", mono)
+            return
         try:
             if isinstance(data, int):
                 raise WireError(f"MaskFrame: payload of {data} bytes exceeds the {MaskFrame.MAX_BYTES}-byte limit")
@@ -340,7 +374,7 @@ class FusionNode:
             depth = maskcodec.decode_depth(msg.depth, mask) if msg.depth else None
         except (WireError, MaskCodecError) as exc:
             health.undecodable += 1
-            health.last_bad_mono = mono
+            health.bad(f"undecodable masks ({exc})", mono)
             self.rlog.warn(f"camera {cam}", type(exc).__name__, f"undecodable mask dropped: {exc}", mono)
             return
         health.seen(recv_ns, mono)
@@ -461,13 +495,13 @@ class FusionNode:
             health.replayed += 1
             if (msg.seq, msg.stamp_ns) == (health.last_seq, health.newest_stamp_ns):
                 return False  # the newest mask delivered twice (two network paths): harmless
-            health.last_bad_mono = mono
+            health.bad("masks replayed (stamped before its newest)", mono)
             self.rlog.warn(f"camera {cam}", "replayed", f"mask {msg.seq} is stamped {msg.stamp_ns} ns, not after "
                            f"the camera's newest mask ({health.newest_stamp_ns} ns): refused as a replay", mono)
             return False
         if msg.seq == health.last_seq:
             health.repeated += 1
-            health.last_bad_mono = mono
+            health.bad("masks repeating a sequence number", mono)
             self.rlog.warn(f"camera {cam}", "repeated", f"mask {msg.seq} repeats the sequence number of the "
                            "camera's newest mask: refused", mono)
             return False
@@ -713,6 +747,25 @@ class FusionNode:
             raise _Shape(f"MaskFrame: a {msg.width}x{msg.height} mask is not a size camera {msg.cam!r} sends (its "
                          f"{cam.width}x{cam.height} image scaled by a mask_scale in {low:g}..{high:g})")
 
+    def _within_budget(self, health: _CameraHealth, mono: float) -> bool:
+        """Whether the camera's mask arriving at ``mono`` may be decoded: a bucket of a second's masks
+        at its frame rate, refilled at :data:`_BUDGET_RATE` times that rate, so that however many masks
+        a camera (or whoever publishes on its key) sends, decoding them costs a bounded share of each
+        frame period; a catching-up burst passes. Not with ``free_timeline`` (recordings played faster
+        than real time)."""
+        if self.s.free_timeline:
+            return True
+        fps = self._fps[health.cam]
+        if health.budget < 0 or health.budget_mono is None:
+            health.budget = fps
+        else:
+            health.budget = min(fps, health.budget + _BUDGET_RATE * fps * max(0.0, mono - health.budget_mono))
+        health.budget_mono = mono
+        if health.budget < 1.0:
+            return False
+        health.budget -= 1.0
+        return True
+
     def _check_skew(self, health: _CameraHealth, now_ns: int, mono: float) -> None:
         if not health.refusing and len(health.offset_ms) < min(10, health.offset_ms.maxlen):
             return
@@ -753,11 +806,13 @@ class FusionNode:
             h = self.health[cam]
             sc = self.sync.counters[cam]
             offset = h.clock_offset_ms()
+            state = h.state(mono, self.s.stale_s)
             cams.append(CameraStatus(
                 cam=cam,
-                state=h.state(mono, self.s.stale_s),
+                state=state,
+                reason=h.reason(state, mono, self.s.stale_s),
                 received=h.received,
-                dropped=h.seq_gaps + sum(sc[k] for k in _SYNC_DROPS) + h.replayed + h.repeated,
+                dropped=h.seq_gaps + sum(sc[k] for k in _SYNC_DROPS) + h.replayed + h.repeated + h.throttled,
                 late=sum(sc[k] for k in _SYNC_LATE) + h.ahead + h.future,
                 undecodable=h.undecodable,
                 rate_hz=float(h.rate_hz(mono)),

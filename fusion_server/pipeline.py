@@ -267,8 +267,8 @@ class FusionPipeline:
             people.append(Watched(label=int(t.id), x=round(float(t.x), 3), y=round(float(t.y), 3), posture=t.posture,
                                   name=t.person, model=model.to_dict() if model is not None else None,
                                   fall=self.reasoner.state_of(t.id)))
-        people += [Watched(label=label, x=x, y=y, posture=None, name=name, model=model, fall=fall)
-                   for label, (x, y, name, model, fall) in self._unclaimed().items()]
+        # restored people not found again yet stay in the next snapshot as they were
+        people += [p for label, p in self._restored.items() if label in self._restoring]
         return Snapshot(stamp_ns=stamp_ns, people=tuple(people), holds={c: list(b) for c, b in holds.items()})
 
     def restore(self, snapshot: Snapshot) -> None:
@@ -296,11 +296,6 @@ class FusionPipeline:
         self._restored = {p.label: p for p in snap.people}
         self.identity.restore(people, stamp_ns)
         self._restoring_until_ns = int(stamp_ns) + int(RESTORE_WINDOW_S * 1e9)
-
-    def _unclaimed(self) -> dict:
-        """Restored people not found again yet, kept in the next snapshot as they were."""
-        return {label: (p.x, p.y, p.name, p.model, p.fall)
-                for label, p in self._restored.items() if label in self._restoring}
 
     def _named(self, event: Event) -> Event:
         """``event`` with the enrolled resident's name in its details, when it is about one."""

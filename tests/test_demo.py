@@ -165,19 +165,21 @@ def test_demo_of_a_mixed_rig_carries_masks_and_range_from_separate_workers(tmp_p
     held it, the depth worker having fallen behind; the bound it replaces, range in 80 % of all
     sets, failed with 115 of 209 when the workers joined 1-12 s after the demo's 10 s start).
 
-    The tracking bound, MOTA 0.5 on the sets with every camera, is a floor under a spread
-    the machine's load decides: 0.57 to 0.88 over the runs of 2026-11-27/28 (0.70 failed
-    a CI run at 0.57). The same 150 frames replayed from their true masks score 0.83; in
-    both, the person who starts a step in front of the depth camera (under it, at the
-    door) is followed by a track that stays in the corner for 2-3 s (the close-quarters
-    misses of the tracker), and on a loaded machine the depth worker's masks come late
-    and sets go without them around it. A broken range or mask path scores far below."""
+    Played at half real time (``speed=0.5``): at full speed the four workers' rendering and
+    segmenting, the router and the server need more than this 2-core machine has, and the depth
+    worker, the costliest, fell behind (sets with every camera 18 to 94 of about 150, MOTA on
+    them 0.57 to 0.88 over the runs of 2026-11-27/28; 0.70 failed a CI run at 0.57, and 20 sets
+    with every camera failed the next at 18). At half speed 142 and 143 of 150 sets held every
+    camera, MOTA on them 0.88 and 0.87 (the same 150 frames replayed from their true masks: 0.83).
+    Left to the tracker: the person who starts a step in front of the depth camera is followed by
+    a track that stays in the corner for 1-3 s, live and replayed alike."""
 
     from synth.world import random_world
 
     monkeypatch.setenv("PYTHONPATH", str(ROOT))
     out = io.StringIO()
-    code = run_demo(world="random", seed=5, sensors="mixed", out_dir=tmp_path / "demo", frames=150, stream=out)
+    code = run_demo(world="random", seed=5, sensors="mixed", out_dir=tmp_path / "demo", frames=150, speed=0.5,
+                    stream=out)
     text = out.getvalue()
     assert code == 0, text
     assert "cam1 depth, cam2 thermal" in text, text
@@ -197,5 +199,5 @@ def test_demo_of_a_mixed_rig_carries_masks_and_range_from_separate_workers(tmp_p
                         "sets_with_every_camera": len(whole), "mota_on_them": round(whole_score["mota"], 3)})
     assert all(f is not None for f in measured["first_frame_of_each_camera"].values()), measured
     assert len(heard) == fused and ranged == with_depth > 0, log[-2000:]
-    assert len(whole) >= 20, measured
-    assert whole_score["mota"] >= 0.50, (measured, whole_score)
+    assert len(whole) >= 0.8 * fused, measured
+    assert whole_score["mota"] >= 0.75, (measured, whole_score)

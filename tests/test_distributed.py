@@ -18,6 +18,11 @@ scene and its ground truth.
   tracks and events byte-identical and are counted; a flood drops frame sets
   with bounded memory; a camera clock one second ahead is reported and left
   out while the others track.
+* slow, with the machine to itself: the server SIGKILLed 3 s after a fall and
+  started again 5 s later finds the person on the floor under their label and
+  raises the long lie at its time, once; two CPU burners on the host make it
+  read ``overloaded`` and no camera ``skewed``; oversized valid masks on three
+  cameras' keys for 20 s neither stall fusion nor hide the fall.
 
 The malformed-message and flood tests feed the true silhouettes from the
 test in lockstep (each frame's masks, then wait for its TrackFrame), so that
@@ -908,3 +913,84 @@ def test_a_fusion_host_loaded_with_cpu_burners_reads_overloaded_and_no_camera_sk
     assert over and max(st.load for st in over) >= 0.9, [(st.state, st.load, st.frame_sets_dropped) for st in loaded]
     assert skewed == [], [(st.state, [(c.cam, c.state, c.clock_offset_ms) for c in st.cameras]) for st in loaded]
     assert "clock off by" not in (logs / "fusion.log").read_text()
+
+
+# --------------------------------------------------------------------------- 6: oversized masks on three keys
+
+
+FLOOD_FRAMES = 330   # 22 s of 'fall_forward': the truth fall at frame 101
+FLOOD_S = 20.0
+FLOOD_RATE_HZ = 15.0
+
+
+@pytest.mark.slow
+def test_oversized_valid_masks_on_three_camera_keys_neither_stall_fusion_nor_hide_the_fall(house, tmp_path,
+                                                                                          machine_to_itself):
+    """A host that sends 15 valid 4096x3072 masks a second (55 KB each, 0.3 s each to inflate) on
+    three cameras' keys for 20 s, beside the real workers: refused on their size before they are
+    decoded, so the server fuses as many frame sets as the cameras make, the fall is raised, and
+    the three cameras read degraded with the reason (the other two ok)."""
+    import threading
+
+    site, site_file, cache = house
+    prefix = site.prefix
+    truth_dir, logs = tmp_path / "truth", tmp_path / "logs"
+    logs.mkdir()
+    write_truth(SCENARIO, FLOOD_FRAMES, truth_dir)
+    (fall_truth,) = truth_events(truth_dir, "fall")
+    big = np.zeros((3072, 4096), np.uint8)
+    big[:, ::2] = 255
+    data = maskcodec.encode_mask(big)
+    victims = list(site.camera_ids[:3])
+    procs: list[Proc] = []
+    sent = {"masks": 0}
+    done = threading.Event()
+
+    def flood(session) -> None:
+        t0 = time.monotonic()
+        seq = 10_000
+        while not done.is_set() and time.monotonic() - t0 < FLOOD_S:
+            for cam in victims:
+                msg = MaskFrame(cam=cam, seq=seq, stamp_ns=time.time_ns(), width=4096, height=3072, src_width=4096,
+                                src_height=3072, codec="rle-zlib", data=data, fg_fraction=0.5)
+                session.put(keys.mask_key(prefix, cam), messages.encode(msg))
+                sent["masks"] += 1
+            seq += 1
+            done.wait(1.0 / FLOOD_RATE_HZ)
+
+    with Router() as router:
+        listener = Listener(router.session, prefix)
+        try:
+            fusion, workers = start_fusion_and_cameras(site, site_file, router=router, listener=listener,
+                                                       store=tmp_path / "events.sqlite", out=None, cache_dir=cache,
+                                                       log_dir=logs, scenario=SCENARIO, max_frames=FLOOD_FRAMES,
+                                                       procs=procs)
+            wait_for(lambda: listener.last_frame() >= 5, 60, "fused frame 5", procs=[fusion])
+            mark = listener.last_frame()
+            sender = threading.Thread(target=flood, args=(router.session,), daemon=True)
+            sender.start()
+            wait_for(lambda: listener.events_of("fall"), 60, "the fall", procs=[fusion])
+            time.sleep(3.0)
+            during = listener.latest_status()
+            sender.join(timeout=FLOOD_S + 5)
+            for worker in workers.values():
+                assert worker.popen.wait(timeout=FLOOD_FRAMES / 15 + 120) == 0, worker.tail()
+            frames = fused_after(listener, mark)
+            falls = listener.events_of("fall")
+            assert fusion.stop() == 0, fusion.tail()
+        finally:
+            done.set()
+            stop_all(procs)
+            listener.close()
+    states = {c.cam: (c.state, c.reason) for c in during.cameras}
+    span = frames[-1].frame - frames[0].frame + 1
+    measured = {"hostile_masks_sent": sent["masks"], "fused": len(frames), "frames_spanned": span,
+                "fall_frame": falls[0].frame, "truth_fall_frame": fall_truth["frame"], "states": states}
+    print("measured:", measured)
+    assert sent["masks"] >= 0.8 * FLOOD_S * FLOOD_RATE_HZ * len(victims), measured
+    assert len(frames) >= 0.9 * span, measured       # every frame set the cameras made, or nearly
+    assert len(falls) == 1 and -FALL_EARLY_FRAMES <= falls[0].frame - fall_truth["frame"] <= FALL_LATE_FRAMES
+    for cam in victims:
+        state, reason = states[cam]
+        assert state == "degraded" and "is not a size camera" in (reason or ""), measured
+    assert all(states[cam] == ("ok", None) for cam in site.camera_ids[3:]), measured

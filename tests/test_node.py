@@ -836,3 +836,45 @@ def test_an_overloaded_server_says_so_and_does_not_blame_the_cameras_clocks(rig)
     idle.frames(range(20))
     _queued(idle, range(20, 140), [0.65])
     assert all(c.state == "skewed" for c in idle.cam_status().values())
+
+
+def test_oversized_masks_beside_a_camera_s_own_leave_it_tracking_and_degraded_with_the_reason(rig):
+    """A hostile sender on c1's and c2's keys, one 4096x3072 mask per frame beside the real ones: every
+    one refused on its size; the real masks still make every set; the two cameras read degraded with
+    the reason, c3 ok without one."""
+    r = rig()
+    big = np.zeros((3072, 4096), np.uint8)
+    big[:, ::2] = 255
+    data = maskcodec.encode_mask(big)
+    for seq in range(40):
+        for cid in ("c1", "c2"):
+            r.put(cid, encode(mask_frame(r.cams[cid], 5000 + seq, r.clock.ns, data=data, width=4096, height=3072,
+                                         src_width=4096, src_height=3072)))
+        r.frames([seq])
+    cams = r.cam_status()
+    assert cams["c1"].undecodable == cams["c2"].undecodable == 40
+    for cid in ("c1", "c2"):
+        assert cams[cid].state == "degraded" and "a 4096x3072 mask is not a size camera" in cams[cid].reason, cams[cid]
+    assert cams["c3"].state == "ok" and cams["c3"].reason is None
+    assert len(r.tracks) >= 38 and all(f.cameras == ["c1", "c2", "c3"] for f in r.tracks[2:])
+
+
+def test_a_camera_flooding_its_key_is_decoded_at_twice_its_frame_rate_at_most(rig):
+    """200 valid masks in one frame period on c3's key: a second's worth (its frame rate) is decoded,
+    the rest dropped before decoding and counted, c3 degraded with the reason; at its own rate
+    again it reads ok, and the others never stopped."""
+    r = rig()
+    r.frames(range(10))
+    fps = r.node._fps["c3"]
+    for k in range(200):
+        r.put("c3", encode(mask_frame(r.cams["c3"], 100 + k, r.clock.ns + k * 1000)))
+    h = r.node.health["c3"]
+    assert fps - 1 <= 200 - h.throttled <= fps + 1, (h.throttled, fps)
+    cams = r.cam_status()
+    assert cams["c3"].state == "degraded" and "faster than 2 times its frame rate" in cams["c3"].reason
+    assert cams["c3"].dropped >= h.throttled
+    r.clock.advance(0.5)
+    r.frames(range(400, 500))   # its own rate (and a second's worth back in the bucket)
+    cams = r.cam_status()
+    assert cams["c3"].state == "ok" and h.throttled <= 200 - fps + 1
+    assert all(c.state == "ok" for c in cams.values())

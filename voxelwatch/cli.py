@@ -556,6 +556,9 @@ def _register_demo(sub) -> None:
     p.add_argument("--cameras", default=None, metavar="IDS",
                    help="the house with only these of its cameras, comma-separated (e.g. cam1,cam3,cam5: a "
                         "lighter demo for a small machine; default all five)")
+    p.add_argument("--speed", type=float, default=1.0, metavar="X",
+                   help="play the recording at X times real time (default 1; e.g. 0.5 on a machine too small to "
+                        "render and segment every camera in real time: people move slower, falls may not read as falls)")
     p.set_defaults(handler=_demo)
 
 
@@ -568,6 +571,9 @@ def _demo(args: argparse.Namespace) -> int:
     if args.sensors != "colour" and not args.world:
         print("voxelwatch demo: --sensors is for --world random", file=sys.stderr)
         return 2
+    if not 0.05 <= args.speed <= 4.0:
+        print(f"voxelwatch demo: --speed must lie in 0.05..4, got {args.speed:g}", file=sys.stderr)
+        return 2
     if args.cameras and args.world:
         print("voxelwatch demo: --cameras is for the house, not --world", file=sys.stderr)
         return 2
@@ -575,7 +581,7 @@ def _demo(args: argparse.Namespace) -> int:
     try:
         return run_demo(scenario=args.scenario, world=args.world, out_dir=args.out, seed=args.seed, frames=args.frames,
                         port=args.port, secure=args.secure, sensors=args.sensors, view=args.view,
-                        cache_dir=args.cache_dir, cameras=cameras)
+                        cache_dir=args.cache_dir, cameras=cameras, speed=args.speed)
     except UnknownCameras as exc:
         print(f"voxelwatch demo: --cameras: {exc}", file=sys.stderr)
         return 2

@@ -89,6 +89,7 @@ def run_demo(
     view: str | None = None,
     cache_dir: str | Path | None = None,
     cameras: list[str] | None = None,
+    speed: float = 1.0,
     stream: TextIO = sys.stdout,
 ) -> int:
     """Run the scenario (or ``world="random"``: the randomised world of ``seed``, each worker
@@ -96,7 +97,10 @@ def run_demo(
     camera) end to end; returns the process exit code. ``view``: ``HOST:PORT`` where the live
     view is served as well (None: no view). ``cache_dir``: the fusion server's carving tables
     (None: ``out_dir/cache``). ``cameras``: the house with only these of its cameras (None: all;
-    :class:`UnknownCameras` names one it does not have)."""
+    :class:`UnknownCameras` names one it does not have). ``speed``: the recording played at this
+    many times real time (every camera's frame rate times ``speed``): below 1 for a machine that
+    cannot render and segment every camera in real time beside the server (the people move that
+    much slower, so a fall may be too slow to be one)."""
     import zenoh
 
     import synth
@@ -144,6 +148,14 @@ def run_demo(
         title = (f"random world {seed} ({summary['people']} people, {summary['rig_label']} rig"
                  + (f"; {mixed}" if mixed else "") + ")")
     site_path = site.base_dir / "site.toml"
+    if not (0.05 <= speed <= 4.0):
+        raise ValueError(f"speed must lie in 0.05..4, got {speed!r}")
+    if speed != 1.0:
+        from common.site import load_site, write_site
+
+        write_site(site.model_copy(update={"cameras": [c.model_copy(update={"fps": c.fps * speed})
+                                                       for c in site.cameras]}), site_path)
+        site = load_site(site_path)
     if secure:
         site = _secure_site(site, out / "certs", site_path)
         endpoint = f"tls/localhost:{port or free_port()}"
@@ -151,7 +163,8 @@ def run_demo(
         endpoint = f"tcp/127.0.0.1:{port or free_port()}"
     conf = site_config(site, host=ROUTER, mode="router", listen=[endpoint], connect=[])
 
-    print(f"voxelwatch demo: {title}, {n_frames / sc.fps:.0f} s, "
+    print(f"voxelwatch demo: {title}, {n_frames / (sc.fps * speed):.0f} s"
+          f"{f' (at {speed:g}x real time)' if speed != 1.0 else ''}, "
           f"{len(site.camera_ids)} cameras, zenoh router {endpoint}"
           f"{' (TLS, access control; certificates in ' + str(out / 'certs') + ')' if secure else ''}",
           file=stream, flush=True)
@@ -185,12 +198,12 @@ def run_demo(
                     ["voxelwatch-camera", "--site", str(site_path), "--camera", cam, "--source", source,
                      "--background", source, "--background-frames", str(BACKGROUND_FRAMES),
                      "--seed", str(seed), "--start-file", str(start_file), "--max-frames", str(n_frames), "-q",
-                     *zenoh_args],
+                     *(["--fps", f"{site.camera(cam).fps:g}"] if speed != 1.0 else []), *zenoh_args],
                     logs / f"{cam}.log",
                 )
             start_in_step(router, site.prefix, {cam: procs[cam] for cam in site.camera_ids}, start_file, stream)
             print(f"started {len(site.camera_ids)} camera workers and the fusion server; logs in {logs}", file=stream, flush=True)
-            _watch(procs, live, site.camera_ids, n_frames, sc.fps, stream)
+            _watch(procs, live, site.camera_ids, n_frames, sc.fps * speed, stream)
         except KeyboardInterrupt:
             print("\ninterrupted: stopping the processes", file=stream)
         finally:

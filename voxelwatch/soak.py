@@ -6,7 +6,12 @@ faster than real time (every camera's rate and the site's times ``speed``,
 the recording looping), for ``minutes``. Every ``kill_every_s`` one camera
 worker, in turn, is SIGKILLed and started again two seconds later with the
 same shared start; once, half-way, the fusion server is SIGKILLed and started
-again on the same event store. At the end it reports:
+again on the same event store (it goes on from the snapshot the first kept).
+Two hostile hosts come by: a quarter of the way, for 20 s, one sends 15 valid
+4096x3072 masks a second on three cameras' keys (each refused on its size
+before it is decoded); three quarters of the way, another sends a 300 MB
+payload on a mask key and on an events key (zenoh's message-size limit drops
+them). At the end it reports:
 
 * frame sets lost: frame numbers between the first and the last fused frame
   that never came as tracks (a restart, a dead camera below ``min_cameras``,
@@ -15,7 +20,10 @@ again on the same event store. At the end it reports:
   SQLite store): every published event must be in the store, whatever died;
 * memory (resident set) of the fusion server and of each worker, shortly
   after it starts and when it ends (killed, or at the end of the soak), per
-  process lifetime (``cam2#1``: camera cam2's first process).
+  process lifetime (``cam2#1``: camera cam2's first process);
+* the faults: frame sets fused of those in the span while the oversized masks
+  came, the fusion server's and this router's memory growth 3 s after the
+  huge payloads, and whether the restarted server went on from the snapshot.
 
 It measures; it asserts nothing. Run it on an otherwise idle machine: five
 workers rendering the house at four times real time need several cores, and
@@ -40,6 +48,9 @@ from voxelwatch.demo import BACKGROUND_FRAMES, _spawn, _stop_all, _wait_alive, s
 __all__ = ["run_soak"]
 
 RESTART_DELAY_S = 2.0
+FLOOD_S = 20.0
+FLOOD_HZ = 15.0
+HUGE_BYTES = 300 * 1024 * 1024
 WARM_S = 20.0
 """Memory is first read this long after a process starts (tables loaded, buffers at their size)."""
 
@@ -83,6 +94,7 @@ def run_soak(*, minutes: float = 30.0, speed: float = 4.0, kill_every_s: float =
     started: dict[str, float] = {}
     rss: dict[str, list[int]] = {}
     restarts: dict[str, int] = {}
+    faults: dict[str, Any] = {}
 
     def fusion() -> subprocess.Popen:
         return _spawn(["voxelwatch-fusion", "--site", str(site_path), "--store", str(store),
@@ -115,6 +127,7 @@ def run_soak(*, minutes: float = 30.0, speed: float = 4.0, kill_every_s: float =
             end = time.monotonic() + minutes * 60
             next_kill = time.monotonic() + kill_every_s
             fusion_kill = time.monotonic() + minutes * 30
+            flood_at, huge_at = time.monotonic() + minutes * 15, time.monotonic() + minutes * 45
             victim = 0
             while time.monotonic() < end:
                 time.sleep(1.0)
@@ -122,6 +135,15 @@ def run_soak(*, minutes: float = 30.0, speed: float = 4.0, kill_every_s: float =
                 for name_, proc in procs.items():  # first memory reading of each process, once warm
                     if name_ not in rss and now - started[name_] >= WARM_S and proc.poll() is None:
                         rss[name_] = [_rss_kb(proc.pid)]
+                if now >= flood_at:
+                    flood_at = float("inf")
+                    print(f"[{now - t0:6.0f} s] oversized masks on three cameras' keys for {FLOOD_S:g} s",
+                          file=stream, flush=True)
+                    faults.update(_flood(session, fast.prefix, cams[:3], heard))
+                if now >= huge_at:
+                    huge_at = float("inf")
+                    print(f"[{now - t0:6.0f} s] 300 MB payloads on a mask key and an events key", file=stream, flush=True)
+                    faults.update(_huge(session, fast.prefix, cams[0], procs["fusion"].pid))
                 if now >= fusion_kill:
                     fusion_kill = float("inf")
                     _retire(rss, restarts, "fusion", procs["fusion"])
@@ -162,15 +184,64 @@ def run_soak(*, minutes: float = 30.0, speed: float = 4.0, kill_every_s: float =
         "frames_fused": len(frames), "frame_span": span, "frame_sets_lost": span - len(frames),
         "frame_sets_dropped_by_server": status.frame_sets_dropped if status is not None else None,
         "events_published": len(published), "events_stored": len(stored),
+        "laps": round(minutes * 60 * speed / synth.scenario_spec(name).duration_s, 2),
+        "falls_raised": sum(kind == "fall" for kind in published.values()),
         "published_not_stored": sorted(set(published) - stored),
         "stored_not_heard": len(stored - set(published)),
         "rss_mb": {k: [round(v / 1024, 1) for v in vals] for k, vals in rss.items()},
+        "faults": {**faults, "restart_went_on_from_the_snapshot": any(
+            "going on from the snapshot" in log.read_text(errors="replace") for log in logs.glob("fusion-[1-9]*.log"))},
     }
     print("\n" + _table(figures), file=stream, flush=True)
     return figures
 
 
 # ---------------------------------------------------------------- helpers
+
+
+def _flood(session, prefix: str, victims: list[str], heard: _Heard) -> dict[str, Any]:
+    """:data:`FLOOD_HZ` valid 4096x3072 masks a second on each victim's key for :data:`FLOOD_S`; the frame
+    sets fused meanwhile against those in their span."""
+    import numpy as np
+
+    from common import keys, maskcodec, messages
+    from common.messages import MaskFrame
+
+    big = np.zeros((3072, 4096), np.uint8)
+    big[:, ::2] = 255
+    data = maskcodec.encode_mask(big)
+    with heard.lock:
+        before = set(heard.frames)
+    t0, seq, sent = time.monotonic(), 10**9, 0
+    while time.monotonic() - t0 < FLOOD_S:
+        for cam in victims:
+            msg = MaskFrame(cam=cam, seq=seq, stamp_ns=time.time_ns(), width=4096, height=3072, src_width=4096,
+                            src_height=3072, codec="rle-zlib", data=data, fg_fraction=0.5)
+            session.put(keys.mask_key(prefix, cam), messages.encode(msg))
+            sent += 1
+        seq += 1
+        time.sleep(1.0 / FLOOD_HZ)
+    with heard.lock:
+        during = sorted(set(heard.frames) - before)
+    span = during[-1] - during[0] + 1 if during else 0
+    return {"oversized_masks_sent": sent, "fused_during_flood": len(during), "span_during_flood": span}
+
+
+def _huge(session, prefix: str, cam: str, fusion_pid: int) -> dict[str, Any]:
+    """Three :data:`HUGE_BYTES` payloads on ``cam``'s mask key and on an events key; the growth of the
+    fusion server's and this process's resident memory, MB, 3 s later."""
+    import os
+
+    from common import keys
+
+    before = {"fusion": _rss_kb(fusion_pid), "router": _rss_kb(os.getpid())}
+    payload = bytes(HUGE_BYTES)
+    for key in (keys.mask_key(prefix, cam), keys.event_key(prefix, "fall", 1), keys.mask_key(prefix, cam)):
+        session.put(key, payload)
+    del payload
+    time.sleep(3.0)
+    after = {"fusion": _rss_kb(fusion_pid), "router": _rss_kb(os.getpid())}
+    return {"huge_payload_rss_growth_mb": {k: round((after[k] - before[k]) / 1024, 1) for k in before}}
 
 
 def _on_event(sample, heard: _Heard, messages) -> None:
@@ -230,9 +301,18 @@ def _table(f: dict[str, Any]) -> str:
         f"  frame sets: {f['frames_fused']} fused of {f['frame_span']} in the span, {f['frame_sets_lost']} lost; "
         f"dropped by the last server (slow) {f['frame_sets_dropped_by_server']}",
         f"  events: {f['events_published']} published, {f['events_stored']} stored, "
-        f"{len(f['published_not_stored'])} published but not stored, {f['stored_not_heard']} stored but not heard",
+        f"{len(f['published_not_stored'])} published but not stored, {f['stored_not_heard']} stored but not heard; "
+        f"{f['falls_raised']} falls in {f['laps']:g} laps of the recording",
         "  memory (MB, after warm-up -> end):",
     ]
     for name, vals in sorted(f["rss_mb"].items()):
         lines.append(f"    {name:<10} {' -> '.join(str(v) for v in vals)}")
+    faults = f.get("faults", {})
+    if "oversized_masks_sent" in faults:
+        lines.append(f"  oversized masks: {faults['oversized_masks_sent']} sent; {faults['fused_during_flood']} frame "
+                     f"sets fused of {faults['span_during_flood']} in their span meanwhile")
+    if "huge_payload_rss_growth_mb" in faults:
+        lines.append(f"  300 MB payloads: memory growth 3 s later (MB) {faults['huge_payload_rss_growth_mb']}")
+    lines.append(f"  the restarted fusion server went on from the snapshot: "
+                 f"{faults.get('restart_went_on_from_the_snapshot')}")
     return "\n".join(lines)
