@@ -102,7 +102,8 @@ FILE_SECONDS = {
              "test_view.py": 140, "test_segmentation.py": 130, "test_lab_recording.py": 120, "test_notify.py": 119,
              "test_demo.py": 118, "test_suite.py": 100, "test_enrolment.py": 80, "test_events.py": 66,
              "test_replay.py": 62, "test_wire.py": 45, "test_boardfit.py": 45, "test_server.py": 30,
-             "test_world_suite.py": 20, "test_carving_synthetic.py": 11, "test_depth_segmentation.py": 10},
+             "test_world_suite.py": 20, "test_carving_synthetic.py": 11, "test_depth_segmentation.py": 10,
+             "test_restart.py": 100},
 }
 """Seconds the tests of each file took in the default run and in the slow set (``--durations=0``,
 2026-11-28: the default run once the world suite, the segmented carve and others had moved to the slow

@@ -86,10 +86,11 @@ def _first_line_and_stop(argv: list[str], after_s: float, log: Path) -> tuple[fl
 @pytest.mark.parametrize("after_s", [0.5, 6.0, 12.0])
 @pytest.mark.parametrize("who", ["camera", "fusion"])
 def test_a_process_whose_router_is_unreachable_says_so_at_once_and_stops_at_any_moment(
-        house_site, tmp_path, who, after_s):
+        house_site, tmp_path, who, after_s, machine_to_itself):
     """Client mode, nothing at the router's address: the first line within 1 s (what it does and
     whom it waits for), and SIGTERM at 0.5 s (modules loading), 6 s and 12 s (waiting for zenoh,
-    a camera having learnt its background): exit 0 within 2 s, one line saying so, no traceback."""
+    a camera having learnt its background): exit 0 within 2 s, one line saying so, no traceback.
+    With the machine to itself: the bounds are the issue's, for a process that is not starved."""
     site_file, cache = house_site
     endpoint = f"tcp/127.0.0.1:{_free_port()}"
     common = ["--site", str(site_file), "--mode", "client", "--connect", endpoint]
