@@ -156,7 +156,7 @@ def start_fusion(site_file: Path, *, endpoint: str, store: Path, out: Path | Non
 
 def start_camera(site_file: Path, cam: str, *, endpoint: str, scenario: str, max_frames: int, log_dir: Path,
                  start_ns: int | None = None, start_file: Path | None = None, seed: int = 0,
-                 background_frames: int = 45, name: str | None = None) -> Proc:
+                 background_frames: int = 45, name: str | None = None, loop: bool = False) -> Proc:
     """A ``voxelwatch-camera`` rendering and segmenting its view of a synthetic scenario, paced on the
     host clock from ``start_ns`` or the stamp in ``start_file`` once it is ready (frames it is late
     for are skipped), after learning the empty room."""
@@ -167,7 +167,7 @@ def start_camera(site_file: Path, cam: str, *, endpoint: str, scenario: str, max
     argv = [sys.executable, "-m", "camera_worker.cli", "--site", str(site_file), "--camera", cam,
             "--source", f"synthetic:{scenario}", "--background", f"synthetic:{scenario}",
             "--background-frames", str(background_frames), "--seed", str(seed), *start,
-            "--max-frames", str(max_frames), "--mode", "client", "--connect", endpoint, "-q"]
+            "--max-frames", str(max_frames), "--mode", "client", "--connect", endpoint, "-q", *(["--loop"] if loop else [])]
     return Proc(name, argv, Path(log_dir) / f"{name}.log")
 
 
@@ -181,7 +181,7 @@ def start_in_step(session, prefix: str, workers: dict[str, Proc], start_file: Pa
 
 def start_fusion_and_cameras(site, site_file: Path, *, router: "Router", listener: "Listener", store: Path,
                              out: Path | None, cache_dir: Path, log_dir: Path, scenario: str, max_frames: int,
-                             procs: list[Proc]) -> tuple[Proc, dict[str, Proc]]:
+                             procs: list[Proc], loop: bool = False) -> tuple[Proc, dict[str, Proc]]:
     """A fusion server on ``router`` (waited for until its token is out), then one worker per camera of
     ``site`` playing ``scenario`` in step from a shared start file beside ``log_dir``; every process is
     added to ``procs`` as it starts (for :func:`stop_all`). Returns ``(fusion, {camera: worker})``."""
@@ -191,7 +191,7 @@ def start_fusion_and_cameras(site, site_file: Path, *, router: "Router", listene
     listener.wait_fusion(fusion)
     start_file = Path(log_dir).parent / "start_ns"
     workers = {cam: start_camera(site_file, cam, endpoint=router.endpoint, scenario=scenario, start_file=start_file,
-                                 max_frames=max_frames, log_dir=log_dir)
+                                 max_frames=max_frames, log_dir=log_dir, loop=loop)
                for cam in site.camera_ids}
     procs.extend(workers.values())
     start_in_step(router.session, site.prefix, workers, start_file)
