@@ -473,7 +473,9 @@ class CameraSpec(_Model):
     yaw_deg: float = 0.0
     resolution: tuple[int, int] | None = None
     modality: Literal["colour", "thermal", "infrared", "depth"] = "colour"
-    fps: float = Field(default=15.0, gt=0.0, le=240.0)
+    fps: float = Field(default=15.0, ge=0.5, le=240.0, allow_inf_nan=False)
+    """Frames a second. Not below 0.5: the frame sets' lattice and the tracker need a frame at
+    least every 2 s (a rate near 0 made the fusion server's frame period overflow at start)."""
     source: str = ""
     background: str = ""
     view_reference: str = ""
