@@ -98,11 +98,8 @@ class Stopped(BaseException):
             return "a signal"
 
 
-_STOP_ASKED = threading.Event()
-"""Set by :func:`stopped_raises`'s handler: a stop was asked while the process got ready."""
-
-
-_ASKED_BY: list[int] = []   # the signals asked with
+_ASKED_BY: list[int] = []
+"""The signals :func:`stopped_raises`'s handler took: a stop was asked while the process got ready."""
 _ASKED_DEPTH: list[str] = []   # the start-ups (stopped_raises blocks) in progress
 
 
@@ -110,8 +107,8 @@ def stop_if_asked() -> None:
     """Raise :class:`Stopped` when a signal came while the process got ready, for the end of
     each start-up step: the exception raised at the signal can be swallowed by code it lands in
     (third-party modules import with bare ``except:`` clauses), the request cannot."""
-    if _STOP_ASKED.is_set():
-        raise Stopped(*_ASKED_BY[-1:])
+    if _ASKED_BY:
+        raise Stopped(_ASKED_BY[-1])
 
 
 @contextmanager
@@ -127,14 +124,12 @@ def stopped_raises(*, who: str, log: logging.Logger | None) -> Iterator[None]:
         return
 
     def _raise(signum: int, _frame: object) -> None:
-        _STOP_ASKED.set()
         _ASKED_BY.append(signum)
         if log is not None:
             log.info("%s: %s received while starting, stopping", who, signal.Signals(signum).name)
         raise Stopped(signum)
 
     if not _ASKED_DEPTH:   # a new start-up: what an earlier one was asked is done with
-        _STOP_ASKED.clear()
         _ASKED_BY.clear()
     _ASKED_DEPTH.append(who)
     previous = {sig: signal.signal(sig, _raise) for sig in _SIGNALS}
@@ -153,7 +148,7 @@ def stop_on_signals(stop: threading.Event | None = None, *, who: str | None = No
     after it). Off the main thread, where Python takes no signal handlers, the event is only the
     caller's to set."""
     stop = stop if stop is not None else threading.Event()
-    if _ASKED_DEPTH and _STOP_ASKED.is_set():   # asked while getting ready (see stop_if_asked)
+    if _ASKED_DEPTH and _ASKED_BY:   # asked while getting ready (see stop_if_asked)
         stop.set()
     if threading.current_thread() is not threading.main_thread():
         yield stop

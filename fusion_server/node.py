@@ -195,8 +195,8 @@ class _CameraHealth:
     refused_lead_ms: float = 0.0  # stamp - receive time of the last mask refused for it
     bad_reason: str = ""  # why its last bad mask was dropped (the status's reason while degraded)
     throttled: int = 0  # masks beyond its decoding budget, dropped before decoding
-    budget: float = -1.0  # masks it may still have decoded now (-1: full; see FusionNode._within_budget)
-    budget_mono: float | None = None
+    budget: float = 0.0  # masks it may still have decoded at budget_mono (see FusionNode._within_budget)
+    budget_mono: float | None = None  # None: a full bucket
     behind_since_mono: float | None = None  # its clock has seemed to lag since, on a server keeping up
     skew_event_mono: float | None = None
     last_seen_ns: int = 0
@@ -756,7 +756,7 @@ class FusionNode:
         if self.s.free_timeline:
             return True
         fps = self._fps[health.cam]
-        if health.budget < 0 or health.budget_mono is None:
+        if health.budget_mono is None:
             health.budget = fps
         else:
             health.budget = min(fps, health.budget + _BUDGET_RATE * fps * max(0.0, mono - health.budget_mono))
