@@ -936,10 +936,12 @@ FLOOD_RATE_HZ = 15.0
 def test_oversized_valid_masks_on_three_camera_keys_neither_stall_fusion_nor_hide_the_fall(house, tmp_path,
                                                                                           machine_to_itself):
     """A host that sends 15 valid 4096x3072 masks a second (55 KB each, 0.3 s each to inflate) on
-    three cameras' keys for 20 s, beside the real workers: refused on their size before they are
+    three cameras' keys for 20 s (the soak's hostile host), beside the real workers: refused on their size before they are
     decoded, so the server fuses as many frame sets as the cameras make, the fall is raised, and
     the three cameras read degraded with the reason (the other two ok)."""
     import threading
+
+    from voxelwatch.soak import send_oversized_masks
 
     site, site_file, cache = house
     prefix = site.prefix
@@ -947,25 +949,14 @@ def test_oversized_valid_masks_on_three_camera_keys_neither_stall_fusion_nor_hid
     logs.mkdir()
     write_truth(SCENARIO, FLOOD_FRAMES, truth_dir)
     (fall_truth,) = truth_events(truth_dir, "fall")
-    big = np.zeros((3072, 4096), np.uint8)
-    big[:, ::2] = 255
-    data = maskcodec.encode_mask(big)
     victims = list(site.camera_ids[:3])
     procs: list[Proc] = []
     sent = {"masks": 0}
     done = threading.Event()
 
     def flood(session) -> None:
-        t0 = time.monotonic()
-        seq = 10_000
-        while not done.is_set() and time.monotonic() - t0 < FLOOD_S:
-            for cam in victims:
-                msg = MaskFrame(cam=cam, seq=seq, stamp_ns=time.time_ns(), width=4096, height=3072, src_width=4096,
-                                src_height=3072, codec="rle-zlib", data=data, fg_fraction=0.5)
-                session.put(keys.mask_key(prefix, cam), messages.encode(msg))
-                sent["masks"] += 1
-            seq += 1
-            done.wait(1.0 / FLOOD_RATE_HZ)
+        sent["masks"] = send_oversized_masks(session, prefix, victims, seconds=FLOOD_S, rate_hz=FLOOD_RATE_HZ,
+                                             stop=done)
 
     with Router() as router:
         listener = Listener(router.session, prefix)

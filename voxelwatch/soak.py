@@ -45,7 +45,7 @@ from common.runfiles import START_FILE
 from common.transport import free_port, zenoh_config
 from voxelwatch.demo import BACKGROUND_FRAMES, _spawn, _stop_all, _wait_alive, start_in_step
 
-__all__ = ["run_soak"]
+__all__ = ["run_soak", "send_oversized_masks"]
 
 RESTART_DELAY_S = 2.0
 FLOOD_S = 20.0
@@ -199,9 +199,11 @@ def run_soak(*, minutes: float = 30.0, speed: float = 4.0, kill_every_s: float =
 # ---------------------------------------------------------------- helpers
 
 
-def _flood(session, prefix: str, victims: list[str], heard: _Heard) -> dict[str, Any]:
-    """:data:`FLOOD_HZ` valid 4096x3072 masks a second on each victim's key for :data:`FLOOD_S`; the frame
-    sets fused meanwhile against those in their span."""
+def send_oversized_masks(session, prefix: str, cams: list[str], *, seconds: float = FLOOD_S, rate_hz: float = FLOOD_HZ,
+                         stop: threading.Event | None = None) -> int:
+    """What a hostile host with a camera's key can send: ``rate_hz`` valid 4096x3072 masks a second
+    (alternating columns: 55 KB on the wire, about 0.3 s each to inflate) on each of ``cams``' keys
+    for ``seconds`` (or until ``stop``); returns how many were sent."""
     import numpy as np
 
     from common import keys, maskcodec, messages
@@ -210,17 +212,25 @@ def _flood(session, prefix: str, victims: list[str], heard: _Heard) -> dict[str,
     big = np.zeros((3072, 4096), np.uint8)
     big[:, ::2] = 255
     data = maskcodec.encode_mask(big)
-    with heard.lock:
-        before = set(heard.frames)
+    stop = stop if stop is not None else threading.Event()
     t0, seq, sent = time.monotonic(), 10**9, 0
-    while time.monotonic() - t0 < FLOOD_S:
-        for cam in victims:
+    while not stop.is_set() and time.monotonic() - t0 < seconds:
+        for cam in cams:
             msg = MaskFrame(cam=cam, seq=seq, stamp_ns=time.time_ns(), width=4096, height=3072, src_width=4096,
                             src_height=3072, codec="rle-zlib", data=data, fg_fraction=0.5)
             session.put(keys.mask_key(prefix, cam), messages.encode(msg))
             sent += 1
         seq += 1
-        time.sleep(1.0 / FLOOD_HZ)
+        stop.wait(1.0 / rate_hz)
+    return sent
+
+
+def _flood(session, prefix: str, victims: list[str], heard: _Heard) -> dict[str, Any]:
+    """:func:`send_oversized_masks` on the victims' keys; the frame sets fused meanwhile against those
+    in their span."""
+    with heard.lock:
+        before = set(heard.frames)
+    sent = send_oversized_masks(session, prefix, victims)
     with heard.lock:
         during = sorted(set(heard.frames) - before)
     span = during[-1] - during[0] + 1 if during else 0
