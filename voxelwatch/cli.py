@@ -563,7 +563,7 @@ def _register_demo(sub) -> None:
 
 
 def _demo(args: argparse.Namespace) -> int:
-    from voxelwatch.demo import UnknownCameras, run_demo
+    from voxelwatch.demo import SPEEDS, UnknownCameras, run_demo
 
     if args.world and args.scenario:
         print("voxelwatch demo: give --scenario or --world, not both", file=sys.stderr)
@@ -571,8 +571,8 @@ def _demo(args: argparse.Namespace) -> int:
     if args.sensors != "colour" and not args.world:
         print("voxelwatch demo: --sensors is for --world random", file=sys.stderr)
         return 2
-    if not 0.05 <= args.speed <= 4.0:
-        print(f"voxelwatch demo: --speed must lie in 0.05..4, got {args.speed:g}", file=sys.stderr)
+    if not SPEEDS[0] <= args.speed <= SPEEDS[1]:
+        print(f"voxelwatch demo: --speed must lie in {SPEEDS[0]:g}..{SPEEDS[1]:g}, got {args.speed:g}", file=sys.stderr)
         return 2
     if args.cameras and args.world:
         print("voxelwatch demo: --cameras is for the house, not --world", file=sys.stderr)

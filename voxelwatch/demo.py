@@ -63,6 +63,16 @@ def _house_cameras(wanted: list[str] | None):
     return {k: v for k, v in cameras.items() if k in wanted}
 
 
+SPEEDS = (0.05, 4.0)
+"""The demo's ``speed`` range: times real time."""
+
+
+def site_at_speed(site, speed: float):
+    """``site`` with every camera's frame rate times ``speed`` (a recording played that many times
+    faster than real time; not validated: write it and load it)."""
+    return site.model_copy(update={"cameras": [c.model_copy(update={"fps": c.fps * speed}) for c in site.cameras]})
+
+
 @dataclass
 class _Live:
     """What the demo has heard, updated from zenoh callbacks."""
@@ -148,13 +158,12 @@ def run_demo(
         title = (f"random world {seed} ({summary['people']} people, {summary['rig_label']} rig"
                  + (f"; {mixed}" if mixed else "") + ")")
     site_path = site.base_dir / "site.toml"
-    if not (0.05 <= speed <= 4.0):
-        raise ValueError(f"speed must lie in 0.05..4, got {speed!r}")
+    if not (SPEEDS[0] <= speed <= SPEEDS[1]):
+        raise ValueError(f"speed must lie in {SPEEDS[0]:g}..{SPEEDS[1]:g}, got {speed!r}")
     if speed != 1.0:
         from common.site import load_site, write_site
 
-        write_site(site.model_copy(update={"cameras": [c.model_copy(update={"fps": c.fps * speed})
-                                                       for c in site.cameras]}), site_path)
+        write_site(site_at_speed(site, speed), site_path)
         site = load_site(site_path)
     if secure:
         site = _secure_site(site, out / "certs", site_path)

@@ -43,7 +43,7 @@ from typing import Any, TextIO
 
 from common.runfiles import START_FILE
 from common.transport import free_port, zenoh_config
-from voxelwatch.demo import BACKGROUND_FRAMES, _spawn, _stop_all, _wait_alive, start_in_step
+from voxelwatch.demo import BACKGROUND_FRAMES, _spawn, _stop_all, _wait_alive, site_at_speed, start_in_step
 
 __all__ = ["run_soak", "send_oversized_masks"]
 
@@ -83,7 +83,7 @@ def run_soak(*, minutes: float = 30.0, speed: float = 4.0, kill_every_s: float =
         stale.unlink(missing_ok=True)
     name = scenario or synth.DEFAULT_SCENARIO
     base = synth.default_site(out / "site")
-    fast = base.model_copy(update={"cameras": [c.model_copy(update={"fps": c.fps * speed}) for c in base.cameras]})
+    fast = site_at_speed(base, speed)
     site_path = write_site(fast, out / "site" / "site-soak.toml")
     cams = list(fast.camera_ids)
     fps = fast.cameras[0].fps
