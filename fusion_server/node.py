@@ -357,12 +357,6 @@ class FusionNode:
             self.rlog.warn(f"mask on {key}", "unknown", "camera is not in the site: dropped "
                            f"(cameras: {', '.join(self.camera_ids)})", mono)
             return
-        if not self._within_budget(health, mono):
-            health.throttled += 1
-            health.bad(f"masks faster than {_BUDGET_RATE:g} times its frame rate: dropped before decoding", mono)
-            self.rlog.warn(f"camera {cam}", "budget", "masks arrive faster than the camera's frame rate allows: "
-                           "dropped before decoding", mono)
-            return
         try:
             if isinstance(data, int):
                 raise WireError(f"MaskFrame: payload of {data} bytes exceeds the {MaskFrame.MAX_BYTES}-byte limit")
@@ -370,6 +364,12 @@ class FusionNode:
             if msg.cam != cam:
                 raise _Mismatch(f"MaskFrame says camera {msg.cam!r} but came on {cam!r}'s key")
             self._check_shape(msg)
+            if not self._within_budget(health, mono):
+                health.throttled += 1
+                health.bad(f"masks faster than {_BUDGET_RATE:g} times its frame rate: dropped before decoding", mono)
+                self.rlog.warn(f"camera {cam}", "budget", "masks arrive faster than the camera's frame rate allows: "
+                               "dropped before decoding", mono)
+                return
             mask = maskcodec.decode_mask(msg.data, msg.codec, msg.width, msg.height)
             depth = maskcodec.decode_depth(msg.depth, mask) if msg.depth else None
         except (WireError, MaskCodecError) as exc:
@@ -751,7 +751,9 @@ class FusionNode:
         """Whether the camera's mask arriving at ``mono`` may be decoded: a bucket of a second's masks
         at its frame rate, refilled at :data:`_BUDGET_RATE` times that rate, so that however many masks
         a camera (or whoever publishes on its key) sends, decoding them costs a bounded share of each
-        frame period; a catching-up burst passes. Not with ``free_timeline`` (recordings played faster
+        frame period; a catching-up burst passes. Asked only for masks whose header passed its checks
+        (the image inflation is the cost it bounds; unreadable messages cost next to nothing and
+        must not starve the camera's own masks). Not with ``free_timeline`` (recordings played faster
         than real time)."""
         if self.s.free_timeline:
             return True

@@ -268,7 +268,7 @@ def test_fall_is_raised_over_processes_and_a_killed_camera_is_left_out_then_rejo
 
 FED_SCENARIO = "fall_forward"
 FED_FRAMES = 150        # 10 s: the truth fall is at frame 101
-NO_SKEW = ("--max-clock-skew-ms", "1e13")  # fed masks carry the scenario's own (2024) stamps
+FED_TIMELINE = ("--free-timeline",)  # fed masks carry the scenario's own (2024) stamps, faster than real time
 
 
 @pytest.fixture(scope="module")
@@ -359,7 +359,7 @@ def fed_run(house, folder: Path, router: Router, fed, *, extra: tuple[str, ...] 
     listener = Listener(router.session, site.prefix)
     feeder = Feeder(router.session, site.prefix)
     fusion = start_fusion(site_file, endpoint=router.endpoint, store=folder / "events.sqlite", out=folder / "run",
-                          cache_dir=cache, log_dir=folder, extra=(*NO_SKEW, *extra))
+                          cache_dir=cache, log_dir=folder, extra=(*FED_TIMELINE, *extra))
     try:
         listener.wait_fusion(fusion)
         feed_lockstep(listener, feeder, fed, range(FED_FRAMES), fusion, before=before, after=after)
@@ -618,7 +618,7 @@ def test_a_flood_drops_old_frame_sets_and_memory_stays_bounded(house, fed, tmp_p
         listener = Listener(router.session, site.prefix)
         feeder = Feeder(router.session, site.prefix)
         fusion = start_fusion(site_file, endpoint=router.endpoint, store=tmp_path / "events.sqlite", out=None,
-                              cache_dir=cache, log_dir=tmp_path, extra=NO_SKEW)
+                              cache_dir=cache, log_dir=tmp_path, extra=FED_TIMELINE)
         try:
             listener.wait_fusion(fusion)
             feed_lockstep(listener, feeder, fed, range(warm), fusion)

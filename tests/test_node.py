@@ -878,3 +878,19 @@ def test_a_camera_flooding_its_key_is_decoded_at_twice_its_frame_rate_at_most(ri
     cams = r.cam_status()
     assert cams["c3"].state == "ok" and h.throttled <= 200 - fps + 1
     assert all(c.state == "ok" for c in cams.values())
+
+
+def test_unreadable_messages_on_a_camera_s_key_do_not_spend_its_decoding_budget(rig):
+    """Ten unreadable messages a frame on c3's key (five times its frame rate with its own mask,
+    over three seconds): each counted as undecodable, none spends the budget, so every one of c3's
+    own masks is decoded and makes its set."""
+    r = rig()
+    rng = np.random.default_rng(3)
+    good = encode(mask_frame(r.cams["c3"], 0, r.clock.ns))
+    for seq in range(45):
+        for _ in range(10):
+            r.put("c3", rng.bytes(int(rng.integers(1, len(good)))))
+        r.frames([seq])
+    h = r.node.health["c3"]
+    assert h.throttled == 0 and h.undecodable == 450
+    assert len(r.tracks) >= 43 and all(f.cameras == ["c1", "c2", "c3"] for f in r.tracks[2:])
