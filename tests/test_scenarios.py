@@ -22,7 +22,7 @@ What is held against the truth:
   +-30-frame window of :mod:`evaluation`, no false ones.
 
 The default run replays the first seconds of six scenarios (about 1500 frame
-sets); the complete scenarios, the other falls and the ten-minute seated
+sets); the complete scenarios, the other falls and three minutes of the ten-minute seated
 person are marked slow. Each case prints its figures (MOTA, IDF1, MOTP,
 posture accuracy, event counts, fall delays).
 
@@ -393,31 +393,40 @@ def test_complete_side_by_side_keeps_identities(replayed):
 
 SIT_STILL_TRACKED_MIN = 0.99
 SIT_STILL_SEATED_MIN = 0.95
+SIT_STILL_FRAMES = 2_850
+"""The ten-minute sitter's first 190 s: seated from frame 140, three minutes of sitting still, about fifty
+times the 3.5 s in which the background model would learn a still person in without hold regions (the
+holds are renewed the same way every few seconds however long the stay; the whole ten minutes, 9,375
+frame sets, is the house suite's, and cost this test 550-790 s of processor time). Getting up is held
+by the sit-stand scenario."""
 
 
 @pytest.mark.slow
-def test_sitting_still_for_ten_minutes_stays_tracked_and_seated(replayed):
-    """Ten minutes seated on the sofa: hold regions keep the person out of every
+def test_sitting_still_for_three_minutes_stays_tracked_and_seated(replayed):
+    """Three minutes seated on the sofa: hold regions keep the person out of every
     camera's background model, so the same track reports them seated throughout."""
-    run = replayed("sit_still_10min")
+    run = replayed("sit_still_10min", SIT_STILL_FRAMES)
     truth = derive_truth(synth.get_scenario("sit_still_10min", SEED))
     tracks = read_tracks(run.run_dir / "tracks.csv")
-    seated = truth.frame[truth.posture == "sitting"]
+    seated = truth.frame[(truth.posture == "sitting") & (truth.frame < SIT_STILL_FRAMES)]
     first, last = int(seated.min()), int(seated.max())
-    # Judge the seated period from 3 s after sitting down to 3 s before getting up.
-    frames = np.arange(first + 45, last - 45)
-    rows = {int(f): i for i, f in enumerate(tracks.frame) if first + 45 <= f < last - 45}
+    assert last - first >= 180 * 15
+    # Judge the seated period from 3 s after sitting down to the end of the replay.
+    frames = np.arange(first + 45, last + 1)
+    rows = {int(f): i for i, f in enumerate(tracks.frame) if first + 45 <= f <= last}
     one_track = sum(1 for f in frames if np.count_nonzero(tracks.frame == f) == 1)
     tracked = [rows[f] for f in frames if f in rows]
     ids = {str(tracks.track_id[i]) for i in tracked}
     sitting = sum(1 for i in tracked if tracks.posture[i] == "sitting")
     print(
-        f"\nsit_still_10min: {len(frames)} seated frames, exactly one track on {one_track} "
-        f"({one_track / len(frames):.4f}), seated on {sitting} ({sitting / len(frames):.4f}), track ids {sorted(ids)}"
+        f"\nsit_still_10min, first {SIT_STILL_FRAMES} frames: {len(frames)} seated frames, exactly one track on "
+        f"{one_track} ({one_track / len(frames):.4f}), seated on {sitting} ({sitting / len(frames):.4f}), "
+        f"track ids {sorted(ids)}"
     )
     assert one_track / len(frames) >= SIT_STILL_TRACKED_MIN
     assert sitting / len(frames) >= SIT_STILL_SEATED_MIN
     assert len(ids) == 1
-    check_events(run, ("sit_down", "stand_up"))
+    check_events(run, ("sit_down",))
+    assert run.run_events("stand_up") == []  # still seated when the replay ends
     check_no_false_alarm(run)
     assert run.run_events("inactivity") == []  # inactivity needs 30 minutes
