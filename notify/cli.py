@@ -24,8 +24,18 @@ def register(sub) -> None:
 
 
 def _notify(args: argparse.Namespace) -> int:
+    from notify.service import run_forever
+
+    site, make_config, endpoints, channels, outbox = _configure(args)
+    return run_forever(site, outbox_path=outbox, make_config=make_config, endpoints=endpoints, channels=channels,
+                       status_every_s=args.status_every)
+
+
+def _configure(args: argparse.Namespace):
+    """``(site, a zenoh configuration factory, the endpoints it connects to, the channels, the outbox
+    file)`` from the arguments and the site file; ValueError on any problem."""
     from common import keys
-    from notify.service import build_channels, run_forever
+    from notify.service import build_channels
     from common.site import load_site
     from common.transport import site_config
 
@@ -46,5 +56,4 @@ def _notify(args: argparse.Namespace) -> int:
     channels = build_channels(site)
     outbox = args.outbox if args.outbox is not None else site.resolve(site.notify.outbox)
     endpoints = list(args.connect if args.connect is not None else site.zenoh.connect)
-    return run_forever(site, outbox_path=outbox, make_config=make_config, endpoints=endpoints, channels=channels,
-                       status_every_s=args.status_every)
+    return site, make_config, endpoints, channels, outbox

@@ -99,6 +99,12 @@ def build_channels(site: Site) -> list[Channel]:
     return channels
 
 
+def open_outbox(site: Site, path: Path) -> Outbox:
+    """The outbox file at ``path`` with the back-off of the site's ``[notify]`` section (ValueError
+    naming the file when it cannot be opened)."""
+    return Outbox(path, retry_max_s=site.notify.retry_max_s)
+
+
 class Notifier:
     """What the notifier does with each message, given the time; no zenoh, no threads."""
 
@@ -291,7 +297,7 @@ def run_forever(site: Site, *, outbox_path: Path, make_config: Callable[[], Any]
     from common.shell import serve
 
     try:
-        outbox = Outbox(outbox_path, retry_max_s=site.notify.retry_max_s)
+        outbox = open_outbox(site, outbox_path)
     except ValueError as exc:
         log.error("%s", exc)
         return 2

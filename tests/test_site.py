@@ -105,6 +105,22 @@ def test_bad_field_names_file_field_and_problem(tmp_path, old, new, field, probl
     assert problem in message
 
 
+def test_a_finest_voxel_too_small_for_the_volume_is_refused_with_the_tables_size(tmp_path):
+    """6 x 4 x 2.5 m at 5 mm: 480 million finest voxels (548 million on all four levels), 6 bytes each
+    for each of 2 cameras: 6.1 GiB of carving tables, over the 2 GiB the fusion server may build;
+    at 1 cm (68.6 million voxels, 0.77 GiB) the file loads."""
+    path = _write(tmp_path, GOOD.replace("voxel_sizes_m = [0.4, 0.2, 0.1, 0.05]",
+                                         "voxel_sizes_m = [0.04, 0.02, 0.01, 0.005]", 1))
+    with pytest.raises(SiteError) as err:
+        load_site(path)
+    message = str(err.value)
+    assert str(path) in message and "carving.voxel_sizes_m: a finest voxel of 0.005 m" in message
+    assert "548,445,000 voxels" in message and "6.1 GiB for 2 cameras" in message
+    site = load_site(_write(tmp_path, GOOD.replace("voxel_sizes_m = [0.4, 0.2, 0.1, 0.05]",
+                                                   "voxel_sizes_m = [0.08, 0.04, 0.02, 0.01]", 1)))
+    assert site.carving.voxel_sizes_m[-1] == 0.01
+
+
 def test_carving_fusion_options_default_to_the_vote_and_read_back(tmp_path):
     site = load_site(_write(tmp_path, GOOD))
     assert (site.carving.fusion, site.carving.smoothing, site.carving.free_space) == ("vote", 0.1, True)

@@ -39,22 +39,44 @@ def register(sub) -> None:
 
 
 def _view(args: argparse.Namespace) -> int:
+    site, host, port, token = _configure(args)
+    return run_view(site, host=host, port=port, token=token, prefix=args.prefix, mode=args.mode,
+                    connect=args.connect, tls_cert=args.tls_cert, tls_key=args.tls_key)
+
+
+def _configure(args: argparse.Namespace):
+    """``(site, host, port, token)`` from the arguments and the site file; ValueError on any problem."""
     from common.site import load_site
 
     site = load_site(args.site)
     listen = args.listen or site.view.listen
     host, port = _host_port(listen)
     token = _token(site, args.token_file)
-    return run_view(site, host=host, port=port, token=token, prefix=args.prefix, mode=args.mode,
-                    connect=args.connect, tls_cert=args.tls_cert, tls_key=args.tls_key)
+    return site, host, port, token
 
 
 def run_view(site, *, host: str, port: int, token: str, prefix: str | None = None, mode: str | None = None,
              connect: list[str] | None = None, tls_cert: Path | None = None, tls_key: Path | None = None,
              stream: TextIO = sys.stdout) -> int:
     """Serve the view of ``site`` on ``host:port`` until SIGINT/SIGTERM; the exit code."""
-    from common import keys
     from common.shell import serve
+
+    make_config, endpoints = _zenoh_config(site, prefix=prefix, mode=mode, connect=connect, tls_cert=tls_cert,
+                                           tls_key=tls_key)
+
+    def work(session, stop: threading.Event) -> int:
+        return asyncio.run(_serve(session, site, host=host, port=port, token=token, prefix=prefix,
+                                  stop=stop, stream=stream))
+
+    return serve(make_config, who="view", endpoints=endpoints, log=log, work=work)
+
+
+def _zenoh_config(site, *, prefix: str | None = None, mode: str | None = None, connect: list[str] | None = None,
+                  tls_cert: Path | None = None, tls_key: Path | None = None):
+    """``(a factory of the view's zenoh configuration, the endpoints it connects to)``, the
+    configuration made once: a bad prefix, endpoint or certificate is a ValueError here, before
+    any retrying."""
+    from common import keys
     from common.transport import site_config
 
     if prefix is not None:
@@ -70,13 +92,8 @@ def run_view(site, *, host: str, port: int, token: str, prefix: str | None = Non
         return site_config(site, host=reader, mode=mode, connect=connect, tls_cert=tls_cert, tls_key=tls_key,
                            connect_timeout_ms=1000)
 
-    make_config()  # a bad setting stops here with its message, before any retrying
-
-    def work(session, stop: threading.Event) -> int:
-        return asyncio.run(_serve(session, site, host=host, port=port, token=token, prefix=prefix,
-                                  stop=stop, stream=stream))
-
-    return serve(make_config, who="view", endpoints=endpoints, log=log, work=work)
+    make_config()
+    return make_config, endpoints
 
 
 async def _serve(session, site, *, host: str, port: int, token: str, prefix: str | None, stop: threading.Event,

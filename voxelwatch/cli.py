@@ -41,7 +41,8 @@ examples:
 """
 
 
-def main(argv: Sequence[str] | None = None) -> int:
+def build_parser() -> argparse.ArgumentParser:
+    """The umbrella command's parser with every subcommand (each sets its ``handler``)."""
     parser = argparse.ArgumentParser(
         prog="voxelwatch", description=DESCRIPTION, epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter
     )
@@ -49,6 +50,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     for register in _SUBCOMMANDS:
         register(sub)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = build_parser()
     argv = list(sys.argv[1:] if argv is None else argv)
     # camera and fusion hand every remaining argument to their own parsers
     if argv and argv[0] in _PASSTHROUGH:
@@ -189,10 +195,28 @@ def _register_router(sub) -> None:
 def _router(args: argparse.Namespace) -> int:
     import zenoh
 
-    from common.certs import ROUTER
     from common.shell import stop_on_signals
+    from common.transport import short_error
+
+    conf, listen, how = _router_config(args)
+    with stop_on_signals() as stop:
+        try:
+            session = zenoh.open(conf)
+        except Exception as exc:  # noqa: BLE001 - zenoh reports a busy port or a bad certificate as ZError
+            print(f"voxelwatch router: cannot listen on {', '.join(listen)}: {short_error(exc)}", file=sys.stderr)
+            return 1
+        with session:
+            print(f"voxelwatch router listening on {', '.join(listen)} ({how})", flush=True)
+            stop.wait()
+    return 0
+
+
+def _router_config(args: argparse.Namespace):
+    """``(the router's zenoh configuration, the endpoints it listens on, how it is secured, in words)``
+    from the arguments and the site file; ValueError on any problem."""
+    from common.certs import ROUTER
     from common.site import ZenohSettings, load_site
-    from common.transport import short_error, site_config, zenoh_config
+    from common.transport import site_config, zenoh_config
 
     if args.site is not None:
         site = load_site(args.site)
@@ -210,16 +234,7 @@ def _router(args: argparse.Namespace) -> int:
         listen = args.listen or ["tcp/0.0.0.0:7447"]
         conf = zenoh_config(ZenohSettings(multicast_scouting=bool(args.multicast_scouting)), mode="router", listen=listen)
         how = "plain TCP: no authentication, no access control"
-    with stop_on_signals() as stop:
-        try:
-            session = zenoh.open(conf)
-        except Exception as exc:  # noqa: BLE001 - zenoh reports a busy port or a bad certificate as ZError
-            print(f"voxelwatch router: cannot listen on {', '.join(listen)}: {short_error(exc)}", file=sys.stderr)
-            return 1
-        with session:
-            print(f"voxelwatch router listening on {', '.join(listen)} ({how})", flush=True)
-            stop.wait()
-    return 0
+    return conf, listen, how
 
 
 def _register_certs(sub) -> None:
