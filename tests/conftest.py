@@ -3,9 +3,16 @@
 from __future__ import annotations
 
 import os
+import sys
 from pathlib import Path
 
 import pytest
+
+# A run starts hundreds of processes that import the same modules, and rewrites the test modules for
+# their asserts: it keeps their bytecode (in __pycache__, which git ignores) even where the environment
+# asks Python not to write any (PYTHONDONTWRITEBYTECODE), which would compile them again in every one.
+sys.dont_write_bytecode = False
+os.environ.pop("PYTHONDONTWRITEBYTECODE", None)
 
 # Two workers already fill the two cores: each test process, and every process a test starts (they
 # inherit the environment), runs OpenCV and OpenBLAS on one thread. Their thread pools would only
