@@ -134,6 +134,20 @@ class Proc:
         raise RuntimeError(f"no {field} for {self.name} (pid {self.pid})")
 
 
+def confine(pid: int, cpu: int, nice: int = 0) -> None:
+    """Every thread of process ``pid`` runs on processor ``cpu`` only, at ``nice`` (Linux: both are
+    properties of each thread, so each of its threads is set; where the kernel groups the processes
+    of a session (autogroup), as it does each :class:`Proc`, nice weighs only within the group, so the
+    group's own nice is set too)."""
+    for task in Path(f"/proc/{pid}/task").iterdir():
+        tid = int(task.name)
+        os.sched_setaffinity(tid, {cpu})
+        os.setpriority(os.PRIO_PROCESS, tid, nice)
+    autogroup = Path(f"/proc/{pid}/autogroup")
+    if nice and autogroup.exists():
+        autogroup.write_text(str(nice))
+
+
 def stop_all(procs: Iterable[Proc], timeout_s: float = 20.0) -> dict[str, int]:
     """SIGTERM every process still running, then wait for each (SIGKILL after ``timeout_s``)."""
     procs = list(procs)
