@@ -903,7 +903,7 @@ def test_a_fusion_host_loaded_with_cpu_burners_reads_overloaded_and_no_camera_sk
             calm = len(listener.status)
             # the fusion server's processor taken by two burners, its own share of it under 2 % (nice 15
             # against their 0): less than it needs on any machine here, however fast (on an AMD EPYC two
-            # burners free to use both cores left it 20-40 % busy, and a seventh of a core, nice 5, 30 %)
+            # burners free to use both cores left it 20-40 % busy, 20-35 ms behind: not overloaded)
             burners = [subprocess.Popen([sys.executable, "-c", "while True: pass"]) for _ in range(2)]
             for burner in burners:
                 confine(burner.pid, FUSION_CPU)
