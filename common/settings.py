@@ -20,8 +20,8 @@ from typing import Annotated, Any
 
 from pydantic import BaseModel, ConfigDict, TypeAdapter, ValidationError
 
-__all__ = ["NON_NEGATIVE", "Settings", "SettingError", "bounds_of", "check_declared", "check_setting", "declared", "default_of",
-           "field_name",
+__all__ = ["NON_NEGATIVE", "Settings", "SettingError", "bounds_in", "bounds_of", "check_declared", "check_setting",
+           "declared", "default_of", "field_name",
            "group_of", "problem", "validated"]
 
 
@@ -102,8 +102,14 @@ def declared(model: type[BaseModel], name: str) -> Any:
 def bounds_of(model: type[BaseModel], name: str) -> tuple[float, float]:
     """The closed range ``(low, high)`` ``model`` declares for its field ``name`` (``-inf`` or ``inf``
     where it declares none; an open bound, ``gt`` or ``lt``, as its limit)."""
+    return bounds_in(model.model_fields[name].metadata)
+
+
+def bounds_in(metadata) -> tuple[float, float]:
+    """:func:`bounds_of` for a field's constraints themselves (``FieldInfo.metadata``, or those of an
+    ``Annotated`` element of a list)."""
     low, high = -math.inf, math.inf
-    for bound in model.model_fields[name].metadata:
+    for bound in metadata:
         low = max(low, getattr(bound, "ge", -math.inf), getattr(bound, "gt", -math.inf))
         high = min(high, getattr(bound, "le", math.inf), getattr(bound, "lt", math.inf))
     return float(low), float(high)

@@ -43,6 +43,7 @@ import pytest
 from pydantic import BaseModel
 from pydantic.fields import FieldInfo
 
+from common.settings import bounds_in
 from common.site import Site
 
 ENDPOINT = "tcp/127.0.0.1:7447"
@@ -124,17 +125,13 @@ def _numbers(annotation: Any, metadata: list, path: tuple[str, ...], *, element:
 
 
 def _limits(kind: type, metadata: list) -> tuple[float, float]:
-    """The lowest and highest values of ``kind`` that the constraints in ``metadata`` accept."""
-    low, high = -math.inf, math.inf
-    for m in metadata:
-        if getattr(m, "ge", None) is not None:
-            low = max(low, m.ge)
-        if getattr(m, "gt", None) is not None:
-            low = max(low, m.gt + 1 if kind is int else math.nextafter(m.gt, math.inf))
-        if getattr(m, "le", None) is not None:
-            high = min(high, m.le)
-        if getattr(m, "lt", None) is not None:
-            high = min(high, m.lt - 1 if kind is int else math.nextafter(m.lt, -math.inf))
+    """The lowest and highest values of ``kind`` that the constraints in ``metadata`` accept: the
+    schema's range (:func:`~common.settings.bounds_in`), an open end moved to the nearest value inside."""
+    low, high = bounds_in(metadata)
+    if any(getattr(m, "gt", None) == low for m in metadata):
+        low = low + 1 if kind is int else math.nextafter(low, math.inf)
+    if any(getattr(m, "lt", None) == high for m in metadata):
+        high = high - 1 if kind is int else math.nextafter(high, -math.inf)
     return low, high
 
 
