@@ -9,10 +9,17 @@ about a known truth posture is wrong.
 * strict: the run posture equals the truth posture;
 * lenient: ``bending`` and ``standing`` count as one posture on both sides,
   for pipelines that cannot tell a bent-over person from a standing one.
+
+And the false lying markers a carer would see: spells in which a run track
+reads ``lying`` on every frame while matched to a truth person who is not
+lying (standing, sitting or bending), longer than :data:`FALSE_LYING_MIN_S`
+from the spell's first frame to its last (a frame the track is not matched,
+or reads another posture, ends the spell).
 """
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 from typing import Any
 
@@ -22,6 +29,8 @@ from evaluation.io import POSTURES, TrackTable
 from evaluation.tracking import Matches, ratio
 
 LENIENT_SAME: dict[str, str] = {"bending": "standing"}
+FALSE_LYING_MIN_S = 2.0
+"""A lying marker shown this long, seconds, for someone who is not lying, counts as a false one."""
 
 
 @dataclass(frozen=True)
@@ -33,6 +42,8 @@ class PostureResult:
     scored: int
     strict_correct: int
     lenient_correct: int
+    false_lying_spells: int = 0
+    false_lying_s: float = 0.0
 
     @property
     def pairs(self) -> int:
@@ -65,6 +76,8 @@ class PostureResult:
             "recall_by_truth": self.recall_by_truth(),
             "labels": list(self.labels),
             "confusion": self.confusion.astype(int).tolist(),
+            "false_lying_spells": self.false_lying_spells,
+            "false_lying_s": self.false_lying_s,
         }
 
 
@@ -72,7 +85,36 @@ def posture_scores(truth: TrackTable, run: TrackTable, matches: Matches) -> Post
     """Accuracies and confusion of the run's postures over the matched pairs."""
     t_post = truth.posture[matches.truth_row] if len(matches) else np.zeros(0, dtype=str)
     r_post = run.posture[matches.run_row] if len(matches) else np.zeros(0, dtype=str)
-    return posture_from_labels(t_post, r_post)
+    spells, seconds = false_lying(truth, run, matches)
+    return dataclasses.replace(posture_from_labels(t_post, r_post), false_lying_spells=spells,
+                               false_lying_s=seconds)
+
+
+def false_lying(truth: TrackTable, run: TrackTable, matches: Matches,
+                min_s: float = FALSE_LYING_MIN_S) -> tuple[int, float]:
+    """(spells, their seconds in all): the run's ``lying`` spells longer than ``min_s`` on people who
+    were not lying (see the module text). Durations from the run's own stamps."""
+    if not len(matches):
+        return 0, 0.0
+    false_row = np.zeros(len(run), dtype=bool)
+    wrong = (run.posture[matches.run_row] == "lying") & np.isin(
+        truth.posture[matches.truth_row], ("standing", "sitting", "bending"))
+    false_row[matches.run_row[wrong]] = True
+    spells, seconds = 0, 0.0
+    for tid in np.unique(run.track_id[false_row]):
+        rows = np.flatnonzero(run.track_id == tid)
+        rows = rows[np.argsort(run.frame[rows], kind="stable")]
+        flags = false_row[rows]
+        # spells: runs of flagged rows over consecutive frames of the track
+        breaks = np.flatnonzero(~flags[1:] | ~flags[:-1] | (np.diff(run.frame[rows]) != 1)) + 1
+        for part in np.split(np.arange(len(rows)), breaks):
+            if not len(part) or not flags[part[0]]:
+                continue
+            span_s = (run.stamp_ns[rows[part[-1]]] - run.stamp_ns[rows[part[0]]]) * 1e-9
+            if span_s > min_s:
+                spells += 1
+                seconds += float(span_s)
+    return spells, round(seconds, 3)
 
 
 def posture_from_labels(truth_postures: np.ndarray, run_postures: np.ndarray) -> PostureResult:

@@ -37,7 +37,7 @@ import numpy as np
 
 from evaluation import io
 from evaluation.events import ALARM_KINDS, WINDOW_FRAMES, TrackLinks, f1_score, score_events
-from evaluation.posture import posture_scores
+from evaluation.posture import FALSE_LYING_MIN_S, posture_scores
 from evaluation.reentry import reentry_identity
 from evaluation.residents import resident_scores
 from evaluation.residents import totals as resident_totals
@@ -209,6 +209,9 @@ def format_table(results: Mapping[str, Any]) -> str:
                   f"re-entries {ident['reentries']}  same id {ident['same_id']}  rate {fmt_pct(ident['rate'])}"]
     lines += ["", f"posture over {p['pairs']} matched pairs ({p['scored']} with a known truth posture)"]
     lines.append(f"accuracy strict {fmt_pct(p['strict_accuracy'])}  lenient (bending = standing) {fmt_pct(p['lenient_accuracy'])}")
+    if "false_lying_spells" in p:
+        lines.append(f"false lying markers (read lying over {FALSE_LYING_MIN_S:g} s while not lying): "
+                     f"{p['false_lying_spells']}, {fmt_num(p['false_lying_s'], 1)} s in all")
     labels = p["labels"]
     conf = p["confusion"]
     rows = [[lab, *row] for lab, row in zip(labels, conf) if any(row)] or [["-"] * (len(labels) + 1)]
@@ -257,6 +260,8 @@ def suite_totals(results: Iterable[Mapping[str, Any]]) -> dict[str, Any]:
         "lenient_accuracy": ratio(p_counts["lenient_correct"], p_counts["scored"]),
         "labels": results[0]["posture"]["labels"],
         "confusion": confusion.tolist(),
+        "false_lying_spells": int(sum(r["posture"].get("false_lying_spells", 0) for r in results)),
+        "false_lying_s": round(float(sum(r["posture"].get("false_lying_s", 0.0) for r in results)), 3),
     }
     bands: dict[str, dict[str, Any]] = {}
     for r in results:

@@ -99,6 +99,7 @@ def run_world_suite(
     print("", file=stream)
     print(worlds_table(ordered), file=stream)
     total = suite_totals(r["scores"] for r in ordered)
+    print("\n" + posture_line(total["posture"]), file=stream)
     print("\nby people present in the frame (tracking only; each frame in the band of its truth count):", file=stream)
     print("\n".join(people_table(total["by_people"])), file=stream)
     print("\nby rig (whole worlds):", file=stream)
@@ -115,6 +116,18 @@ def run_world_suite(
     if json_path is not None:
         write_json(report, json_path)
     return report
+
+
+def posture_line(p: dict) -> str:
+    """Strict posture, seated frames read lying, and false lying markers, of summed posture scores."""
+    labels, conf = p["labels"], p["confusion"]
+    seated = conf[labels.index("sitting")]
+    known = sum(seated[labels.index(k)] for k in labels if k != "unknown")
+    lying = seated[labels.index("lying")]
+    share = f"{100.0 * lying / known:.2f} %" if known else "-"
+    return (f"posture strict {fmt_pct(p['strict_accuracy'])}; seated frames read lying {lying} of {known} ({share}); "
+            f"false lying markers over 2 s: {p.get('false_lying_spells', 0)} "
+            f"({fmt_num(p.get('false_lying_s', 0.0), 1)} s)")
 
 
 def composition(results: Sequence[dict]) -> str:

@@ -402,3 +402,23 @@ def test_posture_uses_the_tracking_pairs_only() -> None:
     run = table([(0, "1", 0.1, 0.0, "lying"), (1, "1", 0.1, 0.0, "sitting"), (2, "1", 2.0, 0.0, "lying")])
     r = posture_scores(truth, run, clear_mot(truth, run).pairs)
     assert (r.pairs, r.strict_correct) == (2, 1)
+
+
+def test_false_lying_markers_are_spells_over_two_seconds_on_people_not_lying() -> None:
+    # A sits for frames 0..99 and lies on 100..139; B stands throughout, 3 m away. The run reads
+    # A lying on 10..49 (40 frames: 39 frame periods, 2.6 s, a false marker), again on 60..69 (0.6 s:
+    # too short to count), and from 95 on (95..99 false but short, then right); B lying on 0..30,
+    # interrupted at frame 20 by a frame it is 2 m off (no pair there): 0..19 is 1.27 s and 21..30
+    # 0.6 s, neither counts.
+    truth, run = [], []
+    for f in range(140):
+        truth.append((f, "A", 0.0, 0.0, "sitting" if f < 100 else "lying"))
+        truth.append((f, "B", 3.0, 0.0, "standing"))
+        a = "lying" if 10 <= f < 50 or 60 <= f < 70 or f >= 95 else "sitting"
+        run.append((f, "1", 0.1, 0.0, a))
+        run.append((f, "2", 5.0 if f == 20 else 3.1, 0.0, "lying" if f <= 30 else "standing"))
+    truth, run = table(truth), table(run)
+    r = posture_scores(truth, run, clear_mot(truth, run).pairs)
+    assert r.false_lying_spells == 1
+    assert r.false_lying_s == pytest.approx(39 * NS * 1e-9, abs=1e-3)
+    assert r.summary()["false_lying_spells"] == 1
