@@ -61,6 +61,16 @@ class Hotspot:
         """(N, 2) or (2,) floor points -> (N,) bool (even-odd rule)."""
         return _inside(np.atleast_2d(np.asarray(xy, dtype=np.float64)), self._edges)
 
+    def distance_m(self, x: float, y: float) -> float:
+        """Floor distance from (x, y) to the polygon, metres: 0 inside it."""
+        if bool(self.contains(np.array([x, y]))[0]):
+            return 0.0
+        a = self.polygon_m
+        b = np.roll(a, -1, axis=0)
+        ab = b - a
+        t = np.clip(((x - a[:, 0]) * ab[:, 0] + (y - a[:, 1]) * ab[:, 1]) / (ab * ab).sum(axis=1), 0.0, 1.0)
+        return float(np.hypot(a[:, 0] + t * ab[:, 0] - x, a[:, 1] + t * ab[:, 1] - y).min())
+
     @property
     def centroid_m(self) -> np.ndarray:
         """(2,) float64 area centroid of the polygon, world floor frame."""
@@ -69,6 +79,10 @@ class Hotspot:
         cross = p[:, 0] * q[:, 1] - q[:, 0] * p[:, 1]
         a = cross.sum() / 2.0
         return np.array([((p[:, 0] + q[:, 0]) * cross).sum(), ((p[:, 1] + q[:, 1]) * cross).sum()]) / (6.0 * a)
+
+
+SEAT_KINDS: frozenset[str] = frozenset({"sofa", "table", "chair", "armchair", "bench", "bed"})
+"""Hot spot kinds where people sit: a site that marks them tells where sitting is possible."""
 
 
 def points_in_polygon(xy: np.ndarray, polygon_m: np.ndarray) -> np.ndarray:

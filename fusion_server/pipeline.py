@@ -33,7 +33,7 @@ from fusion_server.detection import Blob, detect_blobs
 from fusion_server.explain import BlobExplainer
 from fusion_server.events import EventReasoner, FallParams, InactivityParams
 from fusion_server.grid import CarveResult
-from fusion_server.hotspots import Hotspot
+from fusion_server.hotspots import SEAT_KINDS, Hotspot
 from fusion_server.identity import IdentityKeeper, IdentityParams, Resident
 from fusion_server.posture import PostureBank, PostureReading
 from fusion_server.snapshot import Snapshot, Watched
@@ -142,7 +142,8 @@ class FusionPipeline:
         self.consistency_errors = 0
         """Frame sets on which the moved-camera check failed (they are fused all the same)."""
         self.identity = identity if identity is not None else IdentityKeeper(self.cameras)
-        self.postures = PostureBank(voxel_m=carver.grid.voxel_m, decisions=decisions, viterbi_lag_s=viterbi_lag_s)
+        self.postures = PostureBank(voxel_m=carver.grid.voxel_m, decisions=decisions, viterbi_lag_s=viterbi_lag_s,
+                                    seats=[h for h in reasoner.hotspots if h.kind in SEAT_KINDS])
         self._labels: dict[int, int] = {}  # target id -> label, as of the last frame
         self._watched: tuple[int, list[TrackOutput], dict] | None = None   # (stamp, tracks, holds) of the last step
         self._restore: Snapshot | None = None   # a snapshot to go on from, taken at the next step

@@ -59,6 +59,7 @@ from pydantic import Field, model_validator
 from common.postures import BODY_POSTURES
 from common.settings import Settings, declared
 from common.site import EventSettings
+from fusion_server.hotspots import Hotspot
 from fusion_server.viterbi import FixedLagViterbi
 
 POSTURES: tuple[str, ...] = BODY_POSTURES
@@ -93,6 +94,12 @@ _UPRIGHT = np.array([POSTURES[p] == "standing" for p in STATE_POSTURE])
 
 _TELLS_HEIGHT = np.array([POSTURES[p] in ("standing", "sitting") for p in STATE_POSTURE])
 """(len(STATES),) bool: the standing and seated states, whose shapes tell a standing height."""
+
+WALK_TELLS_HEIGHT_NS = 1_000_000_000
+"""After this long at walking speed (ns), a body's top tells its standing height fully."""
+
+_ON_SEAT = np.array([s in ("sitting", "sitting_raised") for s in STATES])
+"""(len(STATES),) bool: the states of a seated body (on a chair, a sofa, a bed's edge)."""
 
 DECISIONS: tuple[str, ...] = ("frame", "viterbi")
 """How :class:`PostureEstimator` decides the reported posture: ``frame``, the
@@ -519,6 +526,7 @@ class PostureParams(Settings):
     min_duration_s: float = Field(0.4, ge=0.0, **_FINITE)
     walking_speed_mps: float = Field(0.5, gt=0.0, **_FINITE)
     walking_log_odds: float = Field(4.0, ge=0.0, **_FINITE)
+    seatless_log_odds: float = Field(3.0, ge=0.0, **_FINITE)
     decisions: Literal["frame", "viterbi"] = declared(EventSettings, "decisions")
     viterbi_lag_s: float = declared(EventSettings, "viterbi_lag_s")
 
@@ -592,7 +600,18 @@ class PostureEstimator:
         (standing, and standing with the legs hidden) gain this much
         log-likelihood over the others. 0.5 m/s is well under a walk
         (0.8-1.4 m/s, children too) and well over the jitter of a still
-        person's estimate.
+        person's estimate. A walking body's top is its standing height, so
+        after a second of walking only the upright states tell the height,
+        and fully.
+    seatless_log_odds: where the site marks its seats and the person is at
+        none of them (``on_seat=False`` given to :meth:`update`), the states
+        of a body resting on a seat, sofa or bed lose this much
+        log-likelihood. A child standing reads like a seated adult in a
+        single frame (the same top, lap and mass centre relative to an
+        adult's height); where nobody can sit, standing at the child's own
+        height explains the body better, and the height belief follows.
+        Sitting on the floor or on a seat the site does not mark stays
+        possible, on stronger evidence.
     model: the :class:`PostureModel` (default :func:`default_model`).
     decisions: one of :data:`DECISIONS`. ``frame`` reports the forward
         filter's posture after ``min_duration_s``; ``viterbi`` reports the
@@ -621,6 +640,7 @@ class PostureEstimator:
         self.min_duration_ns = int(round(p.min_duration_s * 1e9))
         self.walking_speed_mps = p.walking_speed_mps
         self.walking_log_odds = p.walking_log_odds
+        self.seatless_log_odds = p.seatless_log_odds
         self.model = model or default_model()
         self.height_posterior = self.height_prior.copy()
         self._history: deque[tuple[np.ndarray, np.ndarray]] = deque(maxlen=len(taps))
@@ -631,6 +651,7 @@ class PostureEstimator:
         self._candidate: int | None = None
         self._candidate_ns = 0
         self._last: PostureReading | None = None
+        self._walking_since_ns: int | None = None  # start of the current spell of walking speed
         self.decisions = p.decisions
         self.viterbi_lag_ns = int(round(p.viterbi_lag_s * 1e9))
         self._decoder: FixedLagViterbi | None = None
@@ -649,11 +670,14 @@ class PostureEstimator:
         """The most recent reading, None before the first non-empty profile."""
         return self._last
 
-    def update(self, stamp_ns: int, height_profile: np.ndarray, speed_mps: float = 0.0) -> PostureReading | None:
+    def update(self, stamp_ns: int, height_profile: np.ndarray, speed_mps: float = 0.0,
+               on_seat: bool | None = None) -> PostureReading | None:
         """Feed one frame's (nz,) height profile; returns the current reading.
 
         speed_mps: the person's floor speed (the tracker's smoothed estimate);
         at ``walking_speed_mps`` and above they walk, upright.
+        on_seat: whether the person is at one of the site's seats; None where
+        the site marks none (see ``seatless_log_odds``).
 
         An empty profile changes nothing and returns the previous reading
         (None if there is none yet). Frames must come in time order; a frame
@@ -681,16 +705,28 @@ class PostureEstimator:
             self.voxel_m,
         )
         ll = self.evidence_weight * posture_log_likelihoods(feature_matrix(smoothed, self.heights_m), self.model)
-        if float(speed_mps) >= self.walking_speed_mps:
+        walking = float(speed_mps) >= self.walking_speed_mps
+        if not walking:
+            self._walking_since_ns = None
+        elif self._walking_since_ns is None:
+            self._walking_since_ns = stamp_ns
+        if walking:
             ll = ll + np.where(_UPRIGHT, self.walking_log_odds, 0.0)
+        if on_seat is False:
+            ll = ll - np.where(_ON_SEAT, self.seatless_log_odds, 0.0)
         top = ll.max()
         like = np.exp(ll - top)  # (H, S)
         self._log_alpha = _forward_step(
             self._log_alpha, np.log(np.maximum(self.height_posterior @ like, 1e-300)) + top, self.switch_rate_hz, dt_s
         )
         state_prob = np.exp(self._log_alpha)
-        telling = float(state_prob[_TELLS_HEIGHT].sum())
-        self._learn_height(np.log(np.maximum(like[:, _TELLS_HEIGHT].sum(axis=1), 1e-300)), telling, dt_s)
+        # Walking is done upright: the top of a body that has walked for a while is its standing
+        # height (a body that comes down in a fall moves as fast, but for under a second).
+        if walking and stamp_ns - self._walking_since_ns >= WALK_TELLS_HEIGHT_NS:
+            tells, telling = _UPRIGHT, 1.0
+        else:
+            tells, telling = _TELLS_HEIGHT, float(state_prob[_TELLS_HEIGHT].sum())
+        self._learn_height(np.log(np.maximum(like[:, tells].sum(axis=1), 1e-300)), telling, dt_s)
         prob = np.bincount(STATE_POSTURE, weights=state_prob, minlength=len(POSTURES))
         if self.decisions == "viterbi":
             # a body is seen: not outside
@@ -772,12 +808,21 @@ class PostureBank:
     estimator_kwargs: passed to every :class:`PostureEstimator`. A track with a
     velocity (``vx``, ``vy`` in m/s, as the tracker's estimates carry) tells its
     estimator its speed; one without is taken as still.
+    seats: the site's seats (hot spots where people sit, :data:`SEAT_KINDS`);
+        a track with a position (``x``, ``y``) within ``seat_margin_m`` of
+        one is on a seat, further from all of them it is not (its estimator
+        is told so); without seats, nothing is said. 0.4 m covers a track's
+        position error and a chair pulled out beyond a table's hot spot.
     """
 
-    def __init__(self, **estimator_kwargs) -> None:
+    def __init__(self, *, seats: Sequence[Hotspot] = (), seat_margin_m: float = 0.4, **estimator_kwargs) -> None:
         PostureEstimator(**estimator_kwargs)  # validate once, up front
+        if not (math.isfinite(seat_margin_m) and seat_margin_m >= 0):
+            raise ValueError(f"seat_margin_m must be a finite number >= 0, got {seat_margin_m}")
         self._kwargs = dict(estimator_kwargs)
         self._estimators: dict[int, PostureEstimator] = {}
+        self.seats = tuple(seats)
+        self.seat_margin_m = float(seat_margin_m)
 
     def update(self, stamp_ns: int, tracks: Iterable[ProfiledTrack]) -> dict[int, PostureReading]:
         """Readings of every reported track that has had a non-empty profile."""
@@ -790,12 +835,20 @@ class PostureBank:
             if est is None:
                 est = self._estimators[tid] = PostureEstimator(**self._kwargs)
             vx, vy = getattr(track, "vx", 0.0), getattr(track, "vy", 0.0)
-            reading = est.update(stamp_ns, track.height_profile, speed_mps=float(np.hypot(vx, vy)))
+            reading = est.update(stamp_ns, track.height_profile, speed_mps=float(np.hypot(vx, vy)),
+                                 on_seat=self.on_seat(track))
             if reading is not None:
                 out[tid] = reading
         for tid in [t for t in self._estimators if t not in seen]:
             del self._estimators[tid]
         return out
+
+    def on_seat(self, track: object) -> bool | None:
+        """Whether ``track`` (x, y) is at a seat; None without seats or a position."""
+        x, y = getattr(track, "x", None), getattr(track, "y", None)
+        if not self.seats or x is None or y is None:
+            return None
+        return any(h.distance_m(float(x), float(y)) <= self.seat_margin_m for h in self.seats)
 
     @property
     def settings(self) -> dict:

@@ -51,6 +51,16 @@ def test_single_point_and_square():
     assert polygon_area(sq[::-1]) == pytest.approx(-2.0)
 
 
+def test_distance_to_a_hotspot_hand_worked():
+    # an L: the square (0..2, 0..1) with (1..2, 1..2) on top; concave corner at (1, 1)
+    ell = Hotspot("L", np.array([[0, 0], [2, 0], [2, 2], [1, 2], [1, 1], [0, 1]], float))
+    assert ell.distance_m(1.5, 1.5) == 0.0 and ell.distance_m(0.5, 0.5) == 0.0  # inside
+    assert ell.distance_m(3.0, 0.5) == pytest.approx(1.0)      # beside the right side
+    assert ell.distance_m(0.5, 1.4) == pytest.approx(0.4)      # above the low arm, in the notch
+    assert ell.distance_m(0.7, 1.4) == pytest.approx(0.3)      # nearer the notch's wall than its floor
+    assert ell.distance_m(-0.3, -0.4) == pytest.approx(0.5)    # off a corner: 0.3, 0.4, 0.5
+
+
 def test_hotspot_validation_and_label_default():
     h = Hotspot("sofa", [[0, 0], [2, 0], [2, 1], [0, 1]], kind="sofa")
     assert h.label == "sofa"

@@ -326,6 +326,58 @@ def test_a_child_reads_standing_still_walking_or_first_seen_seated():
     assert first_seated[-1].standing_height_m == pytest.approx(1.1, abs=0.05)
 
 
+@pytest.mark.parametrize("height_m", [1.0, 1.1, 1.2])
+def test_a_child_carved_wide_reads_standing_where_nobody_can_sit(height_m):
+    """Carved as wide as a visual hull makes a child (0.1 m on every side), a child standing still
+    is, frame by frame, as much a seated adult as a standing child. Walking in tells their height;
+    where the site marks its seats and the child is at none of them, they then read standing for a
+    minute of standing still, at their own height, whereas at a seat (or with no word about seats)
+    the adult prior soon reads them seated."""
+    child = body_profile("standing", height_m=height_m, inflate_m=0.1)
+    for on_seat in (False, True):
+        est = PostureEstimator(voxel_m=VOXEL_M)
+        walking = [est.update(i * NS // FPS, child, speed_mps=0.9, on_seat=on_seat) for i in range(2 * FPS)]
+        still = [est.update((2 * FPS + i) * NS // FPS, child, on_seat=on_seat) for i in range(60 * FPS)]
+        if on_seat:
+            assert still[-1].posture == "sitting"
+        else:
+            assert {r.posture for r in walking[5:] + still} == {"standing"}
+            assert est.standing_height_m == pytest.approx(height_m, abs=0.06)
+
+
+def test_a_seat_the_site_does_not_mark_never_makes_a_seated_adult_lie():
+    """Someone who walked in and sat on a chair the site does not mark is told they are at no seat:
+    they may read standing (a short person) or bending, never lying; at a seat they read sitting."""
+    for on_seat, allowed in ((False, {"standing", "sitting", "bending"}), (True, {"sitting"})):
+        est = PostureEstimator(voxel_m=VOXEL_M)
+        for i in range(3 * FPS):
+            est.update(i * NS // FPS, body_profile("standing", inflate_m=0.1), speed_mps=1.0, on_seat=on_seat)
+        seated = [est.update((3 * FPS + i) * NS // FPS, body_profile("sitting", inflate_m=0.1), on_seat=on_seat)
+                  for i in range(20 * FPS)]
+        assert {r.posture for r in seated[FPS:]} <= allowed
+
+
+def test_posture_bank_tells_each_track_whether_it_is_at_a_seat():
+    from fusion_server.hotspots import Hotspot
+
+    class T:
+        def __init__(self, tid, x, y, vx=0.0):
+            self.id, self.x, self.y, self.vx, self.vy = tid, x, y, vx, 0.0
+            self.height_profile = body_profile("standing", height_m=1.1, inflate_m=0.1)
+
+    sofa = Hotspot("sofa", np.array([[0.0, 0.0], [2.0, 0.0], [2.0, 1.0], [0.0, 1.0]]), kind="sofa")
+    bank = PostureBank(voxel_m=VOXEL_M, seats=[sofa], seat_margin_m=0.4)
+    assert [bank.on_seat(T(1, x, 0.5)) for x in (1.0, 2.3, 2.5)] == [True, True, False]
+    assert PostureBank(voxel_m=VOXEL_M).on_seat(T(1, 5.0, 5.0)) is None
+    # two children walk in (1 m/s) and stand still for 20 s, one at the sofa, one far from it
+    for i in range(22 * FPS):
+        vx = 1.0 if i < 2 * FPS else 0.0
+        out = bank.update(i * NS // FPS, [T(1, 1.0, 0.5, vx), T(2, 5.0, 0.5, vx)])
+    assert out[1].posture == "sitting" and out[2].posture == "standing"
+    with pytest.raises(ValueError, match="seat_margin_m"):
+        PostureBank(voxel_m=VOXEL_M, seat_margin_m=-1.0)
+
+
 @pytest.mark.parametrize("height_m, tol_m", [(1.3, 0.16), (1.55, 0.16), (1.7, 0.16), (1.9, 0.2)])
 def test_an_adult_first_seen_seated_is_neither_standing_nor_a_child(height_m, tol_m):
     rs = run_estimator([body_profile("sitting", height_m=height_m)] * (10 * FPS))

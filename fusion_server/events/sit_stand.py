@@ -36,7 +36,7 @@ from common.settings import Settings, group_of
 from fusion_server.events._common import NUMBER, median, ns, rekey
 from fusion_server.events.records import Emitter
 from fusion_server.events.track import TrackSnapshot
-from fusion_server.hotspots import Hotspot, hotspot_at
+from fusion_server.hotspots import SEAT_KINDS, Hotspot, hotspot_at
 from fusion_server.posture import PostureReading
 
 CHANGE_BEFORE_S = (4.0, 0.3)
@@ -56,7 +56,7 @@ class SitStandParams(Settings):
     min_change_frac: float = Field(0.07, ge=0.0, **NUMBER)
     max_change_frac: float = Field(0.65, **NUMBER)
     hold_s: float = Field(2.0, ge=0.0, **NUMBER)
-    seat_kinds: frozenset[str] = frozenset({"sofa", "table", "chair", "armchair", "bench", "bed"})
+    seat_kinds: frozenset[str] = SEAT_KINDS
 
     @model_validator(mode="after")
     def _change_range(self) -> "SitStandParams":
