@@ -83,6 +83,8 @@ class Hotspot:
 
 SEAT_KINDS: frozenset[str] = frozenset({"sofa", "table", "chair", "armchair", "bench", "bed"})
 """Hot spot kinds where people sit: a site that marks them tells where sitting is possible."""
+BED_KINDS: frozenset[str] = frozenset({"sofa", "bed", "bench"})
+"""Hot spot kinds people lie on: a site that marks them tells where lying above the floor is possible."""
 
 
 def points_in_polygon(xy: np.ndarray, polygon_m: np.ndarray) -> np.ndarray:

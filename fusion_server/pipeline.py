@@ -33,7 +33,7 @@ from fusion_server.detection import Blob, detect_blobs
 from fusion_server.explain import BlobExplainer
 from fusion_server.events import EventReasoner, FallParams, InactivityParams
 from fusion_server.grid import CarveResult
-from fusion_server.hotspots import SEAT_KINDS, Hotspot
+from fusion_server.hotspots import BED_KINDS, SEAT_KINDS, Hotspot
 from fusion_server.identity import IdentityKeeper, IdentityParams, Resident
 from fusion_server.posture import PostureBank, PostureReading
 from fusion_server.snapshot import Snapshot, Watched
@@ -143,7 +143,8 @@ class FusionPipeline:
         """Frame sets on which the moved-camera check failed (they are fused all the same)."""
         self.identity = identity if identity is not None else IdentityKeeper(self.cameras)
         self.postures = PostureBank(voxel_m=carver.grid.voxel_m, decisions=decisions, viterbi_lag_s=viterbi_lag_s,
-                                    seats=[h for h in reasoner.hotspots if h.kind in SEAT_KINDS])
+                                    seats=[h for h in reasoner.hotspots if h.kind in SEAT_KINDS],
+                                    beds=[h for h in reasoner.hotspots if h.kind in BED_KINDS])
         self._labels: dict[int, int] = {}  # target id -> label, as of the last frame
         self._watched: tuple[int, list[TrackOutput], dict] | None = None   # (stamp, tracks, holds) of the last step
         self._restore: Snapshot | None = None   # a snapshot to go on from, taken at the next step

@@ -101,6 +101,9 @@ WALK_TELLS_HEIGHT_NS = 1_000_000_000
 _ON_SEAT = np.array([s in ("sitting", "sitting_raised") for s in STATES])
 """(len(STATES),) bool: the states of a seated body (on a chair, a sofa, a bed's edge)."""
 
+_ON_BED = np.array([s == "lying_raised" for s in STATES])
+"""(len(STATES),) bool: the state of a body lying above the floor (on a bed or a sofa)."""
+
 DECISIONS: tuple[str, ...] = ("frame", "viterbi")
 """How :class:`PostureEstimator` decides the reported posture: ``frame``, the
 forward filter's most probable posture held for a minimum duration, decided
@@ -527,6 +530,7 @@ class PostureParams(Settings):
     walking_speed_mps: float = Field(0.5, gt=0.0, **_FINITE)
     walking_log_odds: float = Field(4.0, ge=0.0, **_FINITE)
     seatless_log_odds: float = Field(3.0, ge=0.0, **_FINITE)
+    bedless_log_odds: float = Field(8.0, ge=0.0, **_FINITE)
     decisions: Literal["frame", "viterbi"] = declared(EventSettings, "decisions")
     viterbi_lag_s: float = declared(EventSettings, "viterbi_lag_s")
 
@@ -612,6 +616,11 @@ class PostureEstimator:
         height explains the body better, and the height belief follows.
         Sitting on the floor or on a seat the site does not mark stays
         possible, on stronger evidence.
+    bedless_log_odds: likewise, where the site marks its beds and sofas and
+        the person is on none of them (``on_bed=False``), lying above the
+        floor loses this much: a seated person whose lower body a table
+        hides carves as a slab floating at table height, the shape of
+        someone lying on a bed, and must not read lying at the table.
     model: the :class:`PostureModel` (default :func:`default_model`).
     decisions: one of :data:`DECISIONS`. ``frame`` reports the forward
         filter's posture after ``min_duration_s``; ``viterbi`` reports the
@@ -641,6 +650,7 @@ class PostureEstimator:
         self.walking_speed_mps = p.walking_speed_mps
         self.walking_log_odds = p.walking_log_odds
         self.seatless_log_odds = p.seatless_log_odds
+        self.bedless_log_odds = p.bedless_log_odds
         self.model = model or default_model()
         self.height_posterior = self.height_prior.copy()
         self._history: deque[tuple[np.ndarray, np.ndarray]] = deque(maxlen=len(taps))
@@ -671,13 +681,15 @@ class PostureEstimator:
         return self._last
 
     def update(self, stamp_ns: int, height_profile: np.ndarray, speed_mps: float = 0.0,
-               on_seat: bool | None = None) -> PostureReading | None:
+               on_seat: bool | None = None, on_bed: bool | None = None) -> PostureReading | None:
         """Feed one frame's (nz,) height profile; returns the current reading.
 
         speed_mps: the person's floor speed (the tracker's smoothed estimate);
         at ``walking_speed_mps`` and above they walk, upright.
         on_seat: whether the person is at one of the site's seats; None where
         the site marks none (see ``seatless_log_odds``).
+        on_bed: whether the person is on one of the site's beds or sofas; None
+        where the site marks none (see ``bedless_log_odds``).
 
         An empty profile changes nothing and returns the previous reading
         (None if there is none yet). Frames must come in time order; a frame
@@ -714,6 +726,8 @@ class PostureEstimator:
             ll = ll + np.where(_UPRIGHT, self.walking_log_odds, 0.0)
         if on_seat is False:
             ll = ll - np.where(_ON_SEAT, self.seatless_log_odds, 0.0)
+        if on_bed is False:
+            ll = ll - np.where(_ON_BED, self.bedless_log_odds, 0.0)
         top = ll.max()
         like = np.exp(ll - top)  # (H, S)
         self._log_alpha = _forward_step(
@@ -813,15 +827,18 @@ class PostureBank:
         one is on a seat, further from all of them it is not (its estimator
         is told so); without seats, nothing is said. 0.4 m covers a track's
         position error and a chair pulled out beyond a table's hot spot.
+    beds: the site's beds and sofas (:data:`BED_KINDS`), the same way.
     """
 
-    def __init__(self, *, seats: Sequence[Hotspot] = (), seat_margin_m: float = 0.4, **estimator_kwargs) -> None:
+    def __init__(self, *, seats: Sequence[Hotspot] = (), beds: Sequence[Hotspot] = (), seat_margin_m: float = 0.4,
+                 **estimator_kwargs) -> None:
         PostureEstimator(**estimator_kwargs)  # validate once, up front
         if not (math.isfinite(seat_margin_m) and seat_margin_m >= 0):
             raise ValueError(f"seat_margin_m must be a finite number >= 0, got {seat_margin_m}")
         self._kwargs = dict(estimator_kwargs)
         self._estimators: dict[int, PostureEstimator] = {}
         self.seats = tuple(seats)
+        self.beds = tuple(beds)
         self.seat_margin_m = float(seat_margin_m)
 
     def update(self, stamp_ns: int, tracks: Iterable[ProfiledTrack]) -> dict[int, PostureReading]:
@@ -836,19 +853,21 @@ class PostureBank:
                 est = self._estimators[tid] = PostureEstimator(**self._kwargs)
             vx, vy = getattr(track, "vx", 0.0), getattr(track, "vy", 0.0)
             reading = est.update(stamp_ns, track.height_profile, speed_mps=float(np.hypot(vx, vy)),
-                                 on_seat=self.on_seat(track))
+                                 on_seat=self.on_seat(track), on_bed=self.on_seat(track, self.beds))
             if reading is not None:
                 out[tid] = reading
         for tid in [t for t in self._estimators if t not in seen]:
             del self._estimators[tid]
         return out
 
-    def on_seat(self, track: object) -> bool | None:
-        """Whether ``track`` (x, y) is at a seat; None without seats or a position."""
+    def on_seat(self, track: object, places: Sequence[Hotspot] | None = None) -> bool | None:
+        """Whether ``track`` (x, y) is within ``seat_margin_m`` of one of ``places`` [the seats];
+        None without places or a position."""
+        places = self.seats if places is None else places
         x, y = getattr(track, "x", None), getattr(track, "y", None)
-        if not self.seats or x is None or y is None:
+        if not places or x is None or y is None:
             return None
-        return any(h.distance_m(float(x), float(y)) <= self.seat_margin_m for h in self.seats)
+        return any(h.distance_m(float(x), float(y)) <= self.seat_margin_m for h in places)
 
     @property
     def settings(self) -> dict:

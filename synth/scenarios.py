@@ -180,6 +180,66 @@ def _child_beside_adult() -> ScenarioSpec:
     )
 
 
+def _hug() -> ScenarioSpec:
+    return ScenarioSpec(
+        "hug", "Two people meet in the hall, hug (0.35 m between centres) for five seconds, and part.", 30.0,
+        (
+            PersonScript(1, (Walk(((3.9, 4.2),), 1.0), Face(toward=(4.25, 4.2)), WaitUntil(8.0), Stand(5.0),
+                             Walk(("hall", "kitchen"), 1.0), Stand(5.0)), start=(1.2, 4.2, 0.0), speed_jitter=False),
+            PersonScript(2, (Walk(((4.25, 4.2),), 1.0), Face(toward=(3.9, 4.2)), WaitUntil(8.0), Stand(5.0),
+                             Walk(("north east", "east"), 1.0), Stand(5.0)), start=(7.0, 4.2, 180.0),
+                         speed_jitter=False),
+        ),
+        residents=2,
+    )
+
+
+def _help_up() -> ScenarioSpec:
+    return ScenarioSpec(
+        "help_up", "Someone falls backward in the middle of the room; a second person comes, kneels beside "
+        "them while they lie, and both get up and walk apart.", 40.0,
+        (
+            PersonScript(1, (Walk(("hall east", "centre"), 1.0), Fall("backward", lie_s=12.0, get_up=True),
+                             Stand(3.0), Walk(("hall east", "hall"), 1.0), Stand(5.0)), start=(1.2, 4.2, 0.0),
+                         speed_jitter=False),
+            PersonScript(2, (Stand(5.0), Walk(((4.8, 3.45),), 1.0), Face(toward=(4.05, 3.45)),
+                             Kneel(hold_s=9.0), Stand(3.0), Walk(("east", "south east"), 1.0), Stand(5.0)),
+                         start=(7.0, 4.2, 180.0), speed_jitter=False),
+        ),
+        residents=2,
+    )
+
+
+def _three_at_table() -> ScenarioSpec:
+    return ScenarioSpec(
+        "three_at_table", "Three people sit down at the dinner table, stay half a minute, and walk off their "
+        "own ways.", 60.0,
+        (
+            PersonScript(1, (Sit("chair 1", 30.0, via=((0.9, 4.0), "table west")), Walk(("table west", "west")),
+                             Stand(5.0)), start=(1.2, 4.2, 0.0)),
+            PersonScript(2, (Sit("chair 4", 30.0, via=("table north east",)),
+                             Walk(("table north east", "hall east")), Stand(5.0)), start=(4.2, 4.2, 180.0)),
+            PersonScript(3, (Sit("chair 2", 30.0, via=("centre", "table east")), Walk(("table east", (3.5, 2.8), (5.0, 3.6), "north east")),
+                             Stand(5.0)), start=(7.0, 4.2, 180.0)),
+        ),
+        residents=3,
+    )
+
+
+def _fall_beside_helper() -> ScenarioSpec:
+    return ScenarioSpec(
+        "fall_beside_helper", "Two people talk standing 0.7 m apart; one falls sideways away from the other, "
+        "who stays standing beside them.", 35.0,
+        (
+            PersonScript(1, (Walk(((5.5, 3.5),), 1.0), Face(toward=(5.5, 4.2)), WaitUntil(9.0), Stand(4.0),
+                             Fall("left")), start=(1.2, 3.5, 0.0), speed_jitter=False),
+            PersonScript(2, (Walk(((5.5, 4.2),), 1.0), Face(toward=(5.5, 3.5)), WaitUntil(9.0), Stand(26.0)),
+                         start=(1.2, 4.2, 0.0), speed_jitter=False),
+        ),
+        residents=2,
+    )
+
+
 def _dinner_visit() -> ScenarioSpec:
     return ScenarioSpec(
         "dinner_visit", "The resident cooks; a visitor arrives before seven and they have dinner at the table.",
@@ -287,6 +347,10 @@ SCENARIOS: dict[str, Callable[[], ScenarioSpec]] = {
     "side_by_side": _side_by_side,
     "three_abreast": _three_abreast,
     "child_beside_adult": _child_beside_adult,
+    "hug": _hug,
+    "help_up": _help_up,
+    "three_at_table": _three_at_table,
+    "fall_beside_helper": _fall_beside_helper,
     "dinner_visit": _dinner_visit,
     "four_people": _four_people,
     "lights": _lights,

@@ -398,6 +398,23 @@ def test_lying_on_a_bed_reads_lying():
     assert readings[-1].posture == "lying"
 
 
+def test_a_body_floating_at_bed_height_lies_only_on_a_bed_or_sofa():
+    """A slab at mattress height is someone lying on a bed; where the site marks its beds and sofas
+    and the slab is on none of them (a seated person whose lower body a table hides), it is not
+    read lying, from the first frame on."""
+    slab = [body_profile("standing", tilt_deg=90, lift_m=0.45)] * (10 * FPS)
+    est = PostureEstimator(voxel_m=VOXEL_M)
+    on_bed = [est.update(i * NS // FPS, p, on_bed=True) for i, p in enumerate(slab)]
+    assert on_bed[-1].posture == "lying"
+    est = PostureEstimator(voxel_m=VOXEL_M)
+    elsewhere = [est.update(i * NS // FPS, p, on_bed=False) for i, p in enumerate(slab)]
+    assert "lying" not in {r.posture for r in elsewhere}
+    # lying on the floor needs no bed
+    floor = [body_profile("standing", tilt_deg=90)] * (3 * FPS)
+    est = PostureEstimator(voxel_m=VOXEL_M)
+    assert [est.update(i * NS // FPS, p, on_bed=False) for i, p in enumerate(floor)][-1].posture == "lying"
+
+
 def test_no_flicker_with_outlier_frames():
     stand, bend = body_profile("standing"), body_profile("bending")
     seq = [bend if i % 4 == 3 else stand for i in range(90)]  # every 4th carve is bad

@@ -391,6 +391,65 @@ def test_complete_side_by_side_keeps_identities(replayed):
     check_no_false_alarm(run)
 
 
+# --------------------------------------------------------------------------- people close together
+
+
+def check_identities(run: Run) -> None:
+    """Every person followed by one track of their own from start to end (no switch, IDF1 >= 0.95),
+    and tracks on nobody in under 2 % of the person-frames."""
+    t = run.tracking
+    assert t["id_switches"] == 0, run.describe()
+    assert t["idf1"] >= 0.95, run.describe()
+    assert t["fp"] <= 0.02 * t["gt"], run.describe()
+
+
+@pytest.mark.slow
+@pytest.mark.xfail(strict=True, reason="the two carve as one blob while they hug: one of them has no track for "
+                   "270 of 450 frames (MOTA 0.70, IDF1 0.82, no switch; 2026-11-29)")
+def test_two_people_hugging_are_both_counted_and_keep_their_identities(replayed):
+    """Two people meet, stand 0.35 m apart facing each other for five seconds and part: their bodies
+    touch from the knees to the shoulders."""
+    run = replayed("hug")
+    check_counts_and_positions(run, min_count_accuracy=0.95)
+    check_identities(run)
+    check_no_false_alarm(run)
+
+
+@pytest.mark.slow
+@pytest.mark.xfail(strict=True, reason="the fall is raised in 1.0 s, but the helper kneeling beside the lying "
+                   "body costs 2 identity switches and 82 false person-frames (MOTA 0.91, IDF1 0.94; 2026-11-29)")
+def test_a_person_helped_up_from_the_floor(replayed):
+    """Someone falls; a helper kneels beside them (0.7 m) while they lie, and both get up: the fall is
+    raised for the one who fell, nothing for the helper, and each keeps their track."""
+    run = replayed("help_up")
+    check_falls(run)
+    check_counts_and_positions(run, min_count_accuracy=0.95)
+    check_identities(run)
+
+
+@pytest.mark.slow
+@pytest.mark.xfail(strict=True, reason="6 identity switches and 294 missed person-frames while they sit; one "
+                   "sit-down and one stand-up of three missed (MOTA 0.83, IDF1 0.80; 2026-11-29)")
+def test_three_people_at_a_table(replayed):
+    """Three people sit at the dinner table (0.7 m between neighbours) for half a minute and walk off:
+    each sits down and stands up once, counted and followed throughout."""
+    run = replayed("three_at_table")
+    check_counts_and_positions(run, min_count_accuracy=0.95)
+    check_identities(run)
+    check_events(run, ("sit_down", "stand_up"))
+    check_no_false_alarm(run)
+
+
+@pytest.mark.slow
+def test_a_fall_beside_a_standing_helper(replayed):
+    """Two people talk 0.7 m apart; one falls sideways away from the other, who stays standing beside
+    them: the fall is raised on the faller's track, in time, and the one standing keeps theirs."""
+    run = replayed("fall_beside_helper")
+    check_falls(run)
+    check_counts_and_positions(run, min_count_accuracy=0.95)
+    check_identities(run)
+
+
 SIT_STILL_TRACKED_MIN = 0.99
 SIT_STILL_SEATED_MIN = 0.95
 SIT_STILL_FRAMES = 2_850
