@@ -608,9 +608,8 @@ class PostureEstimator:
         after a second of walking only the upright states tell the height,
         and fully.
     seatless_log_odds: where the site marks its seats and the person is at
-        none of them (``on_seat=False`` given to :meth:`update`), the states
-        of a body resting on a seat, sofa or bed lose this much
-        log-likelihood. A child standing reads like a seated adult in a
+        none of them (``on_seat=False`` given to :meth:`update`), the seated
+        states lose this much log-likelihood. A child standing reads like a seated adult in a
         single frame (the same top, lap and mass centre relative to an
         adult's height); where nobody can sit, standing at the child's own
         height explains the body better, and the height belief follows.
@@ -718,12 +717,12 @@ class PostureEstimator:
         )
         ll = self.evidence_weight * posture_log_likelihoods(feature_matrix(smoothed, self.heights_m), self.model)
         walking = float(speed_mps) >= self.walking_speed_mps
-        if not walking:
-            self._walking_since_ns = None
-        elif self._walking_since_ns is None:
-            self._walking_since_ns = stamp_ns
         if walking:
+            if self._walking_since_ns is None:
+                self._walking_since_ns = stamp_ns
             ll = ll + np.where(_UPRIGHT, self.walking_log_odds, 0.0)
+        else:
+            self._walking_since_ns = None
         if on_seat is False:
             ll = ll - np.where(_ON_SEAT, self.seatless_log_odds, 0.0)
         if on_bed is False:
