@@ -196,13 +196,13 @@ def _hug() -> ScenarioSpec:
 
 def _help_up() -> ScenarioSpec:
     return ScenarioSpec(
-        "help_up", "Someone falls backward in the middle of the room; a second person comes, kneels beside "
+        "help_up", "Someone falls sideways in the middle of the room; a second person comes, kneels beside "
         "them while they lie, and both get up and walk apart.", 40.0,
         (
-            PersonScript(1, (Walk(("hall east", "centre"), 1.0), Fall("backward", lie_s=12.0, get_up=True),
+            PersonScript(1, (Walk(("hall east", "centre"), 1.0), Fall("left", lie_s=12.0, get_up=True),
                              Stand(3.0), Walk(("hall east", "hall"), 1.0), Stand(5.0)), start=(1.2, 4.2, 0.0),
                          speed_jitter=False),
-            PersonScript(2, (Stand(5.0), Walk(((4.8, 3.45),), 1.0), Face(toward=(4.05, 3.45)),
+            PersonScript(2, (Stand(5.0), Walk(((4.9, 3.65),), 1.0), Face(toward=(4.9, 2.9)),
                              Kneel(hold_s=9.0), Stand(3.0), Walk(("east", "south east"), 1.0), Stand(5.0)),
                          start=(7.0, 4.2, 180.0), speed_jitter=False),
         ),

@@ -416,8 +416,9 @@ def test_two_people_hugging_are_both_counted_and_keep_their_identities(replayed)
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(strict=True, reason="the fall is raised in 1.0 s, but the helper kneeling beside the lying "
-                   "body costs 2 identity switches and 82 false person-frames (MOTA 0.91, IDF1 0.94; 2026-11-29)")
+@pytest.mark.xfail(strict=True, reason="the fall is raised in 1.0 s, both keep their track (MOTA 0.99, IDF1 0.99, "
+                   "no switch), but with the helper kneeling beside them the lying body's track sits 0.37 m from "
+                   "them (95th percentile; 0.30 m allowed) (2026-11-29)")
 def test_a_person_helped_up_from_the_floor(replayed):
     """Someone falls; a helper kneels beside them (0.7 m) while they lie, and both get up: the fall is
     raised for the one who fell, nothing for the helper, and each keeps their track."""
