@@ -609,10 +609,11 @@ class PostureEstimator:
         and fully.
     seatless_log_odds: where the site marks its seats and the person is at
         none of them (``on_seat=False`` given to :meth:`update`), the seated
-        states lose this much log-likelihood. A child standing reads like a seated adult in a
-        single frame (the same top, lap and mass centre relative to an
-        adult's height); where nobody can sit, standing at the child's own
-        height explains the body better, and the height belief follows.
+        states lose this much log-likelihood. A child standing reads like a
+        seated adult in a single frame (the same top, lap and mass centre
+        relative to an adult's height); where nobody can sit, standing at the
+        child's own height explains the body better, and the height belief
+        follows.
         Sitting on the floor or on a seat the site does not mark stays
         possible, on stronger evidence.
     bedless_log_odds: likewise, where the site marks its beds and sofas and
@@ -852,17 +853,24 @@ class PostureBank:
                 est = self._estimators[tid] = PostureEstimator(**self._kwargs)
             vx, vy = getattr(track, "vx", 0.0), getattr(track, "vy", 0.0)
             reading = est.update(stamp_ns, track.height_profile, speed_mps=float(np.hypot(vx, vy)),
-                                 on_seat=self.on_seat(track), on_bed=self.on_seat(track, self.beds))
+                                 on_seat=self.on_seat(track), on_bed=self.on_bed(track))
             if reading is not None:
                 out[tid] = reading
         for tid in [t for t in self._estimators if t not in seen]:
             del self._estimators[tid]
         return out
 
-    def on_seat(self, track: object, places: Sequence[Hotspot] | None = None) -> bool | None:
-        """Whether ``track`` (x, y) is within ``seat_margin_m`` of one of ``places`` [the seats];
-        None without places or a position."""
-        places = self.seats if places is None else places
+    def on_seat(self, track: object) -> bool | None:
+        """Whether ``track`` (x, y) is at one of the seats; None without seats or a position."""
+        return self._near(track, self.seats)
+
+    def on_bed(self, track: object) -> bool | None:
+        """Whether ``track`` (x, y) is on one of the beds and sofas; None without them or a position."""
+        return self._near(track, self.beds)
+
+    def _near(self, track: object, places: Sequence[Hotspot]) -> bool | None:
+        """Whether ``track`` (x, y) is within ``seat_margin_m`` of one of ``places``; None without
+        places or a position."""
         x, y = getattr(track, "x", None), getattr(track, "y", None)
         if not places or x is None or y is None:
             return None
