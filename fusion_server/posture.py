@@ -59,6 +59,7 @@ from pydantic import Field, model_validator
 from common.postures import BODY_POSTURES
 from common.settings import Settings, declared
 from common.site import EventSettings
+from fusion_server.detection import body_top_layers
 from fusion_server.hotspots import Hotspot
 from fusion_server.viterbi import FixedLagViterbi
 
@@ -216,6 +217,12 @@ class PostureFeatures:
         (kneeling) and for lying, 0.2-0.6 for feet and upright shins, 0 for a
         body that does not reach the floor.
     volume_m3: total voxel volume.
+    body_top_m: top face of the body's highest layer that is at least a
+        quarter as wide as its widest (:data:`~fusion_server.detection.BODY_WIDTH_FRAC`):
+        the top less the thin tent of hull that the cameras' cones leave over
+        a body lying on the floor. What falls read as the body's height.
+    body_centre_m: mass centre of the voxels below ``body_top_m`` (what
+        falls read as the body's centre).
     cumulative: (nz + 1,) float64, fraction of the voxels below each layer
         edge ``k * voxel_m``; the model reads its low and middle bands from
         it at heights scaled to the person (:func:`feature_matrix`), so that
@@ -233,6 +240,8 @@ class PostureFeatures:
     widest_m: float
     floor_frac: float
     volume_m3: float
+    body_top_m: float
+    body_centre_m: float
     cumulative: np.ndarray = field(default_factory=lambda: np.zeros(1), compare=False, repr=False)
     voxel_m: float = 0.05
 
@@ -341,6 +350,9 @@ def profile_features(
     centres = (np.arange(nz) + 0.5) * voxel_m
     centre_m = float((counts * centres).sum() / total)
     bottom_m = float(_bottom_layer(occupied, centre_m, voxel_m, max_gap_m) * voxel_m)
+    body_layers = body_top_layers(counts)
+    body = counts[:body_layers]
+    body_centre_m = float((body * centres[:body_layers]).sum() / body.sum())
     frac_low = float(counts[centres < 0.5].sum() / total)
     frac_mid = float(counts[(centres >= 0.5) & (centres < 1.0)].sum() / total)
     area = counts * voxel_m * voxel_m
@@ -361,6 +373,8 @@ def profile_features(
         widest_m=widest_m,
         floor_frac=floor_frac,
         volume_m3=total * voxel_m**3,
+        body_top_m=float(body_layers * voxel_m),
+        body_centre_m=body_centre_m,
         cumulative=np.concatenate(([0.0], np.cumsum(counts) / total)),
         voxel_m=float(voxel_m),
     )
@@ -959,6 +973,8 @@ _FIELDS = (
     "widest_m",
     "floor_frac",
     "volume_m3",
+    "body_top_m",
+    "body_centre_m",
 )
 
 

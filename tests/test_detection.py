@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from fusion_server.detection import Blob, detect_blobs
+from fusion_server.detection import Blob, body_top_layers, detect_blobs
 from fusion_server.grid import CarveResult, VoxelGrid, floor_maps
 
 GRID = VoxelGrid.from_bounds((0.0, 0.0, 0.0), (4.0, 4.0, 2.0), 0.05)
@@ -163,6 +163,33 @@ def test_person_lying_in_pieces_is_one_blob():
     assert b.volume_voxels == len(res.ijk)
     assert b.z_top_m == pytest.approx(0.35)
     assert len(detect_blobs(res, tau2_m=0.0, min_volume_m3=0.0)) == 3  # head, torso, feet
+
+
+def test_a_thin_tent_of_hull_over_a_lying_body_is_not_its_top():
+    """A body lying on the floor (torso 0.35 m high) under a ridge of hull 0.2 x 0.1 m up to 1.2 m,
+    where the cameras' cones cross above it: one blob, its top 1.2 m, its body's top 0.35 m. Layer
+    areas (voxels) 198, 198, 96 x 5, then 8 to the ridge's top; as 3-layer running means the widest
+    is 164 (layer 1), and the highest at least a quarter of that is layer 6 ((96 + 96 + 8) / 3),
+    whose top face is at 0.35 m; layer 7 ((96 + 8 + 8) / 3 = 37.3) is under 41."""
+    head = cylinder(1.0, 2.0, 0.1, 0.0, 0.3)
+    torso = box((1.15, 1.8, 0.0), (1.75, 2.2, 0.35))
+    legs = box((1.75, 1.85, 0.0), (2.6, 2.15, 0.12))
+    tent = box((1.35, 1.95, 0.35), (1.55, 2.05, 1.2))
+    (b,) = detect_blobs(scene(head, torso, legs, tent))
+    assert b.z_top_m == pytest.approx(1.2)
+    assert list(b.height_profile[:8]) == [198, 198, 96, 96, 96, 96, 96, 8]
+    assert b.body_top_m == pytest.approx(0.35)
+    assert body_top_layers(b.height_profile) == 7
+
+
+def test_a_standing_persons_body_top_is_at_their_chin():
+    """The standing body of these tests (52 voxels a layer to 1.45 m, a head of 12 above, to 1.75 m):
+    the first head layer's running mean (52 + 12 + 12) / 3 = 25.3 is at least a quarter of 52, the
+    next (12) is not: the body's top is 1.5 m. An empty profile has no body."""
+    (b,) = detect_blobs(scene(standing(1.0, 2.0)))
+    assert list(b.height_profile[28:31]) == [52, 12, 12]
+    assert b.body_top_m == pytest.approx(1.5)
+    assert body_top_layers(np.zeros(40, np.int32)) == 0
 
 
 def test_tau2_is_relative_to_the_meeting_height():

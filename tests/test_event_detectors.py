@@ -128,7 +128,7 @@ def _run_falls(detector: FallDetector, upright_ns: int) -> list[Event]:
     out: list[Event] = []
     history = []
     for k, (posture, top) in enumerate(_fall_tops()):
-        history.append((k * TICK_NS, top, None, posture))
+        history.append((k * TICK_NS, top, None, posture, top))
         f = frame(k, xy=(2.0, 1.5), posture=posture, top_m=top, tops=tuple(history), upright_ns=upright_ns)
         detector.update(f, emitter(k, out))
     return out
@@ -155,6 +155,35 @@ def test_fall_detector_hand_worked():
     assert falls.on_floor(1) and not falls.on_floor(2)
     falls.forget(1)
     assert not falls.on_floor(1)
+
+
+def test_a_fall_under_a_tent_of_hull_is_read_by_the_bodys_top():
+    """A fall whose hull keeps a tent over the body on the floor: the top comes down only from
+    1.75 to 1.2 m, the body's top from 1.5 to 0.55 m then 0.3 m. Read by the body's top, the body
+    is low from tick 13 (median of 1.05, 0.8, 0.55 is 0.8 <= 0.935 m) and lying: raised 1 s later,
+    tick 23. The largest fast drop is 1.5 -> 0.55 m (ticks 9 -> 13); halfway, 1.025 m, is passed
+    a tenth of the way from tick 11 (1.05) to tick 12 (0.8): 1.11 s. Read by the hull's top (the
+    same series as both heights), the body never gets low (1.2 > 0.935 m): nothing is raised."""
+    raw = [1.75] * 10 + [1.5, 1.3, 1.2] + [1.2] * 62
+    body = [1.5] * 10 + [1.3, 1.05, 0.8, 0.55] + [0.3] * 61
+
+    def run(bodies):
+        out, history = [], []
+        detector = FallDetector(FallParams(long_lie_s=60.0))
+        for k, (top, body_top) in enumerate(zip(raw, bodies)):
+            posture = "standing" if k < 13 else "lying"
+            history.append((k * TICK_NS, top, None, posture, body_top))
+            detector.update(frame(k, xy=(2.0, 1.5), posture=posture, top_m=top, tops=tuple(history),
+                                  upright_ns=900_000_000), emitter(k, out))
+        return out
+
+    (fall,) = run(body)
+    assert (fall.kind, fall.frame) == ("fall", 23)
+    assert fall.details == dict(
+        fall_stamp_ns=1_110_000_000, drop_start_ns=900_000_000, from_posture="standing", top_before_m=1.5,
+        top_after_m=0.55, drop_m=0.95, drop_speed_mps=2.375, confirm_s=1.0,
+    )
+    assert run(raw) == []
 
 
 def test_fall_detector_needs_an_upright_history():

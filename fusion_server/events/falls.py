@@ -1,7 +1,12 @@
 """Falls and long lies (``fall``, ``long_lie``) of one person at a time.
 
 ``fall``
-    A fast drop followed by lying on the floor. The body's top height must
+    A fast drop followed by lying on the floor. Heights here are the body's
+    top and centre (:attr:`~fusion_server.posture.PostureFeatures.body_top_m`,
+    ``body_centre_m``): the top less the thin tent of hull the cameras' cones
+    leave over a body lying on the floor (a metre high over a body of 0.3 m,
+    it would hide the fall; its volume would lift the centre), so a standing
+    person's top reads at their chin or crown. The body's top must
     drop by at least ``min_drop_m`` [0.5 m] at an average of at least
     ``min_speed_mps`` [0.8 m/s] within ``window_s`` [2 s], ending *low* (top
     at most ``low_top_frac`` [0.55] and mass centre at most
@@ -103,7 +108,7 @@ class FallDetector:
         tops = frame.tops
         # A median over the last three frames keeps one bad carve from toggling "low".
         recent = [tops[-k] for k in range(1, min(3, len(tops)) + 1)]
-        top_med = median([s[1] for s in recent])
+        top_med = median([s[4] for s in recent])
         cen = [s[2] for s in recent if s[2] is not None]
         centre_med = median(cen) if cen else None
         low = top_med <= p.low_top_frac * height_m and (
@@ -198,7 +203,7 @@ class FallDetector:
             return None
         t0 = samples[0][0]
         t = np.array([(s[0] - t0) * 1e-9 for s in samples])
-        z = np.array([s[1] for s in samples])
+        z = np.array([s[4] for s in samples])
         pair = detect_fast_drop(t, z, window_s=p.window_s, min_drop_m=p.min_drop_m, min_speed_mps=p.min_speed_mps)
         if pair is None:
             return None

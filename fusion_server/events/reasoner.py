@@ -215,13 +215,15 @@ class EventReasoner:
         if confirmed:
             tr.present_xy, tr.present_ns = (x, y), stamp_ns
         if reading is not None:
-            top_m, centre_m, height_m = reading.raw.top_m, reading.raw.centre_m, reading.standing_height_m
+            top_m, height_m = reading.raw.top_m, reading.standing_height_m
+            body_top_m, centre_m = reading.raw.body_top_m, reading.raw.body_centre_m
         else:
             top_m, centre_m, height_m = float(getattr(est, "z_top_m", float("nan"))), None, None
+            body_top_m = top_m
         if math.isfinite(top_m):
             # from the track's first frame: someone who falls while the track is still being
             # established (at start-up, or found late in a crowd) fell from the height seen before
-            tr.tops.append((stamp_ns, top_m, centre_m, posture))
+            tr.tops.append((stamp_ns, top_m, centre_m, posture, body_top_m))
             while tr.tops and tr.tops[0][0] < stamp_ns - self._tops_ns:
                 tr.tops.popleft()
         if not tr.present and (tr.exited or not tr.confirmed_once):

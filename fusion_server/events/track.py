@@ -9,8 +9,12 @@ from typing import Protocol, Sequence
 
 from fusion_server.posture import PostureReading
 
-TopSample = tuple[int, float, "float | None", "str | None"]
-"""``(stamp_ns, top_m, centre_m | None, posture | None)`` of one frame: heights above the floor, metres."""
+TopSample = tuple[int, float, "float | None", "str | None", float]
+"""``(stamp_ns, top_m, centre_m | None, posture | None, body_top_m)`` of one frame: heights above the
+floor, metres; ``body_top_m`` is the top less any thin hull over the body and ``centre_m`` the mass
+centre below it (:attr:`~fusion_server.posture.PostureFeatures.body_top_m`,
+:attr:`~fusion_server.posture.PostureFeatures.body_centre_m`; the top itself and no centre without a
+posture reading)."""
 
 
 class TrackLike(Protocol):
@@ -32,8 +36,10 @@ class TrackSnapshot:
     posture: the reported posture name, None when the frame has none.
     reading: the full posture reading, None when the posture came as a bare
         name (or not at all).
-    top_m, centre_m: heights of the body's top and mass centre above the
-        floor, metres (top NaN when unknown; centre None without a reading).
+    top_m, centre_m: heights of the body's top and of the mass centre of its
+        body (below :attr:`~fusion_server.posture.PostureFeatures.body_top_m`)
+        above the floor, metres (top NaN when unknown; centre None without a
+        reading).
     standing_height_m: the reading's learnt standing height, None without one.
     tops: the track's recent tops, oldest first, this frame's included: the
         history the reasoner keeps from the track's first frame (frames with
