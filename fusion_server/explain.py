@@ -47,10 +47,12 @@ MAX_POINTS = 400
 CORE_RADIUS_M = 0.35
 """An upright blob claims foreground only through its voxels this close, on the floor, to its top."""
 CORE_MIN_TOP_M = 1.0
-"""A blob whose body's top (:attr:`~fusion_server.detection.Blob.body_top_m`) is higher than this
-is upright (a person standing, walking or seated). The body's top, not the hull's: a body lying on
-the floor under a tent of hull a metre high, claimed through the tent's top alone, would explain
-little of itself and be refused as a phantom."""
+"""A blob whose top is higher than this is upright (a person standing, walking or seated), ..."""
+LYING_MAX_TOP_M = 0.8
+"""... unless its body's top (:attr:`~fusion_server.detection.Blob.body_top_m`) is no higher than
+this: a body lying on the floor (under half a metre high, carved a little thicker) under a tent of
+hull a metre high, which claimed through the tent's top alone would explain little of itself and
+be refused as a phantom. A seated adult's shoulders stay above it."""
 FRAGMENT_MAX_M3 = 0.05
 """A low blob smaller than this (half a carved adult lying down), ..."""
 FRAGMENT_RADIUS_M = 0.45
@@ -194,13 +196,13 @@ def _without_fragments(accepted: list[tuple[int, tuple[str, ...]]], blobs: Seque
     from their body (hidden from some cameras, holes in a mask), the piece covers foreground of its
     own in two cameras like a person would; a person low enough and small enough to be that piece
     (a crouching child) would stand inside the other's body."""
-    tops = np.array([_top_xy(blobs[k], grid) for k, _ in accepted if blobs[k].body_top_m > CORE_MIN_TOP_M]).reshape(-1, 2)
+    tops = np.array([_top_xy(blobs[k], grid) for k, _ in accepted if _upright(blobs[k])]).reshape(-1, 2)
     if not len(tops):
         return accepted
     keep = []
     for k, cams in accepted:
         b = blobs[k]
-        if b.body_top_m <= CORE_MIN_TOP_M and b.volume_m3 < FRAGMENT_MAX_M3:
+        if not _upright(b) and b.volume_m3 < FRAGMENT_MAX_M3:
             if np.min(np.hypot(tops[:, 0] - b.x, tops[:, 1] - b.y)) < FRAGMENT_RADIUS_M:
                 continue
         keep.append((k, cams))
@@ -220,12 +222,17 @@ def _top_xy(blob: Blob, grid: VoxelGrid) -> tuple[float, float]:
     return float(x), float(y)
 
 
+def _upright(blob: Blob) -> bool:
+    """Whether ``blob`` is an upright body (:data:`CORE_MIN_TOP_M`, :data:`LYING_MAX_TOP_M`)."""
+    return blob.z_top_m > CORE_MIN_TOP_M and blob.body_top_m > LYING_MAX_TOP_M
+
+
 def _core(blob: Blob, grid: VoxelGrid) -> np.ndarray:
-    """(N, 3) int voxel indices of the blob's body: for an upright blob (body top above CORE_MIN_TOP_M) the
+    """(N, 3) int voxel indices of the blob's body: for an upright blob (:func:`_upright`) the
     voxels within CORE_RADIUS_M on the floor of its highest column, so that hull volume hanging on
     to a person (where cones cross beside them) claims no foreground for them; a low blob whole."""
     ijk = blob.ijk
-    if blob.body_top_m <= CORE_MIN_TOP_M:
+    if not _upright(blob):
         return ijk
     d2 = ((ijk[:, :2] - _top_ij(blob)) ** 2).sum(axis=1)
     return ijk[d2 <= (CORE_RADIUS_M / grid.voxel_m) ** 2]

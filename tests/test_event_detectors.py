@@ -52,7 +52,7 @@ def test_parameter_groups_hold_the_documented_defaults():
     assert as_dict(FallParams()) == dict(
         window_s=2.0, min_drop_m=0.5, min_speed_mps=0.8, max_accel_mps2=1.5 * 9.81, height_tol_m=0.15,
         confirm_s=1.0, upright_s=0.5, low_top_frac=0.55, low_centre_frac=0.25, flat_top_frac=0.45,
-        low_gap_s=0.5, long_lie_s=30.0, standing_height_m=1.70,
+        low_gap_s=0.5, repeat_radius_m=1.0, repeat_s=120.0, long_lie_s=30.0, standing_height_m=1.70,
     )
     assert as_dict(SitStandParams()) == dict(
         stand_up_from={"sitting", "lying"}, min_change_frac=0.07, max_change_frac=0.65, hold_s=2.0,
@@ -161,9 +161,10 @@ def test_a_fall_under_a_tent_of_hull_is_read_by_the_bodys_top():
     """A fall whose hull keeps a tent over the body on the floor: the top comes down only from
     1.75 to 1.2 m, the body's top from 1.5 to 0.55 m then 0.3 m. Read by the body's top, the body
     is low from tick 13 (median of 1.05, 0.8, 0.55 is 0.8 <= 0.935 m) and lying: raised 1 s later,
-    tick 23. The largest fast drop is 1.5 -> 0.55 m (ticks 9 -> 13); halfway, 1.025 m, is passed
-    a tenth of the way from tick 11 (1.05) to tick 12 (0.8): 1.11 s. Read by the hull's top (the
-    same series as both heights), the body never gets low (1.2 > 0.935 m): nothing is raised."""
+    tick 23. The drop is the top's: the largest fast one is 1.75 -> 1.2 m (the latest 1.75, tick
+    9, to the first 1.2, tick 12: 0.55 m in 0.3 s); halfway, 1.475 m, is passed an eighth of the
+    way from tick 10 (1.5) to tick 11 (1.3): 1.0125 s. Read by the hull's top alone (the same
+    series as both heights), the body never gets low (1.2 > 0.935 m): nothing is raised."""
     raw = [1.75] * 10 + [1.5, 1.3, 1.2] + [1.2] * 62
     body = [1.5] * 10 + [1.3, 1.05, 0.8, 0.55] + [0.3] * 61
 
@@ -180,10 +181,27 @@ def test_a_fall_under_a_tent_of_hull_is_read_by_the_bodys_top():
     (fall,) = run(body)
     assert (fall.kind, fall.frame) == ("fall", 23)
     assert fall.details == dict(
-        fall_stamp_ns=1_110_000_000, drop_start_ns=900_000_000, from_posture="standing", top_before_m=1.5,
-        top_after_m=0.55, drop_m=0.95, drop_speed_mps=2.375, confirm_s=1.0,
+        fall_stamp_ns=1_012_500_000, drop_start_ns=900_000_000, from_posture="standing", top_before_m=1.75,
+        top_after_m=1.2, drop_m=0.55, drop_speed_mps=1.833, confirm_s=1.0,
     )
     assert run(raw) == []
+
+
+def test_one_fall_is_one_alarm_where_one_was_just_raised():
+    """The hand-worked fall (raised on its 24th tick) by track 1 at (2.0, 1.5); then the same fall by
+    track 2 at (2.8, 1.5), 0.8 m away, from tick 100: not raised (within 1 m and 120 s); by track
+    3 at (3.1, 1.5), 1.1 m away, from tick 200: raised; and by track 4 at (2.0, 1.5) from tick 1,400,
+    140 s after the first: raised again."""
+    falls = FallDetector(FallParams(long_lie_s=60.0))
+    out: list[Event] = []
+    for track, x, start in ((1, 2.0, 0), (2, 2.8, 100), (3, 3.1, 200), (4, 2.0, 1_400)):
+        history = []
+        for k, (posture, top) in enumerate(_fall_tops()):
+            tick = start + k
+            history.append((tick * TICK_NS, top, None, posture, top))
+            falls.update(frame(tick, track=track, xy=(x, 1.5), posture=posture, top_m=top, tops=tuple(history),
+                               upright_ns=900_000_000), emitter(tick, out))
+    assert [(e.kind, e.track, e.frame) for e in out] == [("fall", 1, 24), ("fall", 3, 224), ("fall", 4, 1_424)]
 
 
 def test_fall_detector_needs_an_upright_history():

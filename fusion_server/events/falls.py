@@ -1,19 +1,21 @@
 """Falls and long lies (``fall``, ``long_lie``) of one person at a time.
 
 ``fall``
-    A fast drop followed by lying on the floor. Heights here are the body's
-    top and centre (:attr:`~fusion_server.posture.PostureFeatures.body_top_m`,
+    A fast drop followed by lying on the floor. Whether a body is *low* is
+    read from the body's top and centre
+    (:attr:`~fusion_server.posture.PostureFeatures.body_top_m`,
     ``body_centre_m``): the top less the thin tent of hull the cameras' cones
     leave over a body lying on the floor (a metre high over a body of 0.3 m,
-    it would hide the fall; its volume would lift the centre), so a standing
-    person's top reads at their chin or crown. The body's top must
+    it would keep the body from reading low; its volume would lift the
+    centre). The drop is read from the top itself, which comes down with the
+    body (the body's top, cut where the layers narrow, can jump). The top must
     drop by at least ``min_drop_m`` [0.5 m] at an average of at least
-    ``min_speed_mps`` [0.8 m/s] within ``window_s`` [2 s], ending *low* (top
-    at most ``low_top_frac`` [0.55] and mass centre at most
+    ``min_speed_mps`` [0.8 m/s] within ``window_s`` [2 s], ending *low* (the
+    body's top at most ``low_top_frac`` [0.55] and its centre at most
     ``low_centre_frac`` [0.25] of the person's standing height), and the
     person must then stay low for ``confirm_s`` [1 s] while reading
-    ``lying`` (or being very low: top <= ``flat_top_frac`` [0.45] of the
-    standing height). Emitted on the confirming frame; ``details`` carry
+    ``lying`` (or being very low: the body's top <= ``flat_top_frac`` [0.45]
+    of the standing height). Emitted on the confirming frame; ``details`` carry
     ``fall_stamp_ns``, the moment the top of the body passed halfway between
     its height before the drop and its height on the floor, and
     ``drop_start_ns``, when it began to come down. The drop must be one a
@@ -37,6 +39,12 @@
     continuously for ``long_lie_s`` [30 s] since the fall (or since lying
     down, when no fall was seen). Lying on a bed or sofa is not low, so it
     never counts.
+
+One fall is one alarm: a fall within ``repeat_radius_m`` [1 m] and
+``repeat_s`` [120 s] of one already raised is not raised again (the same body
+on the floor taken up by another track: the first track lost it under a
+neighbour, or a crowd's blobs regrouped over it; a carer is already on the
+way).
 
 Low and on-the-floor spells forgive gaps up to ``low_gap_s`` [0.5 s]. A track
 without a posture reading is taken to stand ``standing_height_m`` [1.70 m] tall.
@@ -74,6 +82,8 @@ class FallParams(Settings):
     low_centre_frac: float = Field(0.25, gt=0.0, lt=1.0, **NUMBER)
     flat_top_frac: float = Field(0.45, gt=0.0, lt=1.0, **NUMBER)
     low_gap_s: float = Field(0.5, ge=0.0, **NUMBER)
+    repeat_radius_m: float = Field(1.0, ge=0.0, **NUMBER)
+    repeat_s: float = Field(120.0, ge=0.0, **NUMBER)
     long_lie_s: float = declared(EventSettings, "long_lie_s")   # the site file's [events] declares it
     standing_height_m: float = Field(1.70, gt=0.0, **NUMBER)
 
@@ -96,6 +106,7 @@ class FallDetector:
         self._low_gap_ns = ns(params.low_gap_s)
         self._long_lie_ns = ns(params.long_lie_s)
         self._tracks: dict[int, _FallTrack] = {}
+        self._raised: list[tuple[int, float, float]] = []  # (stamp_ns, x, y) of the falls raised
 
     def update(self, frame: TrackSnapshot, emit: Emitter) -> None:
         """Follow one track through one frame; emits ``fall`` and ``long_lie``."""
@@ -145,7 +156,9 @@ class FallDetector:
             and frame.upright_ns >= self._upright_ns
         ):
             fs.fall_emitted = True
-            emit("fall", tid, x, y, **fs.drop, confirm_s=round((stamp_ns - fs.low_since_ns) * 1e-9, 3))
+            if not self._raised_here(stamp_ns, x, y):
+                self._raised.append((stamp_ns, x, y))
+                emit("fall", tid, x, y, **fs.drop, confirm_s=round((stamp_ns - fs.low_since_ns) * 1e-9, 3))
         if fs.floor_since_ns is not None and not fs.long_lie_emitted:
             since = fs.floor_since_ns
             if fs.drop is not None:
@@ -159,6 +172,12 @@ class FallDetector:
                     after_fall=fs.drop is not None,
                     fall_stamp_ns=fs.drop["fall_stamp_ns"] if fs.drop is not None else None,
                 )
+
+    def _raised_here(self, stamp_ns: int, x: float, y: float) -> bool:
+        """Whether a fall was raised within ``repeat_radius_m`` of (x, y) in the last ``repeat_s``."""
+        p = self.params
+        self._raised = [r for r in self._raised if stamp_ns - r[0] <= ns(p.repeat_s)]
+        return any(math.hypot(rx - x, ry - y) <= p.repeat_radius_m for _, rx, ry in self._raised)
 
     def on_floor(self, track: int) -> bool:
         """Whether the track is lying on the floor now (a long lie's business, not inactivity's)."""
@@ -203,7 +222,7 @@ class FallDetector:
             return None
         t0 = samples[0][0]
         t = np.array([(s[0] - t0) * 1e-9 for s in samples])
-        z = np.array([s[4] for s in samples])
+        z = np.array([s[1] for s in samples])
         pair = detect_fast_drop(t, z, window_s=p.window_s, min_drop_m=p.min_drop_m, min_speed_mps=p.min_speed_mps)
         if pair is None:
             return None
