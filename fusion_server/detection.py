@@ -48,15 +48,17 @@ BODY_WIDTH_FRAC = 0.25
 areas as 3-layer running means). The cameras' cones over a body lying on the floor cross above it
 and leave a thin tent of hull that rises past a metre over a body 0.3 m high: its layers are a
 twentieth as wide as the body, which is not there. A standing person's body top is their chin or
-crown (0.81-0.98 of their height, 5th to 95th percentile, on the tuning worlds), a lying person's
-under half their height in 99 frames in 100 (the hull's top in 84)."""
+crown (0.80-0.99 of their height, 5th to 95th percentile, on twelve tuning worlds), a lying person's
+at most 0.55 of their height in 99 frames in 100 (the hull's top in 86)."""
 
 
 def body_top_layers(height_profile: np.ndarray, width_frac: float = BODY_WIDTH_FRAC) -> int:
     """Layers from the bottom of the profile up to the top of the body (see :data:`BODY_WIDTH_FRAC`):
     0 for an empty profile. ``height_profile``: (nz,) voxel counts per layer."""
     counts = np.asarray(height_profile, dtype=np.float64)
-    if counts.ndim != 1 or not (counts > 0).any():
+    if counts.ndim != 1:
+        raise ValueError(f"height_profile must be 1-D (nz,), got shape {counts.shape}")
+    if not (counts > 0).any():
         return 0
     area = np.convolve(counts, np.ones(3) / 3.0, mode="same") if len(counts) >= 3 else counts
     wide = np.flatnonzero(area >= width_frac * area.max())

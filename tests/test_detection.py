@@ -190,6 +190,8 @@ def test_a_standing_persons_body_top_is_at_their_chin():
     assert list(b.height_profile[28:31]) == [52, 12, 12]
     assert b.body_top_m == pytest.approx(1.5)
     assert body_top_layers(np.zeros(40, np.int32)) == 0
+    with pytest.raises(ValueError, match=r"height_profile must be 1-D.*\(2, 20\)"):
+        body_top_layers(np.ones((2, 20), np.int32))
 
 
 def test_tau2_is_relative_to_the_meeting_height():

@@ -105,6 +105,7 @@ class FallDetector:
         self._upright_ns = ns(params.upright_s)
         self._low_gap_ns = ns(params.low_gap_s)
         self._long_lie_ns = ns(params.long_lie_s)
+        self._repeat_ns = ns(params.repeat_s)
         self._tracks: dict[int, _FallTrack] = {}
         self._raised: list[tuple[int, float, float]] = []  # (stamp_ns, x, y) of the falls raised
 
@@ -175,9 +176,8 @@ class FallDetector:
 
     def _raised_here(self, stamp_ns: int, x: float, y: float) -> bool:
         """Whether a fall was raised within ``repeat_radius_m`` of (x, y) in the last ``repeat_s``."""
-        p = self.params
-        self._raised = [r for r in self._raised if stamp_ns - r[0] <= ns(p.repeat_s)]
-        return any(math.hypot(rx - x, ry - y) <= p.repeat_radius_m for _, rx, ry in self._raised)
+        self._raised = [r for r in self._raised if stamp_ns - r[0] <= self._repeat_ns]
+        return any(math.hypot(rx - x, ry - y) <= self.params.repeat_radius_m for _, rx, ry in self._raised)
 
     def on_floor(self, track: int) -> bool:
         """Whether the track is lying on the floor now (a long lie's business, not inactivity's)."""

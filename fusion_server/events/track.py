@@ -36,10 +36,10 @@ class TrackSnapshot:
     posture: the reported posture name, None when the frame has none.
     reading: the full posture reading, None when the posture came as a bare
         name (or not at all).
-    top_m, centre_m: heights of the body's top and of the mass centre of its
-        body (below :attr:`~fusion_server.posture.PostureFeatures.body_top_m`)
-        above the floor, metres (top NaN when unknown; centre None without a
-        reading).
+    top_m, centre_m: heights above the floor, metres, of the highest voxel
+        and of the mass centre of the body below
+        :attr:`~fusion_server.posture.PostureFeatures.body_top_m` (top NaN
+        when unknown; centre None without a reading).
     standing_height_m: the reading's learnt standing height, None without one.
     tops: the track's recent tops, oldest first, this frame's included: the
         history the reasoner keeps from the track's first frame (frames with
