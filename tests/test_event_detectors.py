@@ -32,9 +32,11 @@ TABLE = Hotspot("dinner table", [[1.0, 3.0], [3.0, 3.0], [3.0, 4.5], [1.0, 4.5]]
 BED = Hotspot("bed", [[3.0, 0.0], [5.0, 0.0], [5.0, 2.0], [3.0, 2.0]], kind="bed")
 
 
-def frame(k: int, *, track: int = 1, xy=(1.0, 1.0), posture=None, top_m=float("nan"), tops=(), upright_ns=0):
+def frame(k: int, *, track: int = 1, xy=(1.0, 1.0), posture=None, top_m=float("nan"), tops=(), upright_ns=0,
+          confirmed=True):
     """Track ``track`` at tick ``k`` without a posture reading (so no centre and no learnt height)."""
-    return TrackSnapshot(track, k * TICK_NS, xy[0], xy[1], posture, None, top_m, None, None, tops, upright_ns)
+    return TrackSnapshot(track, k * TICK_NS, xy[0], xy[1], posture, None, top_m, None, None, tops, upright_ns,
+                         confirmed)
 
 
 def emitter(k: int, out: list[Event]) -> Emitter:
@@ -52,7 +54,8 @@ def test_parameter_groups_hold_the_documented_defaults():
     assert as_dict(FallParams()) == dict(
         window_s=2.0, min_drop_m=0.5, min_speed_mps=0.8, max_accel_mps2=1.5 * 9.81, height_tol_m=0.15,
         confirm_s=1.0, upright_s=0.5, low_top_frac=0.55, low_centre_frac=0.25, flat_top_frac=0.45,
-        low_gap_s=0.5, repeat_radius_m=1.0, repeat_s=120.0, long_lie_s=30.0, standing_height_m=1.70,
+        low_gap_s=0.5, repeat_radius_m=1.0, repeat_s=120.0, same_fall_s=1.0, same_fall_radius_m=2.0,
+        long_lie_s=30.0, standing_height_m=1.70,
     )
     assert as_dict(SitStandParams()) == dict(
         stand_up_from={"sitting", "lying"}, min_change_frac=0.07, max_change_frac=0.65, hold_s=2.0,
@@ -124,13 +127,18 @@ def _fall_tops():
     return [("standing" if k < 13 else "lying", z) for k, z in enumerate(tops)]
 
 
-def _run_falls(detector: FallDetector, upright_ns: int) -> list[Event]:
-    out: list[Event] = []
+def _run_falls(detector: FallDetector, upright_ns: int, *, track: int = 1, start: int = 0, xy=(2.0, 1.5),
+               confirmed=lambda k: True, out: list[Event] | None = None) -> list[Event]:
+    """The fall of :func:`_fall_tops` by ``track`` at ``xy`` from tick ``start``; ``confirmed(k)``
+    says whether the tracker confirms the track on the fall's k-th tick."""
+    out = [] if out is None else out
     history = []
     for k, (posture, top) in enumerate(_fall_tops()):
-        history.append((k * TICK_NS, top, None, posture, top))
-        f = frame(k, xy=(2.0, 1.5), posture=posture, top_m=top, tops=tuple(history), upright_ns=upright_ns)
-        detector.update(f, emitter(k, out))
+        tick = start + k
+        history.append((tick * TICK_NS, top, None, posture, top))
+        f = frame(tick, track=track, xy=xy, posture=posture, top_m=top, tops=tuple(history), upright_ns=upright_ns,
+                  confirmed=confirmed(k))
+        detector.update(f, emitter(tick, out))
     return out
 
 
@@ -202,6 +210,28 @@ def test_one_fall_is_one_alarm_where_one_was_just_raised():
             falls.update(frame(tick, track=track, xy=(x, 1.5), posture=posture, top_m=top, tops=tuple(history),
                                upright_ns=900_000_000), emitter(tick, out))
     assert [(e.kind, e.track, e.frame) for e in out] == [("fall", 1, 24), ("fall", 3, 224), ("fall", 4, 1_424)]
+
+
+def test_one_body_coming_down_under_two_tracks_is_one_alarm():
+    """The hand-worked fall by track 1 at (2.0, 1.5) and, two ticks later, by track 2 at (3.6, 1.5),
+    1.6 m away (its body reached the floor 0.2 s after track 1's: within 1 s and 2 m): one alarm.
+    Track 3's at (4.2, 1.5), 2.2 m away, three ticks after track 1's: raised."""
+    falls = FallDetector(FallParams(long_lie_s=60.0))
+    out: list[Event] = []
+    for track, x, start in ((1, 2.0, 0), (2, 3.6, 2), (3, 4.2, 3)):
+        _run_falls(falls, 900_000_000, track=track, start=start, xy=(x, 1.5), out=out)
+    out.sort(key=lambda e: e.frame)
+    assert [(e.kind, e.track, e.frame) for e in out] == [("fall", 1, 24), ("fall", 3, 27)]
+
+
+def test_only_a_confirmed_track_raises_a_fall():
+    """The hand-worked fall (found on tick 24) by a track the tracker does not confirm on ticks
+    20-29: raised on tick 30, its first confirmed tick on the floor, with the same fall moment.
+    Never confirmed from tick 20 on: not raised at all."""
+    out = _run_falls(FallDetector(FallParams(long_lie_s=60.0)), 900_000_000, confirmed=lambda k: not 20 <= k < 30)
+    (fall,) = out
+    assert (fall.frame, fall.details["fall_stamp_ns"], fall.details["confirm_s"]) == (30, 1_150_000_000, 1.6)
+    assert _run_falls(FallDetector(FallParams(long_lie_s=60.0)), 900_000_000, confirmed=lambda k: k < 20) == []
 
 
 def test_fall_detector_needs_an_upright_history():

@@ -44,7 +44,15 @@ One fall is one alarm: a fall within ``repeat_radius_m`` [1 m] and
 ``repeat_s`` [120 s] of one already raised is not raised again (the same body
 on the floor taken up by another track: the first track lost it under a
 neighbour, or a crowd's blobs regrouped over it; a carer is already on the
-way).
+way); nor is one whose body reached the floor within ``same_fall_s`` [1 s] of
+one already raised and within ``same_fall_radius_m`` [2 m] of it (one body
+coming down under two tracks, each placed off it by its neighbours; two
+people falling side by side in the same second are one call for help).
+
+Only a track the tracker confirms this frame raises a fall (an unconfirmed
+track coasts on its particles, or follows fragments the explanation did not
+take for a person: its top is no body's): a fall found while the track is
+unconfirmed is raised on its first confirmed frame on the floor.
 
 Low and on-the-floor spells forgive gaps up to ``low_gap_s`` [0.5 s]. A track
 without a posture reading is taken to stand ``standing_height_m`` [1.70 m] tall.
@@ -84,6 +92,8 @@ class FallParams(Settings):
     low_gap_s: float = Field(0.5, ge=0.0, **NUMBER)
     repeat_radius_m: float = Field(1.0, ge=0.0, **NUMBER)
     repeat_s: float = Field(120.0, ge=0.0, **NUMBER)
+    same_fall_s: float = Field(1.0, ge=0.0, **NUMBER)
+    same_fall_radius_m: float = Field(2.0, ge=0.0, **NUMBER)
     long_lie_s: float = declared(EventSettings, "long_lie_s")   # the site file's [events] declares it
     standing_height_m: float = Field(1.70, gt=0.0, **NUMBER)
 
@@ -106,8 +116,9 @@ class FallDetector:
         self._low_gap_ns = ns(params.low_gap_s)
         self._long_lie_ns = ns(params.long_lie_s)
         self._repeat_ns = ns(params.repeat_s)
+        self._same_fall_ns = ns(params.same_fall_s)
         self._tracks: dict[int, _FallTrack] = {}
-        self._raised: list[tuple[int, float, float]] = []  # (stamp_ns, x, y) of the falls raised
+        self._raised: list[tuple[int, float, float, int]] = []  # (stamp_ns, x, y, fall_stamp_ns) raised
 
     def update(self, frame: TrackSnapshot, emit: Emitter) -> None:
         """Follow one track through one frame; emits ``fall`` and ``long_lie``."""
@@ -155,10 +166,11 @@ class FallDetector:
             and on_floor
             and stamp_ns - fs.low_since_ns >= self._confirm_ns
             and frame.upright_ns >= self._upright_ns
+            and frame.confirmed
         ):
             fs.fall_emitted = True
-            if not self._raised_here(stamp_ns, x, y):
-                self._raised.append((stamp_ns, x, y))
+            if not self._raised_before(stamp_ns, x, y, fs.drop["fall_stamp_ns"]):
+                self._raised.append((stamp_ns, x, y, fs.drop["fall_stamp_ns"]))
                 emit("fall", tid, x, y, **fs.drop, confirm_s=round((stamp_ns - fs.low_since_ns) * 1e-9, 3))
         if fs.floor_since_ns is not None and not fs.long_lie_emitted:
             since = fs.floor_since_ns
@@ -174,10 +186,19 @@ class FallDetector:
                     fall_stamp_ns=fs.drop["fall_stamp_ns"] if fs.drop is not None else None,
                 )
 
-    def _raised_here(self, stamp_ns: int, x: float, y: float) -> bool:
-        """Whether a fall was raised within ``repeat_radius_m`` of (x, y) in the last ``repeat_s``."""
+    def _raised_before(self, stamp_ns: int, x: float, y: float, fall_stamp_ns: int) -> bool:
+        """Whether this fall at (x, y), its body on the floor at ``fall_stamp_ns``, was raised
+        already: a fall raised within ``repeat_radius_m`` in the last ``repeat_s``, or one whose
+        body came down within ``same_fall_s`` of it and within ``same_fall_radius_m``."""
+        p = self.params
         self._raised = [r for r in self._raised if stamp_ns - r[0] <= self._repeat_ns]
-        return any(math.hypot(rx - x, ry - y) <= self.params.repeat_radius_m for _, rx, ry in self._raised)
+        for _, rx, ry, r_fall_ns in self._raised:
+            d = math.hypot(rx - x, ry - y)
+            if d <= p.repeat_radius_m or (
+                d <= p.same_fall_radius_m and abs(r_fall_ns - fall_stamp_ns) <= self._same_fall_ns
+            ):
+                return True
+        return False
 
     def on_floor(self, track: int) -> bool:
         """Whether the track is lying on the floor now (a long lie's business, not inactivity's)."""

@@ -228,7 +228,8 @@ class EventReasoner:
                 tr.tops.popleft()
         if not tr.present and (tr.exited or not tr.confirmed_once):
             return  # not (yet) a person, or gone through a door: nothing to reason about
-        seen = TrackSnapshot(tid, stamp_ns, x, y, posture, reading, top_m, centre_m, height_m, tr.tops, tr.upright_ns)
+        seen = TrackSnapshot(tid, stamp_ns, x, y, posture, reading, top_m, centre_m, height_m, tr.tops, tr.upright_ns,
+                             confirmed)
         self.sit_stand.update(seen, emit)
         self.falls.update(seen, emit)
         self.visits.update(seen, emit)

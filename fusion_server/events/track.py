@@ -45,6 +45,8 @@ class TrackSnapshot:
         history the reasoner keeps from the track's first frame (frames with
         a non-finite top are left out).
     upright_ns: time the track read standing or sitting since its first frame.
+    confirmed: the tracker confirms the track this frame (an unconfirmed one
+        coasts, or follows what the explanation did not take for a person).
     """
 
     track: int
@@ -58,3 +60,4 @@ class TrackSnapshot:
     standing_height_m: float | None
     tops: Sequence[TopSample]
     upright_ns: int
+    confirmed: bool = True
