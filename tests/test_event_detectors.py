@@ -243,10 +243,10 @@ def test_fall_detector_needs_an_upright_history():
 # --------------------------------------------------------------------------- sit / stand
 
 
-def _run_postures(detector: SitStandDetector, postures: list[str]) -> list[tuple[str, int, str, str]]:
+def _run_postures(detector: SitStandDetector, postures: list[str], confirmed=lambda k: True) -> list[tuple[str, int, str, str]]:
     out: list[Event] = []
     for k, posture in enumerate(postures):
-        detector.update(frame(k, posture=posture), emitter(k, out))
+        detector.update(frame(k, posture=posture, confirmed=confirmed(k)), emitter(k, out))
     return [(e.kind, e.frame, e.details["from_posture"], e.details["to_posture"]) for e in out]
 
 
@@ -263,6 +263,15 @@ def test_sit_stand_detector_hand_worked():
     seq = ["lying"] * 30 + ["standing"] * 5
     assert _run_postures(SitStandDetector(), seq) == [("stand_up", 30, "lying", "standing")]
     assert _run_postures(SitStandDetector(SitStandParams(stand_up_from=("sitting",))), seq) == []
+
+
+def test_sit_stand_reads_only_confirmed_frames():
+    # Standing 3 s, then sitting; the track unconfirmed from 3 s to 6 s (coasting: its posture is no
+    # body's). The sitting is taken on its first confirmed frame, 6 s, as sitting after standing held
+    # since 0 s; standing again at 9 s while unconfirmed is not read, so no stand_up.
+    seq = ["standing"] * 30 + ["sitting"] * 60 + ["standing"] * 20
+    got = _run_postures(SitStandDetector(), seq, confirmed=lambda k: not (30 <= k < 60 or k >= 90))
+    assert got == [("sit_down", 60, "standing", "sitting")]
 
 
 # --------------------------------------------------------------------------- entries

@@ -19,7 +19,9 @@ after sitting, for longer than that. A sitting reading that rests on a body
 floating at seat height (lower legs not carved: the ``sitting_raised``
 posture state) counts only inside a hot spot whose kind is in ``seat_kinds``
 [sofa, table, chair, armchair, bench, bed], when the site has any: someone
-kneeling behind a sofa looks the same.
+kneeling behind a sofa looks the same. Only frames where the tracker confirms
+the track are read: an unconfirmed track coasts on its particles or follows
+what the explanation did not take for a person, and its posture is no body's.
 """
 
 from __future__ import annotations
@@ -87,7 +89,7 @@ class SitStandDetector:
     def update(self, frame: TrackSnapshot, emit: Emitter) -> None:
         """Follow one track through one frame; emits ``sit_down`` and ``stand_up``."""
         posture, reading = frame.posture, frame.reading
-        if posture not in ("standing", "sitting", "lying"):
+        if posture not in ("standing", "sitting", "lying") or not frame.confirmed:
             return
         st = self._tracks.setdefault(frame.track, _SitStandTrack())
         if posture == "sitting":
