@@ -203,12 +203,7 @@ def test_one_fall_is_one_alarm_where_one_was_just_raised():
     falls = FallDetector(FallParams(long_lie_s=60.0))
     out: list[Event] = []
     for track, x, start in ((1, 2.0, 0), (2, 2.8, 100), (3, 3.1, 200), (4, 2.0, 1_400)):
-        history = []
-        for k, (posture, top) in enumerate(_fall_tops()):
-            tick = start + k
-            history.append((tick * TICK_NS, top, None, posture, top))
-            falls.update(frame(tick, track=track, xy=(x, 1.5), posture=posture, top_m=top, tops=tuple(history),
-                               upright_ns=900_000_000), emitter(tick, out))
+        _run_falls(falls, 900_000_000, track=track, start=start, xy=(x, 1.5), out=out)
     assert [(e.kind, e.track, e.frame) for e in out] == [("fall", 1, 24), ("fall", 3, 224), ("fall", 4, 1_424)]
 
 

@@ -60,4 +60,4 @@ class TrackSnapshot:
     standing_height_m: float | None
     tops: Sequence[TopSample]
     upright_ns: int
-    confirmed: bool = True
+    confirmed: bool
