@@ -238,6 +238,24 @@ def test_fall_detector_needs_an_upright_history():
 # --------------------------------------------------------------------------- sit / stand
 
 
+def test_a_drop_made_while_coasting_is_no_fall():
+    """The same drop (ticks 9-14, from 1.75 m) by a track confirmed up to tick 7, then unconfirmed
+    (coasting) until tick 19, through the whole drop, confirmed again on the floor from tick 20:
+    its top was no body's while it came down, so no fall. A track confirmed for the first time at
+    tick 20 (found while the person fell) raises it on tick 24, as when confirmed throughout."""
+    coasting = _run_falls(FallDetector(FallParams(long_lie_s=60.0)), 900_000_000, confirmed=lambda k: not 8 <= k < 20)
+    assert coasting == []
+    (found_late,) = _run_falls(FallDetector(FallParams(long_lie_s=60.0)), 900_000_000, confirmed=lambda k: k >= 20)
+    assert (found_late.kind, found_late.frame, found_late.details["fall_stamp_ns"]) == ("fall", 24, 1_150_000_000)
+    # Confirmed again before the top passed halfway down (1.15 s; tick 11 is 1.1 s): the drop was
+    # not all coasting, raised on tick 24.
+    (back,) = _run_falls(FallDetector(FallParams(long_lie_s=60.0)), 900_000_000, confirmed=lambda k: not 8 <= k < 11)
+    assert back.frame == 24
+    # Coasting through the drop is decided once: lying on after the spell is forgotten (5.5 s) never
+    # raises it later.
+    assert _run_falls(FallDetector(FallParams(long_lie_s=600.0)), 900_000_000, confirmed=lambda k: not 8 <= k < 12) == []
+
+
 def _run_postures(detector: SitStandDetector, postures: list[str], confirmed=lambda k: True) -> list[tuple[str, int, str, str]]:
     out: list[Event] = []
     for k, posture in enumerate(postures):

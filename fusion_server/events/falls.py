@@ -52,7 +52,13 @@ people falling side by side in the same second are one call for help).
 Only a track the tracker confirms this frame raises a fall (an unconfirmed
 track coasts on its particles, or follows fragments the explanation did not
 take for a person: its top is no body's): a fall found while the track is
-unconfirmed is raised on its first confirmed frame on the floor.
+unconfirmed is raised on its first confirmed frame on the floor. But a drop
+the track made while coasting, unconfirmed from before the drop began until
+after it reached the floor, having been confirmed before, is no fall: the top
+of a coasting track is the top of whatever voxels are in its box (the hull
+over a body lying there for a while, shrinking as its neighbours move off), not
+of a body coming down. A track found while someone falls (confirmed for the
+first time after the drop) still raises it.
 
 Low and on-the-floor spells forgive gaps up to ``low_gap_s`` [0.5 s]. A track
 without a posture reading is taken to stand ``standing_height_m`` [1.70 m] tall.
@@ -62,7 +68,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any, Sequence
 
 import numpy as np
@@ -127,6 +133,7 @@ class FallDetector:
         p = self.params
         fs = self._tracks.setdefault(frame.track, _FallTrack())
         stamp_ns = frame.stamp_ns
+        fs.follow_confirmation(frame.confirmed, stamp_ns, stamp_ns - ns(p.tops_s))
         height_m = frame.standing_height_m if frame.standing_height_m is not None else p.standing_height_m
         tops = frame.tops
         # A median over the last three frames keeps one bad carve from toggling "low".
@@ -168,8 +175,9 @@ class FallDetector:
             and frame.upright_ns >= self._upright_ns
             and frame.confirmed
         ):
-            fs.fall_emitted = True
-            if not self._raised_before(stamp_ns, x, y, fs.drop["fall_stamp_ns"]):
+            fs.fall_emitted = True   # decided for this spell on the floor, raised or not
+            if not fs.coasting_through(fs.drop["drop_start_ns"], fs.drop["fall_stamp_ns"]) and not self._raised_before(
+                    stamp_ns, x, y, fs.drop["fall_stamp_ns"]):
                 self._raised.append((stamp_ns, x, y, fs.drop["fall_stamp_ns"]))
                 emit("fall", tid, x, y, **fs.drop, confirm_s=round((stamp_ns - fs.low_since_ns) * 1e-9, 3))
         if fs.floor_since_ns is not None and not fs.long_lie_emitted:
@@ -333,3 +341,23 @@ class _FallTrack:
     drop: dict[str, Any] | None = None
     fall_emitted: bool = False
     long_lie_emitted: bool = False
+    ever_confirmed: bool = False
+    coast_since_ns: int | None = None   # start of the spell the track has been unconfirmed since, once confirmed
+    coasts: list[tuple[int, int]] = field(default_factory=list)   # earlier such spells (start_ns, end_ns)
+
+    def follow_confirmation(self, confirmed: bool, stamp_ns: int, keep_since_ns: int) -> None:
+        """Note whether the tracker confirms the track this frame; spells ended before
+        ``keep_since_ns`` are forgotten."""
+        if confirmed:
+            if self.coast_since_ns is not None:
+                self.coasts.append((self.coast_since_ns, stamp_ns))
+                self.coast_since_ns = None
+            self.ever_confirmed = True
+        elif self.ever_confirmed and self.coast_since_ns is None:
+            self.coast_since_ns = stamp_ns
+        self.coasts = [c for c in self.coasts if c[1] >= keep_since_ns]
+
+    def coasting_through(self, start_ns: int, end_ns: int) -> bool:
+        """Whether the track, confirmed before, was unconfirmed from ``start_ns`` to ``end_ns``."""
+        spells = self.coasts + ([(self.coast_since_ns, end_ns)] if self.coast_since_ns is not None else [])
+        return any(s <= start_ns and e >= end_ns for s, e in spells)
