@@ -40,6 +40,16 @@
     down, when no fall was seen). Lying on a bed or sofa is not low, so it
     never counts.
 
+A track that leaves its body on the floor still raises the fall: when a track
+that got low after a drop (and was confirmed there) reads its top back at
+``left_top_frac`` [0.8] of the standing height within ``left_within_s``
+[0.8 s] of getting low, at least ``left_moved_m`` [0.4 m] from where it got
+low, it has jumped to someone standing beside the body (a helper, a passer-by):
+nobody gets up from the floor in under a second. The fall is raised where the
+body got low, ``confirm_s`` after it got low as for a track that stays, by that
+track, its ``details`` marked ``left_behind``. The rules for the drop (fast,
+physical, from someone upright, not made while coasting) are the same.
+
 One fall is one alarm: a fall within ``repeat_radius_m`` [1 m] and
 ``repeat_s`` [120 s] of one already raised is not raised again (the same body
 on the floor taken up by another track: the first track lost it under a
@@ -100,6 +110,9 @@ class FallParams(Settings):
     repeat_s: float = Field(120.0, ge=0.0, **NUMBER)
     same_fall_s: float = Field(1.0, ge=0.0, **NUMBER)
     same_fall_radius_m: float = Field(2.0, ge=0.0, **NUMBER)
+    left_within_s: float = Field(0.8, ge=0.0, **NUMBER)
+    left_top_frac: float = Field(0.8, gt=0.0, le=1.0, **NUMBER)
+    left_moved_m: float = Field(0.4, ge=0.0, **NUMBER)
     long_lie_s: float = declared(EventSettings, "long_lie_s")   # the site file's [events] declares it
     standing_height_m: float = Field(1.70, gt=0.0, **NUMBER)
 
@@ -125,6 +138,9 @@ class FallDetector:
         self._same_fall_ns = ns(params.same_fall_s)
         self._tracks: dict[int, _FallTrack] = {}
         self._raised: list[tuple[int, float, float, int]] = []  # (stamp_ns, x, y, fall_stamp_ns) raised
+        # falls whose track left the body on the floor, raised at their time: (due_ns, (x, y), drop, track)
+        self._left: list[tuple[int, tuple[float, float], dict[str, Any], int]] = []
+        self._left_within_ns = ns(params.left_within_s)
 
     def update(self, frame: TrackSnapshot, emit: Emitter) -> None:
         """Follow one track through one frame; emits ``fall`` and ``long_lie``."""
@@ -145,14 +161,21 @@ class FallDetector:
             centre_med is None or centre_med <= p.low_centre_frac * height_m
         )
         on_floor = low and (frame.posture == "lying" or top_med <= p.flat_top_frac * height_m)
+        self._raise_left(stamp_ns, emit)
+        if not low and self._left_behind(fs, frame, top_med, height_m):
+            fs.fall_emitted = True
+            self._left.append((fs.low_since_ns + self._confirm_ns, fs.low_xy, fs.drop, frame.track))
         if low:
             if fs.low_since_ns is None:
+                fs.low_xy = (frame.x, frame.y)
+                fs.low_confirmed = False
                 fs.low_since_ns = stamp_ns
                 fs.drop = None
                 fs.fall_emitted = False
                 fs.long_lie_emitted = False
                 fs.floor_since_ns = None
             fs.last_low_ns = stamp_ns
+            fs.low_confirmed |= frame.confirmed
         elif fs.low_since_ns is not None and stamp_ns - fs.last_low_ns > self._low_gap_ns:
             fs.low_since_ns = None
             fs.floor_since_ns = None
@@ -194,6 +217,32 @@ class FallDetector:
                     fall_stamp_ns=fs.drop["fall_stamp_ns"] if fs.drop is not None else None,
                 )
 
+    def _left_behind(self, fs: "_FallTrack", frame: TrackSnapshot, top_med: float, height_m: float) -> bool:
+        """Whether the track, back up after a fall it has not raised, left its body on the floor:
+        its top came back to ``left_top_frac`` of the standing height within ``left_within_s`` of
+        getting low, ``left_moved_m`` from where it got low (see the module text)."""
+        p = self.params
+        return (
+            fs.low_since_ns is not None and fs.drop is not None and not fs.fall_emitted
+            and frame.confirmed and fs.low_confirmed and frame.upright_ns >= self._upright_ns
+            and frame.stamp_ns - fs.low_since_ns <= self._left_within_ns
+            and top_med >= p.left_top_frac * height_m
+            and math.hypot(frame.x - fs.low_xy[0], frame.y - fs.low_xy[1]) >= p.left_moved_m
+            and not fs.coasting_through(fs.drop["drop_start_ns"], fs.drop["fall_stamp_ns"])
+        )
+
+    def _raise_left(self, stamp_ns: int, emit: Emitter) -> None:
+        """Raise the falls left behind that are due (``confirm_s`` after their body got low)."""
+        due = [e for e in self._left if e[0] <= stamp_ns]
+        if not due:
+            return
+        self._left = [e for e in self._left if e[0] > stamp_ns]
+        for due_ns, (x, y), drop, tid in due:
+            if not self._raised_before(stamp_ns, x, y, drop["fall_stamp_ns"]):
+                self._raised.append((stamp_ns, x, y, drop["fall_stamp_ns"]))
+                low_since_ns = due_ns - self._confirm_ns
+                emit("fall", tid, x, y, **drop, confirm_s=round((stamp_ns - low_since_ns) * 1e-9, 3), left_behind=True)
+
     def _raised_before(self, stamp_ns: int, x: float, y: float, fall_stamp_ns: int) -> bool:
         """Whether this fall at (x, y), its body on the floor at ``fall_stamp_ns``, was raised
         already: a fall raised within ``repeat_radius_m`` in the last ``repeat_s``, or one whose
@@ -207,6 +256,16 @@ class FallDetector:
             ):
                 return True
         return False
+
+    def raised(self) -> list[tuple[int, float, float, int]]:
+        """The falls raised within the repeat window, ``(stamp_ns, x, y, fall_stamp_ns)`` each, for a
+        restarted server (:meth:`restore_raised`)."""
+        return list(self._raised)
+
+    def restore_raised(self, raised: Sequence[tuple[int, float, float, int]]) -> None:
+        """Go on with the falls a server raised before its restart (:meth:`raised`): the same body
+        on the floor, taken up by another track, is not raised again."""
+        self._raised = [(int(t), float(x), float(y), int(f)) for t, x, y, f in raised]
 
     def on_floor(self, track: int) -> bool:
         """Whether the track is lying on the floor now (a long lie's business, not inactivity's)."""
@@ -334,6 +393,8 @@ def crossing_time(t_s: np.ndarray, z_m: np.ndarray, i: int, j: int, level_m: flo
 
 @dataclass
 class _FallTrack:
+    low_xy: tuple[float, float] = (0.0, 0.0)   # where the track got low
+    low_confirmed: bool = False                 # the tracker confirmed it at some frame since
     low_since_ns: int | None = None
     last_low_ns: int = 0
     floor_since_ns: int | None = None
