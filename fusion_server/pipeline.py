@@ -271,8 +271,7 @@ class FusionPipeline:
                                   fall=self.reasoner.state_of(t.id)))
         # restored people not found again yet stay in the next snapshot as they were
         people += [p for label, p in self._restored.items() if label in self._restoring]
-        return Snapshot(stamp_ns=stamp_ns, people=tuple(people), holds={c: list(b) for c, b in holds.items()},
-                        falls=tuple(self.reasoner.falls.raised()))
+        return Snapshot(stamp_ns=stamp_ns, people=tuple(people), holds={c: list(b) for c, b in holds.items()})
 
     def restore(self, snapshot: Snapshot) -> None:
         """Go on from ``snapshot`` (a restarted server): at the next step its people are lost
@@ -298,7 +297,6 @@ class FusionPipeline:
             self._restoring[p.label] = p.fall
         self._restored = {p.label: p for p in snap.people}
         self.identity.restore(people, stamp_ns)
-        self.reasoner.falls.restore_raised(snap.falls)
         self._restoring_until_ns = int(stamp_ns) + int(RESTORE_WINDOW_S * 1e9)
 
     def _named(self, event: Event) -> Event:

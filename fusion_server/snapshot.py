@@ -4,9 +4,7 @@ A :class:`Snapshot` is the small state a restarted server needs to go on
 where the last one stopped: the confirmed people (label, enrolled name,
 place, posture, appearance model, and what the fall detector knows of them:
 since when they are low and on the floor, whether their ``fall`` and
-``long_lie`` were raised), the falls raised lately (so that a body on the
-floor taken up by another track after the restart is not a second alarm) and
-the hold boxes then in force. The live server
+``long_lie`` were raised) and the hold boxes then in force. The live server
 writes one to its event store every :data:`SNAPSHOT_EVERY_S` and reads it
 at start (:meth:`~fusion_server.node.FusionNode.restore`): it sends the holds
 at once, and the people are taken back by the first tracks confirmed where
@@ -49,19 +47,15 @@ class Watched:
 
 @dataclass(frozen=True)
 class Snapshot:
-    """The people a server watched at ``stamp_ns``, the hold boxes it had sent, per camera, and the
-    falls it had raised within its repeat window, ``(stamp_ns, x, y, fall_stamp_ns)`` each
-    (:meth:`~fusion_server.events.falls.FallDetector.raised`)."""
+    """The people a server watched at ``stamp_ns`` and the hold boxes it had sent, per camera."""
 
     stamp_ns: int
     people: tuple[Watched, ...] = ()
     holds: dict[str, list[tuple[int, int, int, int]]] = field(default_factory=dict)
-    falls: tuple[tuple[int, float, float, int], ...] = ()
 
     def to_json(self) -> str:
         return json.dumps({"format": FORMAT, "stamp_ns": self.stamp_ns, "people": [asdict(p) for p in self.people],
-                           "holds": {cam: [list(b) for b in boxes] for cam, boxes in self.holds.items()},
-                           "falls": [list(f) for f in self.falls]},
+                           "holds": {cam: [list(b) for b in boxes] for cam, boxes in self.holds.items()}},
                           separators=(",", ":"))
 
     @classmethod
@@ -73,8 +67,7 @@ class Snapshot:
                 raise ValueError(f"format must be {FORMAT}, got {d.get('format') if isinstance(d, dict) else d!r}")
             people = tuple(_watched(p) for p in d["people"])
             holds = {str(cam): [_box(b) for b in boxes] for cam, boxes in d["holds"].items()}
-            falls = tuple(_raised(f) for f in d.get("falls", []))   # older snapshots carry none
-            return cls(stamp_ns=int(d["stamp_ns"]), people=people, holds=holds, falls=falls)
+            return cls(stamp_ns=int(d["stamp_ns"]), people=people, holds=holds)
         except KeyError as exc:
             raise ValueError(f"{where}: missing field {exc.args[0]!r}") from None
         except (TypeError, ValueError, AttributeError) as exc:
@@ -89,14 +82,6 @@ def _watched(d: Any) -> Watched:
     if p.fall is not None and not set(p.fall) <= set(_FALL_FIELDS):
         raise ValueError(f"person {p.label}: unknown fall fields {sorted(set(p.fall) - set(_FALL_FIELDS))}")
     return p
-
-
-def _raised(f: Any) -> tuple[int, float, float, int]:
-    stamp_ns, x, y, fall_stamp_ns = f
-    out = (int(stamp_ns), float(x), float(y), int(fall_stamp_ns))
-    if not (math.isfinite(out[1]) and math.isfinite(out[2])):
-        raise ValueError(f"raised fall {f!r}: a finite place is needed")
-    return out
 
 
 def _box(b: Any) -> tuple[int, int, int, int]:

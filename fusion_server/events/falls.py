@@ -257,16 +257,6 @@ class FallDetector:
                 return True
         return False
 
-    def raised(self) -> list[tuple[int, float, float, int]]:
-        """The falls raised within the repeat window, ``(stamp_ns, x, y, fall_stamp_ns)`` each, for a
-        restarted server (:meth:`restore_raised`)."""
-        return list(self._raised)
-
-    def restore_raised(self, raised: Sequence[tuple[int, float, float, int]]) -> None:
-        """Go on with the falls a server raised before its restart (:meth:`raised`): the same body
-        on the floor, taken up by another track, is not raised again."""
-        self._raised = [(int(t), float(x), float(y), int(f)) for t, x, y, f in raised]
-
     def on_floor(self, track: int) -> bool:
         """Whether the track is lying on the floor now (a long lie's business, not inactivity's)."""
         fs = self._tracks.get(track)
