@@ -64,7 +64,7 @@ track coasts on its particles, or follows fragments the explanation did not
 take for a person: its top is no body's): a fall found while the track is
 unconfirmed is raised on its first confirmed frame on the floor. But a drop
 the track made while coasting, unconfirmed from before the drop began until
-after it reached the floor, having been confirmed before, is no fall: the top
+its top passed halfway down, having been confirmed before, is no fall: the top
 of a coasting track is the top of whatever voxels are in its box (the hull
 over a body lying there for a while, shrinking as its neighbours move off), not
 of a body coming down. A track found while someone falls (confirmed for the
@@ -141,6 +141,7 @@ class FallDetector:
         # falls whose track left the body on the floor, raised at their time: (due_ns, (x, y), drop, track)
         self._left: list[tuple[int, tuple[float, float], dict[str, Any], int]] = []
         self._left_within_ns = ns(params.left_within_s)
+        self._tops_ns = ns(params.tops_s)
 
     def update(self, frame: TrackSnapshot, emit: Emitter) -> None:
         """Follow one track through one frame; emits ``fall`` and ``long_lie``."""
@@ -149,7 +150,7 @@ class FallDetector:
         p = self.params
         fs = self._tracks.setdefault(frame.track, _FallTrack())
         stamp_ns = frame.stamp_ns
-        fs.follow_confirmation(frame.confirmed, stamp_ns, stamp_ns - ns(p.tops_s))
+        fs.follow_confirmation(frame.confirmed, stamp_ns, stamp_ns - self._tops_ns)
         height_m = frame.standing_height_m if frame.standing_height_m is not None else p.standing_height_m
         tops = frame.tops
         # A median over the last three frames keeps one bad carve from toggling "low".
