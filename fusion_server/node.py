@@ -70,7 +70,9 @@ What the node does:
   ``max_clock_skew_ms`` ahead of the other live cameras' newest masks is
   left out of the frame sets instead (counted ``late``, logged): one camera
   with a fast clock would otherwise push the synchroniser ahead and make
-  every other camera's masks look stale.
+  every other camera's masks look stale. The skew mark and its event then
+  follow that lead on the other cameras (ahead or behind), never the
+  server's clock: a recording's stamps lie days before it.
 * **load**: the process adapter says how long it worked (:meth:`~FusionNode.note_work`:
   decoding and fusing); over each status period the share of the time so spent is the
   status's ``load``, and from 90 % (or a frame set dropped for being slow) the server
@@ -737,6 +739,16 @@ class FusionNode:
             return None
         return health.last_offset_ms - statistics.median(others)
 
+    def _lead_on_median_ms(self, health: _CameraHealth, mono: float) -> float | None:
+        """The camera's newest ``stamp - receive time`` less the median of the same over every live
+        camera's newest mask, its own included (so that one wrong clock does not move the reference
+        of the right ones), in ms. None when no other camera has sent masks lately."""
+        live = [h.last_offset_ms for h in self.health.values()
+                if h is not health and not h.lost and h.last_offset_ms is not None and h.recent(mono, self.s.stale_s)]
+        if not live or health.last_offset_ms is None:
+            return None
+        return health.last_offset_ms - statistics.median([*live, health.last_offset_ms])
+
     def _check_shape(self, msg: MaskFrame) -> None:
         """Refuse, before it is inflated, a mask of a size the camera cannot send."""
         cam = self.cameras.get(msg.cam)
@@ -771,7 +783,14 @@ class FusionNode:
     def _check_skew(self, health: _CameraHealth, now_ns: int, mono: float) -> None:
         if not health.refusing and len(health.offset_ms) < min(10, health.offset_ms.maxlen):
             return
-        offset = health.clock_offset_ms()
+        if self.s.free_timeline:
+            # the stamps are the recording's own (days or years before the server's clock, or played
+            # faster than it): a camera is judged against the other cameras only
+            offset = self._lead_on_median_ms(health, mono)
+            if offset is None:
+                return
+        else:
+            offset = health.clock_offset_ms()
         limit = self.s.max_clock_skew_ms
         # Late masks on a busy server are its own queue: a camera that seems to lag is judged once it
         # has for two status periods (the load is measured over one) in which the server kept up.

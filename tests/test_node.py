@@ -685,6 +685,24 @@ def test_with_a_free_timeline_a_camera_ahead_of_the_others_is_still_left_out(rig
     assert sum(1 for f in r.tracks if f.cameras == ["c1", "c2"]) >= 55
 
 
+def test_with_a_free_timeline_a_recording_from_years_ago_is_no_clock_skew(rig):
+    """A recording replayed with its own stamps runs years behind the server's clock on every camera:
+    judged against the server's clock every camera would read lagging after two status periods.
+    With a free timeline a camera is judged against the others only: all in step, none skewed, no
+    event; one of them a second behind the others is skewed, once."""
+    r = rig(free_timeline=True)
+    years = -3 * 365 * 86_400 * 10**9
+    r.frames(range(150), offsets_ns=dict.fromkeys(r.cams, years))   # 5 s: past two status periods
+    assert all(c.state == "ok" for c in r.cam_status().values())
+    assert "clock_skew" not in r.kinds()
+    assert len(r.tracks) >= 145 and all(f.cameras == ["c1", "c2", "c3"] for f in r.tracks[-100:])
+    r = rig(free_timeline=True)
+    r.frames(range(150), offsets_ns={**dict.fromkeys(r.cams, years), "c3": years - 10**9})
+    cams = r.cam_status()
+    assert cams["c3"].state == "skewed" and cams["c1"].state == cams["c2"].state == "ok"
+    assert [e.details["camera"] for _, e in r.events if e.kind == "clock_skew"] == ["c3"]
+
+
 def test_a_camera_a_minute_slow_started_first_is_late_and_the_others_track(rig):
     r = rig()
     slow = {"c3": -60 * 10**9}
