@@ -256,6 +256,38 @@ def test_a_drop_made_while_coasting_is_no_fall():
     assert _run_falls(FallDetector(FallParams(long_lie_s=600.0)), 900_000_000, confirmed=lambda k: not 8 <= k < 12) == []
 
 
+def _leave_body(*, back_tick: int = 17, to_xy=(2.6, 1.5), confirmed=lambda k: True) -> list[Event]:
+    """The fall of :func:`_fall_tops` at (2.0, 1.5), low from tick 14, until the track jumps at
+    ``back_tick`` to someone standing at ``to_xy`` (top 1.7 m) and follows them for 4 s."""
+    falls = FallDetector(FallParams(long_lie_s=60.0))
+    out: list[Event] = []
+    history = []
+    for k, (posture, top) in enumerate(_fall_tops()[:back_tick] + [("standing", 1.7)] * 40):
+        xy = (2.0, 1.5) if k < back_tick else to_xy
+        history.append((k * TICK_NS, top, None, posture, top))
+        falls.update(frame(k, xy=xy, posture=posture, top_m=top, tops=tuple(history), upright_ns=900_000_000,
+                           confirmed=confirmed(k)), emitter(k, out))
+    return out
+
+
+def test_a_track_that_leaves_the_body_on_the_floor_still_raises_its_fall():
+    """Low from tick 14 (1.4 s) after the drop of 1.75 -> 0.5 m, the track jumps at tick 17 to
+    someone standing 0.6 m away; its top (the median of three frames) reads 1.7 m (over 0.8 x 1.70 =
+    1.36 m) at tick 18, 0.4 s after getting low: nobody gets up from the floor that fast, so it left
+    the body there. The fall is raised where the body got low, at 2.4 s (tick 24, a second after
+    getting low, as for a track that stays), by the track, marked as left behind."""
+    (fall,) = _leave_body()
+    assert (fall.kind, fall.frame, fall.track, fall.x, fall.y) == ("fall", 24, 1, 2.0, 1.5)
+    assert fall.details["fall_stamp_ns"] == 1_150_000_000 and fall.details["left_behind"] is True
+    assert fall.details["confirm_s"] == 1.0
+    # Back up only after 1.0 s (read at tick 24, past 0.8 s): someone getting up, not a body left behind.
+    assert _leave_body(back_tick=23) == []
+    # Back up 0.3 m from where it got low (under 0.4 m): the same body rising, not another's.
+    assert _leave_body(to_xy=(2.3, 1.5)) == []
+    # Never confirmed while low (ticks 14-17): its low frames were no body's.
+    assert _leave_body(confirmed=lambda k: not 14 <= k < 18) == []
+
+
 def _run_postures(detector: SitStandDetector, postures: list[str], confirmed=lambda k: True) -> list[tuple[str, int, str, str]]:
     out: list[Event] = []
     for k, posture in enumerate(postures):
