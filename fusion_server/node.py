@@ -727,27 +727,18 @@ class FusionNode:
         stamp, then = self.last_stamp
         return stamp + max(0, int(now_ns) - then), self.last_frame
 
-    def _lead_ms(self, health: _CameraHealth, mono: float) -> float | None:
+    def _lead_ms(self, health: _CameraHealth, mono: float, *, own_included: bool = False) -> float | None:
         """How far the newest mask's stamp runs ahead of the other cameras' clocks, in ms: its
         ``stamp - receive time`` less the median of the same for the other live cameras' newest
         masks (newest against newest, so that recordings played faster than real time, where
-        every camera's stamps run ahead alike, compare equal). None when no other camera has
-        sent masks lately."""
+        every camera's stamps run ahead alike, compare equal); with ``own_included``, the median
+        over every live camera's, its own among them (one wrong clock then does not move the
+        reference of the right ones). None when no other camera has sent masks lately."""
         others = [h.last_offset_ms for h in self.health.values()
                   if h is not health and not h.lost and h.last_offset_ms is not None and h.recent(mono, self.s.stale_s)]
         if not others or health.last_offset_ms is None:
             return None
-        return health.last_offset_ms - statistics.median(others)
-
-    def _lead_on_median_ms(self, health: _CameraHealth, mono: float) -> float | None:
-        """The camera's newest ``stamp - receive time`` less the median of the same over every live
-        camera's newest mask, its own included (so that one wrong clock does not move the reference
-        of the right ones), in ms. None when no other camera has sent masks lately."""
-        live = [h.last_offset_ms for h in self.health.values()
-                if h is not health and not h.lost and h.last_offset_ms is not None and h.recent(mono, self.s.stale_s)]
-        if not live or health.last_offset_ms is None:
-            return None
-        return health.last_offset_ms - statistics.median([*live, health.last_offset_ms])
+        return health.last_offset_ms - statistics.median([*others, health.last_offset_ms] if own_included else others)
 
     def _check_shape(self, msg: MaskFrame) -> None:
         """Refuse, before it is inflated, a mask of a size the camera cannot send."""
@@ -786,7 +777,7 @@ class FusionNode:
         if self.s.free_timeline:
             # the stamps are the recording's own (days or years before the server's clock, or played
             # faster than it): a camera is judged against the other cameras only
-            offset = self._lead_on_median_ms(health, mono)
+            offset = self._lead_ms(health, mono, own_included=True)
             if offset is None:
                 return
         else:
