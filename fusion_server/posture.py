@@ -75,6 +75,7 @@ STATES: tuple[str, ...] = (
     "sitting_raised",
     "lying_raised",
     "standing_raised",
+    "standing_spread",
 )
 """Internal states of the posture model (rows of :class:`PostureModel`).
 
@@ -83,18 +84,33 @@ Some postures come in shapes too different for one Gaussian: kneeling
 ``sitting_raised``, a seated person whose lower legs the carving lost below
 the seat (chair or sofa fronts and table tops hide them from some cameras),
 so that the body floats at seat height; ``lying_raised``, lying on a bed or
-sofa; ``standing_raised``, a standing person whose legs furniture hides."""
+sofa; ``standing_raised``, a standing person whose legs furniture hides;
+``standing_spread``, a standing person whose hull spreads at the floor (the
+feet's shadows carved with them, a stride seen by level cameras, a
+neighbour's feet): full height, but the mass centre and the widest layers
+low and the floor layer nearly the widest, the shape the model otherwise
+knows only as kneeling. Only the upright states enter it (:data:`_ENTERED_UPRIGHT`)."""
 
 STATE_POSTURE: tuple[int, ...] = tuple(
-    POSTURES.index(p) for p in ("standing", "sitting", "bending", "lying", "bending", "sitting", "lying", "standing")
+    POSTURES.index(p)
+    for p in ("standing", "sitting", "bending", "lying", "bending", "sitting", "lying", "standing", "standing")
 )
 """Index into :data:`POSTURES` of each state in :data:`STATES`."""
 
 _UPRIGHT = np.array([POSTURES[p] == "standing" for p in STATE_POSTURE])
 """(len(STATES),) bool: the states of someone standing (how a walking person's body is)."""
 
-_TELLS_HEIGHT = np.array([POSTURES[p] in ("standing", "sitting") for p in STATE_POSTURE])
-"""(len(STATES),) bool: the standing and seated states, whose shapes tell a standing height."""
+_ENTERED_UPRIGHT = np.array([s == "standing_spread" for s in STATES])
+"""(len(STATES),) bool: states entered only from the upright ones. A body lying on the floor with
+someone standing over it (a helper, a neighbour merged into its blob) has that shape too: a
+person who was lying gets up through other shapes (sitting, kneeling, plain standing) first."""
+
+_ENTER_RARELY = 1e-3
+"""How much rarer than any other change entering :data:`_ENTERED_UPRIGHT` from another state is."""
+
+_TELLS_HEIGHT = np.array([POSTURES[p] in ("standing", "sitting") for p in STATE_POSTURE]) & ~_ENTERED_UPRIGHT
+"""(len(STATES),) bool: the standing and seated states, whose shapes tell a standing height; not
+a standing body spread at the floor, which a seated one read against a smaller height mimics."""
 
 WALK_TELLS_HEIGHT_NS = 1_000_000_000
 """After this long at walking speed (ns), a body's top tells its standing height fully."""
@@ -298,21 +314,23 @@ def default_model() -> PostureModel:
         [0.54, 1.01, 0.17, 0.35, 1.30, 0.62, 0.40, 0.00],  # standing
         [0.40, 0.79, 0.27, 0.60, 1.00, 0.38, 0.31, 0.00],  # sitting
         [0.43, 0.69, 0.20, 0.57, 0.62, 0.55, 0.20, 0.00],  # bending
-        [0.08, 0.18, 1.00, 0.00, -0.90, 0.08, 1.07, 0.00],  # lying
+        [0.10, 0.30, 1.00, 0.00, -0.40, 0.08, 1.05, 0.00],  # lying
         [0.38, 0.81, 0.33, 0.45, 1.05, 0.40, 0.96, 0.00],  # kneeling
         [0.48, 0.75, 0.02, 0.72, 0.55, 0.45, 0.00, 0.28],  # sitting_raised
         [0.35, 0.45, 0.16, 0.84, -1.00, 0.35, 0.00, 0.25],  # lying_raised
         [0.59, 1.02, 0.02, 0.36, 0.90, 0.60, 0.00, 0.21],  # standing_raised
+        [0.46, 1.01, 0.28, 0.38, 1.00, 0.45, 0.74, 0.00],  # standing_spread
     ]
     sigma = [
         [0.035, 0.05, 0.08, 0.06, 0.25, 0.06, 0.18, 0.06],
         [0.04, 0.15, 0.08, 0.08, 0.25, 0.05, 0.10, 0.05],
         [0.04, 0.06, 0.08, 0.10, 0.25, 0.06, 0.10, 0.06],
-        [0.04, 0.06, 0.05, 0.05, 0.35, 0.05, 0.12, 0.05],
+        [0.04, 0.10, 0.05, 0.05, 0.45, 0.05, 0.12, 0.05],
         [0.04, 0.06, 0.08, 0.10, 0.25, 0.15, 0.12, 0.05],
         [0.04, 0.15, 0.05, 0.08, 0.25, 0.05, 0.08, 0.05],
         [0.05, 0.06, 0.12, 0.12, 0.35, 0.06, 0.08, 0.05],
         [0.035, 0.05, 0.05, 0.06, 0.25, 0.05, 0.08, 0.06],
+        [0.035, 0.05, 0.06, 0.06, 0.25, 0.10, 0.09, 0.05],
     ]
     # Top height counts least (hats, masks, raised arms move it).
     weight = [1.0, 0.5, 0.5, 0.5, 0.8, 1.0, 1.0, 1.0]
@@ -919,6 +937,8 @@ def _log_transitions_ms(dt_ms: int) -> np.ndarray:
                 rate[i, j] = VITERBI_SHAPE_RATE_HZ
             else:
                 rate[i, j] = VITERBI_RATES_HZ.get((a, b), 0.0) / names.count(b)
+            if j < len(STATES) and _ENTERED_UPRIGHT[j] and not (i < len(STATES) and _UPRIGHT[i]):
+                rate[i, j] *= _ENTER_RARELY
     np.fill_diagonal(rate, -rate.sum(axis=1))
     step = scipy.linalg.expm(rate * (dt_ms * 1e-3))
     return np.log(np.clip(step, 1e-300, 1.0))
@@ -1008,6 +1028,10 @@ def _forward_step(log_alpha: np.ndarray | None, log_lik: np.ndarray, rate_hz: fl
         switch = min(max(switch, 1e-6), 1.0 - 1.0 / n)
         trans = np.full((n, n), switch / (n - 1))
         np.fill_diagonal(trans, 1.0 - switch)
+        if n == len(STATES):
+            rare = np.outer(~_UPRIGHT, _ENTERED_UPRIGHT)   # [from, to]: what stays put instead
+            moved = np.where(rare, trans * (1.0 - _ENTER_RARELY), 0.0)
+            trans = trans - moved + np.diag(moved.sum(axis=1))
         post = np.log(np.maximum(np.exp(log_alpha) @ trans, 1e-300)) + log_lik
     m = post.max()
     return post - (m + math.log(np.exp(post - m).sum()))

@@ -195,6 +195,32 @@ def test_a_fall_under_a_tent_of_hull_is_read_by_the_bodys_top():
     assert run(raw) == []
 
 
+def _run_tops(detector: FallDetector, tops: list[float], out: list[Event]) -> list[Event]:
+    """Track 1 at (2.0, 1.5) with these tops, one a tick: standing above 0.935 m, lying below."""
+    history = []
+    for k, top in enumerate(tops):
+        posture = "standing" if top > 0.935 else "lying"
+        history.append((k * TICK_NS, top, None, posture, top))
+        detector.update(frame(k, xy=(2.0, 1.5), posture=posture, top_m=top, tops=tuple(history),
+                              upright_ns=900_000_000), emitter(k, out))
+    return out
+
+
+def test_a_top_back_at_the_height_it_came_down_from_ends_the_spell_on_the_floor():
+    """The hand-worked fall's tops (down to 0.25 m at tick 15), then from tick 16 the top flickers back
+    to 1.75 m for three ticks in every seven: each time the last three tops' median is back within
+    0.15 m of the 1.75 m the drop began at (from the second tick up), so the spell on the floor ends
+    there although the gap (0.3 s) is under ``low_gap_s``; no spell lasts the 1 s a fall needs. The
+    same fall with single-tick flickers (the median never comes back up) is raised as before, at
+    tick 24."""
+    landed = [1.75] * 10 + [1.5, 1.25, 1.0, 0.75, 0.5, 0.25]
+    flicker = landed + ([1.75] * 3 + [0.25] * 4) * 8
+    assert _run_tops(FallDetector(FallParams(long_lie_s=60.0)), flicker, []) == []
+    pops = landed + ([1.75] + [0.25] * 6) * 8
+    (fall,) = _run_tops(FallDetector(FallParams(long_lie_s=60.0)), pops, [])
+    assert (fall.kind, fall.frame, fall.details["top_before_m"]) == ("fall", 24, 1.75)
+
+
 def test_one_fall_is_one_alarm_where_one_was_just_raised():
     """The hand-worked fall (raised on its 24th tick) by track 1 at (2.0, 1.5); then the same fall by
     track 2 at (2.8, 1.5), 0.8 m away, from tick 100: not raised (within 1 m and 120 s); by track

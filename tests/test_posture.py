@@ -17,6 +17,7 @@ from fusion_server.posture import (
     POSTURES,
     PostureBank,
     PostureEstimator,
+    STATES,
     PostureFeatures,
     classify,
     feature_vector,
@@ -271,6 +272,52 @@ def test_estimator_reads_each_posture_and_never_lying_for_kneel_or_bend():
         assert {r.posture for r in readings} <= allowed, pose
     readings = run_estimator([body_profile("standing", tilt_deg=90)] * 30)
     assert {r.posture for r in readings} == {"lying"}
+
+
+@pytest.mark.parametrize("height_m", [1.55, 1.75, 1.92])
+def test_a_standing_body_spread_at_the_floor_reads_standing_not_kneeling(height_m):
+    """The carved hull of someone standing often spreads at the floor (the feet's shadows carved with
+    them, a stride seen by level cameras, a neighbour's feet): here its lowest 0.4 m as wide as 0.9
+    of its widest layer. Full height, mass centre and widest layers low, the floor layer nearly the
+    widest: without the ``standing_spread`` state the model knew that shape only as kneeling (one
+    standing frame in eight of the tuning worlds' people read bending so). It reads standing, at the
+    person's known height and after walking in; a seated person keeps their seat (the feet are not
+    as wide as the lap)."""
+    body = body_profile("standing", height_m=height_m, inflate_m=0.04)
+    spread = body.copy()
+    spread[: int(round(0.4 / VOXEL_M))] = np.maximum(spread[: int(round(0.4 / VOXEL_M))], int(0.9 * body.max()))
+    features = profile_features(spread, VOXEL_M)
+    assert features.floor_frac >= 0.85 and features.top_m >= 0.97 * height_m
+    assert classify(features, height_m) == "standing"
+    est = PostureEstimator(voxel_m=VOXEL_M)
+    walking = [est.update(i * NS // FPS, body, speed_mps=0.9) for i in range(FPS)]
+    still = run_estimator([spread] * (10 * FPS), est=est, t0_ns=NS)
+    assert {r.posture for r in walking + still} == {"standing"}
+    assert still[-1].state == "standing_spread"
+    assert classify(profile_features(body_profile("sitting", height_m=height_m), VOXEL_M), height_m) == "sitting"
+
+
+def test_a_body_lying_on_the_floor_does_not_enter_the_spread_standing_shape_directly():
+    """Someone lying with a helper standing over them carves as a standing body spread at the floor:
+    a person who was lying gets up through other shapes first, so a change from a lying state into
+    ``standing_spread`` is rarer than any other change by ``_ENTER_RARELY`` (worked by hand: from a
+    belief all on ``lying``, with every state equally likely this frame, the next belief on
+    ``standing_spread`` is that share of the belief on plain ``standing``)."""
+    from fusion_server.posture import _ENTER_RARELY, _forward_step
+
+    n = len(STATES)
+    lying = np.full(n, -np.inf)
+    lying[STATES.index("lying")] = 0.0
+    step = np.exp(_forward_step(lying, np.zeros(n), 0.5, 1 / FPS))
+    switch = 1.0 - np.exp(-0.5 / FPS)
+    standing, spread = step[STATES.index("standing")], step[STATES.index("standing_spread")]
+    assert standing == pytest.approx(switch / (n - 1), rel=1e-9)
+    assert spread == pytest.approx(_ENTER_RARELY * switch / (n - 1), rel=1e-9)
+    assert step.sum() == pytest.approx(1.0)
+    upright = np.full(n, -np.inf)
+    upright[STATES.index("standing")] = 0.0
+    step = np.exp(_forward_step(upright, np.zeros(n), 0.5, 1 / FPS))
+    assert step[STATES.index("standing_spread")] == pytest.approx(switch / (n - 1), rel=1e-9)
 
 
 def test_seated_with_tall_hat_reads_sitting_without_ever_standing():

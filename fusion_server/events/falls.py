@@ -70,8 +70,15 @@ over a body lying there for a while, shrinking as its neighbours move off), not
 of a body coming down. A track found while someone falls (confirmed for the
 first time after the drop) still raises it.
 
-Low and on-the-floor spells forgive gaps up to ``low_gap_s`` [0.5 s]. A track
-without a posture reading is taken to stand ``standing_height_m`` [1.70 m] tall.
+Low and on-the-floor spells forgive gaps up to ``low_gap_s`` [0.5 s], but not a
+return to the height the body came down from (the top, over the last three
+frames, back within ``height_tol_m`` of where the drop began): a body on the
+floor does not stand up for a few frames and lie down again, a top that
+flickers between a body's height and half of it is a carve changing under the
+track.
+
+A track without a posture reading is taken to stand ``standing_height_m``
+[1.70 m] tall.
 """
 
 from __future__ import annotations
@@ -177,8 +184,11 @@ class FallDetector:
                 fs.floor_since_ns = None
             fs.last_low_ns = stamp_ns
             fs.low_confirmed |= frame.confirmed
-        elif fs.low_since_ns is not None and stamp_ns - fs.last_low_ns > self._low_gap_ns:
-            fs.low_since_ns = None
+        elif fs.low_since_ns is not None and (
+            stamp_ns - fs.last_low_ns > self._low_gap_ns
+            or (fs.drop is not None and median([s[1] for s in recent]) >= fs.drop["top_before_m"] - p.height_tol_m)
+        ):
+            fs.low_since_ns = None   # up again, or back at the height it came down from: no gap forgiven
             fs.floor_since_ns = None
         if fs.low_since_ns is None:
             return
