@@ -89,7 +89,7 @@ sofa; ``standing_raised``, a standing person whose legs furniture hides;
 feet's shadows carved with them, a stride seen by level cameras, a
 neighbour's feet): full height, but the mass centre and the widest layers
 low and the floor layer nearly the widest, the shape the model otherwise
-knows only as kneeling. Only the upright states enter it (:data:`_ENTERED_UPRIGHT`)."""
+knows only as kneeling. A lying state rarely enters it (:data:`_NOT_FROM_LYING`)."""
 
 STATE_POSTURE: tuple[int, ...] = tuple(
     POSTURES.index(p)
@@ -100,15 +100,20 @@ STATE_POSTURE: tuple[int, ...] = tuple(
 _UPRIGHT = np.array([POSTURES[p] == "standing" for p in STATE_POSTURE])
 """(len(STATES),) bool: the states of someone standing (how a walking person's body is)."""
 
-_ENTERED_UPRIGHT = np.array([s == "standing_spread" for s in STATES])
-"""(len(STATES),) bool: states entered only from the upright ones. A body lying on the floor with
-someone standing over it (a helper, a neighbour merged into its blob) has that shape too: a
-person who was lying gets up through other shapes (sitting, kneeling, plain standing) first."""
+_NOT_FROM_LYING = np.array([s == "standing_spread" for s in STATES])
+"""(len(STATES),) bool: states a lying body rarely enters. A body lying on the floor with someone
+standing over it (a helper, a neighbour merged into its blob) has that shape too: a person who was
+lying gets up through other shapes (sitting, kneeling, plain standing) first. From the others it is
+entered as any change is: a person kneeling or bending stands up, and a standing body read kneeling
+for a moment must not stay there while its shape says standing spread."""
+
+_LYING = np.array([POSTURES[p] == "lying" for p in STATE_POSTURE])
+"""(len(STATES),) bool: the lying states, on the floor or raised."""
 
 _ENTER_RARELY = 1e-3
-"""How much rarer than any other change entering :data:`_ENTERED_UPRIGHT` from another state is."""
+"""How much rarer than any other change entering :data:`_NOT_FROM_LYING` from a lying state is."""
 
-_TELLS_HEIGHT = np.array([POSTURES[p] in ("standing", "sitting") for p in STATE_POSTURE]) & ~_ENTERED_UPRIGHT
+_TELLS_HEIGHT = np.array([POSTURES[p] in ("standing", "sitting") for p in STATE_POSTURE]) & ~_NOT_FROM_LYING
 """(len(STATES),) bool: the standing and seated states, whose shapes tell a standing height; not
 a standing body spread at the floor, which a seated one read against a smaller height mimics."""
 
@@ -555,6 +560,7 @@ class PostureParams(Settings):
     height_evidence_weight: float = Field(0.3, gt=0.0, le=1.0)
     height_evidence_cap: float = Field(3.0, gt=0.0, **_FINITE)
     relearn_time_s: float = Field(60.0, gt=0.0, **_FINITE)
+    walked_height_weight: float = Field(0.03, ge=0.0, le=1.0, **_FINITE)
     fir_taps: tuple[float, ...] | None = None
     switch_rate_hz: float = Field(0.5, gt=0.0, **_FINITE)
     evidence_weight: float = Field(0.5, gt=0.0, **_FINITE)
@@ -622,6 +628,12 @@ class PostureEstimator:
     relearn_time_s: time constant with which the height belief drifts back
         towards the prior (a track that changes person, a bad first
         impression); the evidence of each frame holds it where it is.
+    walked_height_weight: once the person has walked for a second (their
+        top then is their standing height), a still frame counts this much
+        of what it counted before for the height: the shapes of a still
+        body tell a height less surely than a walk (a child by a table whose
+        legs the table hides reads as a seated adult a head taller, and
+        within a second the belief would follow).
     fir_taps: FIR weights over the newest samples, newest last (default 5
         uniform taps: a third of a second at 15 fps).
     switch_rate_hz: prior rate of posture changes for the HMM transition
@@ -675,6 +687,7 @@ class PostureEstimator:
         self.height_evidence_weight = p.height_evidence_weight
         self.height_evidence_cap = p.height_evidence_cap
         self.relearn_time_s = p.relearn_time_s
+        self.walked_height_weight = p.walked_height_weight
         self.taps = taps
         self.switch_rate_hz = p.switch_rate_hz
         self.evidence_weight = p.evidence_weight
@@ -694,6 +707,7 @@ class PostureEstimator:
         self._candidate_ns = 0
         self._last: PostureReading | None = None
         self._walking_since_ns: int | None = None  # start of the current spell of walking speed
+        self._walked = False
         self.decisions = p.decisions
         self.viterbi_lag_ns = int(round(p.viterbi_lag_s * 1e9))
         self._decoder: FixedLagViterbi | None = None
@@ -770,8 +784,11 @@ class PostureEstimator:
         # height (a body that comes down in a fall moves as fast, but for under a second).
         if walking and stamp_ns - self._walking_since_ns >= WALK_TELLS_HEIGHT_NS:
             tells, telling = _UPRIGHT, 1.0
+            self._walked = True
         else:
             tells, telling = _TELLS_HEIGHT, float(state_prob[_TELLS_HEIGHT].sum())
+            if self._walked:
+                telling *= self.walked_height_weight
         self._learn_height(np.log(np.maximum(like[:, tells].sum(axis=1), 1e-300)), telling, dt_s)
         prob = np.bincount(STATE_POSTURE, weights=state_prob, minlength=len(POSTURES))
         if self.decisions == "viterbi":
@@ -937,7 +954,7 @@ def _log_transitions_ms(dt_ms: int) -> np.ndarray:
                 rate[i, j] = VITERBI_SHAPE_RATE_HZ
             else:
                 rate[i, j] = VITERBI_RATES_HZ.get((a, b), 0.0) / names.count(b)
-            if j < len(STATES) and _ENTERED_UPRIGHT[j] and not (i < len(STATES) and _UPRIGHT[i]):
+            if j < len(STATES) and _NOT_FROM_LYING[j] and i < len(STATES) and _LYING[i]:
                 rate[i, j] *= _ENTER_RARELY
     np.fill_diagonal(rate, -rate.sum(axis=1))
     step = scipy.linalg.expm(rate * (dt_ms * 1e-3))
@@ -1029,7 +1046,7 @@ def _forward_step(log_alpha: np.ndarray | None, log_lik: np.ndarray, rate_hz: fl
         trans = np.full((n, n), switch / (n - 1))
         np.fill_diagonal(trans, 1.0 - switch)
         if n == len(STATES):
-            rare = np.outer(~_UPRIGHT, _ENTERED_UPRIGHT)   # [from, to]: what stays put instead
+            rare = np.outer(_LYING, _NOT_FROM_LYING)   # [from, to]: what stays put instead
             moved = np.where(rare, trans * (1.0 - _ENTER_RARELY), 0.0)
             trans = trans - moved + np.diag(moved.sum(axis=1))
         post = np.log(np.maximum(np.exp(log_alpha) @ trans, 1e-300)) + log_lik
