@@ -59,6 +59,7 @@ def test_parameter_groups_hold_the_documented_defaults():
     )
     assert as_dict(SitStandParams()) == dict(
         stand_up_from={"sitting", "lying"}, min_change_frac=0.07, max_change_frac=0.65, hold_s=2.0,
+        max_move_m=0.8, move_window_s=0.4,
         seat_kinds={"sofa", "table", "chair", "armchair", "bench", "bed"},
     )
     assert as_dict(EntryParams()) == dict(edge_margin_m=0.4, startup_s=1.0)
@@ -334,6 +335,33 @@ def test_sit_stand_detector_hand_worked():
     seq = ["lying"] * 30 + ["standing"] * 5
     assert _run_postures(SitStandDetector(), seq) == [("stand_up", 30, "lying", "standing")]
     assert _run_postures(SitStandDetector(SitStandParams(stand_up_from=("sitting",))), seq) == []
+
+
+def test_a_short_posture_between_two_others_is_a_passage():
+    # Lying 3 s, a second of sitting on the way up, then standing: up from lying, at 4 s (the
+    # sitting, held under hold_s, is a passage). Standing 3 s, lying half a second, then sitting:
+    # a sit_down from standing at 3.5 s.
+    seq = ["lying"] * 30 + ["sitting"] * 10 + ["standing"] * 10
+    assert _run_postures(SitStandDetector(), seq) == [("stand_up", 40, "lying", "standing")]
+    seq = ["standing"] * 30 + ["lying"] * 5 + ["sitting"] * 30
+    assert _run_postures(SitStandDetector(), seq) == [("sit_down", 35, "standing", "sitting")]
+    # Told once: sat down at 3 s, then a second up and a second down again is no second event.
+    seq = ["standing"] * 30 + ["sitting"] * 10 + ["standing"] * 10 + ["sitting"] * 30
+    assert _run_postures(SitStandDetector(), seq) == [("sit_down", 30, "standing", "sitting")]
+
+
+def test_fastest_move_hand_worked():
+    from fusion_server.events.sit_stand import fastest_move_m
+    ms = 1_000_000
+    # every 0.1 s; a one-frame spike at 0.2 s, then up from 0.6 s. The median of each top and the
+    # two before: 0.4 up to 0.6 s, 1.2 at 0.7 s, 1.6 from 0.8 s (the spike is gone).
+    z = [0.4, 0.4, 1.6, 0.4, 0.4, 0.4, 1.2, 1.6, 1.6, 1.6]
+    tops = [(k * 100 * ms, v) for k, v in enumerate(z)] + [(1000 * ms, float("nan"))]
+    assert fastest_move_m(tops, 0, 400 * ms) == (0.0, pytest.approx(1.2))   # 0.4 at 0.5 s -> 1.6 at 0.8 s
+    assert fastest_move_m(tops, 0, 100 * ms) == (0.0, pytest.approx(0.8))   # 0.4 -> 1.2, 0.6 -> 0.7 s
+    assert fastest_move_m(tops, 750 * ms, 400 * ms) == (0.0, 0.0)           # from 0.8 s on, still
+    down = [(k * 100 * ms, 2.0 - v) for k, v in enumerate(z)]
+    assert fastest_move_m(down, 0, 400 * ms) == (pytest.approx(-1.2), 0.0)
 
 
 def test_sit_stand_reads_only_confirmed_frames():

@@ -238,6 +238,25 @@ def test_getting_up_after_a_fall_is_a_stand_up_and_default_long_lie_is_30_s():
     assert 2.8 + 35.0 + 2.0 < t_s(up.stamp_ns) < 2.8 + 35.0 + 4.0 + 1.5
 
 
+def test_a_track_jumping_from_a_body_on_the_floor_to_someone_standing_is_no_stand_up():
+    """A person has lain on the floor for 10 s; the track then jumps (one frame) to someone standing
+    0.6 m away: the top rises 1.35 m at once, faster than anyone gets up (over 0.8 m within 0.4 s).
+    No stand_up, though the track now reads standing. Getting up where it lay, onto the knees in 2 s
+    and up from them in 2 s more, is one."""
+    def lying_then(rise):
+        p = Person(3).hold(10.0, LIE, xy=(3.0, 3.0))
+        rise(p)
+        p.hold(4.0, STAND)
+        return kinds(run([p], EventReasoner()))
+
+    assert lying_then(lambda p: p.hold(1 / FPS, STAND, xy=(3.6, 3.0))) == []
+    def get_up(p):
+        p.move(2.0, lambda f: body_profile("kneeling", tilt_deg=90 * (1 - f)))
+        p.move(2.0, lambda f: body_profile(blend("kneeling", "standing", f)))
+
+    assert lying_then(get_up) == ["stand_up"]
+
+
 def test_a_drop_faster_than_a_falling_body_is_not_physical():
     g = 9.81
     t = np.arange(10) / 15.0

@@ -9,13 +9,27 @@ of it lower, a child's on an adult's chair about 0.12); a posture that flips
 while the body keeps its height is the reading changing its mind, not the
 person, and the posture held before stands (postures given as bare names
 carry no height and skip this test). Between sitting and standing the top
-moves at most ``max_change_frac`` [0.65] of the standing height (sitting on
-the floor is about half of it): a track whose top jumped more took over
+moves at most ``max_change_frac`` [0.65] of the standing height from where
+it was while the posture before was held (sitting on the floor is about half
+of it; someone who gets up from the floor through a seated shape stands up
+from sitting, and their top on the floor is not the seat's): a track whose top jumped more took over
 another blob (a fragment growing into a whole body), and its new posture is
-taken without an event. So is a change from a posture held less than
+taken without an event. So is one across which the top moved the wrong
+way too fast: up (to stand) or down (to sit) by more than ``max_move_m``
+[0.8 m] within ``move_window_s`` [0.4 s], anywhere from 4 s before the
+change to now (each top read as the median of it and the two before: one
+frame's bad carve is no movement). People sit down and stand up, from a chair or from the floor,
+with the head moving under a metre a second; 2 m/s held for 0.4 s is a track
+jumping from a body lying on the floor to someone standing beside it, or
+from a fragment to a whole body. So is a change from a posture held less than
 ``hold_s`` [2 s] (a track's first readings of a body still being carved, a
 blob that changes under it): someone sits down after standing, and stands up
-after sitting, for longer than that. A sitting reading that rests on a body
+after sitting, for longer than that. But a posture held less than that
+between two others is a passage: someone who gets up from the floor may read
+sitting for a second on the way, and stands up from lying; the change is
+judged from the posture held before the passage (left at most ``hold_s``
+before it began, and not the passage's own posture: standing, a second of
+sitting, standing and sitting again is no sit_down). A sitting reading that rests on a body
 floating at seat height (lower legs not carved: the ``sitting_raised``
 posture state) counts only inside a hot spot whose kind is in ``seat_kinds``
 [sofa, table, chair, armchair, bench, bed], when the site has any: someone
@@ -58,6 +72,8 @@ class SitStandParams(Settings):
     min_change_frac: float = Field(0.07, ge=0.0, **NUMBER)
     max_change_frac: float = Field(0.65, **NUMBER)
     hold_s: float = Field(2.0, ge=0.0, **NUMBER)
+    max_move_m: float = Field(0.8, gt=0.0, **NUMBER)
+    move_window_s: float = Field(0.4, gt=0.0, **NUMBER)
     seat_kinds: frozenset[str] = SEAT_KINDS
 
     @model_validator(mode="after")
@@ -103,8 +119,18 @@ class SitStandDetector:
         prev = st.stable_posture
         if prev == posture:
             return
-        sit_down = prev == "standing" and posture == "sitting"
-        stand_up = posture == "standing" and prev in self.params.stand_up_from
+        now_ns = frame.stamp_ns
+        held_ns = now_ns - st.stable_since_ns
+        if prev is not None and held_ns >= self._hold_ns:
+            origin, origin_since_ns = prev, st.stable_since_ns
+        elif (st.origin is not None and prev is not None and prev != st.origin
+              and st.stable_since_ns - st.origin_left_ns <= self._hold_ns):
+            origin, origin_since_ns = st.origin, st.origin_since_ns   # ``prev`` was a passage from it
+        else:
+            origin, origin_since_ns = None, st.stable_since_ns   # too short a posture to tell
+        frm = prev if origin is None else origin
+        sit_down = frm == "standing" and posture == "sitting"
+        stand_up = posture == "standing" and frm in self.params.stand_up_from
         extra = {}
         if reading is not None and (sit_down or stand_up):
             rise = height_change_m([(s[0], s[1]) for s in frame.tops], reading.since_ns, reading.stamp_ns,
@@ -113,18 +139,28 @@ class SitStandDetector:
             need = self.params.min_change_frac * reading.standing_height_m
             if rise is None or (rise > -need if sit_down else rise < need):
                 return  # the body kept its height: not a change of posture
-            if "sitting" in (prev, posture) and abs(rise) > self.params.max_change_frac * reading.standing_height_m:
-                prev = None  # more than a seat explains: the track's blob changed, not the person
+            # the jump is judged against the top held while the posture before was (a person who
+            # got up from the floor through a seated shape stood up from sitting, not from lying)
+            held = height_change_m([(s[0], s[1]) for s in frame.tops if s[0] >= origin_since_ns],
+                                   reading.since_ns, reading.stamp_ns, before_s=CHANGE_BEFORE_S,
+                                   before_quantile=0.75 if sit_down else 0.25)
+            jump = rise if held is None else held
+            if "sitting" in (frm, posture) and abs(jump) > self.params.max_change_frac * reading.standing_height_m:
+                origin = None  # more than a seat explains: the track's blob changed, not the person
+            move = fastest_move_m([(s[0], s[1]) for s in frame.tops], reading.since_ns - ns(CHANGE_BEFORE_S[0]),
+                                  ns(self.params.move_window_s))
+            if (move[1] if stand_up else -move[0]) > self.params.max_move_m:
+                origin = None  # faster than a person sits or stands: the track jumped to another blob
             extra = dict(posture_since_ns=reading.since_ns, confidence=round(reading.confidence, 3),
                          height_change_m=round(rise, 3))
-        held_ns = frame.stamp_ns - st.stable_since_ns
-        st.stable_posture, st.stable_since_ns = posture, frame.stamp_ns
-        if prev is None or held_ns < self._hold_ns:
+        if prev is not None and held_ns >= self._hold_ns:
+            st.origin, st.origin_since_ns, st.origin_left_ns = prev, st.stable_since_ns, now_ns
+        st.stable_posture, st.stable_since_ns = posture, now_ns
+        if origin is None or not (sit_down or stand_up):
             return
-        if sit_down:
-            emit("sit_down", frame.track, frame.x, frame.y, from_posture=prev, to_posture=posture, **extra)
-        elif stand_up:
-            emit("stand_up", frame.track, frame.x, frame.y, from_posture=prev, to_posture=posture, **extra)
+        st.origin = None   # told: what follows is judged afresh
+        kind = "sit_down" if sit_down else "stand_up"
+        emit(kind, frame.track, frame.x, frame.y, from_posture=frm, to_posture=posture, **extra)
 
     def rename(self, renames: Mapping[int, int]) -> None:
         """Tracks change ids ({old: new}, at once); their state goes with them."""
@@ -165,9 +201,33 @@ def height_change_m(
     return median(after) - float(np.quantile(before, before_quantile))
 
 
+def fastest_move_m(samples: Sequence[tuple[int, float]], since_ns: int, window_ns: int) -> tuple[float, float]:
+    """The largest fall and the largest rise of a body's top within any ``window_ns``
+    from ``since_ns`` on, metres, as ``(most negative change, most positive change)``
+    (0.0 each when nothing moved that way), read on the median of each sample and the two
+    before it (one frame's bad carve is no movement). samples: ``(stamp_ns, top_m)``
+    pairs, oldest first; non-finite tops are left out."""
+    pts = [(t, z) for t, z in samples if math.isfinite(z)]
+    smooth = [(t, median([z for _, z in pts[max(0, i - 2): i + 1]])) for i, (t, _) in enumerate(pts)]
+    smooth = [p for p in smooth if p[0] >= since_ns]
+    if len(smooth) < 2:
+        return 0.0, 0.0
+    t = np.array([p[0] for p in smooth], dtype=np.int64)
+    z = np.array([p[1] for p in smooth], dtype=np.float64)
+    change = z[None, :] - z[:, None]   # [from, to]
+    gap = t[None, :] - t[:, None]
+    near = (gap > 0) & (gap <= window_ns)
+    if not near.any():
+        return 0.0, 0.0
+    return float(min(change[near].min(), 0.0)), float(max(change[near].max(), 0.0))
+
+
 @dataclass
 class _SitStandTrack:
     stable_posture: str | None = None
     stable_since_ns: int = 0
+    origin: str | None = None     # the last posture held for hold_s, while what followed it is a passage
+    origin_since_ns: int = 0
+    origin_left_ns: int = 0
     sitting_since_ns: int | None = None
     sitting_plausible: bool = True
