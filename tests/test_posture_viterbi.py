@@ -194,7 +194,10 @@ def test_a_fall_on_the_viterbi_path_is_raised_within_1_5_s_of_landing(lag_s):
 
 
 def test_getting_up_after_a_fall_on_the_viterbi_path():
+    # up onto the knees in 2 s, then up from them in 2 s (a body does not go from lying to kneeling
+    # in one frame: a top rising a metre at once is a track jumping to someone else, no stand_up)
     p = Person(8).hold(2.0, STAND, xy=(3.0, 3.0)).move(0.8, _fall_profiles(), (3.0, 3.7), _toppling).hold(5.0, LIE)
+    p.move(2.0, lambda f: body_profile("kneeling", tilt_deg=90 * (1 - f)))
     p.move(2.0, lambda f: body_profile(blend("kneeling", "standing", f))).hold(4.0, STAND)
     assert kinds(run([p], EventReasoner(), bank=_bank("viterbi"))) == ["fall", "stand_up"]
 

@@ -33,4 +33,5 @@ def test_estimator_states_report_their_postures_by_name() -> None:
     assert reported == {
         "standing": "standing", "sitting": "sitting", "bending": "bending", "lying": "lying",
         "kneeling": "bending", "sitting_raised": "sitting", "lying_raised": "lying", "standing_raised": "standing",
+        "standing_spread": "standing",
     }
