@@ -113,6 +113,9 @@ _LYING = np.array([POSTURES[p] == "lying" for p in STATE_POSTURE])
 _ENTER_RARELY = 1e-3
 """How much rarer than any other change entering :data:`_NOT_FROM_LYING` from a lying state is."""
 
+_RARE_CHANGES = np.outer(_LYING, _NOT_FROM_LYING)
+"""(len(STATES), len(STATES)) bool, ``[from, to]``: the changes :data:`_ENTER_RARELY` makes rare."""
+
 _TELLS_HEIGHT = np.array([POSTURES[p] in ("standing", "sitting") for p in STATE_POSTURE]) & ~_NOT_FROM_LYING
 """(len(STATES),) bool: the standing and seated states, whose shapes tell a standing height; not
 a standing body spread at the floor, which a seated one read against a smaller height mimics."""
@@ -954,7 +957,7 @@ def _log_transitions_ms(dt_ms: int) -> np.ndarray:
                 rate[i, j] = VITERBI_SHAPE_RATE_HZ
             else:
                 rate[i, j] = VITERBI_RATES_HZ.get((a, b), 0.0) / names.count(b)
-            if j < len(STATES) and _NOT_FROM_LYING[j] and i < len(STATES) and _LYING[i]:
+            if i < len(STATES) and j < len(STATES) and _RARE_CHANGES[i, j]:
                 rate[i, j] *= _ENTER_RARELY
     np.fill_diagonal(rate, -rate.sum(axis=1))
     step = scipy.linalg.expm(rate * (dt_ms * 1e-3))
@@ -1046,8 +1049,7 @@ def _forward_step(log_alpha: np.ndarray | None, log_lik: np.ndarray, rate_hz: fl
         trans = np.full((n, n), switch / (n - 1))
         np.fill_diagonal(trans, 1.0 - switch)
         if n == len(STATES):
-            rare = np.outer(_LYING, _NOT_FROM_LYING)   # [from, to]: what stays put instead
-            moved = np.where(rare, trans * (1.0 - _ENTER_RARELY), 0.0)
+            moved = np.where(_RARE_CHANGES, trans * (1.0 - _ENTER_RARELY), 0.0)   # stays put instead
             trans = trans - moved + np.diag(moved.sum(axis=1))
         post = np.log(np.maximum(np.exp(log_alpha) @ trans, 1e-300)) + log_lik
     m = post.max()

@@ -120,8 +120,8 @@ class SitStandDetector:
         if prev == posture:
             return
         now_ns = frame.stamp_ns
-        held_ns = now_ns - st.stable_since_ns
-        if prev is not None and held_ns >= self._hold_ns:
+        settled = prev is not None and now_ns - st.stable_since_ns >= self._hold_ns   # ``prev`` held long enough
+        if settled:
             origin, origin_since_ns = prev, st.stable_since_ns
         elif (st.origin is not None and prev is not None and prev != st.origin
               and st.stable_since_ns - st.origin_left_ns <= self._hold_ns):
@@ -133,7 +133,8 @@ class SitStandDetector:
         stand_up = posture == "standing" and frm in self.params.stand_up_from
         extra = {}
         if reading is not None and (sit_down or stand_up):
-            rise = height_change_m([(s[0], s[1]) for s in frame.tops], reading.since_ns, reading.stamp_ns,
+            tops = [(s[0], s[1]) for s in frame.tops]
+            rise = height_change_m(tops, reading.since_ns, reading.stamp_ns,
                                    before_s=CHANGE_BEFORE_S,
                                    before_quantile=0.75 if sit_down else 0.25)
             need = self.params.min_change_frac * reading.standing_height_m
@@ -141,19 +142,19 @@ class SitStandDetector:
                 return  # the body kept its height: not a change of posture
             # the jump is judged against the top held while the posture before was (a person who
             # got up from the floor through a seated shape stood up from sitting, not from lying)
-            held = height_change_m([(s[0], s[1]) for s in frame.tops if s[0] >= origin_since_ns],
+            held = height_change_m([s for s in tops if s[0] >= origin_since_ns],
                                    reading.since_ns, reading.stamp_ns, before_s=CHANGE_BEFORE_S,
                                    before_quantile=0.75 if sit_down else 0.25)
             jump = rise if held is None else held
             if "sitting" in (frm, posture) and abs(jump) > self.params.max_change_frac * reading.standing_height_m:
                 origin = None  # more than a seat explains: the track's blob changed, not the person
-            move = fastest_move_m([(s[0], s[1]) for s in frame.tops], reading.since_ns - ns(CHANGE_BEFORE_S[0]),
+            move = fastest_move_m(tops, reading.since_ns - ns(CHANGE_BEFORE_S[0]),
                                   ns(self.params.move_window_s))
             if (move[1] if stand_up else -move[0]) > self.params.max_move_m:
                 origin = None  # faster than a person sits or stands: the track jumped to another blob
             extra = dict(posture_since_ns=reading.since_ns, confidence=round(reading.confidence, 3),
                          height_change_m=round(rise, 3))
-        if prev is not None and held_ns >= self._hold_ns:
+        if settled:
             st.origin, st.origin_since_ns, st.origin_left_ns = prev, st.stable_since_ns, now_ns
         st.stable_posture, st.stable_since_ns = posture, now_ns
         if origin is None or not (sit_down or stand_up):
