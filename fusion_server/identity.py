@@ -87,8 +87,14 @@ class IdentityParams(Settings):
         neighbour now within ``near_m``) is taken at a looser distance,
         ``near_distance`` [4 s, 1.2 m, 0.45], and with no views at all when
         they are the only such person.
-    height_tolerance_m: standing heights further apart than this count
-        against a match, by ``(difference - tolerance) / 0.1 m`` [0.06 m].
+    height_tolerance_m, height_weight, height_frames: the standing height of a
+        body (the median of its standing tops, once it has ``height_frames``
+        of them) and a person's model that lie further apart than the
+        tolerance add ``height_weight`` per metre beyond it to their
+        appearance distance [0.08 m, 2.0 per m: 10 cm beyond adds 0.2, which
+        takes a colour match to a stranger's distance; 5 frames]: a child in
+        the clothes of an adult who left is not that adult. Two lost people
+        whose heights differ so are never one person lost twice.
     swap_margin, swap_evidence: a frame adds the amount by which the swapped
         labels explain the two bodies' views better, less the margin; the
         labels swap once the sum passes the evidence [0.05, 0.6].
@@ -126,7 +132,9 @@ class IdentityParams(Settings):
     near_s: float = Field(4.0, **NON_NEGATIVE)
     near_m: float = Field(1.2, **NON_NEGATIVE)
     near_distance: float = Field(0.45, **_SHARE)
-    height_tolerance_m: float = Field(0.06, **NON_NEGATIVE)
+    height_tolerance_m: float = Field(0.08, **NON_NEGATIVE)
+    height_weight: float = Field(2.0, **NON_NEGATIVE)
+    height_frames: int = Field(5, ge=1)
     swap_margin: float = Field(0.05, **_SHARE)
     swap_evidence: float = Field(0.6, **NON_NEGATIVE)
     min_model_frames: int = Field(5, ge=0)
@@ -158,6 +166,7 @@ class _Body:
     confirmed_ns: int | None = None  # when the tracker first confirmed it
     fresh_until_ns: int = 0  # a new label that may yet give way to a neighbour's or a lost person's
     drift: float = 0.0  # evidence that the body no longer shows its person
+    tops: deque = field(default_factory=lambda: deque(maxlen=15))  # standing tops of the last second or so (metres)
 
 
 @dataclass
@@ -266,6 +275,8 @@ class IdentityKeeper:
         for est in estimates:
             tid = int(est.id)
             body = self._bodies.get(tid)
+            if body is not None and tid in standing:
+                body.tops.append(float(standing[tid]))
             if body is None or body.label < 0 or not est.confirmed or tid not in standing:
                 continue
             person = self._people[body.label]
@@ -421,16 +432,21 @@ class IdentityKeeper:
         is taken at the looser distance (and alone, without views)."""
         p = self.p
         scored = []
+        height = self._height_of(body)
         for label, lost in self._lost.items():
             d = lost.person.model.distance(view) if view is not None else None
+            if d is not None:
+                d += self._height_gap(height, lost.person.model)
             scored.append((label, loose and self._near(lost, body, stamp_ns), d))
         chosen = None
         with_d = sorted((d, label, near) for label, near, d in scored if d is not None)
         if with_d:
             d0, label0, near0 = with_d[0]
-            best = self._lost[label0].person.model.as_view()
+            best_model = self._lost[label0].person.model
+            best = best_model.as_view()
             rivals = [(d, near) for d, label, near in with_d[1:]
-                      if (self._lost[label].person.model.distance(best) or 1.0) >= p.same_person]
+                      if _or_far(self._lost[label].person.model.distance(best)) >= p.same_person
+                      or self._height_gap(self._model_height(best_model), self._lost[label].person.model) > 0]
             d1 = rivals[0][0] if rivals else math.inf
             others_near = any(near for _, near in rivals)
             if d0 <= (p.near_distance if near0 else p.reid_distance) and (
@@ -446,6 +462,26 @@ class IdentityKeeper:
                       [(label, near, None if d is None else round(d, 3)) for label, near, d in scored], chosen)
         return chosen
 
+    def _height_of(self, body: _Body) -> float | None:
+        """The body's standing height (median of its last 15 standing tops), None before ``height_frames``."""
+        if len(body.tops) < self.p.height_frames:
+            return None
+        return float(np.median(body.tops))
+
+    def _model_height(self, model: AppearanceModel) -> float | None:
+        """A person's learnt standing height, None before ``height_frames`` frames taught it."""
+        if model.height_frames < self.p.height_frames or not math.isfinite(model.height_m):
+            return None
+        return float(model.height_m)
+
+    def _height_gap(self, height: float | None, model: AppearanceModel) -> float:
+        """What a standing height ``height`` adds to its appearance distance from ``model``
+        (0 when either height is unknown or they agree within the tolerance)."""
+        known = self._model_height(model)
+        if height is None or known is None:
+            return 0.0
+        return self.p.height_weight * max(0.0, abs(height - known) - self.p.height_tolerance_m)
+
     def _unlabel(self, tid: int, body: _Body, stamp_ns: int) -> None:
         """The body no longer shows its person (the tracker let it slide onto someone
         else): the person is lost, the body waits for its identity afresh."""
@@ -455,6 +491,7 @@ class IdentityKeeper:
         body.label = -tid
         body.confirmed_ns = stamp_ns
         body.views.clear()
+        body.tops.clear()
         body.drift = 0.0
         body.fresh_until_ns = 0
 
@@ -557,6 +594,11 @@ class IdentityKeeper:
                     e = 0.0
                 self._swap_evidence[key] = e
         self._swap_evidence = {k: v for k, v in self._swap_evidence.items() if k in seen}
+
+
+def _or_far(d: float | None) -> float:
+    """A distance, or 1.0 (as far as two histograms lie) when there is none to tell."""
+    return 1.0 if d is None else d
 
 
 def _view_since(body: _Body, since_ns: int) -> View | None:

@@ -239,3 +239,24 @@ def test_model_round_trips_and_bad_models_are_named():
         AppearanceModel.from_dict({**m.to_dict(), "hist": [[0.0]]}, where="ada.json")
     with pytest.raises(ValueError, match="rate_hz: Input should be greater than 0"):
         IdentityParams(rate_hz=0)
+
+
+def test_people_in_the_same_clothes_are_told_apart_by_their_height():
+    """A son (1.40 m) and his father (1.85 m) are enrolled in the same red shirt and black trousers:
+    their colour models are one and the same, their standing heights are not. Each is recognised
+    by his height, whichever comes in first."""
+    enrol = Run()
+    for f in range(40):
+        enrol.step([Person(2.0, 2.0, 1.7, RED_BLACK)], {1: 0})
+    colours = enrol.keeper.model_of(enrol.labels[1]).to_dict()
+    son = AppearanceModel.from_dict({**colours, "height_m": 1.40})
+    father = AppearanceModel.from_dict({**colours, "height_m": 1.85})
+    for first, second in ((1.85, 1.40), (1.40, 1.85)):
+        run = Run(residents=[Resident(name="Tom", model=son), Resident(name="Bob", model=father)])
+        for f in range(12):
+            labels = run.step([Person(1.0, 1.0, first, RED_BLACK)], {1: 0}, confirmed=lambda tid, f=f: f >= 3)
+        for f in range(12):
+            labels = run.step([Person(1.0, 1.0, first, RED_BLACK), Person(3.0, 3.0, second, RED_BLACK)], {1: 0, 2: 1},
+                              confirmed=lambda tid, f=f: tid != 2 or f >= 3)
+        names = {1.40: "Tom", 1.85: "Bob"}
+        assert [run.keeper.name_of(labels[1]), run.keeper.name_of(labels[2])] == [names[first], names[second]]
