@@ -189,6 +189,11 @@ class Volume(_Model):
     open_edges: bool | None = None
     """People can come and go across the volume's edges (it is part of a larger
     space); None: only where the site has no doors."""
+    margin_m: float | None = Field(default=None, ge=0.0, le=3.0, allow_inf_nan=False)
+    """How far beyond the volume's sides the cameras follow people without reporting them
+    (carved and tracked, so that someone standing just outside is seen whole and placed
+    outside, not cut by the volume's side into a body inside it); None: 0.6 m where the
+    edges are open, 0 where walls bound the volume."""
 
     @model_validator(mode="after")
     def _ordered(self) -> "Volume":

@@ -127,10 +127,19 @@ class FusionPipeline:
         decisions: str = "frame",
         viterbi_lag_s: float = 0.6,
         consistency: ConsistencyParams = ConsistencyParams(),
+        monitored_xy_m: tuple[float, float, float, float] | None = None,
     ) -> None:
         if hold_radius_m <= 0:
             raise ValueError(f"hold_radius_m must be positive, got {hold_radius_m}")
         self.carver = carver
+        grid = carver.grid
+        lo = grid.origin_m
+        hi = grid.origin_m + np.asarray(grid.shape) * grid.voxel_m
+        self.monitored_xy_m = tuple(float(v) for v in (
+            monitored_xy_m if monitored_xy_m is not None else (lo[0], lo[1], hi[0], hi[1])))
+        """The floor rectangle (x0, y0, x1, y1) whose people are reported; the carver's volume may
+        reach beyond it, where people are followed but not reported."""
+        self._inside: set[int] = set()  # labels reported on the last frame set
         self.cameras = dict(cameras)
         self.reasoner = reasoner
         self.tracker = build_tracker(rng)
@@ -178,6 +187,7 @@ class FusionPipeline:
             identity=build_identity(site, cameras, residents=residents),
             decisions=site.events.decisions,
             viterbi_lag_s=site.events.viterbi_lag_s,
+            monitored_xy_m=(*site.volume.min_m[:2], *site.volume.max_m[:2]),
         )
 
     def step(self, masks: Mapping[str, np.ndarray], stamp_ns: int, frame: int,
@@ -211,13 +221,16 @@ class FusionPipeline:
         standing = {b.id: float(e.z_top_m) for b, e in zip(bodies, estimates)
                     if readings.get(e.id) is not None and readings[e.id].posture == "standing"}
         self.identity.learn(bodies, standing, stamp_ns)
-        events = [self._named(ev) for ev in self.reasoner.step(stamp_ns, frame, estimates, readings)]
+        # people followed beyond the monitored volume's sides are nobody's business here
+        monitored = [e for e in estimates if self.monitors(e.x, e.y, LEAVE_MARGIN_M if e.id in self._inside else 0.0)]
+        self._inside = {e.id for e in monitored}
+        events = [self._named(ev) for ev in self.reasoner.step(stamp_ns, frame, monitored, readings)]
         confirmed = [e for e in estimates if e.confirmed]
-        tracks = [_output(e, readings.get(e.id), self.identity.name_of(e.id)) for e in confirmed]
+        tracks = [_output(e, readings.get(e.id), self.identity.name_of(e.id)) for e in monitored if e.confirmed]
         # A seated or lying person is held even when the tracker's estimate jitters
         # (late masks, a camera rejoining): losing the hold would let the cameras
         # learn exactly the people who must never fade, those on the floor.
-        held = [e for e, t in zip(confirmed, tracks) if e.still or t.posture in ("sitting", "lying")]
+        held = [e for e in confirmed if e.still or (e.id in readings and readings[e.id].posture in ("sitting", "lying"))]
         holds = self.hold_regions(held)
         self._watched = (int(stamp_ns), tracks, holds)
         if self._restoring and stamp_ns > self._restoring_until_ns:
@@ -235,6 +248,12 @@ class FusionPipeline:
             looks=self.identity.regions(bodies, stamp_ns),
             moved=moved,
         )
+
+    def monitors(self, x: float, y: float, margin_m: float = 0.0) -> bool:
+        """Whether floor point (x, y) lies in the monitored volume (:attr:`monitored_xy_m`), or
+        within ``margin_m`` beyond its sides."""
+        x0, y0, x1, y1 = self.monitored_xy_m
+        return x0 - margin_m <= x <= x1 + margin_m and y0 - margin_m <= y <= y1 + margin_m
 
     def label(self, bodies: list[TrackEstimate], looks: Mapping[str, Iterable[Appearance]],
               stamp_ns: int) -> list[TrackEstimate]:
@@ -373,10 +392,12 @@ def build_carver(site: Site, cameras: Mapping[str, Camera], *, cache_dir: str | 
     the carver's default cache]."""
     carving = site.carving
     kwargs = {} if cache_dir is None else {"cache_dir": cache_dir}
+    margin = carve_margin_m(site)
+    lo, hi = site.volume.min_m, site.volume.max_m
     return Carver(
         cameras=cameras,
-        volume_min_m=site.volume.min_m,
-        volume_max_m=site.volume.max_m,
+        volume_min_m=(lo[0] - margin, lo[1] - margin, lo[2]),
+        volume_max_m=(hi[0] + margin, hi[1] + margin, hi[2]),
         voxel_sizes_m=carving.voxel_sizes_m,
         min_cameras=carving.min_cameras,
         min_ratio=carving.min_ratio,
@@ -420,6 +441,22 @@ def build_tracker(rng: np.random.Generator) -> Tracker:
         id_source=itertools.count(1),
         population=PopulationParams(new_target_min_volume_m3=NEW_TARGET_MIN_VOLUME_M3),
     )
+
+
+LEAVE_MARGIN_M = 0.2
+"""Someone in the monitored volume is in it until their floor position lies this far beyond its side
+(a body's half-width: part of them is still inside); someone outside is in once their position is.
+A person lying across the side, or standing on it, does not flicker in and out with the estimate."""
+OPEN_EDGE_MARGIN_M = 0.6
+"""How far beyond open edges the cameras follow people unless the site says (``[volume] margin_m``):
+a person's carved hull reaches about half a metre from their centre."""
+
+
+def carve_margin_m(site: Site) -> float:
+    """How far beyond the monitored volume's sides the site's people are carved and followed."""
+    if site.volume.margin_m is not None:
+        return float(site.volume.margin_m)
+    return OPEN_EDGE_MARGIN_M if _entry_edges(site) is not None else 0.0
 
 
 def _entry_edges(site: Site) -> tuple[float, float, float, float] | None:
