@@ -224,7 +224,11 @@ class FusionPipeline:
         # people followed beyond the monitored volume's sides are nobody's business here
         monitored = [e for e in estimates if self.monitors(e.x, e.y, LEAVE_MARGIN_M if e.id in self._inside else 0.0)]
         self._inside = {e.id for e in monitored}
-        events = [self._named(ev) for ev in self.reasoner.step(stamp_ns, frame, monitored, readings)]
+        # the reasoner follows them too: their tops and upright time count (someone who stood
+        # outside and fell in fell from their height), but they are nobody present (no entry,
+        # no event) until they are inside
+        outside = [e.id for e in estimates if e.id not in self._inside]
+        events = [self._named(ev) for ev in self.reasoner.step(stamp_ns, frame, estimates, readings, outside=outside)]
         confirmed = [e for e in estimates if e.confirmed]
         tracks = [_output(e, readings.get(e.id), self.identity.name_of(e.id)) for e in monitored if e.confirmed]
         # A seated or lying person is held even when the tracker's estimate jitters

@@ -109,7 +109,8 @@ class Person:
         raise ValueError("place the person first with hold(..., xy=...)")
 
 
-def run(people, reasoner: EventReasoner, *, t0_ns: int = 0, bank: PostureBank | None = None):
+def run(people, reasoner: EventReasoner, *, t0_ns: int = 0, bank: PostureBank | None = None, monitored=None):
+    """``monitored``: (x0, y0, x1, y1) of the monitored floor; tracks beyond it are passed as outside."""
     bank = bank or PostureBank(voxel_m=VOXEL_M)
     n = max(len(p.frames) for p in people)
     events = []
@@ -121,7 +122,9 @@ def run(people, reasoner: EventReasoner, *, t0_ns: int = 0, bank: PostureBank | 
             if fr is not None:
                 tracks.append(Est(p.tid, fr[0], fr[1], fr[2], confirmed=fr[3]))
         readings = bank.update(stamp, tracks)
-        events += reasoner.step(stamp, k, tracks, readings)
+        outside = [] if monitored is None else [
+            t.id for t in tracks if not (monitored[0] <= t.x <= monitored[2] and monitored[1] <= t.y <= monitored[3])]
+        events += reasoner.step(stamp, k, tracks, readings, outside=outside)
     return events
 
 
@@ -461,6 +464,30 @@ def test_enter_and_exit_through_a_door_and_at_the_edge():
     exit_a = events[-1]
     assert exit_a.details["last_seen_ns"] == exit_a.stamp_ns - FRAME_NS
     assert (exit_a.x, exit_a.y) == pytest.approx((0.25, 2.5))
+
+
+def test_people_followed_beyond_an_open_side_enter_when_inside_and_leave_when_outside():
+    """The monitored floor is 6 x 5 m of a larger one. One person stands beyond its side x = 6 for
+    3 s, walks in, stays 2 s and walks out again; another stays beyond the side throughout."""
+    a = Person(1).hold(3.0, xy=(6.4, 2.5)).walk((5.0, 2.5)).hold(2.0).walk((6.5, 2.5)).hold(1.0)
+    b = Person(2).hold(9.0, xy=(6.3, 1.0))
+    events = run([a, b], EventReasoner(bounds_xy_m=(0.0, 0.0, 6.0, 5.0)), monitored=(0.0, 0.0, 6.0, 5.0))
+    assert [(e.kind, e.track, e.details.get("door")) for e in events] == [("enter", 1, "edge"), ("exit", 1, "edge")]
+    enter, leave = events
+    # confirmed by the tracker for seconds: present on their first frame inside, first seen (as far
+    # as entering goes) on their last frame beyond the side
+    assert 5.9 < enter.x <= 6.0 and t_s(enter.stamp_ns) == pytest.approx(3.0 + 0.4, abs=1.5 / FPS)
+    assert enter.details["first_seen_ns"] == enter.stamp_ns - FRAME_NS
+    assert leave.x == pytest.approx(6.0, abs=0.1)
+
+
+def test_someone_who_stood_beyond_an_open_side_and_fell_in_fell_from_their_height():
+    p = Person(1).hold(3.0, STAND, xy=(6.3, 3.0))
+    p.move(0.8, _fall_profiles(), (5.5, 3.0), _toppling).hold(3.0, LIE)
+    events = run([p], EventReasoner(bounds_xy_m=(0.0, 0.0, 6.0, 5.0)), monitored=(0.0, 0.0, 6.0, 5.0))
+    (fall,) = kinds(events, "fall")
+    assert fall.details["from_posture"] == "standing" and fall.x < 6.0
+    assert 0 < t_s(fall.stamp_ns) - 3.8 <= 1.5
 
 
 def test_exit_when_the_tracker_stops_confirming_a_person_at_the_door():

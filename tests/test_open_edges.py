@@ -15,7 +15,7 @@ import pytest
 from common.camera import Camera, look_at
 from common.calibration import save_voxelwatch
 from common.site import load_site
-from evaluation.carving_bench import Cylinder, MaskRenderer
+from evaluation.carving_bench import Box, Cylinder, MaskRenderer
 from fusion_server.pipeline import OPEN_EDGE_MARGIN_M, FusionPipeline, carve_margin_m
 
 FPS = 15.0
@@ -90,3 +90,29 @@ def test_someone_in_is_in_until_wholly_out_and_someone_out_is_out_until_in(tmp_p
     assert all(n == 0 for _, x, n in going_out if x >= 3.28)
     assert all(n == 0 for _, x, n in coming_in if x >= 3.08)
     assert all(n == 1 for _, x, n in coming_in if x <= 2.92)
+
+
+def test_someone_who_stood_just_beyond_a_side_and_fell_in_raises_the_fall(tmp_path):
+    """They stand 0.22 m beyond the side x = 3 for 2 s (followed, not reported) and fall into the
+    volume over 0.45 s, coming to lie along x from 1.74 to 3.44 m: their track is reported once
+    inside, and the fall is raised from the height they stood at, within 1.5 s."""
+    site, cams = _site(tmp_path)
+    pipeline = FusionPipeline.from_site(site, cameras=cams, cache_dir=None)
+    renderer = MaskRenderer(cams)
+    x, falls, reported = 3.22, [], []
+    for f in range(75):
+        if f < 30:
+            bodies = [Cylinder(x, 1.5, 0.22, 1.7)]
+        else:
+            t = min(1.0, (f - 30) / 7)
+            top, length = 1.7 - 1.35 * t, 0.44 + 1.26 * t
+            bodies = [Box((x + 0.22 - length, 1.3, 0.0), (x + 0.22, 1.7, top))]
+        fused = pipeline.step(renderer.render(bodies), int(f * 1e9 / FPS), f)
+        reported.append(len(fused.tracks))
+        falls += [e for e in fused.events if e.kind == "fall"]
+    assert reported[:30] == [0] * 30
+    assert len(falls) == 1
+    (fall,) = falls
+    assert fall.x < 3.0
+    assert (fall.stamp_ns - fall.details["fall_stamp_ns"]) / 1e9 <= 1.5
+    assert 30 <= fall.details["fall_stamp_ns"] * FPS / 1e9 <= 37

@@ -13,7 +13,10 @@ Only established tracks take part: confirmed by the tracker for
 person for a second, a small blob at a wall -- do not qualify). An
 established track that loses confirmation mid-room (occlusion) keeps its
 state until it vanishes; one that leaves through a door or the edge takes
-part again once established there again.
+part again once established there again. Tracks followed beyond the
+monitored volume's open sides (``outside``) keep a history (tops, upright
+time, confirmation) but are present only once inside: someone who stood
+just outside and fell in fell from their height.
 """
 
 from __future__ import annotations
@@ -116,6 +119,7 @@ class EventReasoner:
         postures: Mapping[int, PostureReading | str] | None = None,
         *,
         hour: float | None = None,
+        outside: Iterable[int] = (),
     ) -> list[Event]:
         """Events decided by one frame.
 
@@ -124,6 +128,9 @@ class EventReasoner:
         postures: per track id, a :class:`PostureReading` (or a posture name).
         hour: local time of day in hours, overriding ``stamp_ns`` and
             ``utc_offset_h`` for visit labels.
+        outside: ids of tracks followed beyond the monitored volume's sides: their
+            history counts (tops, upright time, how long the tracker confirmed them),
+            but they are present only once inside (an exit when they leave).
 
         Frames whose stamp goes backwards and tracks with non-finite
         positions (or a repeated id) are dropped and counted
@@ -153,8 +160,9 @@ class EventReasoner:
         emit = Emitter(out, stamp_ns, frame)
         for tid in sorted(t for t in self._tracks if t not in current):
             self._vanished(tid, self._tracks.pop(tid), emit)
+        beyond = {int(t) for t in outside}
         for tid in sorted(current):
-            self._track_step(tid, current[tid], postures.get(tid), stamp_ns, emit)
+            self._track_step(tid, current[tid], postures.get(tid), stamp_ns, emit, inside=tid not in beyond)
         present = [(tid, tr.last_xy) for tid, tr in sorted(self._tracks.items()) if tr.present]
         h = local_hour(stamp_ns, self.utc_offset_h) if hour is None else float(hour) % 24.0
         self.visits.step(stamp_ns, dt_ns, present, h, emit)
@@ -184,7 +192,8 @@ class EventReasoner:
 
     # ------------------------------------------------------------------ per track
 
-    def _track_step(self, tid: int, est: TrackLike, reading: Any, stamp_ns: int, emit: Emitter) -> None:
+    def _track_step(self, tid: int, est: TrackLike, reading: Any, stamp_ns: int, emit: Emitter, *,
+                    inside: bool = True) -> None:
         x, y = float(est.x), float(est.y)
         tr = self._tracks.get(tid)
         if tr is None:
@@ -208,12 +217,18 @@ class EventReasoner:
         elif tr.confirmed_since_ns is None:
             tr.confirmed_since_ns = stamp_ns
         if not tr.present:
-            if confirmed and stamp_ns - tr.confirmed_since_ns >= self._establish_ns and self._big_enough(est, reading):
+            if (confirmed and inside and stamp_ns - tr.confirmed_since_ns >= self._establish_ns
+                    and self._big_enough(est, reading)):
                 self._arrived(tid, tr, x, y, emit)
-        elif not confirmed:
-            self._departed(tid, tr, emit)
-        if confirmed:
+        elif not confirmed or not inside:
+            self._departed(tid, tr, emit, vanished=not inside)
+            if not inside:  # out of the volume: back in, they start afresh (their history stays)
+                for detector in (self.sit_stand, self.falls, self.visits, self.inactivity):
+                    detector.forget(tid)
+        if confirmed and inside:
             tr.present_xy, tr.present_ns = (x, y), stamp_ns
+        if not inside and not tr.confirmed_once:
+            tr.first_xy, tr.first_ns = (x, y), stamp_ns  # first seen, as far as entering goes: where they come in from
         if reading is not None:
             top_m, height_m = reading.raw.top_m, reading.standing_height_m
             body_top_m, centre_m = reading.raw.body_top_m, reading.raw.body_centre_m
