@@ -681,13 +681,15 @@ def _walk(people: int, rng: np.random.Generator, frames: int, *, volume_max_m: S
 
 def _room_site(cameras: Mapping[str, Camera], volume_max_m: Sequence[float]) -> Site:
     """A site file of the room from the origin to ``volume_max_m`` seen by ``cameras``, every
-    other setting its default (no hot spots, no doors: people come and go across the edges).
-    Its calibration files are never read: the pipeline is given the cameras."""
+    other setting its default (no hot spots, no doors: people come and go across the edges),
+    but carved no further than the room (``margin_m`` 0: the bench's people never stand beyond
+    it, and the rows name the floor they carve). Its calibration files are never read: the
+    pipeline is given the cameras."""
     from common.site import CameraSpec, Site, Volume
 
     return Site(
         name="bench",
-        volume=Volume(max_m=tuple(volume_max_m)),
+        volume=Volume(max_m=tuple(volume_max_m), margin_m=0.0),
         cameras=[CameraSpec(id=c, calibration=f"{c}.yaml") for c in cameras],
     )
 
