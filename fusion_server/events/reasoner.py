@@ -172,7 +172,7 @@ class EventReasoner:
         """Tracks change ids (``{old: new}``, applied at once, so a swap is two renames):
         what the reasoner and its detectors keep of each goes with it."""
         self._tracks = rekey(self._tracks, renames)
-        for detector in (self.sit_stand, self.falls, self.visits, self.inactivity):
+        for detector in self._per_track:
             detector.rename(renames)
 
     def state_of(self, tid: int) -> dict[str, Any] | None:
@@ -223,8 +223,7 @@ class EventReasoner:
         elif not confirmed or not inside:
             self._departed(tid, tr, emit, vanished=not inside)
             if not inside:  # out of the volume: back in, they start afresh (their history stays)
-                for detector in (self.sit_stand, self.falls, self.visits, self.inactivity):
-                    detector.forget(tid)
+                self._forget(tid)
         if confirmed and inside:
             tr.present_xy, tr.present_ns = (x, y), stamp_ns
         if not inside and not tr.confirmed_once:
@@ -289,7 +288,16 @@ class EventReasoner:
             self._departed(tid, tr, emit, vanished=True)
         elif tr.confirmed_once and not tr.exited:
             self.visits.lost(tid, emit)
-        for detector in (self.sit_stand, self.falls, self.visits, self.inactivity):
+        self._forget(tid)
+
+    @property
+    def _per_track(self) -> tuple:
+        """The detectors that keep state per track."""
+        return (self.sit_stand, self.falls, self.visits, self.inactivity)
+
+    def _forget(self, tid: int) -> None:
+        """Every detector drops what it keeps of track ``tid``."""
+        for detector in self._per_track:
             detector.forget(tid)
 
 
