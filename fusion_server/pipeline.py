@@ -140,6 +140,8 @@ class FusionPipeline:
         """The floor rectangle (x0, y0, x1, y1) whose people are reported; the carver's volume may
         reach beyond it, where people are followed but not reported."""
         self._inside: set[int] = set()  # labels reported on the last frame set
+        x0, y0, x1, y1 = self.monitored_xy_m
+        self._carved_beyond_m = max(0.0, float(x0 - lo[0]), float(y0 - lo[1]), float(hi[0] - x1), float(hi[1] - y1))
         self.cameras = dict(cameras)
         self.reasoner = reasoner
         self.tracker = build_tracker(rng)
@@ -222,7 +224,7 @@ class FusionPipeline:
                     if readings.get(e.id) is not None and readings[e.id].posture == "standing"}
         self.identity.learn(bodies, standing, stamp_ns)
         # people followed beyond the monitored volume's sides are nobody's business here
-        monitored = [e for e in estimates if self.monitors(e.x, e.y, LEAVE_MARGIN_M if e.id in self._inside else 0.0)]
+        monitored = [e for e in estimates if self.monitors(e.x, e.y, self._leave_margin_m(e.id))]
         self._inside = {e.id for e in monitored}
         # the reasoner follows them too: their tops and upright time count (someone who stood
         # outside and fell in fell from their height), but they are nobody present (no entry,
@@ -252,6 +254,17 @@ class FusionPipeline:
             looks=self.identity.regions(bodies, stamp_ns),
             moved=moved,
         )
+
+    def _leave_margin_m(self, label: int) -> float:
+        """How far beyond the monitored sides the person ``label`` is still inside: 0 for someone
+        outside; :data:`LEAVE_MARGIN_M` for someone inside; for someone inside who lies on the floor
+        after a fall, as far as the carve reaches (a body lying across a side is half out, and its
+        estimate drifts: a long lie must not end because the centre crossed the line)."""
+        if label not in self._inside:
+            return 0.0
+        if self.reasoner.falls.on_floor(label):
+            return max(LEAVE_MARGIN_M, self._carved_beyond_m)
+        return LEAVE_MARGIN_M
 
     def monitors(self, x: float, y: float, margin_m: float = 0.0) -> bool:
         """Whether floor point (x, y) lies in the monitored volume (:attr:`monitored_xy_m`), or

@@ -116,3 +116,34 @@ def test_someone_who_stood_just_beyond_a_side_and_fell_in_raises_the_fall(tmp_pa
     assert fall.x < 3.0
     assert (fall.stamp_ns - fall.details["fall_stamp_ns"]) / 1e9 <= 1.5
     assert 30 <= fall.details["fall_stamp_ns"] * FPS / 1e9 <= 37
+
+
+def test_someone_who_fell_across_a_side_stays_watched_while_on_the_floor(tmp_path):
+    """They stand at x = 3.05 (inside, near the side x = 3... reported: they walked in), fall out
+    over the side to lie along x from 2.83 to 4.53 m, and slide 0.2 m further out: the carve ends at
+    3.6 m, so their estimate sits more than LEAVE_MARGIN_M beyond the side. Someone on the floor after
+    a fall stays reported (and their fall state kept) wherever the carve still holds them."""
+    site, cams = _site(tmp_path)
+    pipeline = FusionPipeline.from_site(site, cameras=cams, cache_dir=None)
+    renderer = MaskRenderer(cams)
+    walk = list(np.linspace(2.4, 3.05, 15)) + [3.05] * 30
+    falls, reported, xs, left = [], [], [], []
+    for f in range(len(walk) + 7 + 15 + 45):
+        if f < len(walk):
+            bodies = [Cylinder(float(walk[f]), 1.5, 0.22, 1.7)]
+        else:
+            t = min(1.0, (f - len(walk)) / 7)
+            slide = 0.2 * min(1.0, max(0.0, (f - len(walk) - 7) / 15))
+            top, length = 1.7 - 1.35 * t, 0.44 + 1.26 * t
+            x0 = 3.05 - 0.22 + slide
+            bodies = [Box((x0, 1.3, 0.0), (x0 + length, 1.7, top))]
+        fused = pipeline.step(renderer.render(bodies), int(f * 1e9 / FPS), f)
+        reported.append(len(fused.tracks))
+        xs += [t.x for t in fused.tracks]
+        falls += [e for e in fused.events if e.kind == "fall"]
+        left += [e for e in fused.events if e.kind == "exit"]
+    assert len(falls) == 1
+    after = reported[len(walk) + 7:]
+    assert after == [1] * len(after)
+    assert max(xs) > 3.0 + 0.2  # the scene does drift beyond the margin someone upright keeps
+    assert left == []
