@@ -166,8 +166,8 @@ class MotionParams(Settings):
     velocity_tau_s: time constant of the velocity smoothing [0.3 s].
     still_speed_mps, still_window_s: a target is still when its smoothed
         speed stayed below the speed for the whole window, or when the blobs
-        matched to it, or its own estimates, over the window stayed within
-        ``still_speed_mps * still_window_s`` [0.15 m/s, 1.0 s].
+        matched to it over the window stayed within ``still_speed_mps *
+        still_window_s`` [0.15 m/s, 1.0 s].
     """
 
     velocity_tau_s: float = Field(0.3, gt=0.0, allow_inf_nan=False)
@@ -445,7 +445,6 @@ class _Target:
         self.blob: Blob | None = None
         self.speeds: deque[tuple[int, float]] = deque()
         self.blob_xy: deque[tuple[int, float, float]] = deque()  # (stamp, x, y) of the blobs matched
-        self.xy: deque[tuple[int, float, float]] = deque()  # (stamp, x, y) of the target's own estimates
         self.still = False
         self._before = (x, y, 0.0, 0.0)  # position and velocity before this frame's filter step
 
@@ -512,27 +511,23 @@ class _Target:
             self.z_top_m = top
 
     def update_stillness(self, stamp_ns: int, window_s: float, still_speed_mps: float) -> None:
-        """Still when, over the whole window, the smoothed speed stayed below the threshold; or a
-        blob matched the target on every frame and their centres stayed within ``still_speed_mps *
-        window_s`` of each other along both axes (the filter's estimate can jitter where the hull
-        around a still person is wide: behind furniture, beside a phantom); or the target's own
-        estimates stayed that close (the blob's centre jumps where the hull splits or merges for a
-        frame, and a single quick step of the estimate lifts the smoothed speed over the threshold,
-        though the person stands where they stood: such a person must not lose their hold and
-        fade into the cameras' background)."""
+        """Still when the smoothed speed stayed below the threshold over the whole window, or when
+        a blob matched the target on every frame of the window and their centres stayed within
+        ``still_speed_mps * window_s`` of each other along both axes (the filter's estimate can
+        jitter where the hull around a still person is wide: behind furniture, beside a phantom)."""
         window_ns = int(round(window_s * 1e9))
         _keep_window(self.speeds, (stamp_ns, math.hypot(self.vx, self.vy)), window_ns)
-        _keep_window(self.xy, (stamp_ns, self.x, self.y), window_ns)
         if self.blob is None:
             self.blob_xy.clear()
         else:
             _keep_window(self.blob_xy, (stamp_ns, self.blob.x, self.blob.y), window_ns)
         covered = stamp_ns - self.speeds[0][0] >= window_ns
         slow = max(s for _, s in self.speeds) < still_speed_mps
-        reach = still_speed_mps * window_s
-        placed = _within(self.blob_xy, stamp_ns, window_ns, reach)
-        settled = _within(self.xy, stamp_ns, window_ns, reach)
-        self.still = covered and (slow or placed or settled)
+        placed = False
+        if self.blob_xy and stamp_ns - self.blob_xy[0][0] >= window_ns:
+            xy = np.array([(x, y) for _, x, y in self.blob_xy])
+            placed = bool(np.all(np.ptp(xy, axis=0) < still_speed_mps * window_s))
+        self.still = covered and (slow or placed)
 
     def estimate(self, stamp_ns: int, confirm: float, nz: int) -> TrackEstimate:
         profile = self.height_profile if self.height_profile is not None else np.zeros(nz, dtype=np.int32)
@@ -582,15 +577,6 @@ def _box_top(result: CarveResult, x_m: float, y_m: float, alpha_m: float) -> flo
     if j0 >= j1 or i0 >= i1:
         return 0.0
     return float(top[j0:j1, i0:i1].max())
-
-
-def _within(samples: deque, stamp_ns: int, window_ns: int, reach_m: float) -> bool:
-    """Whether ``samples`` (stamp, x, y) span the window up to ``stamp_ns`` and stay within
-    ``reach_m`` of each other along both axes."""
-    if not samples or stamp_ns - samples[0][0] < window_ns:
-        return False
-    xy = np.array([(x, y) for _, x, y in samples])
-    return bool(np.all(np.ptp(xy, axis=0) < reach_m))
 
 
 def _keep_window(samples: deque, sample: tuple, window_ns: int) -> None:

@@ -366,10 +366,9 @@ def test_the_filter_factory_makes_every_filter():
 
 @pytest.mark.parametrize("drift_m, still", [(0.0, True), (0.05, True), (0.3, False)])
 def test_a_target_whose_blob_stays_put_is_still_even_when_its_filter_jitters(drift_m, still):
-    """The filter's estimate swings 0.2 m from frame to frame (its velocity between +-0.3 m/s, above
-    the 0.15 m/s of stillness) while the blob matched every frame moves ``drift_m`` in all over
-    1.5 s: still when the blobs stayed within 0.15 m (0.15 m/s over the 1 s window), not when the
-    blob itself moved."""
+    """The filter's velocity swings between +-0.3 m/s (above the 0.15 m/s of stillness) while the
+    blob matched every frame moves ``drift_m`` in all over 1.5 s: still when the blobs stayed
+    within 0.15 m (0.15 m/s over the 1 s window), not when the blob itself moved."""
     from types import SimpleNamespace
 
     from fusion_server.tracker import _Target
@@ -377,35 +376,9 @@ def test_a_target_whose_blob_stays_put_is_still_even_when_its_filter_jitters(dri
     target = _Target(id=1, pf=None, x=2.0, y=3.0, alpha_m=0.3)
     for k in range(23):  # 1.5 s at 15 frames/s
         target.vx = 0.3 if k % 2 else -0.3
-        target.x = 2.1 if k % 2 else 1.9
         target.blob = SimpleNamespace(x=2.0 + drift_m * k / 22, y=3.0)
         target.update_stillness(int(k * 1e9 / 15), 1.0, 0.15)
     assert target.still is still
     target.blob = None  # a frame without a blob: the blobs no longer cover the window
     target.update_stillness(int(23 * 1e9 / 15), 1.0, 0.15)
     assert target.still is False
-
-
-@pytest.mark.parametrize("wobble_m, still", [(0.0, True), (0.12, True), (0.2, False)])
-def test_a_target_that_stays_put_is_still_though_its_blob_jumps(wobble_m, still):
-    """A person standing where they stand while their hull splits and merges: the blob matched
-    to them jumps 0.3 m every fifth frame, or is missing, and the estimate's velocity steps to
-    0.4 m/s and back, but the estimate itself stays within ``wobble_m``: still when that is under
-    0.15 m (0.15 m/s over the 1 s window). Someone who moves is not (walking at 0.3 m/s)."""
-    from types import SimpleNamespace
-
-    from fusion_server.tracker import _Target
-
-    target = _Target(id=1, pf=None, x=2.0, y=3.0, alpha_m=0.3)
-    for k in range(23):  # 1.5 s at 15 frames/s
-        target.vx = 0.4 if k % 5 == 0 else 0.0
-        target.x = 2.0 + (wobble_m if k % 3 == 0 else 0.0)
-        target.blob = None if k % 7 == 0 else SimpleNamespace(x=2.0 + (0.3 if k % 5 == 0 else 0.0), y=3.0)
-        target.update_stillness(int(k * 1e9 / 15), 1.0, 0.15)
-    assert target.still is still
-    walker = _Target(id=2, pf=None, x=2.0, y=3.0, alpha_m=0.3)
-    for k in range(23):
-        walker.x, walker.vx = 2.0 + 0.3 * k / 15, 0.3
-        walker.update_stillness(int(k * 1e9 / 15), 1.0, 0.15)
-    assert walker.still is False
-
