@@ -119,10 +119,11 @@ def test_someone_who_stood_just_beyond_a_side_and_fell_in_raises_the_fall(tmp_pa
 
 
 def test_someone_who_fell_across_a_side_stays_watched_while_on_the_floor(tmp_path):
-    """They stand at x = 3.05 (inside, near the side x = 3... reported: they walked in), fall out
-    over the side to lie along x from 2.83 to 4.53 m, and slide 0.2 m further out: the carve ends at
-    3.6 m, so their estimate sits more than LEAVE_MARGIN_M beyond the side. Someone on the floor after
-    a fall stays reported (and their fall state kept) wherever the carve still holds them."""
+    """They walk out to x = 3.05 (0.05 m beyond the side x = 3, still reported: they came from
+    inside), fall out over the side to lie along x from 2.83 to 4.53 m, and slide 0.2 m further out:
+    the carve ends at 3.6 m, so their estimate sits more than LEAVE_MARGIN_M beyond the side. Someone
+    on the floor after a fall stays reported (and their fall state kept) wherever the carve still
+    holds them."""
     site, cams = _site(tmp_path)
     pipeline = FusionPipeline.from_site(site, cameras=cams, cache_dir=None)
     renderer = MaskRenderer(cams)
