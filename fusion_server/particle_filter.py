@@ -267,10 +267,15 @@ class ParticleFilter:
         """(3,) float64 weighted mean ``(x_m, y_m, alpha_m)``."""
         return self.weights @ self.particles
 
-    def step(self, evidence: FloorEvidence, stamp_ns: int, velocity_mps=(0.0, 0.0)) -> np.ndarray:
+    def step(self, evidence: FloorEvidence, stamp_ns: int, velocity_mps=(0.0, 0.0), *,
+             exclude_xy: np.ndarray | None = None, exclude_radius_m: float = 0.0) -> np.ndarray:
         """Propagate to ``stamp_ns``, weigh against the floor map, resample if needed.
 
         velocity_mps: (2,) drift of the target, metres per second.
+        exclude_xy, exclude_radius_m: (E, 2) floor positions, world metres, of other people, and
+            how close to them this target cannot stand: particles that near one weigh nothing
+            (two bodies do not stand in one place), unless every particle that saw evidence is
+            (then the evidence alone decides).
         Returns the new (3,) estimate. ``supported`` tells whether any particle
         saw evidence; without it the weights stay as they were.
         """
@@ -291,6 +296,11 @@ class ParticleFilter:
             rng=self.rng,
         )
         weights = self.weights * likelihood(self.particles, evidence, k_m=self.k_m)
+        if exclude_xy is not None and len(exclude_xy) and exclude_radius_m > 0:
+            gap2 = ((self.particles[:, None, :2] - np.asarray(exclude_xy, dtype=np.float64)[None, :, :]) ** 2).sum(-1)
+            free = np.all(gap2 >= exclude_radius_m**2, axis=1)
+            if weights[free].sum() > 0:
+                weights = np.where(free, weights, 0.0)
         total = weights.sum()
         self.supported = bool(total > 0 and np.isfinite(total))
         if self.supported:

@@ -33,6 +33,7 @@ from fusion_server.detection import Blob, detect_blobs
 from fusion_server.explain import BlobExplainer
 from fusion_server.events import EventReasoner, FallParams, InactivityParams
 from fusion_server.grid import CarveResult
+from fusion_server.heads import HeadGaps
 from fusion_server.hotspots import BED_KINDS, SEAT_KINDS, Hotspot
 from fusion_server.identity import IdentityKeeper, IdentityParams, Resident
 from fusion_server.posture import PostureBank, PostureReading
@@ -149,6 +150,8 @@ class FusionPipeline:
         self.min_cameras = int(min_cameras if min_cameras is not None else carver.min_cameras)
         self.camera_ids: tuple[str, ...] = carver.camera_ids
         self.explainer = BlobExplainer(self.cameras)
+        self.head_gaps = HeadGaps(self.cameras)
+        self._bodies: list[TrackEstimate] = []  # the tracker's estimates of the last frame set
         self.consistency = ConsistencyMonitor(carver, self.cameras, consistency)
         self.consistency_errors = 0
         """Frame sets on which the moved-camera check failed (they are fused all the same)."""
@@ -209,7 +212,8 @@ class FusionPipeline:
             self._restore = None
         carve = self.carver.carve(masks, stamp_ns, depths=depths)
         blobs = self.detect_people(carve, masks)
-        bodies = self.tracker.step(carve, blobs, stamp_ns)
+        bodies = self.tracker.step(carve, blobs, stamp_ns, heads_apart=self._heads_apart(masks))
+        self._bodies = bodies
         try:
             _, moved = self.consistency.step(masks, bodies, stamp_ns)
         except Exception as exc:  # noqa: BLE001 - the check must never cost a frame set its tracks
@@ -385,6 +389,15 @@ class FusionPipeline:
                     holds[cam_id].append(tuple(int(v) for v in box))
         return holds
 
+    def _heads_apart(self, masks: Mapping[str, np.ndarray]) -> list[tuple[int, int]]:
+        """Pairs of the last frame set's targets, standing or sitting within
+        :data:`HEADS_NEAR_M` of each other, whose two heads a camera sees apart in ``masks``."""
+        upright = [b for b in self._bodies if b.z_top_m >= HEAD_MIN_TOP_M]
+        pairs = [(a, b) for a, b in itertools.combinations(upright, 2)
+                 if (a.x - b.x) ** 2 + (a.y - b.y) ** 2 < HEADS_NEAR_M**2]
+        seen = self.head_gaps.seen_apart((((a.x, a.y, a.z_top_m), (b.x, b.y, b.z_top_m)) for a, b in pairs), masks)
+        return [(a.id, b.id) for (a, b), s in zip(pairs, seen) if s]
+
     def detect_people(self, carve: CarveResult, masks: Mapping[str, np.ndarray]) -> list[Blob]:
         """The blobs of ``carve`` that are people, given the frame set's ``masks``."""
         # only the blobs that explain foreground of their own are people: the rest are phantoms
@@ -460,6 +473,10 @@ def build_tracker(rng: np.random.Generator) -> Tracker:
     )
 
 
+HEADS_NEAR_M = 1.2
+"""Two people this close on the floor (or closer) are tested for two heads on every frame set."""
+HEAD_MIN_TOP_M = 1.0
+"""Only people standing or sitting (tops at least this high) are tested for heads."""
 LEAVE_MARGIN_M = 0.2
 """Someone in the monitored volume is in it until their floor position lies this far beyond its side
 (a body's half-width: part of them is still inside); someone outside is in once their position is.

@@ -4,7 +4,9 @@ Seed paper 000, sections 2.2.2 and 2.3. Every frame:
 
 1. each target's 2.5D particle filter moves to the new time and refines the
    target's floor position on the frame's floor count map (never beyond the
-   volume's floor: there is no evidence there);
+   volume's floor: there is no evidence there; never onto the place of
+   someone known to be another person whose head the cameras see beside its
+   own: see ``PopulationParams.apart_m``);
 2. targets are matched to the detected blobs by the Hungarian method on a
    cost (by default the floor distance between the target and the blob's
    centroid), with a gate;
@@ -33,7 +35,7 @@ from __future__ import annotations
 import itertools
 import math
 from collections import deque
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass
 from typing import Protocol
 
@@ -152,12 +154,29 @@ class PopulationParams(Settings):
         this many consecutive frames merge, the older one kept [0.3 m, 8
         frames]. People do not stand closer than 0.3 m centre to centre for
         half a second.
+    apart_m, two_memory_s: two targets both confirmed while this far apart
+        or more [0.8 m] are two people. While the cameras saw their two heads
+        apart (``Tracker.step``'s ``heads_apart``) within the last
+        ``two_memory_s`` [1 s], neither filter takes the place of the other
+        (no particle of one within ``merge_distance_m`` of the other's last
+        position): two people who come together make one hump on the floor
+        map, and two filters free to climb it both settle on its top and
+        become one target. A target that slid onto someone else's body has
+        no head of its own there: it may merge.
+    two_min_top_m: both targets of such a pair stand or sit: their tops at
+        least this high [1.0 m], when seen apart and while they share. A body
+        lying on the floor is up to 1.9 m long and can hold two targets
+        further apart than ``apart_m``: one of them is a piece of it, not a
+        second person.
     """
 
     new_target_min_distance_m: float = Field(0.3, **NON_NEGATIVE)
     new_target_min_volume_m3: float = Field(0.0, **NON_NEGATIVE)
     merge_distance_m: float = Field(0.3, **NON_NEGATIVE)
     merge_frames: int = Field(8, ge=1)
+    apart_m: float = Field(0.8, **NON_NEGATIVE)
+    two_min_top_m: float = Field(1.0, **NON_NEGATIVE)
+    two_memory_s: float = Field(1.0, **NON_NEGATIVE)
 
 
 class MotionParams(Settings):
@@ -166,8 +185,8 @@ class MotionParams(Settings):
     velocity_tau_s: time constant of the velocity smoothing [0.3 s].
     still_speed_mps, still_window_s: a target is still when its smoothed
         speed stayed below the speed for the whole window, or when the blobs
-        matched to it over the window stayed within ``still_speed_mps *
-        still_window_s`` [0.15 m/s, 1.0 s].
+        matched to it, or its own estimates, over the window stayed within
+        ``still_speed_mps * still_window_s`` [0.15 m/s, 1.0 s].
     """
 
     velocity_tau_s: float = Field(0.3, gt=0.0, allow_inf_nan=False)
@@ -274,6 +293,8 @@ class Tracker:
         self._next_id: Callable[[], int] = id_source if callable(id_source) else (lambda it=id_source: next(it))
         self._targets: list[_Target] = []
         self._close_frames: dict[tuple[int, int], int] = {}
+        self._two_people: dict[int, set[int]] = {}  # target id -> targets known to be other people
+        self._heads_apart_ns: dict[frozenset, int] = {}  # pair of target ids -> when their heads were last seen apart
         self._last_stamp_ns: int | None = None
 
     @property
@@ -285,8 +306,12 @@ class Tracker:
         c = self.confirmation
         return min(c.learning_rate_max, 1.0 / max(age_frames, 1) + c.learning_rate_min)
 
-    def step(self, result: CarveResult, blobs: list[Blob], stamp_ns: int) -> list[TrackEstimate]:
+    def step(self, result: CarveResult, blobs: list[Blob], stamp_ns: int,
+             heads_apart: Iterable[tuple[int, int]] = ()) -> list[TrackEstimate]:
         """Advance all targets to ``stamp_ns`` with this frame's floor maps and blobs.
+
+        heads_apart: pairs of target ids whose two heads a camera sees apart on this frame set
+        (:class:`~fusion_server.heads.HeadGaps`, tested where the targets stood on the last one).
 
         Returns every live target (confirmed or not), sorted by id.
         Raises ValueError if ``stamp_ns`` is earlier than the previous frame's.
@@ -302,8 +327,17 @@ class Tracker:
         floor_lo = grid.origin_m[:2]
         floor_hi = floor_lo + np.asarray(grid.shape[:2], dtype=np.float64) * grid.voxel_m
         tau_s = self.motion.velocity_tau_s
+        if heads_apart:
+            for pair in heads_apart:
+                self._heads_apart_ns[frozenset(pair)] = stamp_ns
+        memory_ns = int(round(self.population.two_memory_s * 1e9))
+        self._heads_apart_ns = {k: v for k, v in self._heads_apart_ns.items() if stamp_ns - v <= memory_ns}
+        last = {t.id: (t.x, t.y) for t in self._targets}
         for t in self._targets:
-            t.track(evidence, stamp_ns, dt_s, tau_s, (floor_lo, floor_hi))
+            others = [last[o] for o in self._two_people.get(t.id, ())
+                      if o in last and frozenset((t.id, o)) in self._heads_apart_ns]
+            t.track(evidence, stamp_ns, dt_s, tau_s, (floor_lo, floor_hi),
+                    exclude_xy=np.array(others).reshape(-1, 2), exclude_radius_m=self.population.merge_distance_m)
 
         positions = np.array([[t.x, t.y] for t in self._targets]).reshape(-1, 2)
         cost = np.asarray(self.cost_function(positions, blobs))
@@ -344,6 +378,7 @@ class Tracker:
         self._targets = [t for t in self._targets if t.reliability >= self.confirmation.delete_reliability]
         live = {t.id for t in self._targets}
         self._close_frames = {k: v for k, v in self._close_frames.items() if k[0] in live and k[1] in live}
+        self._note_two_people(live)
 
         nz = result.grid.shape[2]
         for t in self._targets:
@@ -408,6 +443,18 @@ class Tracker:
                 parts[ti] = (np.bincount(k, minlength=nz).astype(np.int32), len(k) * b.voxel_m**3)
         return parts
 
+    def _note_two_people(self, live: set[int]) -> None:
+        """Keep, per live target, the live targets known to be other people: both confirmed
+        while at least ``apart_m`` apart (:class:`PopulationParams`)."""
+        known = {tid: others & live for tid, others in self._two_people.items() if tid in live}
+        confirm = self.confirmation.confirm_reliability
+        sure = [t for t in self._targets if t.reliability >= confirm and t.z_top_m >= self.population.two_min_top_m]
+        for a, b in itertools.combinations(sure, 2):
+            if math.hypot(a.x - b.x, a.y - b.y) >= self.population.apart_m:
+                known.setdefault(a.id, set()).add(b.id)
+                known.setdefault(b.id, set()).add(a.id)
+        self._two_people = {tid: others for tid, others in known.items() if others}
+
     def _merge_duplicates(self) -> None:
         targets = self._targets
         close_now: dict[tuple[int, int], int] = {}
@@ -445,18 +492,23 @@ class _Target:
         self.blob: Blob | None = None
         self.speeds: deque[tuple[int, float]] = deque()
         self.blob_xy: deque[tuple[int, float, float]] = deque()  # (stamp, x, y) of the blobs matched
+        self.xy: deque[tuple[int, float, float]] = deque()  # (stamp, x, y) of the target's own estimates
         self.still = False
         self._before = (x, y, 0.0, 0.0)  # position and velocity before this frame's filter step
 
-    def track(self, evidence: FloorEvidence, stamp_ns: int, dt_s: float, tau_s: float, bounds=None) -> None:
-        """Particle filter step; velocity from the change of position.
+    def track(self, evidence: FloorEvidence, stamp_ns: int, dt_s: float, tau_s: float, bounds=None, *,
+              exclude_xy: np.ndarray | None = None, exclude_radius_m: float = 0.0) -> None:
+        """Particle filter step; velocity from the change of position. ``exclude_xy``,
+        ``exclude_radius_m``: where other people stand, and how near them this one cannot
+        (:meth:`ParticleFilter.step`).
 
         bounds: ((2,), (2,)) floor rectangle of the volume, world metres. The
         floor maps hold no evidence outside it, so a target coasting on its
         velocity (someone who walked out through a door) stops at its edge,
         where they were last seen, instead of gliding on beyond it.
         """
-        est = self.pf.step(evidence, stamp_ns, velocity_mps=(self.vx, self.vy))
+        est = self.pf.step(evidence, stamp_ns, velocity_mps=(self.vx, self.vy),
+                           exclude_xy=exclude_xy, exclude_radius_m=exclude_radius_m)
         if bounds is not None:
             lo, hi = bounds
             self.pf.particles[:, :2] = np.clip(self.pf.particles[:, :2], lo, hi)
@@ -511,23 +563,27 @@ class _Target:
             self.z_top_m = top
 
     def update_stillness(self, stamp_ns: int, window_s: float, still_speed_mps: float) -> None:
-        """Still when the smoothed speed stayed below the threshold over the whole window, or when
-        a blob matched the target on every frame of the window and their centres stayed within
-        ``still_speed_mps * window_s`` of each other along both axes (the filter's estimate can
-        jitter where the hull around a still person is wide: behind furniture, beside a phantom)."""
+        """Still when, over the whole window, the smoothed speed stayed below the threshold; or a
+        blob matched the target on every frame and their centres stayed within ``still_speed_mps *
+        window_s`` of each other along both axes (the filter's estimate can jitter where the hull
+        around a still person is wide: behind furniture, beside a phantom); or the target's own
+        estimates stayed that close (the blob's centre jumps where the hull splits or merges for a
+        frame, and a single quick step of the estimate lifts the smoothed speed over the threshold,
+        though the person stands where they stood: such a person must not lose their hold and
+        fade into the cameras' background)."""
         window_ns = int(round(window_s * 1e9))
         _keep_window(self.speeds, (stamp_ns, math.hypot(self.vx, self.vy)), window_ns)
+        _keep_window(self.xy, (stamp_ns, self.x, self.y), window_ns)
         if self.blob is None:
             self.blob_xy.clear()
         else:
             _keep_window(self.blob_xy, (stamp_ns, self.blob.x, self.blob.y), window_ns)
         covered = stamp_ns - self.speeds[0][0] >= window_ns
         slow = max(s for _, s in self.speeds) < still_speed_mps
-        placed = False
-        if self.blob_xy and stamp_ns - self.blob_xy[0][0] >= window_ns:
-            xy = np.array([(x, y) for _, x, y in self.blob_xy])
-            placed = bool(np.all(np.ptp(xy, axis=0) < still_speed_mps * window_s))
-        self.still = covered and (slow or placed)
+        reach = still_speed_mps * window_s
+        placed = _within(self.blob_xy, stamp_ns, window_ns, reach)
+        settled = _within(self.xy, stamp_ns, window_ns, reach)
+        self.still = covered and (slow or placed or settled)
 
     def estimate(self, stamp_ns: int, confirm: float, nz: int) -> TrackEstimate:
         profile = self.height_profile if self.height_profile is not None else np.zeros(nz, dtype=np.int32)
@@ -577,6 +633,15 @@ def _box_top(result: CarveResult, x_m: float, y_m: float, alpha_m: float) -> flo
     if j0 >= j1 or i0 >= i1:
         return 0.0
     return float(top[j0:j1, i0:i1].max())
+
+
+def _within(samples: deque, stamp_ns: int, window_ns: int, reach_m: float) -> bool:
+    """Whether ``samples`` (stamp, x, y) span the window up to ``stamp_ns`` and stay within
+    ``reach_m`` of each other along both axes."""
+    if not samples or stamp_ns - samples[0][0] < window_ns:
+        return False
+    xy = np.array([(x, y) for _, x, y in samples])
+    return bool(np.all(np.ptp(xy, axis=0) < reach_m))
 
 
 def _keep_window(samples: deque, sample: tuple, window_ns: int) -> None:

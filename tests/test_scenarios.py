@@ -408,8 +408,8 @@ def check_identities(run: Run) -> None:
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(strict=True, reason="the two carve as one blob while they hug: one of them has no track for "
-                   "270 of 450 frames (MOTA 0.70, IDF1 0.82, no switch; 2026-11-29)")
+@pytest.mark.xfail(strict=True, reason="the two carve as one blob while they hug: counted right on 279 of 440 "
+                   "scored frames (2026-11-30; 270 frames with one of them untracked on 2026-11-29)")
 def test_two_people_hugging_are_both_counted_and_keep_their_identities(replayed):
     """Two people meet, stand 0.35 m apart facing each other for five seconds and part: their bodies
     touch from the knees to the shoulders."""
@@ -417,6 +417,24 @@ def test_two_people_hugging_are_both_counted_and_keep_their_identities(replayed)
     check_counts_and_positions(run, min_count_accuracy=0.95)
     check_identities(run)
     check_no_false_alarm(run)
+
+
+@pytest.mark.slow
+def test_people_standing_still_alone_do_not_fade(replayed):
+    """After the hug they part and each stands alone for ten seconds (frames 300-449), one where
+    their estimate wobbles a few centimetres as their hull changes: the cameras must hold both (not
+    learn them into the background), so both are tracked on every frame, where they stand. (Their
+    targets were not still by speed or blob: the estimate steps 0.07 m in a frame, the blob jumps.)"""
+    run = replayed("hug")
+    truth = derive_truth(synth.get_scenario("hug", SEED)).cut(run.frames)
+    tracks = read_tracks(run.run_dir / "tracks.csv")
+    for frame in range(300, 450):
+        t = truth.rows_at(frame)
+        r = np.flatnonzero(tracks.frame == frame)
+        assert len(r) == len(t) == 2, frame
+        d = np.hypot(truth.x[t][:, None] - tracks.x[r][None, :], truth.y[t][:, None] - tracks.y[r][None, :])
+        rows, cols = linear_sum_assignment(d)
+        assert d[rows, cols].max() <= 0.25, frame  # within a body's width; the wobbling hull sits 0.1-0.15 m off
 
 
 @pytest.mark.slow
