@@ -33,6 +33,7 @@ lenses beyond that get NaN rays.
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from functools import cached_property
 
@@ -392,6 +393,29 @@ class Camera:
         if self.model == "fisheye":
             return _fisheye_undistort(self.dist, xd, yd, self.max_radius)
         return _pinhole_undistort(self.dist, xd, yd, self.max_radius)
+
+
+class MaskCameras:
+    """A site's cameras (camera id -> full-resolution camera), each resized to the masks it gets:
+    a resized camera is built once per mask size, not once per frame."""
+
+    def __init__(self, cameras: Mapping[str, Camera]) -> None:
+        self.cameras = dict(cameras)
+        self._sized: dict[tuple[str, int, int], Camera] = {}
+
+    def sized(self, masks: Mapping[str, np.ndarray]) -> dict[str, Camera]:
+        """Camera id -> the camera at its mask's size, for the masks of this site's cameras."""
+        out = {}
+        for c, m in masks.items():
+            if c not in self.cameras:
+                continue
+            h, w = np.shape(m)
+            key = (c, w, h)
+            if key not in self._sized:
+                cam = self.cameras[c]
+                self._sized[key] = cam if (cam.width, cam.height) == (w, h) else cam.resized(w, h)
+            out[c] = self._sized[key]
+        return out
 
 
 def look_at(center, target, up=(0.0, 0.0, 1.0)) -> tuple[np.ndarray, np.ndarray]:

@@ -34,7 +34,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from common.camera import Camera
+from common.camera import Camera, MaskCameras
 from fusion_server.detection import Blob
 from fusion_server.grid import VoxelGrid
 
@@ -81,21 +81,11 @@ class BlobExplainer:
         self.cameras = dict(cameras)
         self.min_cameras = min_cameras
         self.min_new = float(min_new)
-        self._sized: dict[tuple[str, int, int], Camera] = {}
+        self._sized = MaskCameras(self.cameras)
 
     def explain(self, blobs: Sequence[Blob], masks: Mapping[str, np.ndarray], grid: VoxelGrid) -> "Explanation":
         """Split ``blobs`` into people and phantoms by how they explain ``masks`` (module text)."""
-        sized = {}
-        for c, m in masks.items():
-            if c not in self.cameras:
-                continue
-            h, w = np.shape(m)
-            key = (c, w, h)
-            if key not in self._sized:
-                cam = self.cameras[c]
-                self._sized[key] = cam if (cam.width, cam.height) == (w, h) else cam.resized(w, h)
-            sized[c] = self._sized[key]
-        return _explain(blobs, masks, sized, grid, self.min_cameras, self.min_new)
+        return _explain(blobs, masks, self._sized.sized(masks), grid, self.min_cameras, self.min_new)
 
 
 def explain_blobs(

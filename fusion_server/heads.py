@@ -1,4 +1,4 @@
-"""Two heads or one: whether any camera sees the gap between two people standing close together.
+"""Two heads or one: whether the cameras see the gap between two people standing close together.
 
 Where two people stand close, the carving vote fills the space between their
 heads: only the cameras that look across the gap see it, too few to carve it
@@ -20,7 +20,7 @@ from collections.abc import Iterable, Mapping
 
 import numpy as np
 
-from common.camera import Camera
+from common.camera import Camera, MaskCameras
 
 HEAD_DROP_M = 0.12
 """The line runs this far under each top: through the middle of the head."""
@@ -39,8 +39,7 @@ class HeadGaps:
     the masks it gets, once per mask size)."""
 
     def __init__(self, cameras: Mapping[str, Camera]) -> None:
-        self.cameras = dict(cameras)
-        self._sized: dict[tuple[str, int, int], Camera] = {}
+        self.cameras = MaskCameras(cameras)
 
     def seen_apart(self, pairs: Iterable[tuple[tuple[float, float, float], tuple[float, float, float]]],
                    masks: Mapping[str, np.ndarray]) -> list[bool]:
@@ -61,11 +60,8 @@ class HeadGaps:
         n_pts = SAMPLES + 2
         pts = np.concatenate(lines)
         votes = np.zeros(len(pairs), dtype=int)
-        for cam_id, mask in masks.items():
-            cam = self._camera(cam_id, mask)
-            if cam is None:
-                continue
-            fg = np.asarray(mask) > 127
+        for cam_id, cam in self.cameras.sized(masks).items():
+            fg = np.asarray(masks[cam_id]) > 127
             uv, valid = cam.project(pts)
             uv = uv.reshape(len(pairs), n_pts, 2)
             valid = valid.reshape(len(pairs), n_pts)
@@ -81,16 +77,6 @@ class HeadGaps:
                 if heads and not line[2:-2].all():
                     votes[n] += 1
         return (votes >= MIN_CAMERAS).tolist()
-
-    def _camera(self, cam_id: str, mask: np.ndarray) -> Camera | None:
-        if cam_id not in self.cameras:
-            return None
-        h, w = np.shape(mask)
-        key = (cam_id, w, h)
-        if key not in self._sized:
-            cam = self.cameras[cam_id]
-            self._sized[key] = cam if (cam.width, cam.height) == (w, h) else cam.resized(w, h)
-        return self._sized[key]
 
 
 def _near_fg(fg: np.ndarray, px: np.ndarray) -> bool:

@@ -391,7 +391,7 @@ class FusionPipeline:
 
     def _heads_apart(self, masks: Mapping[str, np.ndarray]) -> list[tuple[int, int]]:
         """Pairs of the last frame set's targets, standing or sitting within
-        :data:`HEADS_NEAR_M` of each other, whose two heads a camera sees apart in ``masks``."""
+        :data:`HEADS_NEAR_M` of each other, whose two heads the cameras see apart in ``masks``."""
         upright = [b for b in self._bodies if b.z_top_m >= HEAD_MIN_TOP_M]
         pairs = [(a, b) for a, b in itertools.combinations(upright, 2)
                  if (a.x - b.x) ** 2 + (a.y - b.y) ** 2 < HEADS_NEAR_M**2]

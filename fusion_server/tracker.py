@@ -164,7 +164,7 @@ class PopulationParams(Settings):
         become one target. A target that slid onto someone else's body has
         no head of its own there: it may merge.
     two_min_top_m: both targets of such a pair stand or sit: their tops at
-        least this high [1.0 m], when seen apart and while they share. A body
+        least this high [1.0 m] when seen apart. A body
         lying on the floor is up to 1.9 m long and can hold two targets
         further apart than ``apart_m``: one of them is a piece of it, not a
         second person.
@@ -310,7 +310,7 @@ class Tracker:
              heads_apart: Iterable[tuple[int, int]] = ()) -> list[TrackEstimate]:
         """Advance all targets to ``stamp_ns`` with this frame's floor maps and blobs.
 
-        heads_apart: pairs of target ids whose two heads a camera sees apart on this frame set
+        heads_apart: pairs of target ids whose two heads the cameras see apart on this frame set
         (:class:`~fusion_server.heads.HeadGaps`, tested where the targets stood on the last one).
 
         Returns every live target (confirmed or not), sorted by id.
@@ -327,9 +327,8 @@ class Tracker:
         floor_lo = grid.origin_m[:2]
         floor_hi = floor_lo + np.asarray(grid.shape[:2], dtype=np.float64) * grid.voxel_m
         tau_s = self.motion.velocity_tau_s
-        if heads_apart:
-            for pair in heads_apart:
-                self._heads_apart_ns[frozenset(pair)] = stamp_ns
+        for pair in heads_apart:
+            self._heads_apart_ns[frozenset(pair)] = stamp_ns
         memory_ns = int(round(self.population.two_memory_s * 1e9))
         self._heads_apart_ns = {k: v for k, v in self._heads_apart_ns.items() if stamp_ns - v <= memory_ns}
         last = {t.id: (t.x, t.y) for t in self._targets}
