@@ -360,9 +360,11 @@ class Tracker:
             profile, volume_m3 = parts.get(n, (None, None)) if blob is not None else (None, None)
             if blob is not None and profile is None:
                 profile, volume_m3 = blob.height_profile, blob.volume_m3
-            t.observe(blob, profile, volume_m3, result, self._new_filter)
+            apart = self._two_people.get(t.id, ())
+            others = np.array([[o.x, o.y] for o in self._targets if o.id in apart]).reshape(-1, 2)
+            t.observe(blob, profile, volume_m3, result, self._new_filter, others)
             if blob is not None and n not in parts and blob.z_top_m <= self.association.low_top_m:
-                t.centre_on(blob, dt_s, tau_s, result)
+                t.centre_on(blob, dt_s, tau_s, result, others)
 
         pop = self.population
         for bi in unmatched_blobs:
@@ -527,9 +529,12 @@ class _Target:
         volume_m3: float | None,
         result: CarveResult,
         new_filter: Callable[[float, float, float], ParticleFilter],
+        others_xy: np.ndarray | None = None,
     ) -> None:
         """Take this frame's measurements of the target (its part of ``blob``);
-        ``new_filter(x_m, y_m, alpha_m)`` makes a filter should it need a fresh one."""
+        ``new_filter(x_m, y_m, alpha_m)`` makes a filter should it need a fresh one.
+        ``others_xy`` (K, 2): where the other targets stand; the top is read only from
+        the floor cells nearer to this target than to any of them (:func:`_box_top`)."""
         self.blob = blob
         if blob is not None:
             self.volume_m3 = float(volume_m3)
@@ -538,13 +543,14 @@ class _Target:
                 # The particles lost the person while a blob still matched: restart them on it.
                 self.pf = _restart(self.pf, blob, self.alpha_m, new_filter)
                 self.x, self.y = blob.x, blob.y
-        top = _box_top(result, self.x, self.y, self.alpha_m)
+        top = _box_top(result, self.x, self.y, self.alpha_m, others_xy)
         if top > 0:
             self.z_top_m = top
         elif blob is not None:
             self.z_top_m = blob.z_top_m
 
-    def centre_on(self, blob: Blob, dt_s: float, tau_s: float, result: CarveResult) -> None:
+    def centre_on(self, blob: Blob, dt_s: float, tau_s: float, result: CarveResult,
+                  others_xy: np.ndarray | None = None) -> None:
         """Place the target at ``blob``'s centroid: the particles move by the same offset,
         the velocity follows the change of position since the last frame, the top is
         read around the new position."""
@@ -557,7 +563,7 @@ class _Target:
             beta = 1.0 - math.exp(-dt_s / tau_s)
             self.vx = vx0 + beta * ((self.x - x0) / dt_s - vx0)
             self.vy = vy0 + beta * ((self.y - y0) / dt_s - vy0)
-        top = _box_top(result, self.x, self.y, self.alpha_m)
+        top = _box_top(result, self.x, self.y, self.alpha_m, others_xy)
         if top > 0:
             self.z_top_m = top
 
@@ -619,8 +625,12 @@ def _border_distance(x_m: float, y_m: float, lo: np.ndarray, hi: np.ndarray) -> 
     return float(min(x_m - lo[0], y_m - lo[1], hi[0] - x_m, hi[1] - y_m))
 
 
-def _box_top(result: CarveResult, x_m: float, y_m: float, alpha_m: float) -> float:
-    """Highest column top (metres) in the square floor box around (x, y)."""
+def _box_top(result: CarveResult, x_m: float, y_m: float, alpha_m: float,
+             others_xy: np.ndarray | None = None) -> float:
+    """Highest column top (metres) in the square floor box around (x, y), over the cells
+    nearer to (x, y) than to any of ``others_xy`` (K, 2) world metres: a column belongs to
+    the person standing nearest to it, so a neighbour's head inside the box is not this
+    person's top (someone fallen beside a helper has the top of a body on the floor)."""
     grid = result.grid
     top = result.floor.top_m
     v = grid.voxel_m
@@ -631,7 +641,16 @@ def _box_top(result: CarveResult, x_m: float, y_m: float, alpha_m: float) -> flo
     i0, i1 = max(i - a, 0), min(i + a + 1, top.shape[1])
     if j0 >= j1 or i0 >= i1:
         return 0.0
-    return float(top[j0:j1, i0:i1].max())
+    box = top[j0:j1, i0:i1]
+    if others_xy is not None and len(others_xy):
+        cx = grid.origin_m[0] + (np.arange(i0, i1) + 0.5) * v
+        cy = grid.origin_m[1] + (np.arange(j0, j1) + 0.5) * v
+        own = (cy[:, None] - y_m) ** 2 + (cx[None, :] - x_m) ** 2
+        near = np.asarray(others_xy, dtype=np.float64).reshape(-1, 2)
+        near = near[np.hypot(near[:, 0] - x_m, near[:, 1] - y_m) < 3.0 * (a + 1) * v]  # farther: no cell of the box is nearer to them
+        for ox, oy in near:
+            box = np.where(own <= (cy[:, None] - oy) ** 2 + (cx[None, :] - ox) ** 2, box, 0.0)
+    return float(box.max())
 
 
 def _within(samples: deque, stamp_ns: int, window_ns: int, reach_m: float) -> bool:

@@ -130,14 +130,15 @@ def _fall_tops():
 
 def _run_falls(detector: FallDetector, upright_ns: int, *, track: int = 1, start: int = 0, xy=(2.0, 1.5),
                confirmed=lambda k: True, out: list[Event] | None = None) -> list[Event]:
-    """The fall of :func:`_fall_tops` by ``track`` at ``xy`` from tick ``start``; ``confirmed(k)``
-    says whether the tracker confirms the track on the fall's k-th tick."""
+    """The fall of :func:`_fall_tops` by ``track`` at ``xy`` (or at ``xy(k)`` on the fall's k-th tick)
+    from tick ``start``; ``confirmed(k)`` says whether the tracker confirms the track on the k-th tick."""
     out = [] if out is None else out
     history = []
     for k, (posture, top) in enumerate(_fall_tops()):
         tick = start + k
         history.append((tick * TICK_NS, top, None, posture, top))
-        f = frame(tick, track=track, xy=xy, posture=posture, top_m=top, tops=tuple(history), upright_ns=upright_ns,
+        at = xy(k) if callable(xy) else xy
+        f = frame(tick, track=track, xy=at, posture=posture, top_m=top, tops=tuple(history), upright_ns=upright_ns,
                   confirmed=confirmed(k))
         detector.update(f, emitter(tick, out))
     return out
@@ -232,6 +233,23 @@ def test_one_fall_is_one_alarm_where_one_was_just_raised():
     for track, x, start in ((1, 2.0, 0), (2, 2.8, 100), (3, 3.1, 200), (4, 2.0, 1_400)):
         _run_falls(falls, 900_000_000, track=track, start=start, xy=(x, 1.5), out=out)
     assert [(e.kind, e.track, e.frame) for e in out] == [("fall", 1, 24), ("fall", 3, 224), ("fall", 4, 1_424)]
+
+
+def test_a_fall_raised_off_its_body_is_not_raised_again_where_the_body_lies():
+    """Track 1 raises the hand-worked fall at (2.0, 1.5) on its 24th tick, then lies on the floor at
+    (2.6, 1.5) from tick 30 (it got low off the body it follows, and settled on it). Track 2 takes up
+    the body at (3.3, 1.5) from tick 100: 1.3 m from where the fall was raised (over 1 m) but 0.7 m
+    from where track 1 lay: the same body, not raised again. Had track 1 stayed at (2.0, 1.5), the
+    second would be raised (1.3 m off, its body down 10 s after the first's)."""
+    def run(settles: bool) -> list[tuple[int, int]]:
+        falls = FallDetector(FallParams(long_lie_s=60.0))
+        out: list[Event] = []
+        _run_falls(falls, 900_000_000, track=1, xy=lambda k: (2.6 if settles and k >= 30 else 2.0, 1.5), out=out)
+        _run_falls(falls, 900_000_000, track=2, start=100, xy=(3.3, 1.5), out=out)
+        return [(e.track, e.frame) for e in out if e.kind == "fall"]
+
+    assert run(settles=True) == [(1, 24)]
+    assert run(settles=False) == [(1, 24), (2, 124)]
 
 
 def test_one_body_coming_down_under_two_tracks_is_one_alarm():

@@ -408,8 +408,6 @@ def check_identities(run: Run) -> None:
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(strict=True, reason="the two carve as one blob while they hug: counted right on 279 of 440 "
-                   "scored frames (2026-11-30; 270 frames with one of them untracked on 2026-11-29)")
 def test_two_people_hugging_are_both_counted_and_keep_their_identities(replayed):
     """Two people meet, stand 0.35 m apart facing each other for five seconds and part: their bodies
     touch from the knees to the shoulders."""

@@ -20,6 +20,7 @@ from fusion_server.tracker import (
     PopulationParams,
     TrackEstimate,
     Tracker,
+    _box_top,
 )
 
 GRID = VoxelGrid.from_bounds((0.0, 0.0, 0.0), (6.0, 4.0, 2.0), 0.05)
@@ -71,6 +72,19 @@ def reliability_oracle(hits: list[bool], l_max=0.3, l_min=0.05) -> list[float]:
         r += min(l_max, 1.0 / age + l_min) * ((1.0 if hit else 0.0) - r)
         out.append(r)
     return out
+
+
+def test_a_neighbours_head_in_the_box_is_not_the_targets_top():
+    """A body lying on the floor (x 1.1-2.3 m, 0.3 m high) and a helper standing at (2.45, 2.0),
+    1.75 m tall, whose body reaches into the lying target's box (half-size 0.6 m around
+    (1.9, 2.0)). Over the whole box the top is the helper's head; over the cells nearer to the
+    target than to the helper (x under 2.175 m) it is the body on the floor. A person 2.55 m away
+    cuts nothing; the helper's own top is their head either way."""
+    res = frame(0, box((1.1, 1.85, 0.0), (2.3, 2.15, 0.3)), person(2.45, 2.0, 1.75))
+    assert _box_top(res, 1.9, 2.0, 0.6) == pytest.approx(1.75)
+    assert _box_top(res, 1.9, 2.0, 0.6, np.array([[2.45, 2.0]])) == pytest.approx(0.3)
+    assert _box_top(res, 1.9, 2.0, 0.6, np.array([[4.45, 2.0]])) == pytest.approx(1.75)
+    assert _box_top(res, 2.45, 2.0, 0.6, np.array([[1.9, 2.0]])) == pytest.approx(1.75)
 
 
 def test_learning_rate_follows_the_paper():

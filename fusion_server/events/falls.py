@@ -51,7 +51,9 @@ track, its ``details`` marked ``left_behind``. The rules for the drop (fast,
 physical, from someone upright, not made while coasting) are the same.
 
 One fall is one alarm: a fall within ``repeat_radius_m`` [1 m] and
-``repeat_s`` [120 s] of one already raised is not raised again (the same body
+``repeat_s`` [120 s] of one already raised (of where it was raised, or of
+where the track that raised it has lain on the floor since: a track raises
+where it got low, often off the body) is not raised again (the same body
 on the floor taken up by another track: the first track lost it under a
 neighbour, or a crowd's blobs regrouped over it; a carer is already on the
 way); nor is one whose body reached the floor within ``same_fall_s`` [1 s] of
@@ -144,7 +146,7 @@ class FallDetector:
         self._repeat_ns = ns(params.repeat_s)
         self._same_fall_ns = ns(params.same_fall_s)
         self._tracks: dict[int, _FallTrack] = {}
-        self._raised: list[tuple[int, float, float, int]] = []  # (stamp_ns, x, y, fall_stamp_ns) raised
+        self._raised: list[_Raised] = []
         # falls whose track left the body on the floor, raised at their time: (due_ns, (x, y), drop, track)
         self._left: list[tuple[int, tuple[float, float], dict[str, Any], int]] = []
         self._left_within_ns = ns(params.left_within_s)
@@ -170,6 +172,8 @@ class FallDetector:
         )
         on_floor = low and (frame.posture == "lying" or top_med <= p.flat_top_frac * height_m)
         self._raise_left(stamp_ns, emit)
+        if on_floor and fs.fall_emitted:
+            self._body_lies(frame.track, frame.x, frame.y)
         if not low and self._left_behind(fs, frame, top_med, height_m):
             fs.fall_emitted = True
             self._left.append((fs.low_since_ns + self._confirm_ns, fs.low_xy, fs.drop, frame.track))
@@ -212,7 +216,7 @@ class FallDetector:
             fs.fall_emitted = True   # decided for this spell on the floor, raised or not
             if not fs.coasting_through(fs.drop["drop_start_ns"], fs.drop["fall_stamp_ns"]) and not self._raised_before(
                     stamp_ns, x, y, fs.drop["fall_stamp_ns"]):
-                self._raised.append((stamp_ns, x, y, fs.drop["fall_stamp_ns"]))
+                self._raised.append(_Raised(stamp_ns, tid, fs.drop["fall_stamp_ns"], [(x, y)]))
                 emit("fall", tid, x, y, **fs.drop, confirm_s=round((stamp_ns - fs.low_since_ns) * 1e-9, 3))
         if fs.floor_since_ns is not None and not fs.long_lie_emitted:
             since = fs.floor_since_ns
@@ -250,23 +254,33 @@ class FallDetector:
         self._left = [e for e in self._left if e[0] > stamp_ns]
         for due_ns, (x, y), drop, tid in due:
             if not self._raised_before(stamp_ns, x, y, drop["fall_stamp_ns"]):
-                self._raised.append((stamp_ns, x, y, drop["fall_stamp_ns"]))
+                self._raised.append(_Raised(stamp_ns, tid, drop["fall_stamp_ns"], [(x, y)]))
                 low_since_ns = due_ns - self._confirm_ns
                 emit("fall", tid, x, y, **drop, confirm_s=round((stamp_ns - low_since_ns) * 1e-9, 3), left_behind=True)
 
     def _raised_before(self, stamp_ns: int, x: float, y: float, fall_stamp_ns: int) -> bool:
         """Whether this fall at (x, y), its body on the floor at ``fall_stamp_ns``, was raised
-        already: a fall raised within ``repeat_radius_m`` in the last ``repeat_s``, or one whose
-        body came down within ``same_fall_s`` of it and within ``same_fall_radius_m``."""
+        already: a fall raised in the last ``repeat_s`` within ``repeat_radius_m`` of where it was
+        raised or of where its track has lain on the floor since, or one whose body came down
+        within ``same_fall_s`` of it and within ``same_fall_radius_m``."""
         p = self.params
-        self._raised = [r for r in self._raised if stamp_ns - r[0] <= self._repeat_ns]
-        for _, rx, ry, r_fall_ns in self._raised:
-            d = math.hypot(rx - x, ry - y)
+        self._raised = [r for r in self._raised if stamp_ns - r.stamp_ns <= self._repeat_ns]
+        for r in self._raised:
+            d = min(math.hypot(rx - x, ry - y) for rx, ry in r.places)
             if d <= p.repeat_radius_m or (
-                d <= p.same_fall_radius_m and abs(r_fall_ns - fall_stamp_ns) <= self._same_fall_ns
+                d <= p.same_fall_radius_m and abs(r.fall_stamp_ns - fall_stamp_ns) <= self._same_fall_ns
             ):
                 return True
         return False
+
+    def _body_lies(self, track: int, x: float, y: float) -> None:
+        """The track that raised a fall lies on the floor at (x, y): where its body is, for
+        the repeats (a track raises where it got low, often off the body it follows; the
+        body's own place is where the next track to find it will be)."""
+        for r in self._raised:
+            if r.track == track and min(math.hypot(rx - x, ry - y) for rx, ry in r.places) >= _PLACE_STEP_M:
+                r.places.append((x, y))
+                del r.places[1:-_MAX_PLACES]
 
     def on_floor(self, track: int) -> bool:
         """Whether the track is lying on the floor now (a long lie's business, not inactivity's)."""
@@ -276,6 +290,8 @@ class FallDetector:
     def rename(self, renames: Mapping[int, int]) -> None:
         """Tracks change ids ({old: new}, at once); their state goes with them."""
         self._tracks = rekey(self._tracks, renames)
+        for r in self._raised:
+            r.track = renames.get(r.track, r.track)
 
     def state_of(self, track: int) -> dict[str, Any] | None:
         """What a restarted server needs to go on with the track's fall and long lie (None
@@ -390,6 +406,21 @@ def crossing_time(t_s: np.ndarray, z_m: np.ndarray, i: int, j: int, level_m: flo
             f = 1.0 if z0 == z1 else (z0 - level_m) / (z0 - z1)
             return float(t[k - 1] + min(max(f, 0.0), 1.0) * (t[k] - t[k - 1]))
     return float(t[j])
+
+
+_PLACE_STEP_M = 0.2   # a raised fall's body noted again once its track lies this far from every place noted
+_MAX_PLACES = 16      # the place it was raised and the latest of the places its body lay since
+
+
+@dataclass
+class _Raised:
+    """A fall raised: when, by which track, when its body reached the floor, and the places of
+    its body (where it was raised, then where its track lay on the floor)."""
+
+    stamp_ns: int
+    track: int
+    fall_stamp_ns: int
+    places: list[tuple[float, float]]
 
 
 @dataclass
