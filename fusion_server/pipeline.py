@@ -390,9 +390,10 @@ class FusionPipeline:
         return holds
 
     def _heads_apart(self, masks: Mapping[str, np.ndarray]) -> list[tuple[int, int]]:
-        """Pairs of the last frame set's targets, standing or sitting within
-        :data:`HEADS_NEAR_M` of each other, whose two heads the cameras see apart in ``masks``."""
-        upright = [b for b in self._bodies if b.z_top_m >= HEAD_MIN_TOP_M]
+        """Pairs of the last frame set's targets, standing or sitting (their tops as high as the
+        tracker's ``two_min_top_m``) within :data:`HEADS_NEAR_M` of each other, whose two heads the
+        cameras see apart in ``masks``."""
+        upright = [b for b in self._bodies if b.z_top_m >= self.tracker.population.two_min_top_m]
         pairs = [(a, b) for a, b in itertools.combinations(upright, 2)
                  if (a.x - b.x) ** 2 + (a.y - b.y) ** 2 < HEADS_NEAR_M**2]
         seen = self.head_gaps.seen_apart((((a.x, a.y, a.z_top_m), (b.x, b.y, b.z_top_m)) for a, b in pairs), masks)
@@ -475,8 +476,6 @@ def build_tracker(rng: np.random.Generator) -> Tracker:
 
 HEADS_NEAR_M = 1.2
 """Two people this close on the floor (or closer) are tested for two heads on every frame set."""
-HEAD_MIN_TOP_M = 1.0
-"""Only people standing or sitting (tops at least this high) are tested for heads."""
 LEAVE_MARGIN_M = 0.2
 """Someone in the monitored volume is in it until their floor position lies this far beyond its side
 (a body's half-width: part of them is still inside); someone outside is in once their position is.
