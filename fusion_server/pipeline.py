@@ -158,7 +158,8 @@ class FusionPipeline:
         self.identity = identity if identity is not None else IdentityKeeper(self.cameras)
         self.postures = PostureBank(voxel_m=carver.grid.voxel_m, decisions=decisions, viterbi_lag_s=viterbi_lag_s,
                                     seats=[h for h in reasoner.hotspots if h.kind in SEAT_KINDS],
-                                    beds=[h for h in reasoner.hotspots if h.kind in BED_KINDS])
+                                    beds=[h for h in reasoner.hotspots if h.kind in BED_KINDS],
+                                    crowd_m=self.tracker.population.apart_m)
         self._labels: dict[int, int] = {}  # target id -> label, as of the last frame
         self._watched: tuple[int, list[TrackOutput], dict] | None = None   # (stamp, tracks, holds) of the last step
         self._restore: Snapshot | None = None   # a snapshot to go on from, taken at the next step

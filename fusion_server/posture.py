@@ -564,6 +564,7 @@ class PostureParams(Settings):
     height_evidence_cap: float = Field(3.0, gt=0.0, **_FINITE)
     relearn_time_s: float = Field(60.0, gt=0.0, **_FINITE)
     walked_height_weight: float = Field(0.03, ge=0.0, le=1.0, **_FINITE)
+    crowded_height_weight: float = Field(0.0, ge=0.0, le=1.0, **_FINITE)
     fir_taps: tuple[float, ...] | None = None
     switch_rate_hz: float = Field(0.5, gt=0.0, **_FINITE)
     evidence_weight: float = Field(0.5, gt=0.0, **_FINITE)
@@ -637,6 +638,13 @@ class PostureEstimator:
         body tell a height less surely than a walk (a child by a table whose
         legs the table hides reads as a seated adult a head taller, and
         within a second the belief would follow).
+    crowded_height_weight: a frame in which someone else stands close by
+        (``crowded=True`` given to :meth:`update`) counts this much of what it
+        would count for the height, walking or still. Two people that close
+        are carved as one body or share its columns: the top, the lap and the
+        widest layers may be the other's (a short person walking beside a tall
+        one would learn the tall one's height, then read seated the moment
+        they stand apart). Their posture is read all the same.
     fir_taps: FIR weights over the newest samples, newest last (default 5
         uniform taps: a third of a second at 15 fps).
     switch_rate_hz: prior rate of posture changes for the HMM transition
@@ -691,6 +699,7 @@ class PostureEstimator:
         self.height_evidence_cap = p.height_evidence_cap
         self.relearn_time_s = p.relearn_time_s
         self.walked_height_weight = p.walked_height_weight
+        self.crowded_height_weight = p.crowded_height_weight
         self.taps = taps
         self.switch_rate_hz = p.switch_rate_hz
         self.evidence_weight = p.evidence_weight
@@ -730,7 +739,7 @@ class PostureEstimator:
         return self._last
 
     def update(self, stamp_ns: int, height_profile: np.ndarray, speed_mps: float = 0.0,
-               on_seat: bool | None = None, on_bed: bool | None = None) -> PostureReading | None:
+               on_seat: bool | None = None, on_bed: bool | None = None, crowded: bool = False) -> PostureReading | None:
         """Feed one frame's (nz,) height profile; returns the current reading.
 
         speed_mps: the person's floor speed (the tracker's smoothed estimate);
@@ -739,6 +748,7 @@ class PostureEstimator:
         the site marks none (see ``seatless_log_odds``).
         on_bed: whether the person is on one of the site's beds or sofas; None
         where the site marks none (see ``bedless_log_odds``).
+        crowded: whether someone else stands close by (see ``crowded_height_weight``).
 
         An empty profile changes nothing and returns the previous reading
         (None if there is none yet). Frames must come in time order; a frame
@@ -787,11 +797,13 @@ class PostureEstimator:
         # height (a body that comes down in a fall moves as fast, but for under a second).
         if walking and stamp_ns - self._walking_since_ns >= WALK_TELLS_HEIGHT_NS:
             tells, telling = _UPRIGHT, 1.0
-            self._walked = True
+            self._walked = self._walked or not crowded
         else:
             tells, telling = _TELLS_HEIGHT, float(state_prob[_TELLS_HEIGHT].sum())
             if self._walked:
                 telling *= self.walked_height_weight
+        if crowded:
+            telling *= self.crowded_height_weight
         self._learn_height(np.log(np.maximum(like[:, tells].sum(axis=1), 1e-300)), telling, dt_s)
         prob = np.bincount(STATE_POSTURE, weights=state_prob, minlength=len(POSTURES))
         if self.decisions == "viterbi":
@@ -880,13 +892,21 @@ class PostureBank:
         is told so); without seats, nothing is said. 0.4 m covers a track's
         position error and a chair pulled out beyond a table's hot spot.
     beds: the site's beds and sofas (:data:`BED_KINDS`), the same way.
+    crowd_m: a track with another confirmed track (``confirmed``, true where
+        the track does not say) within this floor distance is crowded (its
+        estimator is told so: see ``crowded_height_weight``). 0.8 m is the
+        distance within which the tracker cannot tell two people's voxels
+        apart (:class:`~fusion_server.tracker.PopulationParams` ``apart_m``).
     """
 
     def __init__(self, *, seats: Sequence[Hotspot] = (), beds: Sequence[Hotspot] = (), seat_margin_m: float = 0.4,
-                 **estimator_kwargs) -> None:
+                 crowd_m: float = 0.8, **estimator_kwargs) -> None:
         PostureEstimator(**estimator_kwargs)  # validate once, up front
         if not (math.isfinite(seat_margin_m) and seat_margin_m >= 0):
             raise ValueError(f"seat_margin_m must be a finite number >= 0, got {seat_margin_m}")
+        if not (math.isfinite(crowd_m) and crowd_m >= 0):
+            raise ValueError(f"crowd_m must be a finite number >= 0, got {crowd_m}")
+        self.crowd_m = float(crowd_m)
         self._kwargs = dict(estimator_kwargs)
         self._estimators: dict[int, PostureEstimator] = {}
         self.seats = tuple(seats)
@@ -897,7 +917,9 @@ class PostureBank:
         """Readings of every reported track that has had a non-empty profile."""
         out: dict[int, PostureReading] = {}
         seen: set[int] = set()
-        for track in tracks:
+        tracks = list(tracks)
+        crowded = self.crowded(tracks)
+        for n, track in enumerate(tracks):
             tid = int(track.id)
             seen.add(tid)
             est = self._estimators.get(tid)
@@ -905,12 +927,21 @@ class PostureBank:
                 est = self._estimators[tid] = PostureEstimator(**self._kwargs)
             vx, vy = getattr(track, "vx", 0.0), getattr(track, "vy", 0.0)
             reading = est.update(stamp_ns, track.height_profile, speed_mps=float(np.hypot(vx, vy)),
-                                 on_seat=self.on_seat(track), on_bed=self.on_bed(track))
+                                 on_seat=self.on_seat(track), on_bed=self.on_bed(track), crowded=bool(crowded[n]))
             if reading is not None:
                 out[tid] = reading
         for tid in [t for t in self._estimators if t not in seen]:
             del self._estimators[tid]
         return out
+
+    def crowded(self, tracks: Sequence[object]) -> np.ndarray:
+        """(len(tracks),) bool: whether each track has another confirmed track within ``crowd_m``
+        on the floor (a track without a position is never crowded nor crowds another)."""
+        xy = np.array([[getattr(t, "x", np.nan), getattr(t, "y", np.nan)] for t in tracks], dtype=np.float64).reshape(-1, 2)
+        sure = np.array([bool(getattr(t, "confirmed", True)) for t in tracks], dtype=bool)
+        d = np.hypot(xy[:, None, 0] - xy[None, :, 0], xy[:, None, 1] - xy[None, :, 1])
+        np.fill_diagonal(d, np.inf)
+        return ((d <= self.crowd_m) & sure[None, :]).any(axis=1)
 
     def on_seat(self, track: object) -> bool | None:
         """Whether ``track`` (x, y) is at one of the seats; None without seats or a position."""

@@ -368,6 +368,39 @@ def test_a_short_posture_between_two_others_is_a_passage():
     assert _run_postures(SitStandDetector(), seq) == [("sit_down", 30, "standing", "sitting")]
 
 
+def _sit_after_walking_beside(top_before_m: float, seated_top_m: float, height_m: float) -> list[str]:
+    """Standing 3 s with the top ``top_before_m``, then 1 s at 1.55 m, then the reading turns sitting
+    (for 3 s, top ``seated_top_m``) with the learnt standing height ``height_m``: the kinds emitted."""
+    from fusion_server.posture import PostureReading
+
+    detector = SitStandDetector()
+    tops: list = []
+    out: list[Event] = []
+    since_ns = 40 * TICK_NS
+    for k in range(70):
+        sitting = k >= 40
+        top = seated_top_m if sitting else (top_before_m if k < 30 else 1.55)
+        tops.append((k * TICK_NS, top, None, None, top))
+        posture = "sitting" if sitting else "standing"
+        reading = PostureReading(posture=posture, since_ns=since_ns if sitting else 0, probabilities=(0.9, 0.1, 0.0, 0.0),
+                                 raw=None, smoothed=None, standing_height_m=height_m, stamp_ns=k * TICK_NS, state=posture)
+        snap = TrackSnapshot(1, k * TICK_NS, 1.0, 1.0, posture, reading, top, None, height_m, tuple(tops), k * TICK_NS, True)
+        detector.update(snap, emitter(k, out))
+    return [e.kind for e in out]
+
+
+def test_a_sit_down_leaves_the_top_below_the_standing_height():
+    # A 1.5 m person walked beside a 1.9 m one (their track's top was the other's head), then stood
+    # apart at their own 1.55 m top and read sitting: the top came down 0.35 m (over 0.07 x 1.5 m),
+    # but a seated top at the person's own standing height is no seat's: no sit_down. Their top
+    # coming down to 1.15 m is one (0.35 m under their height); a 1.9 m person whose top came down
+    # to 1.55 m sat too. The line is 0.07 x 1.5 = 0.105 m under the height: 1.42 m no, 1.38 m yes.
+    for top_before, seated, height, kinds in ((1.9, 1.55, 1.5, []), (1.9, 1.15, 1.5, ["sit_down"]),
+                                              (1.9, 1.55, 1.9, ["sit_down"]), (1.9, 1.42, 1.5, []),
+                                              (1.9, 1.38, 1.5, ["sit_down"])):
+        assert _sit_after_walking_beside(top_before, seated, height) == kinds, (top_before, seated, height)
+
+
 def test_fastest_move_hand_worked():
     from fusion_server.events.sit_stand import fastest_move_m
     ms = 1_000_000

@@ -447,6 +447,36 @@ def test_posture_bank_tells_each_track_whether_it_is_at_a_seat():
         PostureBank(voxel_m=VOXEL_M, seat_margin_m=-1.0)
 
 
+def test_a_short_person_walking_beside_a_tall_one_keeps_their_own_height():
+    """A 1.5 m person walks in alone (their top tells their height), then walks for 4 s 0.4 m from a
+    1.95 m person, carved as one body with them (their profile is the tall one's), then stands still
+    on their own. Beside the other their frames do not teach a height: standing alone they read
+    standing at 1.5 m. Taught by the shared body they would have learnt the tall one's height and
+    read their own standing body seated."""
+
+    class T:
+        def __init__(self, tid, x, profile, vx):
+            self.id, self.x, self.y, self.vx, self.vy = tid, x, 0.0, vx, 0.0
+            self.height_profile, self.confirmed = profile, True
+
+    short, tall = body_profile("standing", height_m=1.5), body_profile("standing", height_m=1.95)
+    readings = {}
+    for crowd_m in (0.8, 0.0):
+        bank = PostureBank(voxel_m=VOXEL_M, crowd_m=crowd_m)
+        frames = ([(T(1, 0.0, short, 0.9), T(2, 5.0, tall, 0.9))] * (3 * FPS)
+                  + [(T(1, 0.0, tall, 0.9), T(2, 0.4, tall, 0.9))] * (4 * FPS)
+                  + [(T(1, 0.0, short, 0.0), T(2, 3.0, tall, 0.0))] * (10 * FPS))
+        out = [bank.update(i * NS // FPS, pair)[1] for i, pair in enumerate(frames)]
+        readings[crowd_m] = out[7 * FPS:]
+    assert {r.posture for r in readings[0.8]} == {"standing"}
+    assert readings[0.8][-1].standing_height_m == pytest.approx(1.5, abs=0.05)
+    assert readings[0.0][-1].standing_height_m > 1.8 and "sitting" in {r.posture for r in readings[0.0]}
+    assert list(PostureBank(voxel_m=VOXEL_M).crowded([T(1, 0.0, short, 0.0), T(2, 0.8, short, 0.0),
+                                                      T(3, 2.0, short, 0.0)])) == [True, True, False]
+    with pytest.raises(ValueError, match="crowd_m"):
+        PostureBank(voxel_m=VOXEL_M, crowd_m=-1.0)
+
+
 @pytest.mark.parametrize("height_m, tol_m", [(1.3, 0.16), (1.55, 0.16), (1.7, 0.16), (1.9, 0.2)])
 def test_an_adult_first_seen_seated_is_neither_standing_nor_a_child(height_m, tol_m):
     rs = run_estimator([body_profile("sitting", height_m=height_m)] * (10 * FPS))
@@ -544,6 +574,7 @@ def test_posture_bank_creates_and_forgets_estimators():
         (dict(voxel_m=0.05, height_step_m=0), "height_step_m"),
         (dict(voxel_m=0.05, relearn_time_s=0), "relearn_time_s"),
         (dict(voxel_m=0.05, walked_height_weight=1.5), "walked_height_weight"),
+        (dict(voxel_m=0.05, crowded_height_weight=-0.1), "crowded_height_weight"),
         (dict(voxel_m=0.05, height_limits_m=(2.0, 1.0)), "height_limits_m"),
     ],
 )

@@ -8,7 +8,11 @@ standing height to sit, up as much to stand (an adult's seated top is 0.2-0.3
 of it lower, a child's on an adult's chair about 0.12); a posture that flips
 while the body keeps its height is the reading changing its mind, not the
 person, and the posture held before stands (postures given as bare names
-carry no height and skip this test). Between sitting and standing the top
+carry no height and skip this test). A seated top is also below the
+person's standing height by as much (``standing_height_m`` of the reading):
+a body that came down to the person's own height and stays there did not sit,
+its top before was someone else's (a short person walking beside a tall one,
+carved as one body, who stops apart from them). Between sitting and standing the top
 moves at most ``max_change_frac`` [0.65] of the standing height from where
 it was while the posture before was held (sitting on the floor is about half
 of it; someone who gets up from the floor through a seated shape stands up
@@ -140,6 +144,9 @@ class SitStandDetector:
             need = self.params.min_change_frac * reading.standing_height_m
             if rise is None or (rise > -need if sit_down else rise < need):
                 return  # the body kept its height: not a change of posture
+            seated_top = median([z for t, z in tops if t >= reading.since_ns and math.isfinite(z)])
+            if sit_down and seated_top > reading.standing_height_m - need:
+                return  # a body as tall as the person stands sits nowhere: the top before was not theirs
             # the jump is judged against the top held while the posture before was (a person who
             # got up from the floor through a seated shape stood up from sitting, not from lying)
             held = height_change_m([s for s in tops if s[0] >= origin_since_ns],
