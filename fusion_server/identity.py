@@ -108,13 +108,14 @@ class IdentityParams(Settings):
     same_person: two lost people whose models lie closer than this are taken
         for one person lost twice (a track that broke up more than once): the
         runner-up does not make the best match ambiguous [0.2].
-    drift_level, drift_evidence: a standing body's views that lie further than
-        ``drift_level`` from its person's model add the excess up; once the sum
-        reaches ``drift_evidence`` the body no longer shows that person (the
-        tracker let it slide onto someone else): the person counts as lost and
-        the body is identified afresh [0.3, 1.0; a person's own views lie
-        0.08-0.33 from their model nine times in ten, another's 0.4-0.6]. A
-        mature model learns only views within ``agree`` of it.
+
+    A mature model learns only views within ``agree`` of it. A body whose views
+    lie far from its person's model keeps its label all the same: away from
+    everyone, a person's own views drift from their model as they cross the room
+    (other cameras, other light, the door's views) as far as another person's
+    lie, and opening the identity again then gave the same person a new label
+    more often than it caught a track that slid onto someone else (those the
+    swap test catches while the two are close).
     """
 
     rate_hz: float = declared(IdentitySettings, "rate_hz")   # the site file's [identity] declares it
@@ -141,8 +142,6 @@ class IdentityParams(Settings):
     decide_s: float = Field(0.5, **NON_NEGATIVE)
     decide_views: float = Field(3.0, **NON_NEGATIVE)
     same_person: float = Field(0.2, **NON_NEGATIVE)
-    drift_level: float = Field(0.3, **NON_NEGATIVE)
-    drift_evidence: float = Field(1.0, **NON_NEGATIVE)
 
 
 @dataclass
@@ -165,7 +164,6 @@ class _Body:
     born_ns: int = 0
     confirmed_ns: int | None = None  # when the tracker first confirmed it
     fresh_until_ns: int = 0  # a new label that may yet give way to a neighbour's or a lost person's
-    drift: float = 0.0  # evidence that the body no longer shows its person
     tops: deque = field(default_factory=lambda: deque(maxlen=15))  # standing tops of the last second or so (metres)
 
 
@@ -286,11 +284,6 @@ class IdentityKeeper:
             if person.model.mature(p.min_model_frames):
                 d = person.model.distance(view)
                 if d is None:
-                    continue
-                if not body.close_to:  # beside someone, a swap is the likelier story (see _check_swaps)
-                    body.drift = max(0.0, body.drift + d - p.drift_level)
-                if body.drift >= p.drift_evidence and person.name is None:
-                    self._unlabel(tid, body, stamp_ns)
                     continue
                 if d > p.agree:
                     continue  # a mature model learns only views that agree with it
@@ -481,19 +474,6 @@ class IdentityKeeper:
         if height is None or known is None:
             return 0.0
         return self.p.height_weight * max(0.0, abs(height - known) - self.p.height_tolerance_m)
-
-    def _unlabel(self, tid: int, body: _Body, stamp_ns: int) -> None:
-        """The body no longer shows its person (the tracker let it slide onto someone
-        else): the person is lost, the body waits for its identity afresh."""
-        person = self._people.pop(body.label)
-        log.info("body %d no longer looks like person %d: identity open again", tid, body.label)
-        self._lost[body.label] = _Lost(person=person, xy=(math.nan, math.nan), lost_ns=stamp_ns, partner=None)
-        body.label = -tid
-        body.confirmed_ns = stamp_ns
-        body.views.clear()
-        body.tops.clear()
-        body.drift = 0.0
-        body.fresh_until_ns = 0
 
     def _ask_partners(self, est) -> None:
         """A new body beside a body a lost person merged into: ask for the neighbour's views

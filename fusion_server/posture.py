@@ -88,8 +88,10 @@ sofa; ``standing_raised``, a standing person whose legs furniture hides;
 ``standing_spread``, a standing person whose hull spreads at the floor (the
 feet's shadows carved with them, a stride seen by level cameras, a
 neighbour's feet): full height, but the mass centre and the widest layers
-low and the floor layer nearly the widest, the shape the model otherwise
-knows only as kneeling. A lying state rarely enters it (:data:`_NOT_FROM_LYING`)."""
+low and the floor layer nearly the widest (or the widest of all: a standing
+person beside furniture that hides their feet from some cameras carves as a
+cone widening to the floor), the shape the model otherwise knows only as
+kneeling. A lying state rarely enters it (:data:`_NOT_FROM_LYING`)."""
 
 STATE_POSTURE: tuple[int, ...] = tuple(
     POSTURES.index(p)
@@ -338,7 +340,7 @@ def default_model() -> PostureModel:
         [0.04, 0.15, 0.05, 0.08, 0.25, 0.05, 0.08, 0.05],
         [0.05, 0.06, 0.12, 0.12, 0.35, 0.06, 0.08, 0.05],
         [0.035, 0.05, 0.05, 0.06, 0.25, 0.05, 0.08, 0.06],
-        [0.035, 0.05, 0.06, 0.06, 0.25, 0.10, 0.08, 0.05],
+        [0.035, 0.05, 0.06, 0.06, 0.25, 0.20, 0.08, 0.05],  # widest anywhere from the floor to the hips
     ]
     # Top height counts least (hats, masks, raised arms move it).
     weight = [1.0, 0.5, 0.5, 0.5, 0.8, 1.0, 1.0, 1.0]
