@@ -125,6 +125,25 @@ def test_a_crossing_the_tracker_swapped_is_put_right():
     assert run.keeper.swaps == 1
 
 
+def test_a_person_alone_keeps_their_label_where_the_room_changes_their_colours():
+    """Someone walks alone across the room; for 4 s, under a warm lamp, their red shirt and
+    black trousers look orange and brown to every camera (their views lie as far from their model
+    as another person's would). Nobody else is there for the body to have slid onto: their label
+    stays, and one label is all they ever had."""
+    run = Run()
+    lamp = ((150, 170, 210), (40, 140, 230), (40, 80, 120))
+    seen, far = set(), []
+    for f in range(180):
+        x, _ = _walk((0.5, 0), (3.5, 0), f, 180)
+        colours = lamp if 60 <= f < 120 else RED_BLACK
+        seen.add(run.step([Person(x, 2.0, 1.75, colours)], {1: 0})[1])
+        view = run.keeper._bodies[1].view
+        if 90 <= f < 120 and view is not None:
+            far.append(run.keeper.model_of(run.labels[1]).distance(view))
+    assert len(seen) == 1
+    assert min(far) > 0.4  # under the lamp, as far from the model as another person's views lie (0.4-0.6)
+
+
 def test_a_crossing_in_a_group_of_three_keeps_every_identity():
     run = Run()
     targets = {1: 0, 2: 1, 3: 2}
