@@ -162,7 +162,10 @@ class PopulationParams(Settings):
         position): two people who come together make one hump on the floor
         map, and two filters free to climb it both settle on its top and
         become one target. A target that slid onto someone else's body has
-        no head of its own there: it may merge.
+        no head of its own there: it may merge. A target's top is read only from
+        the floor cells nearer to it than to the targets known to be other people
+        and to those whose heads the cameras ever saw apart from its own while both
+        live (never far apart, still someone else: their shoulders are not its top).
     two_min_top_m: both targets of such a pair stand or sit: their tops at
         least this high [1.0 m] when seen apart. A body
         lying on the floor is up to 1.9 m long and can hold two targets
@@ -295,6 +298,7 @@ class Tracker:
         self._close_frames: dict[tuple[int, int], int] = {}
         self._two_people: dict[int, set[int]] = {}  # target id -> targets known to be other people
         self._heads_apart_ns: dict[frozenset, int] = {}  # pair of target ids -> when their heads were last seen apart
+        self._heads_seen: dict[int, set[int]] = {}  # target id -> targets whose head the cameras saw apart from its own
         self._last_stamp_ns: int | None = None
 
     @property
@@ -329,6 +333,9 @@ class Tracker:
         tau_s = self.motion.velocity_tau_s
         for pair in heads_apart:
             self._heads_apart_ns[frozenset(pair)] = stamp_ns
+            a, b = pair
+            self._heads_seen.setdefault(a, set()).add(b)
+            self._heads_seen.setdefault(b, set()).add(a)
         memory_ns = int(round(self.population.two_memory_s * 1e9))
         self._heads_apart_ns = {k: v for k, v in self._heads_apart_ns.items() if stamp_ns - v <= memory_ns}
         last = {t.id: (t.x, t.y) for t in self._targets}
@@ -360,7 +367,7 @@ class Tracker:
             profile, volume_m3 = parts.get(n, (None, None)) if blob is not None else (None, None)
             if blob is not None and profile is None:
                 profile, volume_m3 = blob.height_profile, blob.volume_m3
-            apart = self._two_people.get(t.id, ())
+            apart = self._two_people.get(t.id, set()) | self._heads_seen.get(t.id, set())
             others = np.array([[o.x, o.y] for o in self._targets if o.id in apart]).reshape(-1, 2)
             t.observe(blob, profile, volume_m3, result, self._new_filter, others)
             if blob is not None and n not in parts and blob.z_top_m <= self.association.low_top_m:
@@ -455,6 +462,8 @@ class Tracker:
                 known.setdefault(a.id, set()).add(b.id)
                 known.setdefault(b.id, set()).add(a.id)
         self._two_people = {tid: others for tid, others in known.items() if others}
+        seen = {tid: others & live for tid, others in self._heads_seen.items() if tid in live}
+        self._heads_seen = {tid: others for tid, others in seen.items() if others}
 
     def _merge_duplicates(self) -> None:
         targets = self._targets

@@ -465,6 +465,26 @@ def test_two_people_seen_apart_stay_two_targets_while_they_hug(apart_m, heads, k
         assert np.hypot(est[2].x - b[0], est[2].y - b[1]) < 0.15, n
 
 
+def test_a_neighbour_whose_head_was_seen_apart_keeps_out_of_the_targets_top():
+    """A (1.5 m, at x 2.0 m) and B (1.9 m) come in side by side 0.7 m apart (never the 0.8 m that
+    makes two confirmed targets two people) and the cameras see their heads apart on frames 5-14
+    only; B then steps to 0.4 m beside A. B's shoulders (1.6 m) reach into A's box. Seen apart once,
+    B is someone else for as long as both live: A's top stays their own 1.5 m. Never seen apart, A
+    reads B's shoulders as their top."""
+    def scene(n):
+        return frame(n, person(2.0, 2.0, 1.5), person(max(2.4, 2.7 - 0.02 * max(n - 15, 0)), 2.0, 1.9))
+
+    scenes = [scene(n) for n in range(40)]
+    for heads in (True, False):
+        out = run(Tracker(rng=np.random.default_rng(0)), scenes, lambda n: [(1, 2)] if heads and 5 <= n < 15 else ())
+        tops = [by_id(o)[2].z_top_m for o in out[30:40]]
+        assert all(abs(by_id(o)[2].x - 2.0) < 0.06 and by_id(o)[1].z_top_m == pytest.approx(1.9) for o in out[30:40])
+        if heads:
+            assert tops == pytest.approx([1.5] * 10)
+        else:
+            assert max(tops) == pytest.approx(1.6)
+
+
 def test_a_target_left_on_a_person_whose_partner_vanished_merges_into_them():
     """Two people confirmed 2 m apart; one comes to stand 0.35 m beside the other (one blob) and
     vanishes there on frame 60 (walked out behind them, unseen). No camera sees two heads on the blob
