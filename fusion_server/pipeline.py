@@ -44,6 +44,9 @@ log = logging.getLogger("voxelwatch.fusion")
 
 
 RESTORE_WINDOW_S = 10.0
+HELD_REACH_M = 1.0
+"""A held person's hold keeps what their body covered since it was first held, up to this far from
+their floor position (a body lying on the floor reaches about 1 m from its pelvis either way)."""
 """After a restart, how long a restored person waits to be found again where they were (seconds)."""
 NEW_TARGET_MIN_VOLUME_M3 = 0.05
 """Smallest blob that starts a new track. A person carves 0.1-0.5 m^3 standing (a
@@ -147,6 +150,7 @@ class FusionPipeline:
         self.reasoner = reasoner
         self.tracker = build_tracker(rng)
         self.hold_radius_m = float(hold_radius_m)
+        self._held_extent: dict[int, tuple[float, float, float, float, float]] = {}  # held person -> floor box and top so far
         self.min_cameras = int(min_cameras if min_cameras is not None else carver.min_cameras)
         self.camera_ids: tuple[str, ...] = carver.camera_ids
         self.explainer = BlobExplainer(self.cameras)
@@ -356,12 +360,19 @@ class FusionPipeline:
         around their floor position: a seated person's lower legs and feet,
         a person lying down. Left out of the hold, those parts would be
         learned into the background while the rest of the body is held.
+        While a person stays held, what their blob covered since stays in
+        their hold, up to :data:`HELD_REACH_M` from their place: a body
+        still on the floor does not shrink, and a part that fades from one
+        camera's mask for a while (its blob shrinking with it) must not be
+        learned into that camera's background and lost for good.
         """
         holds: dict[str, list[tuple[int, int, int, int]]] = {cam: [] for cam in self.cameras}
         if not still:
+            self._held_extent = {}
             return holds
         r = self.hold_radius_m
         corners = []
+        extents = {}
         for est in still:
             x0, x1, y0, y1 = est.x - r, est.x + r, est.y - r, est.y + r
             top = float(est.z_top_m)
@@ -369,9 +380,17 @@ class FusionPipeline:
                 (bx0, by0, _), (bx1, by1, bz1) = est.blob.bbox_m
                 x0, x1, y0, y1 = min(x0, bx0), max(x1, bx1), min(y0, by0), max(y1, by1)
                 top = max(top, float(bz1))
+            before = self._held_extent.get(est.id)
+            if before is not None:  # what the body covered since it settled stays held, near it
+                reach = HELD_REACH_M
+                x0, x1 = min(x0, max(before[0], est.x - reach)), max(x1, min(before[1], est.x + reach))
+                y0, y1 = min(y0, max(before[2], est.y - reach)), max(y1, min(before[3], est.y + reach))
+                top = max(top, before[4])
+            extents[est.id] = (x0, x1, y0, y1, top)
             top = max(top, 0.5) + 0.1
             for x, y, z in itertools.product((x0, x1), (y0, y1), (0.0, top)):
                 corners.append((x, y, z))
+        self._held_extent = extents
         pts = np.asarray(corners, dtype=np.float64).reshape(len(still), 8, 3)
         for cam_id, cam in self.cameras.items():
             uv, valid = cam.project(pts.reshape(-1, 3))

@@ -342,3 +342,35 @@ def replay_library(name: str, library_house) -> Scene:
 def test_library_scenario_dwells_and_visits_match_the_truth(name, library_house):
     scene = replay_library(name, library_house)
     check_events_match_truth(scene, LIBRARY[name], only=LIBRARY[name] + ALARM_KINDS)
+
+
+def _lying(x0_m: float, x1_m: float, still: bool = True):
+    """A confirmed target lying at (3.0, 2.5) on the floor whose blob spans x0..x1 m (0.4 m wide, 0.3 m high)."""
+    from fusion_server.detection import Blob
+    from fusion_server.tracker import TrackEstimate
+    bbox = np.array([[x0_m, 2.3, 0.0], [x1_m, 2.7, 0.3]])
+    blob = Blob(x=(x0_m + x1_m) / 2, y=2.5, z_top_m=0.3, volume_voxels=100, ijk=np.zeros((0, 3), np.int32),
+                footprint=np.zeros((0, 2), np.int32), height_profile=np.zeros(4, np.int32), bbox_m=bbox, voxel_m=0.05)
+    return TrackEstimate(id=1, x=3.0, y=2.5, z_top_m=0.3, volume_m3=0.05, reliability=1.0, confirmed=True, age_frames=50,
+                         vx=0.0, vy=0.0, height_profile=np.zeros(4, np.int32), blob=blob, still=still, alpha_m=0.3,
+                         stamp_ns=0)
+
+
+def test_a_held_body_keeps_its_hold_where_its_carve_shrinks(house):
+    """Someone lies still on the floor, their blob 1.8 m long (x 2.1-3.9 m); then only the end by their
+    head is carved (x 2.6-3.2 m: the rest faded from the masks). Their hold keeps covering the whole
+    body they had while they stay held (every camera's box the same as on the first frame), for up to
+    1 m from their place; held afresh, with no earlier body, it covers only the piece and the square of
+    ``hold_radius_m`` around them."""
+    cameras, make_site, root = house
+    pipeline = FusionPipeline.from_site(make_site(), cameras=cameras, cache_dir=root / "cache", seed=SEED)
+    whole = pipeline.hold_regions([_lying(2.1, 3.9)])
+    assert pipeline.hold_regions([_lying(2.6, 3.2)]) == whole
+    assert pipeline.hold_regions([_lying(2.6, 3.2)]) == whole
+    pipeline.hold_regions([])  # nobody held: what they covered is forgotten
+    piece = pipeline.hold_regions([_lying(2.6, 3.2)])
+    area = {cam: sum((b[2] - b[0]) * (b[3] - b[1]) for b in boxes) for cam, boxes in piece.items()}
+    assert all(area[cam] < sum((b[2] - b[0]) * (b[3] - b[1]) for b in whole[cam]) for cam in whole if whole[cam])
+    far = pipeline.hold_regions([_lying(1.0, 5.0)])  # a blob reaching 2 m either way is held as it is carved now
+    pipeline.hold_regions([_lying(2.6, 3.2)])
+    assert pipeline.hold_regions([_lying(2.6, 3.2)]) != far
