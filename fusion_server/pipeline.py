@@ -44,10 +44,10 @@ log = logging.getLogger("voxelwatch.fusion")
 
 
 RESTORE_WINDOW_S = 10.0
+"""After a restart, how long a restored person waits to be found again where they were (seconds)."""
 HELD_REACH_M = 1.0
 """A held person's hold keeps what their body covered since it was first held, up to this far from
 their floor position (a body lying on the floor reaches about 1 m from its pelvis either way)."""
-"""After a restart, how long a restored person waits to be found again where they were (seconds)."""
 NEW_TARGET_MIN_VOLUME_M3 = 0.05
 """Smallest blob that starts a new track. A person carves 0.1-0.5 m^3 standing (a
 body lying half hidden by furniture about 0.05-0.1 m^3, but that person was tracked
