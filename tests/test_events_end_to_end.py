@@ -60,9 +60,11 @@ from evaluation import ALARM_KINDS, Event, evaluate, read_events, read_tracks, s
 from common.site import Site, site_from_dict
 from synth import ScenarioSpec, SyntheticCamera, derive_truth, get_scenario
 from synth.behaviour import Enter, Face, Fall, PersonScript, Sit, Stand, Wait, Walk
+from fusion_server.detection import Blob
 from fusion_server.outputs import RunOutputs
 from fusion_server.pipeline import FusionPipeline
 from fusion_server.replay import replay
+from fusion_server.tracker import TrackEstimate
 
 SEED = 0
 HALF = 0.5
@@ -344,15 +346,13 @@ def test_library_scenario_dwells_and_visits_match_the_truth(name, library_house)
     check_events_match_truth(scene, LIBRARY[name], only=LIBRARY[name] + ALARM_KINDS)
 
 
-def _lying(x0_m: float, x1_m: float, still: bool = True):
-    """A confirmed target lying at (3.0, 2.5) on the floor whose blob spans x0..x1 m (0.4 m wide, 0.3 m high)."""
-    from fusion_server.detection import Blob
-    from fusion_server.tracker import TrackEstimate
+def _lying(x0_m: float, x1_m: float) -> TrackEstimate:
+    """A confirmed target lying still at (3.0, 2.5) on the floor whose blob spans x0..x1 m (0.4 m wide, 0.3 m high)."""
     bbox = np.array([[x0_m, 2.3, 0.0], [x1_m, 2.7, 0.3]])
     blob = Blob(x=(x0_m + x1_m) / 2, y=2.5, z_top_m=0.3, volume_voxels=100, ijk=np.zeros((0, 3), np.int32),
                 footprint=np.zeros((0, 2), np.int32), height_profile=np.zeros(4, np.int32), bbox_m=bbox, voxel_m=0.05)
     return TrackEstimate(id=1, x=3.0, y=2.5, z_top_m=0.3, volume_m3=0.05, reliability=1.0, confirmed=True, age_frames=50,
-                         vx=0.0, vy=0.0, height_profile=np.zeros(4, np.int32), blob=blob, still=still, alpha_m=0.3,
+                         vx=0.0, vy=0.0, height_profile=np.zeros(4, np.int32), blob=blob, still=True, alpha_m=0.3,
                          stamp_ns=0)
 
 
