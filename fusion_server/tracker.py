@@ -333,9 +333,7 @@ class Tracker:
         tau_s = self.motion.velocity_tau_s
         for pair in heads_apart:
             self._heads_apart_ns[frozenset(pair)] = stamp_ns
-            a, b = pair
-            self._heads_seen.setdefault(a, set()).add(b)
-            self._heads_seen.setdefault(b, set()).add(a)
+            _add_pair(self._heads_seen, *pair)
         memory_ns = int(round(self.population.two_memory_s * 1e9))
         self._heads_apart_ns = {k: v for k, v in self._heads_apart_ns.items() if stamp_ns - v <= memory_ns}
         last = {t.id: (t.x, t.y) for t in self._targets}
@@ -454,16 +452,14 @@ class Tracker:
     def _note_two_people(self, live: set[int]) -> None:
         """Keep, per live target, the live targets known to be other people: both confirmed
         while at least ``apart_m`` apart (:class:`PopulationParams`)."""
-        known = {tid: others & live for tid, others in self._two_people.items() if tid in live}
+        known = _live_pairs(self._two_people, live)
         confirm = self.confirmation.confirm_reliability
         sure = [t for t in self._targets if t.reliability >= confirm and t.z_top_m >= self.population.two_min_top_m]
         for a, b in itertools.combinations(sure, 2):
             if math.hypot(a.x - b.x, a.y - b.y) >= self.population.apart_m:
-                known.setdefault(a.id, set()).add(b.id)
-                known.setdefault(b.id, set()).add(a.id)
-        self._two_people = {tid: others for tid, others in known.items() if others}
-        seen = {tid: others & live for tid, others in self._heads_seen.items() if tid in live}
-        self._heads_seen = {tid: others for tid, others in seen.items() if others}
+                _add_pair(known, a.id, b.id)
+        self._two_people = known
+        self._heads_seen = _live_pairs(self._heads_seen, live)
 
     def _merge_duplicates(self) -> None:
         targets = self._targets
@@ -676,3 +672,15 @@ def _keep_window(samples: deque, sample: tuple, window_ns: int) -> None:
     samples.append(sample)
     while len(samples) > 1 and samples[1][0] <= sample[0] - window_ns:
         samples.popleft()
+
+
+def _add_pair(pairs: dict[int, set[int]], a: int, b: int) -> None:
+    """Note targets ``a`` and ``b`` as two people in ``pairs`` (target id -> the others), both ways."""
+    pairs.setdefault(a, set()).add(b)
+    pairs.setdefault(b, set()).add(a)
+
+
+def _live_pairs(pairs: dict[int, set[int]], live: set[int]) -> dict[int, set[int]]:
+    """``pairs`` (target id -> the others) kept to the ``live`` targets, those left with no other dropped."""
+    kept = {tid: others & live for tid, others in pairs.items() if tid in live}
+    return {tid: others for tid, others in kept.items() if others}
