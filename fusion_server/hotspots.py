@@ -19,6 +19,7 @@ Pure math: no clock, no I/O; time is ``stamp_ns``.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Iterable, Sequence
 
@@ -63,13 +64,20 @@ class Hotspot:
 
     def distance_m(self, x: float, y: float) -> float:
         """Floor distance from (x, y) to the polygon, metres: 0 inside it."""
+        px, py = self.nearest_m(x, y)
+        return float(math.hypot(px - x, py - y))
+
+    def nearest_m(self, x: float, y: float) -> tuple[float, float]:
+        """The polygon's floor point nearest (x, y): (x, y) itself inside it, else on its edge."""
         if bool(self.contains(np.array([x, y]))[0]):
-            return 0.0
+            return float(x), float(y)
         a = self.polygon_m
         b = np.roll(a, -1, axis=0)
         ab = b - a
         t = np.clip(((x - a[:, 0]) * ab[:, 0] + (y - a[:, 1]) * ab[:, 1]) / (ab * ab).sum(axis=1), 0.0, 1.0)
-        return float(np.hypot(a[:, 0] + t * ab[:, 0] - x, a[:, 1] + t * ab[:, 1] - y).min())
+        px, py = a[:, 0] + t * ab[:, 0], a[:, 1] + t * ab[:, 1]
+        k = int(np.argmin(np.hypot(px - x, py - y)))
+        return float(px[k]), float(py[k])
 
     @property
     def centroid_m(self) -> np.ndarray:

@@ -131,6 +131,14 @@ _ON_SEAT = np.array([s in ("sitting", "sitting_raised") for s in STATES])
 _ON_BED = np.array([s == "lying_raised" for s in STATES])
 """(len(STATES),) bool: the state of a body lying above the floor (on a bed or a sofa)."""
 
+BACK_BAND_M = (0.5, 0.8)
+"""A solid spanning these heights is a back: a seated body's hips and trunk (a seat is 0.4-0.5 m
+high) would have to pass through it. A sofa's or a chair's back and a wall are; a chair's seat
+(under 0.5 m) and a table top (a slab above the knees) are not."""
+BACK_TOUCH_M = 0.02
+"""A point this close to a back's polygon is on it."""
+
+
 DECISIONS: tuple[str, ...] = ("frame", "viterbi")
 """How :class:`PostureEstimator` decides the reported posture: ``frame``, the
 forward filter's most probable posture held for a minimum duration, decided
@@ -894,6 +902,10 @@ class PostureBank:
         is told so); without seats, nothing is said. 0.4 m covers a track's
         position error and a chair pulled out beyond a table's hot spot.
     beds: the site's beds and sofas (:data:`BED_KINDS`), the same way.
+    backs: solids a seated body cannot sit beyond (floor polygons: a sofa's or a chair's back, a
+        wall; :data:`BACK_BAND_M`). A track outside a seat or bed whose nearest point of it lies on
+        a back is behind that back, not on the seat, however near: someone bending behind a sofa
+        stands within the margin of its seat, with the backrest between them and it.
     crowd_m: a track with another confirmed track (``confirmed``, true where
         the track does not say) within this floor distance is crowded (its
         estimator is told so: see ``crowded_height_weight``). 0.8 m is the
@@ -902,7 +914,7 @@ class PostureBank:
     """
 
     def __init__(self, *, seats: Sequence[Hotspot] = (), beds: Sequence[Hotspot] = (), seat_margin_m: float = 0.4,
-                 crowd_m: float = 0.8, **estimator_kwargs) -> None:
+                 crowd_m: float = 0.8, backs: Sequence[Hotspot] = (), **estimator_kwargs) -> None:
         PostureEstimator(**estimator_kwargs)  # validate once, up front
         if not (math.isfinite(seat_margin_m) and seat_margin_m >= 0):
             raise ValueError(f"seat_margin_m must be a finite number >= 0, got {seat_margin_m}")
@@ -914,6 +926,7 @@ class PostureBank:
         self.seats = tuple(seats)
         self.beds = tuple(beds)
         self.seat_margin_m = float(seat_margin_m)
+        self.backs = tuple(backs)
 
     def update(self, stamp_ns: int, tracks: Iterable[ProfiledTrack]) -> dict[int, PostureReading]:
         """Readings of every reported track that has had a non-empty profile."""
@@ -959,7 +972,17 @@ class PostureBank:
         x, y = getattr(track, "x", None), getattr(track, "y", None)
         if not places or x is None or y is None:
             return None
-        return any(h.distance_m(float(x), float(y)) <= self.seat_margin_m for h in places)
+        return any(self._reaches(h, float(x), float(y)) for h in places)
+
+    def _reaches(self, place: Hotspot, x: float, y: float) -> bool:
+        """Whether (x, y) is within ``seat_margin_m`` of ``place`` with no back between: inside it, or
+        outside with its nearest point of ``place`` on none of the backs that (x, y) is not on."""
+        px, py = place.nearest_m(x, y)
+        if math.hypot(px - x, py - y) > self.seat_margin_m:
+            return False
+        if (px, py) == (x, y):
+            return True
+        return not any(b.distance_m(px, py) <= BACK_TOUCH_M and b.distance_m(x, y) > BACK_TOUCH_M for b in self.backs)
 
     @property
     def settings(self) -> dict:

@@ -447,6 +447,28 @@ def test_posture_bank_tells_each_track_whether_it_is_at_a_seat():
         PostureBank(voxel_m=VOXEL_M, seat_margin_m=-1.0)
 
 
+def test_a_person_behind_a_backrest_is_not_at_its_seat_however_near():
+    from fusion_server.hotspots import Hotspot
+
+    class T:
+        def __init__(self, tid, x, y):
+            self.id, self.x, self.y, self.vx, self.vy = tid, x, y, 0.0, 0.0
+            self.height_profile = body_profile("bending", inflate_m=0.1)
+
+    # a sofa 2 x 1 m whose back is its strip 0.8-1.0 m in y; in front of it (y < 0) one sits down
+    sofa = Hotspot("sofa", np.array([[0.0, 0.0], [2.0, 0.0], [2.0, 1.0], [0.0, 1.0]]), kind="sofa")
+    back = Hotspot("sofa back", np.array([[0.0, 0.8], [2.0, 0.8], [2.0, 1.0], [0.0, 1.0]]), kind="back")
+    bank = PostureBank(voxel_m=VOXEL_M, seats=[sofa], beds=[sofa], backs=[back], seat_margin_m=0.4)
+    # 0.3 m in front, on the seat, on the back itself, 0.3 m behind the back, beside its end (the
+    # nearest point is the seat's corner, not on the back), 0.5 m behind (beyond the margin anyway)
+    where = [(1.0, -0.3), (1.0, 0.5), (1.0, 0.9), (1.0, 1.3), (2.3, 0.5), (1.0, 1.5)]
+    assert [bank.on_seat(T(1, x, y)) for x, y in where] == [True, True, True, False, True, False]
+    assert [bank.on_bed(T(1, x, y)) for x, y in where] == [True, True, True, False, True, False]
+    # without the back the same places within the margin are at the seat
+    plain = PostureBank(voxel_m=VOXEL_M, seats=[sofa], seat_margin_m=0.4)
+    assert [plain.on_seat(T(1, x, y)) for x, y in where] == [True, True, True, True, True, False]
+
+
 def test_a_short_person_walking_beside_a_tall_one_keeps_their_own_height():
     """A 1.5 m person walks in alone (their top tells their height), then walks for 4 s 0.4 m from a
     1.95 m person, carved as one body with them (their profile is the tall one's), then stands still

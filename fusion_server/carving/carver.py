@@ -130,6 +130,7 @@ class Carver:
         self.camera_centres_m: dict[str, np.ndarray] = {cid: np.asarray(cam.center, dtype=np.float64)
                                                         for cid, cam in cameras.items()}
         self.camera_ids: tuple[str, ...] = tuple(cameras)
+        self.occluders: tuple[Occluder, ...] = tuple(occluders)
         self.cache_reports: dict[str, CacheReport] = {}
         self.lut_sizes: dict[str, tuple[int, int]] = {}
 
