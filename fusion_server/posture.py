@@ -129,6 +129,7 @@ _ON_SEAT = np.array([s in ("sitting", "sitting_raised") for s in STATES])
 """(len(STATES),) bool: the states of a seated body (on a chair, a sofa, a bed's edge)."""
 
 _ON_BED = np.array([s == "lying_raised" for s in STATES])
+_BENT = np.array([s in ("bending", "kneeling") for s in STATES])
 """(len(STATES),) bool: the state of a body lying above the floor (on a bed or a sofa)."""
 
 BACK_BAND_M = (0.5, 0.8)
@@ -583,6 +584,7 @@ class PostureParams(Settings):
     walking_log_odds: float = Field(4.0, ge=0.0, **_FINITE)
     seatless_log_odds: float = Field(3.0, ge=0.0, **_FINITE)
     bedless_log_odds: float = Field(8.0, ge=0.0, **_FINITE)
+    seated_bend_log_odds: float = Field(0.5, ge=0.0, **_FINITE)
     decisions: Literal["frame", "viterbi"] = declared(EventSettings, "decisions")
     viterbi_lag_s: float = declared(EventSettings, "viterbi_lag_s")
 
@@ -686,6 +688,12 @@ class PostureEstimator:
         floor loses this much: a seated person whose lower body a table
         hides carves as a slab floating at table height, the shape of
         someone lying on a bed, and must not read lying at the table.
+    seated_bend_log_odds: at a seat (``on_seat=True``) and not walking, the
+        bent-over states (bending, kneeling) lose this much: someone still
+        at a table or on a sofa is far more often seated than bent over,
+        and a seated body whose lap the table hides carves half-way between
+        the two shapes (a short person most of all, their head nearer the
+        table). A body clearly bent over still reads bending there.
     model: the :class:`PostureModel` (default :func:`default_model`).
     decisions: one of :data:`DECISIONS`. ``frame`` reports the forward
         filter's posture after ``min_duration_s``; ``viterbi`` reports the
@@ -717,6 +725,7 @@ class PostureEstimator:
         self.walking_speed_mps = p.walking_speed_mps
         self.walking_log_odds = p.walking_log_odds
         self.seatless_log_odds = p.seatless_log_odds
+        self.seated_bend_log_odds = p.seated_bend_log_odds
         self.bedless_log_odds = p.bedless_log_odds
         self.model = model or default_model()
         self.height_posterior = self.height_prior.copy()
@@ -795,6 +804,8 @@ class PostureEstimator:
             self._walking_since_ns = None
         if on_seat is False:
             ll = ll - np.where(_ON_SEAT, self.seatless_log_odds, 0.0)
+        elif on_seat and not walking:
+            ll = ll - np.where(_BENT, self.seated_bend_log_odds, 0.0)
         if on_bed is False:
             ll = ll - np.where(_ON_BED, self.bedless_log_odds, 0.0)
         top = ll.max()

@@ -426,6 +426,26 @@ def test_a_seat_the_site_does_not_mark_never_makes_a_seated_adult_lie():
         assert {r.posture for r in seated[FPS:]} <= allowed
 
 
+def test_at_a_seat_a_shape_between_seated_and_bent_reads_seated_a_clear_bend_still_bent():
+    """A short person seated at a table whose lap the table hides carves half-way between sitting and
+    bending over: at a seat, still, the seat tips it to sitting; off the seats, or with no word
+    about seats, the same shape reads bending; and a body clearly bent over reads bending at a seat
+    too (the seat is a prior, not a verdict)."""
+
+    def most(profile, on_seat, odds=1.0):
+        est = PostureEstimator(voxel_m=VOXEL_M, seated_bend_log_odds=odds)
+        for i in range(3 * FPS):
+            est.update(i * NS // FPS, body_profile("standing", height_m=1.54, inflate_m=0.1), speed_mps=1.0, on_seat=on_seat)
+        out = [est.update((3 * FPS + i) * NS // FPS, profile, on_seat=on_seat) for i in range(10 * FPS)]
+        return {r.posture for r in out[FPS:]}
+
+    between = body_profile(blend("sitting", "bending", 0.5), height_m=1.54, inflate_m=0.1)
+    assert most(between, True) == {"sitting"}
+    assert most(between, True, odds=0.0) == most(between, False) == most(between, None) == {"bending"}
+    for f in (0.7, 1.0):
+        assert most(body_profile(blend("sitting", "bending", f), height_m=1.54, inflate_m=0.1), True) == {"bending"}
+
+
 def test_posture_bank_tells_each_track_whether_it_is_at_a_seat():
     from fusion_server.hotspots import Hotspot
 

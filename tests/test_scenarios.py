@@ -450,8 +450,6 @@ def test_a_person_helped_up_from_the_floor(replayed):
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(strict=True, reason="6 identity switches and 294 missed person-frames while they sit; one "
-                   "sit-down and one stand-up of three missed (MOTA 0.83, IDF1 0.80; 2026-11-29)")
 def test_three_people_at_a_table(replayed):
     """Three people sit at the dinner table (0.7 m between neighbours) for half a minute and walk off:
     each sits down and stands up once, counted and followed throughout."""
