@@ -36,7 +36,7 @@ from fusion_server.grid import CarveResult
 from fusion_server.heads import HeadGaps
 from fusion_server.hotspots import BED_KINDS, SEAT_KINDS, Hotspot
 from fusion_server.identity import IdentityKeeper, IdentityParams, Resident
-from fusion_server.posture import BACK_BAND_M, PostureBank, PostureReading
+from fusion_server.posture import PostureBank, PostureReading, backs_of
 from fusion_server.snapshot import Snapshot, Watched
 from fusion_server.tracker import PopulationParams, TrackEstimate, Tracker
 
@@ -163,8 +163,7 @@ class FusionPipeline:
         self.postures = PostureBank(voxel_m=carver.grid.voxel_m, decisions=decisions, viterbi_lag_s=viterbi_lag_s,
                                     seats=[h for h in reasoner.hotspots if h.kind in SEAT_KINDS],
                                     beds=[h for h in reasoner.hotspots if h.kind in BED_KINDS],
-                                    backs=[Hotspot(name=o.name, polygon_m=np.asarray(o.polygon_m), kind="back")
-                                           for o in carver.occluders if o.z_min_m <= BACK_BAND_M[0] and o.z_max_m >= BACK_BAND_M[1]],
+                                    backs=backs_of(carver.occluders),
                                     crowd_m=self.tracker.population.apart_m)
         self._labels: dict[int, int] = {}  # target id -> label, as of the last frame
         self._watched: tuple[int, list[TrackOutput], dict] | None = None   # (stamp, tracks, holds) of the last step

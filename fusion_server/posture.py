@@ -129,8 +129,10 @@ _ON_SEAT = np.array([s in ("sitting", "sitting_raised") for s in STATES])
 """(len(STATES),) bool: the states of a seated body (on a chair, a sofa, a bed's edge)."""
 
 _ON_BED = np.array([s == "lying_raised" for s in STATES])
-_BENT = np.array([s in ("bending", "kneeling") for s in STATES])
 """(len(STATES),) bool: the state of a body lying above the floor (on a bed or a sofa)."""
+
+_BENT = np.array([s in ("bending", "kneeling") for s in STATES])
+"""(len(STATES),) bool: the states of a body bent over or kneeling (see ``seated_bend_log_odds``)."""
 
 BACK_BAND_M = (0.5, 0.8)
 """A solid spanning these heights is a back: a seated body's hips and trunk (a seat is 0.4-0.5 m
@@ -138,6 +140,14 @@ high) would have to pass through it. A sofa's or a chair's back and a wall are; 
 (under 0.5 m) and a table top (a slab above the knees) are not."""
 BACK_TOUCH_M = 0.02
 """A point this close to a back's polygon is on it."""
+
+
+def backs_of(occluders: Iterable) -> list[Hotspot]:
+    """The backs (:data:`BACK_BAND_M`) among ``occluders`` (``name``, ``polygon_m``, ``z_min_m``,
+    ``z_max_m``, as the carver keeps them), as floor polygons for :class:`PostureBank`."""
+    lo, hi = BACK_BAND_M
+    return [Hotspot(name=o.name, polygon_m=np.asarray(o.polygon_m), kind="back")
+            for o in occluders if o.z_min_m <= lo and o.z_max_m >= hi]
 
 
 DECISIONS: tuple[str, ...] = ("frame", "viterbi")

@@ -432,8 +432,8 @@ def test_at_a_seat_a_shape_between_seated_and_bent_reads_seated_a_clear_bend_sti
     about seats, the same shape reads bending; and a body clearly bent over reads bending at a seat
     too (the seat is a prior, not a verdict)."""
 
-    def most(profile, on_seat, odds=1.0):
-        est = PostureEstimator(voxel_m=VOXEL_M, seated_bend_log_odds=odds)
+    def most(profile, on_seat, **odds):
+        est = PostureEstimator(voxel_m=VOXEL_M, **odds)
         for i in range(3 * FPS):
             est.update(i * NS // FPS, body_profile("standing", height_m=1.54, inflate_m=0.1), speed_mps=1.0, on_seat=on_seat)
         out = [est.update((3 * FPS + i) * NS // FPS, profile, on_seat=on_seat) for i in range(10 * FPS)]
@@ -441,7 +441,7 @@ def test_at_a_seat_a_shape_between_seated_and_bent_reads_seated_a_clear_bend_sti
 
     between = body_profile(blend("sitting", "bending", 0.5), height_m=1.54, inflate_m=0.1)
     assert most(between, True) == {"sitting"}
-    assert most(between, True, odds=0.0) == most(between, False) == most(between, None) == {"bending"}
+    assert most(between, True, seated_bend_log_odds=0.0) == most(between, False) == most(between, None) == {"bending"}
     for f in (0.7, 1.0):
         assert most(body_profile(blend("sitting", "bending", f), height_m=1.54, inflate_m=0.1), True) == {"bending"}
 
