@@ -27,7 +27,7 @@ from typing import Any
 SNAPSHOT_EVERY_S = 1.0
 """How often the live server writes its snapshot (seconds of frame time)."""
 FORMAT = 1
-_FALL_FIELDS = ("low_since_ns", "floor_since_ns", "fall_emitted", "long_lie_emitted", "drop", "upright_ns")
+_FALL_FIELDS = ("low_since_ns", "floor_since_ns", "fall_emitted", "long_lie_emitted", "drop", "drop_series", "upright_ns")
 
 
 @dataclass(frozen=True)

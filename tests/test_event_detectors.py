@@ -4,6 +4,8 @@ in the comments."""
 
 from __future__ import annotations
 
+import math
+from types import SimpleNamespace
 
 import pytest
 
@@ -24,6 +26,7 @@ from fusion_server.events import (
     VisitDetector,
     VisitParams,
 )
+from fusion_server.events.reasoner import company_distances
 from fusion_server.hotspots import Hotspot
 
 TICK_NS = 100_000_000  # 0.1 s
@@ -33,10 +36,10 @@ BED = Hotspot("bed", [[3.0, 0.0], [5.0, 0.0], [5.0, 2.0], [3.0, 2.0]], kind="bed
 
 
 def frame(k: int, *, track: int = 1, xy=(1.0, 1.0), posture=None, top_m=float("nan"), tops=(), upright_ns=0,
-          confirmed=True):
+          confirmed=True, company_m=math.inf):
     """Track ``track`` at tick ``k`` without a posture reading (so no centre and no learnt height)."""
     return TrackSnapshot(track, k * TICK_NS, xy[0], xy[1], posture, None, top_m, None, None, tops, upright_ns,
-                         confirmed)
+                         confirmed, company_m)
 
 
 def emitter(k: int, out: list[Event]) -> Emitter:
@@ -54,7 +57,7 @@ def test_parameter_groups_hold_the_documented_defaults():
     assert as_dict(FallParams()) == dict(
         window_s=2.0, min_drop_m=0.5, min_speed_mps=0.8, max_accel_mps2=1.5 * 9.81, height_tol_m=0.15,
         confirm_s=1.0, upright_s=0.5, low_top_frac=0.55, low_centre_frac=0.25, flat_top_frac=0.45,
-        low_gap_s=0.5, repeat_radius_m=1.0, repeat_s=120.0, same_fall_s=1.0, same_fall_radius_m=2.0,
+        low_gap_s=0.5, company_m=0.8, repeat_radius_m=1.0, repeat_s=120.0, same_fall_s=1.0, same_fall_radius_m=2.0,
         left_within_s=0.8, left_top_frac=0.8, left_moved_m=0.4, long_lie_s=30.0, standing_height_m=1.70,
     )
     assert as_dict(SitStandParams()) == dict(
@@ -221,6 +224,49 @@ def test_a_top_back_at_the_height_it_came_down_from_ends_the_spell_on_the_floor(
     pops = landed + ([1.75] + [0.25] * 6) * 8
     (fall,) = _run_tops(FallDetector(FallParams(long_lie_s=60.0)), pops, [])
     assert (fall.kind, fall.frame, fall.details["top_before_m"]) == ("fall", 24, 1.75)
+
+
+def _run_beside(company_m: float) -> list[Event]:
+    """A fall beside someone standing, track 1 at (2.0, 1.5), the nearest other confirmed track
+    ``company_m`` away: the body's top comes down 0.25 m a tick from 1.5 m (ticks 0-9) to 0.5 m at
+    tick 13 and 0.25 m after, lying from tick 13; the top stays the neighbour's 1.75 m until the blobs
+    part at tick 15, then 0.3 m."""
+    raw = [1.75] * 15 + [0.3] * 60
+    body = [1.5] * 10 + [1.25, 1.0, 0.75, 0.5] + [0.25] * 61
+    out, history = [], []
+    detector = FallDetector(FallParams(long_lie_s=60.0))
+    for k, (top, body_top) in enumerate(zip(raw, body)):
+        posture = "standing" if k < 13 else "lying"
+        history.append((k * TICK_NS, top, None, posture, body_top))
+        detector.update(frame(k, xy=(2.0, 1.5), posture=posture, top_m=top, tops=tuple(history),
+                              upright_ns=900_000_000, company_m=company_m), emitter(k, out))
+    return out
+
+
+def test_in_company_the_drop_is_read_from_the_bodys_top():
+    """Read by the body's top the body is low from tick 13 (median of 1.0, 0.75, 0.5 is 0.75 <=
+    0.935 m). The top shows no fall: it stays at 1.75 m, then drops 1.45 m in one tick (faster than
+    a body falling from 1.75 m at 1.5 g, 0.72 m a tick give or take 0.15 m). Beside someone (0.6 m)
+    the drop is read from the body's top: the latest 1.5 m (tick 9) to 0.5 m at tick 13, 1.0 m in
+    0.4 s; halfway, 1.0 m, is reached at tick 11: 1.1 s. Raised 1 s after getting low, tick 23.
+    Alone (or with the neighbour 0.9 m away) the top is the body's own, and no fall is read."""
+    (fall,) = _run_beside(0.6)
+    assert (fall.kind, fall.frame) == ("fall", 23)
+    assert fall.details == dict(
+        fall_stamp_ns=1_100_000_000, drop_start_ns=900_000_000, from_posture="standing", top_before_m=1.5,
+        top_after_m=0.5, drop_m=1.0, drop_speed_mps=2.5, confirm_s=1.0,
+    )
+    assert _run_beside(0.9) == [] and _run_beside(math.inf) == []
+
+
+def test_the_reasoner_measures_company_among_confirmed_tracks():
+    """Company is the floor distance to the nearest other track the tracker confirms: track 1 at
+    (0, 0) has track 2 (3, 4) 5 m away, track 3 (0.6, 0) is unconfirmed and is nobody's company
+    (it is in company itself, 0.6 m from track 1); alone, a track has none."""
+    tracks = {1: SimpleNamespace(id=1, x=0.0, y=0.0, confirmed=True), 2: SimpleNamespace(id=2, x=3.0, y=4.0, confirmed=True),
+              3: SimpleNamespace(id=3, x=0.6, y=0.0, confirmed=False)}
+    assert company_distances(tracks) == pytest.approx({1: 5.0, 2: 5.0, 3: 0.6})
+    assert company_distances({1: tracks[1]}) == {1: math.inf}
 
 
 def test_one_fall_is_one_alarm_where_one_was_just_raised():

@@ -35,7 +35,7 @@ DOWN_S = 5.0
 def test_a_snapshot_survives_the_event_store_and_refuses_what_it_cannot_read(tmp_path):
     snap = Snapshot(stamp_ns=123, people=(
         Watched(label=2, x=1.5, y=2.25, posture="lying", name="Ada", model=None,
-                fall={"low_since_ns": 100, "floor_since_ns": 110, "drop": {"fall_stamp_ns": 95},
+                fall={"low_since_ns": 100, "floor_since_ns": 110, "drop": {"fall_stamp_ns": 95}, "drop_series": 4,
                       "fall_emitted": True, "long_lie_emitted": False, "upright_ns": 5}),),
         holds={"cam1": [(1, 2, 3, 4)], "cam2": []})
     with EventStore(tmp_path / "events.sqlite") as store:

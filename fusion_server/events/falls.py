@@ -72,9 +72,17 @@ over a body lying there for a while, shrinking as its neighbours move off), not
 of a body coming down. A track found while someone falls (confirmed for the
 first time after the drop) still raises it.
 
+In company the drop may be read from the body's top instead: while another
+confirmed track is within ``company_m`` [0.8 m] (their hulls join at that
+distance), the top is as much the neighbour's as the body's: a body coming down
+beside someone standing keeps the top of the one standing, then the top drops
+in one frame to the body on the floor as the blobs part (no body comes down
+like that). When the top itself shows no fall there, the drop is looked for in
+the body's top, under the same rules (fast, from upright, physical).
+
 Low and on-the-floor spells forgive gaps up to ``low_gap_s`` [0.5 s], but not a
-return to the height the body came down from (the top, over the last three
-frames, back within ``height_tol_m`` of where the drop began): a body on the
+return to the height the body came down from (the top the drop was read from, over the
+last three frames, back within ``height_tol_m`` of where the drop began): a body on the
 floor does not stand up for a few frames and lie down again, a top that
 flickers between a body's height and half of it is a carve changing under the
 track.
@@ -115,6 +123,7 @@ class FallParams(Settings):
     low_centre_frac: float = Field(0.25, gt=0.0, lt=1.0, **NUMBER)
     flat_top_frac: float = Field(0.45, gt=0.0, lt=1.0, **NUMBER)
     low_gap_s: float = Field(0.5, ge=0.0, **NUMBER)
+    company_m: float = Field(0.8, ge=0.0, **NUMBER)
     repeat_radius_m: float = Field(1.0, ge=0.0, **NUMBER)
     repeat_s: float = Field(120.0, ge=0.0, **NUMBER)
     same_fall_s: float = Field(1.0, ge=0.0, **NUMBER)
@@ -190,14 +199,17 @@ class FallDetector:
             fs.low_confirmed |= frame.confirmed
         elif fs.low_since_ns is not None and (
             stamp_ns - fs.last_low_ns > self._low_gap_ns
-            or (fs.drop is not None and median([s[1] for s in recent]) >= fs.drop["top_before_m"] - p.height_tol_m)
+            or (fs.drop is not None
+                and median([s[fs.drop_series] for s in recent]) >= fs.drop["top_before_m"] - p.height_tol_m)
         ):
             fs.low_since_ns = None   # up again, or back at the height it came down from: no gap forgiven
             fs.floor_since_ns = None
         if fs.low_since_ns is None:
             return
         if fs.drop is None and stamp_ns - fs.low_since_ns <= self._window_ns:
-            fs.drop = self._find_drop(tops, fs.low_since_ns, height_m)
+            fs.drop, fs.drop_series = self._find_drop(tops, fs.low_since_ns, height_m), 1
+            if fs.drop is None and frame.company_m <= p.company_m:
+                fs.drop, fs.drop_series = self._find_drop(tops, fs.low_since_ns, height_m, series=4), 4
         if on_floor:
             if fs.floor_since_ns is None:
                 fs.floor_since_ns = stamp_ns
@@ -300,7 +312,7 @@ class FallDetector:
         if fs is None or fs.low_since_ns is None:
             return None
         return {"low_since_ns": fs.low_since_ns, "floor_since_ns": fs.floor_since_ns, "drop": fs.drop,
-                "fall_emitted": fs.fall_emitted, "long_lie_emitted": fs.long_lie_emitted}
+                "drop_series": fs.drop_series, "fall_emitted": fs.fall_emitted, "long_lie_emitted": fs.long_lie_emitted}
 
     def restore(self, track: int, state: Mapping[str, Any], stamp_ns: int) -> None:
         """Go on with a track as :meth:`state_of` described it before a restart, at ``stamp_ns``
@@ -312,6 +324,7 @@ class FallDetector:
         fs.floor_since_ns = None if floor is None else int(floor)
         fs.last_floor_ns = int(stamp_ns)
         fs.drop = dict(state["drop"]) if state.get("drop") else None
+        fs.drop_series = 4 if state.get("drop_series") == 4 else 1
         fs.fall_emitted = bool(state.get("fall_emitted", False))
         fs.long_lie_emitted = bool(state.get("long_lie_emitted", False))
 
@@ -319,7 +332,10 @@ class FallDetector:
         """The track is gone."""
         self._tracks.pop(track, None)
 
-    def _find_drop(self, tops: Sequence[TopSample], low_since_ns: int, height_m: float) -> dict[str, Any] | None:
+    def _find_drop(self, tops: Sequence[TopSample], low_since_ns: int, height_m: float,
+                   series: int = 1) -> dict[str, Any] | None:
+        """The fall's drop in the ``window_s`` before ``low_since_ns``, read from the tops
+        (``series`` 1) or the body's tops (4), None when there is none."""
         p = self.params
         start = low_since_ns - self._window_ns
         samples = [s for s in tops if s[0] >= start]
@@ -327,7 +343,7 @@ class FallDetector:
             return None
         t0 = samples[0][0]
         t = np.array([(s[0] - t0) * 1e-9 for s in samples])
-        z = np.array([s[1] for s in samples])
+        z = np.array([s[series] for s in samples])
         pair = detect_fast_drop(t, z, window_s=p.window_s, min_drop_m=p.min_drop_m, min_speed_mps=p.min_speed_mps)
         if pair is None:
             return None
@@ -432,6 +448,7 @@ class _FallTrack:
     floor_since_ns: int | None = None
     last_floor_ns: int = 0
     drop: dict[str, Any] | None = None
+    drop_series: int = 1                        # where the drop was read: the tops (1) or the body's tops (4)
     fall_emitted: bool = False
     long_lie_emitted: bool = False
     ever_confirmed: bool = False

@@ -161,8 +161,10 @@ class EventReasoner:
         for tid in sorted(t for t in self._tracks if t not in current):
             self._vanished(tid, self._tracks.pop(tid), emit)
         beyond = {int(t) for t in outside}
+        company = company_distances(current)
         for tid in sorted(current):
-            self._track_step(tid, current[tid], postures.get(tid), stamp_ns, emit, inside=tid not in beyond)
+            self._track_step(tid, current[tid], postures.get(tid), stamp_ns, emit, inside=tid not in beyond,
+                             company_m=company[tid])
         present = [(tid, tr.last_xy) for tid, tr in sorted(self._tracks.items()) if tr.present]
         h = local_hour(stamp_ns, self.utc_offset_h) if hour is None else float(hour) % 24.0
         self.visits.step(stamp_ns, dt_ns, present, h, emit)
@@ -193,7 +195,7 @@ class EventReasoner:
     # ------------------------------------------------------------------ per track
 
     def _track_step(self, tid: int, est: TrackLike, reading: Any, stamp_ns: int, emit: Emitter, *,
-                    inside: bool = True) -> None:
+                    inside: bool = True, company_m: float = math.inf) -> None:
         x, y = float(est.x), float(est.y)
         tr = self._tracks.get(tid)
         if tr is None:
@@ -243,7 +245,7 @@ class EventReasoner:
         if not tr.present and (tr.exited or not tr.confirmed_once):
             return  # not (yet) a person, or gone through a door: nothing to reason about
         seen = TrackSnapshot(tid, stamp_ns, x, y, posture, reading, top_m, centre_m, height_m, tr.tops, tr.upright_ns,
-                             confirmed)
+                             confirmed, company_m)
         self.sit_stand.update(seen, emit)
         self.falls.update(seen, emit)
         self.visits.update(seen, emit)
@@ -317,3 +319,15 @@ class _Track:
     last_ns: int = 0
     tops: deque[TopSample] = field(default_factory=deque)
     upright_ns: int = 0  # time this track read standing or sitting, from its first frame
+
+
+def company_distances(tracks: Mapping[int, TrackLike]) -> dict[int, float]:
+    """Per track, the floor distance to the nearest other track confirmed this frame (inf: none)."""
+    ids = sorted(tracks)
+    confirmed = [t for t in ids if bool(getattr(tracks[t], "confirmed", True))]
+    out = {}
+    for tid in ids:
+        x, y = float(tracks[tid].x), float(tracks[tid].y)
+        out[tid] = min((math.hypot(float(tracks[o].x) - x, float(tracks[o].y) - y) for o in confirmed if o != tid),
+                       default=math.inf)
+    return out

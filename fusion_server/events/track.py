@@ -4,6 +4,8 @@ frame tells a detector about one track."""
 
 from __future__ import annotations
 
+import math
+
 from dataclasses import dataclass
 from typing import Protocol, Sequence
 
@@ -47,6 +49,8 @@ class TrackSnapshot:
     upright_ns: time the track read standing or sitting since its first frame.
     confirmed: the tracker confirms the track this frame (an unconfirmed one
         coasts, or follows what the explanation did not take for a person).
+    company_m: floor distance to the nearest other track the tracker confirms
+        this frame, metres (infinite when there is none).
     """
 
     track: int
@@ -61,3 +65,4 @@ class TrackSnapshot:
     tops: Sequence[TopSample]
     upright_ns: int
     confirmed: bool
+    company_m: float = math.inf
