@@ -182,14 +182,7 @@ def test_a_fall_under_a_tent_of_hull_is_read_by_the_bodys_top():
     body = [1.5] * 10 + [1.3, 1.05, 0.8, 0.55] + [0.3] * 61
 
     def run(bodies):
-        out, history = [], []
-        detector = FallDetector(FallParams(long_lie_s=60.0))
-        for k, (top, body_top) in enumerate(zip(raw, bodies)):
-            posture = "standing" if k < 13 else "lying"
-            history.append((k * TICK_NS, top, None, posture, body_top))
-            detector.update(frame(k, xy=(2.0, 1.5), posture=posture, top_m=top, tops=tuple(history),
-                                  upright_ns=900_000_000), emitter(k, out))
-        return out
+        return _run_series(raw, bodies)
 
     (fall,) = run(body)
     assert (fall.kind, fall.frame) == ("fall", 23)
@@ -198,6 +191,19 @@ def test_a_fall_under_a_tent_of_hull_is_read_by_the_bodys_top():
         top_after_m=1.2, drop_m=0.55, drop_speed_mps=1.833, confirm_s=1.0,
     )
     assert run(raw) == []
+
+
+def _run_series(raw: list[float], body: list[float], company_m: float = math.inf) -> list[Event]:
+    """Track 1 at (2.0, 1.5), standing up to tick 12 and lying from tick 13, with these tops and
+    body tops one a tick, the nearest other confirmed track ``company_m`` away."""
+    out, history = [], []
+    detector = FallDetector(FallParams(long_lie_s=60.0))
+    for k, (top, body_top) in enumerate(zip(raw, body)):
+        posture = "standing" if k < 13 else "lying"
+        history.append((k * TICK_NS, top, None, posture, body_top))
+        detector.update(frame(k, xy=(2.0, 1.5), posture=posture, top_m=top, tops=tuple(history),
+                              upright_ns=900_000_000, company_m=company_m), emitter(k, out))
+    return out
 
 
 def _run_tops(detector: FallDetector, tops: list[float], out: list[Event]) -> list[Event]:
@@ -233,14 +239,7 @@ def _run_beside(company_m: float) -> list[Event]:
     part at tick 15, then 0.3 m."""
     raw = [1.75] * 15 + [0.3] * 60
     body = [1.5] * 10 + [1.25, 1.0, 0.75, 0.5] + [0.25] * 61
-    out, history = [], []
-    detector = FallDetector(FallParams(long_lie_s=60.0))
-    for k, (top, body_top) in enumerate(zip(raw, body)):
-        posture = "standing" if k < 13 else "lying"
-        history.append((k * TICK_NS, top, None, posture, body_top))
-        detector.update(frame(k, xy=(2.0, 1.5), posture=posture, top_m=top, tops=tuple(history),
-                              upright_ns=900_000_000, company_m=company_m), emitter(k, out))
-    return out
+    return _run_series(raw, body, company_m)
 
 
 def test_in_company_the_drop_is_read_from_the_bodys_top():
