@@ -150,6 +150,18 @@ def backs_of(occluders: Iterable) -> list[Hotspot]:
             for o in occluders if o.z_min_m <= lo and o.z_max_m >= hi]
 
 
+def company_of(tracks: Sequence[object]) -> np.ndarray:
+    """(len(tracks),) float: per track, the floor distance to the nearest other track the tracker
+    confirms (``confirmed``, true where missing), metres; infinite when there is none. A track
+    without a position (``x``, ``y``) has no company and keeps no one company."""
+    xy = np.array([[getattr(t, "x", np.nan), getattr(t, "y", np.nan)] for t in tracks], dtype=np.float64).reshape(-1, 2)
+    sure = np.array([bool(getattr(t, "confirmed", True)) for t in tracks], dtype=bool)
+    d = np.hypot(xy[:, None, 0] - xy[None, :, 0], xy[:, None, 1] - xy[None, :, 1])
+    d[np.isnan(d) | ~sure[None, :]] = np.inf
+    np.fill_diagonal(d, np.inf)
+    return d.min(axis=1, initial=np.inf)
+
+
 DECISIONS: tuple[str, ...] = ("frame", "viterbi")
 """How :class:`PostureEstimator` decides the reported posture: ``frame``, the
 forward filter's most probable posture held for a minimum duration, decided
@@ -973,11 +985,7 @@ class PostureBank:
     def crowded(self, tracks: Sequence[object]) -> np.ndarray:
         """(len(tracks),) bool: whether each track has another confirmed track within ``crowd_m``
         on the floor (a track without a position is never crowded nor crowds another)."""
-        xy = np.array([[getattr(t, "x", np.nan), getattr(t, "y", np.nan)] for t in tracks], dtype=np.float64).reshape(-1, 2)
-        sure = np.array([bool(getattr(t, "confirmed", True)) for t in tracks], dtype=bool)
-        d = np.hypot(xy[:, None, 0] - xy[None, :, 0], xy[:, None, 1] - xy[None, :, 1])
-        np.fill_diagonal(d, np.inf)
-        return ((d <= self.crowd_m) & sure[None, :]).any(axis=1)
+        return company_of(tracks) <= self.crowd_m
 
     def on_seat(self, track: object) -> bool | None:
         """Whether ``track`` (x, y) is at one of the seats; None without seats or a position."""

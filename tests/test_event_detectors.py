@@ -26,8 +26,8 @@ from fusion_server.events import (
     VisitDetector,
     VisitParams,
 )
-from fusion_server.events.reasoner import company_distances
 from fusion_server.hotspots import Hotspot
+from fusion_server.posture import company_of
 
 TICK_NS = 100_000_000  # 0.1 s
 DOOR = Hotspot("front door", [[0.0, 2.0], [0.5, 2.0], [0.5, 3.0], [0.0, 3.0]])
@@ -258,14 +258,15 @@ def test_in_company_the_drop_is_read_from_the_bodys_top():
     assert _run_beside(0.9) == [] and _run_beside(math.inf) == []
 
 
-def test_the_reasoner_measures_company_among_confirmed_tracks():
+def test_company_is_measured_among_confirmed_tracks():
     """Company is the floor distance to the nearest other track the tracker confirms: track 1 at
     (0, 0) has track 2 (3, 4) 5 m away, track 3 (0.6, 0) is unconfirmed and is nobody's company
-    (it is in company itself, 0.6 m from track 1); alone, a track has none."""
-    tracks = {1: SimpleNamespace(id=1, x=0.0, y=0.0, confirmed=True), 2: SimpleNamespace(id=2, x=3.0, y=4.0, confirmed=True),
-              3: SimpleNamespace(id=3, x=0.6, y=0.0, confirmed=False)}
-    assert company_distances(tracks) == pytest.approx({1: 5.0, 2: 5.0, 3: 0.6})
-    assert company_distances({1: tracks[1]}) == {1: math.inf}
+    (it is in company itself, 0.6 m from track 1), a track without a position neither has nor
+    keeps company; alone, a track has none."""
+    one, two = SimpleNamespace(id=1, x=0.0, y=0.0, confirmed=True), SimpleNamespace(id=2, x=3.0, y=4.0, confirmed=True)
+    three, nowhere = SimpleNamespace(id=3, x=0.6, y=0.0, confirmed=False), SimpleNamespace(id=4, confirmed=True)
+    assert company_of([one, two, three, nowhere]).tolist() == pytest.approx([5.0, 5.0, 0.6, math.inf])
+    assert company_of([one]).tolist() == [math.inf] and company_of([]).shape == (0,)
 
 
 def test_one_fall_is_one_alarm_where_one_was_just_raised():

@@ -40,7 +40,7 @@ from fusion_server.events.sit_stand import SitStandDetector, SitStandParams
 from fusion_server.events.track import TopSample, TrackLike, TrackSnapshot
 from fusion_server.events.visits import VisitDetector, VisitParams
 from fusion_server.hotspots import Hotspot
-from fusion_server.posture import PostureReading
+from fusion_server.posture import PostureReading, company_of
 
 
 class PresenceParams(Settings):
@@ -161,8 +161,9 @@ class EventReasoner:
         for tid in sorted(t for t in self._tracks if t not in current):
             self._vanished(tid, self._tracks.pop(tid), emit)
         beyond = {int(t) for t in outside}
-        company = company_distances(current)
-        for tid in sorted(current):
+        ids = sorted(current)
+        company = dict(zip(ids, company_of([current[t] for t in ids]).tolist()))
+        for tid in ids:
             self._track_step(tid, current[tid], postures.get(tid), stamp_ns, emit, inside=tid not in beyond,
                              company_m=company[tid])
         present = [(tid, tr.last_xy) for tid, tr in sorted(self._tracks.items()) if tr.present]
@@ -319,15 +320,3 @@ class _Track:
     last_ns: int = 0
     tops: deque[TopSample] = field(default_factory=deque)
     upright_ns: int = 0  # time this track read standing or sitting, from its first frame
-
-
-def company_distances(tracks: Mapping[int, TrackLike]) -> dict[int, float]:
-    """Per track, the floor distance to the nearest other track confirmed this frame (inf: none)."""
-    ids = sorted(tracks)
-    confirmed = [t for t in ids if bool(getattr(tracks[t], "confirmed", True))]
-    out = {}
-    for tid in ids:
-        x, y = float(tracks[tid].x), float(tracks[tid].y)
-        out[tid] = min((math.hypot(float(tracks[o].x) - x, float(tracks[o].y) - y) for o in confirmed if o != tid),
-                       default=math.inf)
-    return out
