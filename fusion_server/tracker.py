@@ -34,7 +34,7 @@ from __future__ import annotations
 
 import itertools
 import math
-from collections import deque
+from collections import Counter, deque
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass
 from typing import Protocol
@@ -83,7 +83,12 @@ class AssociationParams(Settings):
         whose position lies on a blob's footprint counts as matched to that
         blob [True]. Two people touching above tau1 form one blob; the
         paper's one-to-one assignment would starve one of them. With False
-        the tracker follows the paper strictly.
+        the tracker follows the paper strictly. Only targets known to be
+        other people share: two confirmed while ``apart_m`` apart (with
+        their tops, or each on a blob of its own), or whose heads the cameras
+        saw apart (:class:`PopulationParams`). A target never seen apart from
+        the blob's target is a piece of hull beside that person, not a second
+        person: the older of the two keeps the blob, and the other misses.
     share_min_age_frames: only targets at least this old share a blob [15
         frames, 1 s at 15 fps]. People who come to touch were tracked apart
         before; a target a few frames old that has lost its own blob is a
@@ -299,6 +304,7 @@ class Tracker:
         self._two_people: dict[int, set[int]] = {}  # target id -> targets known to be other people
         self._heads_apart_ns: dict[frozenset, int] = {}  # pair of target ids -> when their heads were last seen apart
         self._heads_seen: dict[int, set[int]] = {}  # target id -> targets whose head the cameras saw apart from its own
+        self._blobs_apart: dict[int, set[int]] = {}  # target id -> targets both confirmed on blobs of their own, apart
         self._last_stamp_ns: int | None = None
 
     @property
@@ -370,6 +376,7 @@ class Tracker:
             t.observe(blob, profile, volume_m3, result, self._new_filter, others)
             if blob is not None and n not in parts and blob.z_top_m <= self.association.low_top_m:
                 t.centre_on(blob, dt_s, tau_s, result, others)
+        self._note_blobs_apart(blob_of)
 
         pop = self.population
         for bi in unmatched_blobs:
@@ -411,7 +418,8 @@ class Tracker:
 
         Two people who touch above ``tau1`` make one blob, and the one-to-one
         assignment gives it to one of them; the other's filter still sees its
-        person, so its target counts as matched to the same blob.
+        person, so its target counts as matched to the same blob, when the two
+        are known to be two people (``share_blobs`` of :class:`AssociationParams`).
         """
         grid = result.grid
         owner = np.full(result.floor.count.shape, -1, dtype=np.int32)
@@ -423,8 +431,19 @@ class Tracker:
                 continue
             i = int(math.floor((t.x - grid.origin_m[0]) / grid.voxel_m))
             j = int(math.floor((t.y - grid.origin_m[1]) / grid.voxel_m))
-            if 0 <= j < owner.shape[0] and 0 <= i < owner.shape[1] and owner[j, i] >= 0:
-                blob_of[int(ti)] = int(owner[j, i])
+            if not (0 <= j < owner.shape[0] and 0 <= i < owner.shape[1] and owner[j, i] >= 0):
+                continue
+            bi = int(owner[j, i])
+            apart = (self._two_people.get(t.id, set()) | self._heads_seen.get(t.id, set())
+                     | self._blobs_apart.get(t.id, set()))
+            strangers = [u for u, b in blob_of.items() if b == bi and self._targets[u].id not in apart]
+            if not strangers:
+                blob_of[int(ti)] = bi
+            elif all((t.age, -t.id) > (self._targets[u].age, -self._targets[u].id) for u in strangers):
+                # the blob is one person's, never seen as two: the older target keeps it
+                for u in strangers:
+                    del blob_of[u]
+                blob_of[int(ti)] = bi
 
     def _split_shared(self, blob_of: dict[int, int], blobs: list[Blob], result: CarveResult) -> dict[int, tuple[np.ndarray, float]]:
         """Height profile and volume of each target's part of a shared blob.
@@ -460,6 +479,18 @@ class Tracker:
                 _add_pair(known, a.id, b.id)
         self._two_people = known
         self._heads_seen = _live_pairs(self._heads_seen, live)
+        self._blobs_apart = _live_pairs(self._blobs_apart, live)
+
+    def _note_blobs_apart(self, blob_of: dict[int, int]) -> None:
+        """Note the pairs of confirmed targets each matched to a blob of its own at least ``apart_m``
+        apart: whatever their height, the cameras saw them as two bodies."""
+        users = Counter(blob_of.values())
+        confirm = self.confirmation.confirm_reliability
+        alone = [self._targets[ti] for ti, bi in blob_of.items()
+                 if users[bi] == 1 and self._targets[ti].reliability >= confirm]
+        for a, b in itertools.combinations(alone, 2):
+            if math.hypot(a.x - b.x, a.y - b.y) >= self.population.apart_m:
+                _add_pair(self._blobs_apart, a.id, b.id)
 
     def _merge_duplicates(self) -> None:
         targets = self._targets

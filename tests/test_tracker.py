@@ -504,3 +504,30 @@ def test_a_target_left_on_a_person_whose_partner_vanished_merges_into_them():
     assert {e.id for e in out[59]} == {1, 2}
     assert all({e.id for e in o} == {1} for o in out[60 + 15 + 8 + 8:])  # memory, merge_frames, margin
     assert np.hypot(out[-1][0].x - 2.5, out[-1][0].y - 2.0) < 0.05
+
+
+def test_a_target_never_seen_apart_from_the_person_does_not_live_on_their_blob():
+    """A column of hull beside a standing person (0.5 m from their centre, too close ever to be
+    two people, no head of its own) is followed as a target of its own for 30 frames; then it
+    joins the person's blob through hull at 1.1-1.25 m, its hump 0.05 m over it, and the two carve
+    one blob. Its target is no second person: it does not share the blob (the person's older
+    target keeps it), loses its confirmation within 8 missed frames and is gone before the end."""
+    p, g = (2.0, 2.0), (2.5, 2.0)
+    scenes = []
+    for n in range(90):
+        parts = [person(*p), cylinder(*g, 0.12, 0.0, 1.3)]
+        if n >= 30:
+            parts.append(box((p[0] + 0.1, g[1] - 0.1, 1.1), (g[0] - 0.05, g[1] + 0.1, 1.25)))
+        scenes.append(frame(n, *parts))
+    assert [len(detect_blobs(s)) for s in scenes[29:31]] == [2, 1]
+    tr = Tracker(rng=np.random.default_rng(7))
+    out = run(tr, scenes)
+    assert {e.id for e in out[29]} == {1, 2} and all(e.confirmed for e in out[29])
+    for n in range(30, 90):
+        est = by_id(out[n])
+        assert est[1].confirmed and est[1].blob is not None, n
+        assert np.hypot(est[1].x - p[0], est[1].y - p[1]) < 0.1, n
+        if 2 in est:
+            assert est[2].blob is None, n
+            assert est[2].confirmed == (n < 38), n
+    assert set(by_id(out[-1])) == {1}
