@@ -83,12 +83,16 @@ class AssociationParams(Settings):
         whose position lies on a blob's footprint counts as matched to that
         blob [True]. Two people touching above tau1 form one blob; the
         paper's one-to-one assignment would starve one of them. With False
-        the tracker follows the paper strictly. Only targets known to be
-        other people share: two confirmed while ``apart_m`` apart (with
-        their tops, or each on a blob of its own), or whose heads the cameras
-        saw apart (:class:`PopulationParams`). A target never seen apart from
-        the blob's target is a piece of hull beside that person, not a second
+        the tracker follows the paper strictly.
+    share_known_only: only targets known to be other people share [False]:
+        two confirmed while ``apart_m`` apart (with their tops, or each on a
+        blob of its own), or whose heads the cameras saw apart
+        (:class:`PopulationParams`). A target never seen apart from the
+        blob's target is a piece of hull beside that person, not a second
         person: the older of the two keeps the blob, and the other misses.
+        On the tuning worlds it cuts second tracks on one person, but the
+        house's hug loses one of the two for the hug's five seconds: off
+        until that is mended.
     share_min_age_frames: only targets at least this old share a blob [15
         frames, 1 s at 15 fps]. People who come to touch were tracked apart
         before; a target a few frames old that has lost its own blob is a
@@ -105,6 +109,7 @@ class AssociationParams(Settings):
 
     gate_m: float = Field(0.6, **NON_NEGATIVE)
     share_blobs: bool = True
+    share_known_only: bool = False
     share_min_age_frames: int = Field(15, ge=0)
     low_top_m: float = Field(0.8, **NON_NEGATIVE)
 
@@ -418,8 +423,8 @@ class Tracker:
 
         Two people who touch above ``tau1`` make one blob, and the one-to-one
         assignment gives it to one of them; the other's filter still sees its
-        person, so its target counts as matched to the same blob, when the two
-        are known to be two people (``share_blobs`` of :class:`AssociationParams`).
+        person, so its target counts as matched to the same blob (with
+        ``share_known_only``, only when the two are known to be two people).
         """
         grid = result.grid
         owner = np.full(result.floor.count.shape, -1, dtype=np.int32)
@@ -437,7 +442,7 @@ class Tracker:
             apart = (self._two_people.get(t.id, set()) | self._heads_seen.get(t.id, set())
                      | self._blobs_apart.get(t.id, set()))
             strangers = [u for u, b in blob_of.items() if b == bi and self._targets[u].id not in apart]
-            if not strangers:
+            if not strangers or not self.association.share_known_only:
                 blob_of[int(ti)] = bi
             elif all((t.age, -t.id) > (self._targets[u].age, -self._targets[u].id) for u in strangers):
                 # the blob is one person's, never seen as two: the older target keeps it
