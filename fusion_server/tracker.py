@@ -381,7 +381,8 @@ class Tracker:
             t.observe(blob, profile, volume_m3, result, self._new_filter, others)
             if blob is not None and n not in parts and blob.z_top_m <= self.association.low_top_m:
                 t.centre_on(blob, dt_s, tau_s, result, others)
-        self._note_blobs_apart(blob_of)
+        if self.association.share_known_only:
+            self._note_blobs_apart(blob_of)
 
         pop = self.population
         for bi in unmatched_blobs:
@@ -439,10 +440,13 @@ class Tracker:
             if not (0 <= j < owner.shape[0] and 0 <= i < owner.shape[1] and owner[j, i] >= 0):
                 continue
             bi = int(owner[j, i])
+            if not self.association.share_known_only:
+                blob_of[int(ti)] = bi
+                continue
             apart = (self._two_people.get(t.id, set()) | self._heads_seen.get(t.id, set())
                      | self._blobs_apart.get(t.id, set()))
             strangers = [u for u, b in blob_of.items() if b == bi and self._targets[u].id not in apart]
-            if not strangers or not self.association.share_known_only:
+            if not strangers:
                 blob_of[int(ti)] = bi
             elif all((t.age, -t.id) > (self._targets[u].age, -self._targets[u].id) for u in strangers):
                 # the blob is one person's, never seen as two: the older target keeps it
