@@ -84,15 +84,14 @@ class AssociationParams(Settings):
         blob [True]. Two people touching above tau1 form one blob; the
         paper's one-to-one assignment would starve one of them. With False
         the tracker follows the paper strictly.
-    share_known_only: only targets known to be other people share [False]:
+    share_known_only: only targets known to be other people share [True]:
         two confirmed while ``apart_m`` apart (with their tops, or each on a
         blob of its own), or whose heads the cameras saw apart
         (:class:`PopulationParams`). A target never seen apart from the
         blob's target is a piece of hull beside that person, not a second
         person: the older of the two keeps the blob, and the other misses.
-        On the tuning worlds it cuts second tracks on one person, but the
-        house's hug loses one of the two for the hug's five seconds: off
-        until that is mended.
+        With False any target at least ``share_min_age_frames`` old shares
+        the blob it stands on.
     share_min_age_frames: only targets at least this old share a blob [15
         frames, 1 s at 15 fps]. People who come to touch were tracked apart
         before; a target a few frames old that has lost its own blob is a
@@ -109,7 +108,7 @@ class AssociationParams(Settings):
 
     gate_m: float = Field(0.6, **NON_NEGATIVE)
     share_blobs: bool = True
-    share_known_only: bool = False
+    share_known_only: bool = True
     share_min_age_frames: int = Field(15, ge=0)
     low_top_m: float = Field(0.8, **NON_NEGATIVE)
 
@@ -171,8 +170,17 @@ class PopulationParams(Settings):
         (no particle of one within ``merge_distance_m`` of the other's last
         position): two people who come together make one hump on the floor
         map, and two filters free to climb it both settle on its top and
-        become one target. A target that slid onto someone else's body has
-        no head of its own there: it may merge. A target's top is read only from
+        become one target. The same holds while the two share one blob that
+        holds the bodies of all the targets on it: its volume is the sum of
+        theirs but ``1 - hold_share`` [0.5] of the smallest one's or more
+        (two: the larger body and half the smaller; each body's volume the
+        median of its last ``volume_frames`` [30] frames on a blob of its
+        own, and each at least ``body_min_m3`` [0.1 m^3], the least a
+        standing person carves: a column of hull confirmed beside someone
+        is no body; two people in a hug, whose heads the cameras cannot part,
+        keep their two bodies' worth of voxels). A target that slid onto someone
+        else's body has no head of its own there, and that body's blob no
+        room for a second one: it may merge. A target's top is read only from
         the floor cells nearer to it than to the targets known to be other people
         and to those whose heads the cameras ever saw apart from its own while both
         live (never far apart, still someone else: their shoulders are not its top).
@@ -190,6 +198,9 @@ class PopulationParams(Settings):
     apart_m: float = Field(0.8, **NON_NEGATIVE)
     two_min_top_m: float = Field(1.0, **NON_NEGATIVE)
     two_memory_s: float = Field(1.0, **NON_NEGATIVE)
+    hold_share: float = Field(0.5, **NON_NEGATIVE)
+    body_min_m3: float = Field(0.1, **NON_NEGATIVE)
+    volume_frames: int = Field(30, ge=1)
 
 
 class MotionParams(Settings):
@@ -348,9 +359,12 @@ class Tracker:
         memory_ns = int(round(self.population.two_memory_s * 1e9))
         self._heads_apart_ns = {k: v for k, v in self._heads_apart_ns.items() if stamp_ns - v <= memory_ns}
         last = {t.id: (t.x, t.y) for t in self._targets}
+        held = self._blobs_holding_all()
+        by_id = {t.id: t for t in self._targets}
         for t in self._targets:
             others = [last[o] for o in self._two_people.get(t.id, ())
-                      if o in last and frozenset((t.id, o)) in self._heads_apart_ns]
+                      if o in last and (frozenset((t.id, o)) in self._heads_apart_ns
+                                        or (t.blob is not None and t.blob is by_id[o].blob and id(t.blob) in held))]
             t.track(evidence, stamp_ns, dt_s, tau_s, (floor_lo, floor_hi),
                     exclude_xy=np.array(others).reshape(-1, 2), exclude_radius_m=self.population.merge_distance_m)
 
@@ -381,6 +395,10 @@ class Tracker:
             t.observe(blob, profile, volume_m3, result, self._new_filter, others)
             if blob is not None and n not in parts and blob.z_top_m <= self.association.low_top_m:
                 t.centre_on(blob, dt_s, tau_s, result, others)
+        users = Counter(blob_of.values())
+        for n, bi in blob_of.items():
+            if users[bi] == 1:
+                self._targets[n].note_alone_volume(blobs[bi].volume_m3, self.population.volume_frames)
         if self.association.share_known_only:
             self._note_blobs_apart(blob_of)
 
@@ -404,6 +422,25 @@ class Tracker:
             t.update_stillness(stamp_ns, self.motion.still_window_s, self.motion.still_speed_mps)
         confirm = self.confirmation.confirm_reliability
         return [t.estimate(stamp_ns, confirm, nz) for t in sorted(self._targets, key=lambda t: t.id)]
+
+    def _blobs_holding_all(self) -> set[int]:
+        """``id()`` of the blobs of the last frame shared by targets and holding all their bodies: the
+        blob's volume is their bodies' sum but ``1 - hold_share`` of the smallest or more
+        (:class:`PopulationParams`; each body's volume the median of its blobs of its own)."""
+        users: dict[int, list[_Target]] = {}
+        for t in self._targets:
+            if t.blob is not None:
+                users.setdefault(id(t.blob), []).append(t)
+        held = set()
+        for key, ts in users.items():
+            if len(ts) < 2:
+                continue
+            volumes = [t.alone_volume_m3 for t in ts]
+            if None in volumes or min(volumes) < self.population.body_min_m3:
+                continue
+            if ts[0].blob.volume_m3 >= sum(volumes) - (1.0 - self.population.hold_share) * min(volumes):
+                held.add(key)
+        return held
 
     def _new_filter(self, x_m: float, y_m: float, alpha_m: float) -> ParticleFilter:
         return self.filter_factory(x_m, y_m, alpha_m, rng=self.rng)
@@ -538,9 +575,20 @@ class _Target:
         self.blob: Blob | None = None
         self.speeds: deque[tuple[int, float]] = deque()
         self.blob_xy: deque[tuple[int, float, float]] = deque()  # (stamp, x, y) of the blobs matched
+        self.alone_volumes: deque[float] = deque()  # volumes of the last blobs it had to itself
         self.xy: deque[tuple[int, float, float]] = deque()  # (stamp, x, y) of the target's own estimates
         self.still = False
         self._before = (x, y, 0.0, 0.0)  # position and velocity before this frame's filter step
+
+    @property
+    def alone_volume_m3(self) -> float | None:
+        """The body's volume: the median of the blobs it had to itself lately (None before any)."""
+        return float(np.median(self.alone_volumes)) if self.alone_volumes else None
+
+    def note_alone_volume(self, volume_m3: float, frames: int) -> None:
+        self.alone_volumes.append(float(volume_m3))
+        while len(self.alone_volumes) > frames:
+            self.alone_volumes.popleft()
 
     def track(self, evidence: FloorEvidence, stamp_ns: int, dt_s: float, tau_s: float, bounds=None, *,
               exclude_xy: np.ndarray | None = None, exclude_radius_m: float = 0.0) -> None:

@@ -443,17 +443,20 @@ def hug(gap_m: float = 0.35, n_frames: int = 150):
     return scenes, truth
 
 
-@pytest.mark.parametrize("apart_m, heads, kept", [(0.8, True, True), (100.0, True, False), (0.8, False, False)],
-                         ids=["two-heads-seen", "never-seen-apart", "no-camera-sees-two-heads"])
-def test_two_people_seen_apart_stay_two_targets_while_they_hug(apart_m, heads, kept):
+@pytest.mark.parametrize("apart_m, heads, hold_share, kept",
+                         [(0.8, True, 0.5, True), (0.8, False, 0.5, True), (100.0, True, 0.5, False), (0.8, False, 1.1, False)],
+                         ids=["two-heads-seen", "blob-holds-both", "never-seen-apart", "no-heads-nor-room"])
+def test_two_people_seen_apart_stay_two_targets_while_they_hug(apart_m, heads, hold_share, kept):
     """Two targets confirmed 2 m apart are two people: while the two carve one blob (their floor
-    counts one hump) and a camera sees their two heads, neither filter may take the other's place,
-    so both stay on their own person and neither is merged away. Without either (apart_m beyond the
-    room; no camera told of two heads) both filters climb the one hump and the younger target is
-    merged into the older: one person is lost."""
+    counts one hump) and a camera sees their two heads, or the blob holds both their bodies (its
+    volume is the larger body's and more than half the smaller one's), neither filter may take the
+    other's place, so both stay on their own person and neither is merged away. Without heads or
+    room (apart_m beyond the room; no camera told of two heads and a blob asked to hold more than
+    both bodies) both filters climb the one hump and the younger target is merged into the older:
+    one person is lost."""
     scenes, truth = hug()
     assert all(len(detect_blobs(scenes[n])) == 1 for n in range(40, 110))  # one blob while they hug
-    tr = Tracker(rng=np.random.default_rng(5), population=PopulationParams(apart_m=apart_m))
+    tr = Tracker(rng=np.random.default_rng(5), population=PopulationParams(apart_m=apart_m, hold_share=hold_share))
     out = run(tr, scenes, lambda n: [(1, 2)] if heads else ())
     if not kept:
         assert any(len(o) == 1 for o in out[40:110])
@@ -506,8 +509,31 @@ def test_a_target_left_on_a_person_whose_partner_vanished_merges_into_them():
     assert np.hypot(out[-1][0].x - 2.5, out[-1][0].y - 2.0) < 0.05
 
 
+@pytest.mark.parametrize("body_min_m3, kept", [(0.1, False), (0.0, True)], ids=["column-is-no-body", "no-least-body"])
+def test_a_column_of_hull_confirmed_apart_is_not_held_beside_a_person(body_min_m3, kept):
+    """A person (1.75 m, 0.19 m^3) and a column of hull 1.3 m high (0.06 m^3, under the 0.1 m^3
+    the least standing person carves) are confirmed 1.2 m apart: two targets known apart. The
+    column drifts to 0.45 m beside the person and joins their blob through hull; no camera sees two
+    heads. The blob has room for both volumes, but the column is no body: it is not held apart and
+    merges into the person. Counted as a body however small (``body_min_m3`` 0), it is held beside
+    them to the end."""
+    scenes = []
+    for n in range(100):
+        gx = max(2.45, 3.2 - 0.02 * max(n - 20, 0))
+        parts = [person(2.0, 2.0), cylinder(gx, 2.0, 0.12, 0.0, 1.3)]
+        if gx - 2.0 < 0.6:
+            parts.append(box((2.1, 1.9, MERGING_BRIDGE[0]), (gx - 0.05, 2.1, MERGING_BRIDGE[1])))
+        scenes.append(frame(n, *parts))
+    assert [len(detect_blobs(scenes[n])) for n in (20, 99)] == [2, 1]
+    tr = Tracker(rng=np.random.default_rng(3), population=PopulationParams(body_min_m3=body_min_m3))
+    out = run(tr, scenes)
+    assert {e.id for e in out[20]} == {1, 2} and all(e.confirmed for e in out[20])
+    assert all(np.hypot(by_id(o)[1].x - 2.0, by_id(o)[1].y - 2.0) < 0.1 for o in out)
+    assert ({e.id for e in out[-1]} == {1, 2}) == kept
+
+
 def test_a_target_never_seen_apart_from_the_person_does_not_live_on_their_blob():
-    """With ``share_known_only``: a column of hull beside a standing person (0.5 m from their centre, too close ever to be
+    """A column of hull beside a standing person (0.5 m from their centre, too close ever to be
     two people, no head of its own) is followed as a target of its own for 30 frames; then it
     joins the person's blob through hull at 1.1-1.25 m, its hump 0.05 m over it, and the two carve
     one blob. Its target is no second person: it does not share the blob (the person's older
@@ -520,8 +546,7 @@ def test_a_target_never_seen_apart_from_the_person_does_not_live_on_their_blob()
             parts.append(box((p[0] + 0.1, g[1] - 0.1, 1.1), (g[0] - 0.05, g[1] + 0.1, 1.25)))
         scenes.append(frame(n, *parts))
     assert [len(detect_blobs(s)) for s in scenes[29:31]] == [2, 1]
-    tr = Tracker(rng=np.random.default_rng(7), association=AssociationParams(share_known_only=True))
-    out = run(tr, scenes)
+    out = run(Tracker(rng=np.random.default_rng(7)), scenes)
     assert {e.id for e in out[29]} == {1, 2} and all(e.confirmed for e in out[29])
     for n in range(30, 90):
         est = by_id(out[n])
