@@ -533,7 +533,7 @@ def test_a_column_of_hull_confirmed_apart_is_not_held_beside_a_person(body_min_m
 
 
 def test_a_target_never_seen_apart_from_the_person_does_not_live_on_their_blob():
-    """A column of hull beside a standing person (0.5 m from their centre, too close ever to be
+    """With ``share_known_only``: a column of hull beside a standing person (0.5 m from their centre, too close ever to be
     two people, no head of its own) is followed as a target of its own for 30 frames; then it
     joins the person's blob through hull at 1.1-1.25 m, its hump 0.05 m over it, and the two carve
     one blob. Its target is no second person: it does not share the blob (the person's older
@@ -546,7 +546,8 @@ def test_a_target_never_seen_apart_from_the_person_does_not_live_on_their_blob()
             parts.append(box((p[0] + 0.1, g[1] - 0.1, 1.1), (g[0] - 0.05, g[1] + 0.1, 1.25)))
         scenes.append(frame(n, *parts))
     assert [len(detect_blobs(s)) for s in scenes[29:31]] == [2, 1]
-    out = run(Tracker(rng=np.random.default_rng(7)), scenes)
+    tr = Tracker(rng=np.random.default_rng(7), association=AssociationParams(share_known_only=True))
+    out = run(tr, scenes)
     assert {e.id for e in out[29]} == {1, 2} and all(e.confirmed for e in out[29])
     for n in range(30, 90):
         est = by_id(out[n])
