@@ -398,11 +398,11 @@ class Tracker:
             if blob is not None and n not in parts and blob.z_top_m <= self.association.low_top_m:
                 t.centre_on(blob, dt_s, tau_s, result, others)
         users = Counter(blob_of.values())
-        for n, bi in blob_of.items():
-            if users[bi] == 1:
-                self._targets[n].note_alone_volume(blobs[bi].volume_m3, self.population.volume_frames)
+        alone = [n for n, bi in blob_of.items() if users[bi] == 1]  # targets on a blob of their own
+        for n in alone:
+            self._targets[n].note_alone_volume(blobs[blob_of[n]].volume_m3, self.population.volume_frames)
         if self.association.share_known_only:
-            self._note_blobs_apart(blob_of)
+            self._note_blobs_apart(alone)
 
         pop = self.population
         for bi in unmatched_blobs:
@@ -529,14 +529,12 @@ class Tracker:
         self._heads_seen = _live_pairs(self._heads_seen, live)
         self._blobs_apart = _live_pairs(self._blobs_apart, live)
 
-    def _note_blobs_apart(self, blob_of: dict[int, int]) -> None:
-        """Note the pairs of confirmed targets each matched to a blob of its own at least ``apart_m``
-        apart: whatever their height, the cameras saw them as two bodies."""
-        users = Counter(blob_of.values())
+    def _note_blobs_apart(self, alone: list[int]) -> None:
+        """Note the pairs of confirmed targets each matched to a blob of its own (``alone``: their
+        indices) at least ``apart_m`` apart: whatever their height, the cameras saw them as two bodies."""
         confirm = self.confirmation.confirm_reliability
-        alone = [self._targets[ti] for ti, bi in blob_of.items()
-                 if users[bi] == 1 and self._targets[ti].reliability >= confirm]
-        for a, b in itertools.combinations(alone, 2):
+        sure = [self._targets[n] for n in alone if self._targets[n].reliability >= confirm]
+        for a, b in itertools.combinations(sure, 2):
             if math.hypot(a.x - b.x, a.y - b.y) >= self.population.apart_m:
                 _add_pair(self._blobs_apart, a.id, b.id)
 
