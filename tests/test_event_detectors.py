@@ -62,7 +62,7 @@ def test_parameter_groups_hold_the_documented_defaults():
     )
     assert as_dict(SitStandParams()) == dict(
         stand_up_from={"sitting", "lying"}, min_change_frac=0.07, max_change_frac=0.65, hold_s=2.0,
-        max_move_m=0.8, move_window_s=0.4,
+        max_move_m=0.8, move_window_s=0.4, floor_rise_s=0.5,
         seat_kinds={"sofa", "table", "chair", "armchair", "bench", "bed"},
     )
     assert as_dict(EntryParams()) == dict(edge_margin_m=0.4, startup_s=1.0)
@@ -396,9 +396,17 @@ def test_sit_stand_detector_hand_worked():
     seq = ["standing"] * 30 + ["sitting"] * 10 + ["bending"] * 5 + ["standing"] * 10
     assert _run_postures(SitStandDetector(), seq) == [("sit_down", 30, "standing", "sitting")]
     # Up from lying is a stand_up only when lying is in stand_up_from.
-    seq = ["lying"] * 30 + ["standing"] * 5
-    assert _run_postures(SitStandDetector(), seq) == [("stand_up", 30, "lying", "standing")]
+    seq = ["lying"] * 30 + ["bending"] * 6 + ["standing"] * 5
+    assert _run_postures(SitStandDetector(), seq) == [("stand_up", 36, "lying", "standing")]
     assert _run_postures(SitStandDetector(SitStandParams(stand_up_from=("sitting",))), seq) == []
+    # Lying, then standing the next tick: no one gets up from the floor in 0.1 s (floor_rise_s 0.5 s);
+    # through 0.4 s of kneeling (last lying at tick 29, standing at 33), still too fast; through 0.5 s, up.
+    assert _run_postures(SitStandDetector(), ["lying"] * 30 + ["standing"] * 5) == []
+    assert _run_postures(SitStandDetector(), ["lying"] * 30 + ["bending"] * 3 + ["standing"] * 5) == []
+    assert _run_postures(SitStandDetector(), ["lying"] * 30 + ["bending"] * 4 + ["standing"] * 5) == [
+        ("stand_up", 34, "lying", "standing")]
+    assert _run_postures(SitStandDetector(SitStandParams(floor_rise_s=0.0)), ["lying"] * 30 + ["standing"] * 5) == [
+        ("stand_up", 30, "lying", "standing")]
 
 
 def test_a_short_posture_between_two_others_is_a_passage():

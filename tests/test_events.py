@@ -27,7 +27,7 @@ from fusion_server.events import (
     time_of_day_label,
 )
 from fusion_server.hotspots import Hotspot
-from fusion_server.posture import PostureBank
+from fusion_server.posture import PostureBank, PostureEstimator
 from test_posture import NZ, VOXEL_M, blend, body_profile
 
 FPS = 15
@@ -363,6 +363,29 @@ def test_a_posture_flip_at_constant_height_is_no_sit_or_stand():
     # without the height test the flips are a stand_up and a second sit_down
     loose = run([p], EventReasoner(sit_stand=SitStandParams(min_change_frac=0.0, max_change_frac=5.0)))
     assert kinds(loose) == ["sit_down", "stand_up", "sit_down"]
+
+
+@pytest.mark.xfail(strict=True, reason="known defect: the first posture, read against an adult's height before the "
+                   "child's own is learnt, is kept, and the sit_down reads as no change of posture")
+def test_a_child_read_seated_at_first_sits_down_and_stands_up():
+    """A child of 1.25 m stands still for 5 s: read at first against an adult's height, their top is a
+    seated adult's, then standing once their height is learnt, at the same height (no stand_up).
+    They sit down on a chair and stand up again: both should be told. The detector keeps the first
+    (seated) posture, since the standing one came at a constant height, and the sit_down reads as
+    no change (tuning world 190). Adopting any posture read 2 s at a constant height found it
+    there but raised false stand_ups where the new posture was the misread one (a 1.0 m child read
+    seated, worlds 199 and 210)."""
+    h = 1.25
+    p = Person(1).hold(5.0, body_profile("standing", height_m=h), xy=(2.0, 2.0))
+    p.move(1.0, lambda f: body_profile(blend("standing", "sitting", f), height_m=h)).hold(6.0, body_profile("sitting", height_m=h))
+    p.move(1.0, lambda f: body_profile(blend("sitting", "standing", f), height_m=h)).hold(4.0, body_profile("standing", height_m=h))
+    events = run([p], EventReasoner())
+    assert kinds(events) == ["sit_down", "stand_up"]
+    assert 6.0 <= t_s(events[0].stamp_ns) <= 6.0 + 1.5 and 13.0 <= t_s(events[1].stamp_ns) <= 13.0 + 1.5
+    # as said: the standing child reads seated for its first two seconds, then standing
+    estimator = PostureEstimator(voxel_m=VOXEL_M)
+    read = [estimator.update(k * FRAME_NS, body_profile("standing", height_m=h)).posture for k in range(75)]
+    assert read[0] == read[29] == "sitting" and read[-1] == "standing"
 
 
 def test_height_change_reads_the_posture_held_before_the_switch():

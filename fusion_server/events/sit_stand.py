@@ -25,7 +25,11 @@ change to now (each top read as the median of it and the two before: one
 frame's bad carve is no movement). People sit down and stand up, from a chair or from the floor,
 with the head moving under a metre a second; 2 m/s held for 0.4 s is a track
 jumping from a body lying on the floor to someone standing beside it, or
-from a fragment to a whole body. So is a change from a posture held less than
+from a fragment to a whole body. Likewise up from lying: nobody gets up from
+the floor without passing through kneeling, crouching or sitting, and the
+reading has left lying ``floor_rise_s`` [0.5 s] or more before it reads
+standing; a track read lying on one frame and standing the next took over
+someone standing beside the body. So is a change from a posture held less than
 ``hold_s`` [2 s] (a track's first readings of a body still being carved, a
 blob that changes under it): someone sits down after standing, and stands up
 after sitting, for longer than that. But a posture held less than that
@@ -78,6 +82,7 @@ class SitStandParams(Settings):
     hold_s: float = Field(2.0, ge=0.0, **NUMBER)
     max_move_m: float = Field(0.8, gt=0.0, **NUMBER)
     move_window_s: float = Field(0.4, gt=0.0, **NUMBER)
+    floor_rise_s: float = Field(0.5, ge=0.0, **NUMBER)
     seat_kinds: frozenset[str] = SEAT_KINDS
 
     @model_validator(mode="after")
@@ -112,6 +117,8 @@ class SitStandDetector:
         if posture not in ("standing", "sitting", "lying") or not frame.confirmed:
             return
         st = self._tracks.setdefault(frame.track, _SitStandTrack())
+        if posture == "lying":
+            st.lying_ns = frame.stamp_ns
         if posture == "sitting":
             # Judge each sitting episode once, when it starts: the state drifts as the person rises.
             since = reading.since_ns if reading is not None else None
@@ -136,6 +143,8 @@ class SitStandDetector:
         sit_down = frm == "standing" and posture == "sitting"
         stand_up = posture == "standing" and frm in self.params.stand_up_from
         extra = {}
+        if stand_up and frm == "lying" and st.lying_ns is not None and now_ns - st.lying_ns < ns(self.params.floor_rise_s):
+            origin = None  # up from the floor in a blink: the track jumped to someone standing
         if reading is not None and (sit_down or stand_up):
             tops = [(s[0], s[1]) for s in frame.tops]
             rise = height_change_m(tops, reading.since_ns, reading.stamp_ns,
@@ -239,3 +248,4 @@ class _SitStandTrack:
     origin_left_ns: int = 0
     sitting_since_ns: int | None = None
     sitting_plausible: bool = True
+    lying_ns: int | None = None    # the last frame read lying
