@@ -109,6 +109,7 @@ class SitStandDetector:
         self.params = params
         self._seats = tuple(h for h in hotspots if h.kind in params.seat_kinds)
         self._hold_ns = ns(params.hold_s)
+        self._floor_rise_ns = ns(params.floor_rise_s)
         self._tracks: dict[int, _SitStandTrack] = {}
 
     def update(self, frame: TrackSnapshot, emit: Emitter) -> None:
@@ -143,7 +144,7 @@ class SitStandDetector:
         sit_down = frm == "standing" and posture == "sitting"
         stand_up = posture == "standing" and frm in self.params.stand_up_from
         extra = {}
-        if stand_up and frm == "lying" and st.lying_ns is not None and now_ns - st.lying_ns < ns(self.params.floor_rise_s):
+        if stand_up and frm == "lying" and st.lying_ns is not None and now_ns - st.lying_ns < self._floor_rise_ns:
             origin = None  # up from the floor in a blink: the track jumped to someone standing
         if reading is not None and (sit_down or stand_up):
             tops = [(s[0], s[1]) for s in frame.tops]
