@@ -234,7 +234,7 @@ class FusionPipeline:
                     if readings.get(e.id) is not None and readings[e.id].posture == "standing"}
         self.identity.learn(bodies, standing, stamp_ns)
         # people followed beyond the monitored volume's sides are nobody's business here
-        monitored = [e for e in estimates if self.monitors(e.x, e.y, self._leave_margin_m(e.id))]
+        monitored = [e for e in estimates if self.monitors(e.x, e.y, self._leave_margin_m(e, readings.get(e.id)))]
         self._inside = {e.id for e in monitored}
         # the reasoner follows them too: their tops and upright time count (someone who stood
         # outside and fell in fell from their height), but they are nobody present (no entry,
@@ -265,14 +265,19 @@ class FusionPipeline:
             moved=moved,
         )
 
-    def _leave_margin_m(self, label: int) -> float:
-        """How far beyond the monitored sides the person ``label`` is still inside: 0 for someone
-        outside; :data:`LEAVE_MARGIN_M` for someone inside; for someone inside who lies on the floor
-        after a fall, as far as the carve reaches (a body lying across a side is half out, and its
-        estimate drifts: a long lie must not end because the centre crossed the line)."""
-        if label not in self._inside:
+    def _leave_margin_m(self, est: TrackEstimate, reading: PostureReading | None) -> float:
+        """How far beyond the monitored sides the person ``est`` is still inside: 0 for someone
+        outside; :data:`LEAVE_MARGIN_M` for someone inside; for someone inside who is low (their
+        top this frame, or the fall reasoner's reading of their last frames, at most the fall
+        rule's low fraction of their standing height), as far as the carve reaches: a body falling
+        or lying across a side is half out and its estimate drifts outward as it spreads, and
+        neither the fall nor a long lie may end because the centre crossed the line."""
+        if est.id not in self._inside:
             return 0.0
-        if self.reasoner.falls.on_floor(label):
+        falls = self.reasoner.falls
+        height = reading.standing_height_m if reading is not None and reading.standing_height_m else None
+        height = height if height is not None else falls.params.standing_height_m
+        if falls.low(est.id) or est.z_top_m <= falls.params.low_top_frac * height:
             return max(LEAVE_MARGIN_M, self._carved_beyond_m)
         return LEAVE_MARGIN_M
 
@@ -497,10 +502,14 @@ def build_tracker(rng: np.random.Generator) -> Tracker:
 
 HEADS_NEAR_M = 1.2
 """Two people this close on the floor (or closer) are tested for two heads on every frame set."""
-LEAVE_MARGIN_M = 0.2
-"""Someone in the monitored volume is in it until their floor position lies this far beyond its side
-(a body's half-width: part of them is still inside); someone outside is in once their position is.
-A person lying across the side, or standing on it, does not flicker in and out with the estimate."""
+LEAVE_MARGIN_M = 0.1
+"""Someone in the monitored volume is in it until their floor position lies this far beyond its side;
+someone outside is in once their position is. The margin is the estimate's own jitter, not a body's
+width: a person is in the room while their pelvis is (as the ground truth counts them), and the
+margin only keeps someone standing on the side from flickering in and out. The floor position of a
+track standing still strays from its mean over a second by 0.007 m (median), 0.024 m (90th
+percentile) and 0.074 m (99th) on the 38 tuning worlds; at 0.2 m, a body's half-width, people
+who had stopped 0.05-0.2 m outside were still reported."""
 OPEN_EDGE_MARGIN_M = 0.6
 """How far beyond open edges the cameras follow people unless the site says (``[volume] margin_m``):
 a person's carved hull reaches about half a metre from their centre."""

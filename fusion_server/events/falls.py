@@ -299,6 +299,11 @@ class FallDetector:
         fs = self._tracks.get(track)
         return fs is not None and fs.floor_since_ns is not None
 
+    def low(self, track: int) -> bool:
+        """Whether the track is low now: coming down, or on the floor (as of its last frame)."""
+        fs = self._tracks.get(track)
+        return fs is not None and (fs.low_since_ns is not None or fs.floor_since_ns is not None)
+
     def rename(self, renames: Mapping[int, int]) -> None:
         """Tracks change ids ({old: new}, at once); their state goes with them."""
         self._tracks = rekey(self._tracks, renames)
