@@ -274,10 +274,7 @@ class FusionPipeline:
         neither the fall nor a long lie may end because the centre crossed the line."""
         if est.id not in self._inside:
             return 0.0
-        falls = self.reasoner.falls
-        height = reading.standing_height_m if reading is not None and reading.standing_height_m else None
-        height = height if height is not None else falls.params.standing_height_m
-        if falls.low(est.id) or est.z_top_m <= falls.params.low_top_frac * height:
+        if self.reasoner.falls.low(est.id, est.z_top_m, reading.standing_height_m if reading is not None else None):
             return max(LEAVE_MARGIN_M, self._carved_beyond_m)
         return LEAVE_MARGIN_M
 

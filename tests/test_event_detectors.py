@@ -166,6 +166,11 @@ def test_fall_detector_hand_worked():
     assert lie.details == dict(lying_since_ns=1_150_000_000, duration_s=5.05, after_fall=True,
                                fall_stamp_ns=1_150_000_000)
     assert falls.on_floor(1) and not falls.on_floor(2)
+    assert falls.low(1) and falls.low(1, top_m=1.8)  # on the floor: low whatever this frame's top
+    # an unknown track is low by this frame's top alone: at most 0.55 of its height (0.99 m for
+    # 1.80 m), or of the default 1.70 m (0.935 m) when its height is unknown
+    assert not falls.low(2) and falls.low(2, 0.99, 1.80) and not falls.low(2, 1.0, 1.80)
+    assert falls.low(2, 0.93) and not falls.low(2, 0.94)
     falls.forget(1)
     assert not falls.on_floor(1)
 

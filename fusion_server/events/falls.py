@@ -299,10 +299,16 @@ class FallDetector:
         fs = self._tracks.get(track)
         return fs is not None and fs.floor_since_ns is not None
 
-    def low(self, track: int) -> bool:
-        """Whether the track is low now: coming down, or on the floor (as of its last frame)."""
+    def low(self, track: int, top_m: float | None = None, height_m: float | None = None) -> bool:
+        """Whether the track is low: coming down or on the floor as of its last frame, or, given
+        this frame's ``top_m``, that top at most ``low_top_frac`` of its standing height
+        (``height_m``; the default standing height when unknown)."""
         fs = self._tracks.get(track)
-        return fs is not None and (fs.low_since_ns is not None or fs.floor_since_ns is not None)
+        if fs is not None and (fs.low_since_ns is not None or fs.floor_since_ns is not None):
+            return True
+        if top_m is None:
+            return False
+        return top_m <= self.params.low_top_frac * (height_m or self.params.standing_height_m)
 
     def rename(self, renames: Mapping[int, int]) -> None:
         """Tracks change ids ({old: new}, at once); their state goes with them."""
