@@ -84,9 +84,10 @@ def build_parser() -> argparse.ArgumentParser:
                         "(default: 33 s at the source's frame rate, 500 frames at 15 fps)")
     g.add_argument("--mask-scale", type=float, metavar="S",
                    help="mask size as a fraction of the frame, 0.125..1 (default: the site's carving.mask_scale)")
-    g.add_argument("--min-area-px", type=int, default=400, metavar="PX",
+    g.add_argument("--min-area-px", type=int, default=None, metavar="PX",
                    help="drop foreground blobs smaller than this, in pixels of a 640x480 frame (scaled to the "
-                        "camera's size; default 400)")
+                        "camera's size; default: a quarter of a 1 m child's outline at the farthest floor the "
+                        "camera sees in the site's volume, at most 400)")
     g.add_argument("--no-shadows", action="store_true", help="switch the shadow test off (shadows become foreground)")
     g.add_argument("--view-reference", metavar="PNG",
                    help="keep the reference picture of the room in this file, so that a camera moved while its "
@@ -122,7 +123,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             except ValueError as exc:   # SiteError, TransportError and bad values carry their own clear message
                 print(f"voxelwatch-camera: {exc}", file=sys.stderr)
                 return 2
-            log.info("%s: %s (%s), then zenoh (%s)", who, settings.source, settings.modality,
+            log.info("%s: %s (%s, foreground blobs from %d px), then zenoh (%s)", who, settings.source,
+                     settings.modality, settings.segmenter["min_area_px"],
                      ", ".join(connect) if connect else f"{args.mode or 'site'} mode, scouting")
             from camera_worker.worker import run
 
@@ -156,6 +158,11 @@ def _configure(args: argparse.Namespace):
     mask_scale = site.carving.mask_scale
     if args.mask_scale is not None:   # the site file's declaration, its one range
         mask_scale = check_setting(Carving, "mask_scale", args.mask_scale, flag="--mask-scale")
+    min_area_px = args.min_area_px
+    if min_area_px is None:
+        from camera_worker.viewsize import min_area_for_site
+
+        min_area_px = min_area_for_site(site, spec.id)
     settings = WorkerSettings(
         cam=spec.id,
         prefix=args.prefix or site.prefix,
@@ -170,7 +177,7 @@ def _configure(args: argparse.Namespace):
         loop=args.loop,
         seed=args.seed,
         codec=args.codec,
-        segmenter=dict(window_frames=args.window_frames, mask_scale=mask_scale, min_area_px=args.min_area_px,
+        segmenter=dict(window_frames=args.window_frames, mask_scale=mask_scale, min_area_px=min_area_px,
                        detect_shadows=not args.no_shadows),
         max_frames=args.max_frames,
         stats_period_s=args.stats_period,

@@ -48,6 +48,7 @@ from camera_worker.segmentation import ForegroundSegmenter, window_frames_for
 from camera_worker.segmenters import foreground_depth, segmenter_for
 from camera_worker.sources import FrameSource, SourceError, open_source
 from camera_worker.viewcheck import ViewCheck, load_reference
+from camera_worker.viewsize import DEFAULT_MIN_AREA_PX, min_area_for_site
 from common.messages import LookRequest
 from common.site import Site
 from fusion_server.node import FusionNode
@@ -120,12 +121,14 @@ class _SegmentedCamera:
     """A frame source and its segmenter."""
 
     def __init__(self, source: FrameSource, background: FrameSource | None, *, mask_scale: float, default_fps: float,
-                 modality: str = "colour", view_reference: np.ndarray | None = None) -> None:
+                 modality: str = "colour", view_reference: np.ndarray | None = None,
+                 min_area_px: int = DEFAULT_MIN_AREA_PX) -> None:
         self.source = source
         self.last_stamp_ns = 0
         source.open()
         fps = source.fps or default_fps
-        self.segmenter = segmenter_for(modality, mask_scale=mask_scale, window_frames=window_frames_for(fps))
+        self.segmenter = segmenter_for(modality, mask_scale=mask_scale, window_frames=window_frames_for(fps),
+                                       min_area_px=min_area_px)
         # only a colour camera's frames can answer a look request
         self.colour = isinstance(self.segmenter, ForegroundSegmenter) and modality == "colour"
         # the worker's own check of its view (colour and infrared), as a live worker runs it
@@ -229,7 +232,8 @@ def _open_inputs(site, cam_ids, input_dir, synthetic, seed, background_frames) -
     try:
         for cam in cam_ids:
             spec = site.camera(cam)
-            seg_args = dict(mask_scale=site.carving.mask_scale, default_fps=spec.fps)
+            seg_args = dict(mask_scale=site.carving.mask_scale, default_fps=spec.fps,
+                            min_area_px=min_area_for_site(site, cam))   # as the camera's worker sizes it
             if synthetic is not None:
                 source = open_source(f"synthetic:{synthetic}", cam_id=cam, seed=seed, start_ns=None,
                                      utc_offset_hours=site.utc_offset_hours, modality=spec.modality)
