@@ -70,6 +70,9 @@ from common.site import Carving
 
 Box = tuple[int, int, int, int]
 
+APART_AREA_PX = 400
+"""A blob below this (640x480 pixels) is kept only apart from larger ones: beside one, it is a piece
+of someone near (a hand, a shadow's blotch), not someone far (see :mod:`camera_worker.viewsize`)."""
 REFERENCE_AREA_PX = 640 * 480
 """Frame area for which ``open_px``, ``close_px`` and ``min_area_px`` are given; other sizes scale them."""
 _RELEARN_FIRST_RATE = 1.0     # the frame that shows a light change re-initialises the model: 1/n with n = 1
@@ -254,14 +257,15 @@ class SegmenterBase:
             scale = self.mask_scale * math.sqrt(w * h / float(REFERENCE_AREA_PX))
             open_px, close_px, min_area_px = self._cleanup_px
             self._cleanup = (_kernel(open_px, self.mask_scale), _kernel(close_px, scale),
-                             int(math.ceil(min_area_px * scale * scale)))
+                             int(math.ceil(min_area_px * scale * scale)),
+                             int(math.ceil(max(min_area_px, APART_AREA_PX) * scale * scale)))
         return self._cleanup
 
     def _clean(self, fg_raw: np.ndarray) -> tuple[np.ndarray, int]:
         """:func:`cleanup_mask` with the sizes for the frames' size: ``(mask, components)``."""
-        open_k, close_k, min_area = self._cleanup_sizes()
+        open_k, close_k, min_area, apart_area = self._cleanup_sizes()
         return cleanup_mask(fg_raw, open_kernel=open_k, close_kernel=close_k,
-                            min_area_px=min_area, fill=self.fill_holes)
+                            min_area_px=min_area, fill=self.fill_holes, apart_area_px=apart_area)
 
     def _plain_stats(self, rate: float, mask: np.ndarray, fg_raw: np.ndarray, components: int,
                      holds: int) -> SegmentStats:
@@ -527,8 +531,10 @@ def cleanup_mask(
     close_kernel: np.ndarray | None,
     min_area_px: int,
     fill: bool,
+    apart_area_px: int = 0,
 ) -> tuple[np.ndarray, int]:
-    """Open, close, drop components below ``min_area_px``, fill enclosed holes.
+    """Open, close, drop components below ``min_area_px`` (and those below ``apart_area_px`` beside a
+    larger one, :func:`remove_small_components`), fill enclosed holes.
 
     ``mask``: ``(H, W) uint8`` 0/255. Returns the cleaned mask (new array)
     and the number of foreground components kept.
@@ -538,14 +544,16 @@ def cleanup_mask(
         out = cv2.morphologyEx(out, cv2.MORPH_OPEN, open_kernel)
     if close_kernel is not None:
         out = cv2.morphologyEx(out, cv2.MORPH_CLOSE, close_kernel)
-    out, components = remove_small_components(out, min_area_px)
+    out, components = remove_small_components(out, min_area_px, apart_area_px)
     if fill and components:
         out = fill_holes(out)
     return out, components
 
 
-def remove_small_components(mask: np.ndarray, min_area_px: int) -> tuple[np.ndarray, int]:
-    """Drop 8-connected foreground components with fewer than ``min_area_px`` pixels.
+def remove_small_components(mask: np.ndarray, min_area_px: int, apart_area_px: int = 0) -> tuple[np.ndarray, int]:
+    """Drop 8-connected foreground components with fewer than ``min_area_px`` pixels, and those with
+    fewer than ``apart_area_px`` that lie beside a component of at least ``apart_area_px`` (their box,
+    grown by its own height, meets the larger one's box): a piece of someone near, not someone far.
 
     Returns ``(mask, kept)``: a new ``uint8`` 0/255 mask and the number of components kept.
     """
@@ -553,8 +561,21 @@ def remove_small_components(mask: np.ndarray, min_area_px: int) -> tuple[np.ndar
         return np.zeros_like(mask), 0
     # BBDT with 32-bit labels: several times faster than the default on one thread, any component count
     n, labels, stats, _ = cv2.connectedComponentsWithStatsWithAlgorithm(mask, 8, cv2.CV_32S, cv2.CCL_BBDT)
-    keep = stats[:, cv2.CC_STAT_AREA] >= max(min_area_px, 1)
+    area = stats[:, cv2.CC_STAT_AREA]
+    keep = area >= max(min_area_px, 1)
     keep[0] = False
+    small = np.flatnonzero(keep & (area < apart_area_px))
+    if len(small):
+        big = np.flatnonzero(area >= apart_area_px)
+        big = big[big != 0]
+        if len(big):
+            x, y, w, h = (stats[:, k] for k in (cv2.CC_STAT_LEFT, cv2.CC_STAT_TOP, cv2.CC_STAT_WIDTH,
+                                                cv2.CC_STAT_HEIGHT))
+            for i in small:
+                g = h[i]
+                meets = ((x[big] < x[i] + w[i] + g) & (x[i] - g < x[big] + w[big])
+                         & (y[big] < y[i] + h[i] + g) & (y[i] - g < y[big] + h[big]))
+                keep[i] = not meets.any()
     kept = int(np.count_nonzero(keep))
     if kept == n - 1:
         return mask.copy(), kept

@@ -17,6 +17,11 @@ close view keeps its noise filter as it was) and never below
 :data:`FLOOR_PX` (what the opening leaves of pixel noise). One camera's noise
 that gets through is not a person: the fusion server keeps only what enough
 cameras agree on.
+
+A blob under the fixed default is kept only apart from larger ones
+(:data:`camera_worker.segmentation.APART_AREA_PX`): beside someone near, it is
+a piece of them (a hand, a blotch of their shadow) that the carve would turn
+into a second body beside theirs, not someone far.
 """
 
 from __future__ import annotations

@@ -96,3 +96,22 @@ def test_the_worker_takes_its_views_bound_from_the_site_unless_told(tmp_path):
     assert settings.segmenter["min_area_px"] == 383
     settings, _, _ = _configure(build_parser().parse_args([*base, "--min-area-px", "120"]))
     assert settings.segmenter["min_area_px"] == 120
+
+
+def test_a_small_blob_is_kept_apart_from_larger_ones_and_dropped_beside_one():
+    """Worked by hand: a 40 x 25 px body (1,000 px) and two 10 x 10 px blobs (100 px each), one 5 px
+    right of the body (within its own height, 10 px: a hand or a shadow's blotch of someone near)
+    and one 60 px away (someone far). With 50 as the smallest and 400 as the size that must stand
+    apart, the near piece goes and the far one stays; with no apart size both stay."""
+    from camera_worker.segmentation import remove_small_components
+
+    mask = np.zeros((120, 200), np.uint8)
+    mask[10:50, 10:35] = 255      # the body: x 10-34, y 10-49
+    mask[20:30, 40:50] = 255      # 5 px to its right
+    mask[20:30, 95:105] = 255     # 60 px to its right
+    out, kept = remove_small_components(mask, 50, 400)
+    assert kept == 2 and not out[20:30, 40:50].any() and out[20:30, 95:105].all() and out[10:50, 10:35].all()
+    out, kept = remove_small_components(mask, 50)
+    assert kept == 3 and np.array_equal(out, mask)
+    out, kept = remove_small_components(mask, 101, 400)   # below the smallest: gone wherever it is
+    assert kept == 1
