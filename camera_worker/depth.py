@@ -47,7 +47,7 @@ from typing import Iterable, Sequence
 import cv2
 import numpy as np
 
-from camera_worker.segmentation import SegmenterBase, SegmentStats, _scaled_size, describe_frame
+from camera_worker.segmentation import DEFAULT_MIN_AREA_PX, SegmenterBase, SegmentStats, _scaled_size, describe_frame
 
 __all__ = ["DepthSegmenter"]
 
@@ -78,7 +78,7 @@ class DepthSegmenter(SegmenterBase):
         mask_scale: float = 1.0,
         open_px: int = 3,
         close_px: int = 7,
-        min_area_px: int = 400,
+        min_area_px: int = DEFAULT_MIN_AREA_PX,
         fill_holes: bool = True,
         fill_missing: bool = True,
         reject_flying: bool = True,

@@ -70,9 +70,10 @@ from common.site import Carving
 
 Box = tuple[int, int, int, int]
 
-APART_AREA_PX = 400
-"""A blob below this (640x480 pixels) is kept only apart from larger ones: beside one, it is a piece
-of someone near (a hand, a shadow's blotch), not someone far (see :mod:`camera_worker.viewsize`)."""
+DEFAULT_MIN_AREA_PX = 400
+"""The smallest component (640x480 pixels) a segmenter keeps unless told, and the size a smaller one
+must keep apart from: beside a blob this large it is a piece of someone near (a hand, a shadow's
+blotch), not someone far (see :mod:`camera_worker.viewsize`)."""
 REFERENCE_AREA_PX = 640 * 480
 """Frame area for which ``open_px``, ``close_px`` and ``min_area_px`` are given; other sizes scale them."""
 _RELEARN_FIRST_RATE = 1.0     # the frame that shows a light change re-initialises the model: 1/n with n = 1
@@ -258,7 +259,7 @@ class SegmenterBase:
             open_px, close_px, min_area_px = self._cleanup_px
             self._cleanup = (_kernel(open_px, self.mask_scale), _kernel(close_px, scale),
                              int(math.ceil(min_area_px * scale * scale)),
-                             int(math.ceil(max(min_area_px, APART_AREA_PX) * scale * scale)))
+                             int(math.ceil(max(min_area_px, DEFAULT_MIN_AREA_PX) * scale * scale)))
         return self._cleanup
 
     def _clean(self, fg_raw: np.ndarray) -> tuple[np.ndarray, int]:
@@ -311,7 +312,7 @@ class ForegroundSegmenter(SegmenterBase):
         mask_scale: float = 1.0,
         open_px: int = 3,
         close_px: int = 7,
-        min_area_px: int = 400,
+        min_area_px: int = DEFAULT_MIN_AREA_PX,
         fill_holes: bool = True,
         light_change_fraction: float | None = 0.45,
         relearn_frames: int = 10,

@@ -39,7 +39,7 @@ from typing import Iterable, Sequence
 import cv2
 import numpy as np
 
-from camera_worker.segmentation import SegmenterBase, SegmentStats, _scaled_size, describe_frame
+from camera_worker.segmentation import DEFAULT_MIN_AREA_PX, SegmenterBase, SegmentStats, _scaled_size, describe_frame
 
 __all__ = ["ThermalSegmenter", "UNITS_PER_K_8BIT", "UNITS_PER_K_16BIT"]
 
@@ -77,7 +77,7 @@ class ThermalSegmenter(SegmenterBase):
         mask_scale: float = 1.0,
         open_px: int = 3,
         close_px: int = 7,
-        min_area_px: int = 400,
+        min_area_px: int = DEFAULT_MIN_AREA_PX,
         fill_holes: bool = True,
     ) -> None:
         super().__init__(window_frames=window_frames, alpha=alpha, mask_scale=mask_scale, open_px=open_px,

@@ -19,7 +19,7 @@ that gets through is not a person: the fusion server keeps only what enough
 cameras agree on.
 
 A blob under the fixed default is kept only apart from larger ones
-(:data:`camera_worker.segmentation.APART_AREA_PX`): beside someone near, it is
+(:data:`camera_worker.segmentation.DEFAULT_MIN_AREA_PX`): beside someone near, it is
 a piece of them (a hand, a blotch of their shadow) that the carve would turn
 into a second body beside theirs, not someone far.
 """
@@ -31,7 +31,7 @@ import logging
 import cv2
 import numpy as np
 
-from camera_worker.segmentation import REFERENCE_AREA_PX
+from camera_worker.segmentation import DEFAULT_MIN_AREA_PX, REFERENCE_AREA_PX
 from common.camera import Camera
 from common.site import Volume
 
@@ -40,8 +40,6 @@ __all__ = ["DEFAULT_MIN_AREA_PX", "FLOOR_PX", "SEEN_FRACTION", "SMALLEST_BODY_M"
 
 log = logging.getLogger(__name__)
 
-DEFAULT_MIN_AREA_PX = 400
-"""The smallest component of a view with no calibration, and the largest any view gets (640x480 pixels)."""
 SMALLEST_BODY_M = (0.3, 0.3, 1.0)
 """Width, depth and height of the smallest body the room is watched for: a child 1 m tall."""
 SEEN_FRACTION = 0.25
