@@ -554,7 +554,8 @@ def cleanup_mask(
 def remove_small_components(mask: np.ndarray, min_area_px: int, apart_area_px: int = 0) -> tuple[np.ndarray, int]:
     """Drop 8-connected foreground components with fewer than ``min_area_px`` pixels, and those with
     fewer than ``apart_area_px`` that lie beside a component of at least ``apart_area_px`` (their box,
-    grown by its own height, meets the larger one's box): a piece of someone near, not someone far.
+    grown by its own height or by half the larger one's, whichever is more, meets the larger one's
+    box): a piece of someone near (a hand, feet seen below a tabletop), not someone far.
 
     Returns ``(mask, kept)``: a new ``uint8`` 0/255 mask and the number of components kept.
     """
@@ -573,7 +574,8 @@ def remove_small_components(mask: np.ndarray, min_area_px: int, apart_area_px: i
             x, y, w, h = (stats[:, k] for k in (cv2.CC_STAT_LEFT, cv2.CC_STAT_TOP, cv2.CC_STAT_WIDTH,
                                                 cv2.CC_STAT_HEIGHT))
             for i in small:
-                g = h[i]
+                # near: within its own height or half the larger one's (feet below a tabletop, a hand)
+                g = np.maximum(h[i], h[big] // 2)
                 meets = ((x[big] < x[i] + w[i] + g) & (x[i] - g < x[big] + w[big])
                          & (y[big] < y[i] + h[i] + g) & (y[i] - g < y[big] + h[big]))
                 keep[i] = not meets.any()

@@ -232,8 +232,6 @@ def _open_inputs(site, cam_ids, input_dir, synthetic, seed, background_frames) -
     try:
         for cam in cam_ids:
             spec = site.camera(cam)
-            seg_args = dict(mask_scale=site.carving.mask_scale, default_fps=spec.fps,
-                            min_area_px=min_area_for_site(site, cam))   # as the camera's worker sizes it
             if synthetic is not None:
                 source = open_source(f"synthetic:{synthetic}", cam_id=cam, seed=seed, start_ns=None,
                                      utc_offset_hours=site.utc_offset_hours, modality=spec.modality)
@@ -241,7 +239,7 @@ def _open_inputs(site, cam_ids, input_dir, synthetic, seed, background_frames) -
                     f"synthetic:{synthetic}", cam_id=cam, seed=seed, background=True, n_frames=background_frames,
                     modality=spec.modality,
                 )
-                inputs[cam] = _SegmentedCamera(source, background, modality=spec.modality, **seg_args)
+                inputs[cam] = _SegmentedCamera(source, background, modality=spec.modality, **_segmenter_args(site, cam))
                 continue
             folder = Path(input_dir) / cam
             if not folder.is_dir():
@@ -253,7 +251,7 @@ def _open_inputs(site, cam_ids, input_dir, synthetic, seed, background_frames) -
                                      fps=None if video else spec.fps)
                 back = folder / "background"
                 back_source = open_source(str(back), cam_id=cam, fps=spec.fps) if back.is_dir() else None
-                inputs[cam] = _SegmentedCamera(source, back_source, modality=spec.modality, **seg_args)
+                inputs[cam] = _SegmentedCamera(source, back_source, modality=spec.modality, **_segmenter_args(site, cam))
                 continue
             if (folder / "masks").is_dir():
                 colour = folder / "colour.avi"
@@ -265,12 +263,19 @@ def _open_inputs(site, cam_ids, input_dir, synthetic, seed, background_frames) -
             source = open_source(str(video or folder), cam_id=cam, fps=None if video else spec.fps)
             back = open_source(str(background), cam_id=cam) if background else None
             inputs[cam] = _SegmentedCamera(source, back, modality=spec.modality,
-                                           view_reference=_view_reference(site, spec), **seg_args)
+                                           view_reference=_view_reference(site, spec), **_segmenter_args(site, cam))
     except BaseException:
         for item in inputs.values():
             item.close()
         raise
     return inputs
+
+
+def _segmenter_args(site: Site, cam: str) -> dict:
+    """The segmenter settings of a camera segmented here, its smallest blob sized as its worker sizes it
+    (computed only for such cameras: a folder of masks needs none)."""
+    return dict(mask_scale=site.carving.mask_scale, default_fps=site.camera(cam).fps,
+                min_area_px=min_area_for_site(site, cam))
 
 
 def _view_reference(site: Site, spec) -> np.ndarray | None:

@@ -100,7 +100,8 @@ def test_the_worker_takes_its_views_bound_from_the_site_unless_told(tmp_path):
 
 def test_a_small_blob_is_kept_apart_from_larger_ones_and_dropped_beside_one():
     """Worked by hand: a 40 x 25 px body (1,000 px) and two 10 x 10 px blobs (100 px each), one 5 px
-    right of the body (within its own height, 10 px: a hand or a shadow's blotch of someone near)
+    right of the body (within its own height, 10 px, and half the body's: a hand or a shadow's blotch
+    of someone near)
     and one 60 px away (someone far). With 50 as the smallest and 400 as the size that must stand
     apart, the near piece goes and the far one stays; with no apart size both stay."""
     from camera_worker.segmentation import remove_small_components
@@ -113,5 +114,13 @@ def test_a_small_blob_is_kept_apart_from_larger_ones_and_dropped_beside_one():
     assert kept == 2 and not out[20:30, 40:50].any() and out[20:30, 95:105].all() and out[10:50, 10:35].all()
     out, kept = remove_small_components(mask, 50)
     assert kept == 3 and np.array_equal(out, mask)
+    # feet seen below a tabletop: 12 px under the body, beyond their own 10 px height but within half
+    # the body's 40 px: a piece of the body, dropped; 25 px under, past both, they stay
+    for gap, stays in ((12, False), (25, True)):
+        low = mask.copy()
+        low[20:30, 40:50] = 0
+        low[50 + gap:60 + gap, 15:25] = 255
+        out, kept = remove_small_components(low, 50, 400)
+        assert out[50 + gap:60 + gap, 15:25].all() == stays and kept == 2 + stays
     out, kept = remove_small_components(mask, 101, 400)   # below the smallest: gone wherever it is
     assert kept == 1
