@@ -571,14 +571,15 @@ def remove_small_components(mask: np.ndarray, min_area_px: int, apart_area_px: i
         big = np.flatnonzero(area >= apart_area_px)
         big = big[big != 0]
         if len(big):
-            x, y, w, h = (stats[:, k] for k in (cv2.CC_STAT_LEFT, cv2.CC_STAT_TOP, cv2.CC_STAT_WIDTH,
-                                                cv2.CC_STAT_HEIGHT))
-            for i in small:
-                # near: within its own height or half the larger one's (feet below a tabletop, a hand)
-                g = np.maximum(h[i], h[big] // 2)
-                meets = ((x[big] < x[i] + w[i] + g) & (x[i] - g < x[big] + w[big])
-                         & (y[big] < y[i] + h[i] + g) & (y[i] - g < y[big] + h[big]))
-                keep[i] = not meets.any()
+            # (small, 1) against (1, big) boxes: x, y, width, height
+            sx, sy, sw, sh = (stats[small, k][:, None] for k in (cv2.CC_STAT_LEFT, cv2.CC_STAT_TOP,
+                                                                 cv2.CC_STAT_WIDTH, cv2.CC_STAT_HEIGHT))
+            bx, by, bw, bh = (stats[big, k][None, :] for k in (cv2.CC_STAT_LEFT, cv2.CC_STAT_TOP,
+                                                               cv2.CC_STAT_WIDTH, cv2.CC_STAT_HEIGHT))
+            # near: within its own height or half the larger one's (feet below a tabletop, a hand)
+            g = np.maximum(sh, bh // 2)
+            meets = (bx < sx + sw + g) & (sx - g < bx + bw) & (by < sy + sh + g) & (sy - g < by + bh)
+            keep[small] = ~meets.any(axis=1)
     kept = int(np.count_nonzero(keep))
     if kept == n - 1:
         return mask.copy(), kept

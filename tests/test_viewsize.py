@@ -100,10 +100,10 @@ def test_the_worker_takes_its_views_bound_from_the_site_unless_told(tmp_path):
 
 def test_a_small_blob_is_kept_apart_from_larger_ones_and_dropped_beside_one():
     """Worked by hand: a 40 x 25 px body (1,000 px) and two 10 x 10 px blobs (100 px each), one 5 px
-    right of the body (within its own height, 10 px, and half the body's: a hand or a shadow's blotch
-    of someone near)
-    and one 60 px away (someone far). With 50 as the smallest and 400 as the size that must stand
-    apart, the near piece goes and the far one stays; with no apart size both stay."""
+    right of the body (within its own height, 10 px, and half the body's: a hand or a shadow's
+    blotch of someone near) and one 60 px away (someone far). With 50 as the smallest and 400 as
+    the size that must stand apart, the near piece goes and the far one stays; with no apart size
+    both stay."""
     from camera_worker.segmentation import remove_small_components
 
     mask = np.zeros((120, 200), np.uint8)
