@@ -571,11 +571,10 @@ def remove_small_components(mask: np.ndarray, min_area_px: int, apart_area_px: i
         big = np.flatnonzero(area >= apart_area_px)
         big = big[big != 0]
         if len(big):
-            # (small, 1) against (1, big) boxes: x, y, width, height
-            sx, sy, sw, sh = (stats[small, k][:, None] for k in (cv2.CC_STAT_LEFT, cv2.CC_STAT_TOP,
-                                                                 cv2.CC_STAT_WIDTH, cv2.CC_STAT_HEIGHT))
-            bx, by, bw, bh = (stats[big, k][None, :] for k in (cv2.CC_STAT_LEFT, cv2.CC_STAT_TOP,
-                                                               cv2.CC_STAT_WIDTH, cv2.CC_STAT_HEIGHT))
+            # boxes (x, y, width, height): (small, 1) against (1, big)
+            boxes = stats[:, [cv2.CC_STAT_LEFT, cv2.CC_STAT_TOP, cv2.CC_STAT_WIDTH, cv2.CC_STAT_HEIGHT]]
+            sx, sy, sw, sh = boxes[small].T[:, :, None]
+            bx, by, bw, bh = boxes[big].T[:, None, :]
             # near: within its own height or half the larger one's (feet below a tabletop, a hand)
             g = np.maximum(sh, bh // 2)
             meets = (bx < sx + sw + g) & (sx - g < bx + bw) & (by < sy + sh + g) & (sy - g < by + bh)
