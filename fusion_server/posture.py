@@ -606,7 +606,7 @@ class PostureParams(Settings):
     walking_log_odds: float = Field(4.0, ge=0.0, **_FINITE)
     seatless_log_odds: float = Field(3.0, ge=0.0, **_FINITE)
     bedless_log_odds: float = Field(8.0, ge=0.0, **_FINITE)
-    seated_bend_log_odds: float = Field(0.5, ge=0.0, **_FINITE)
+    seated_bend_log_odds: float = Field(1.0, ge=0.0, **_FINITE)
     decisions: Literal["frame", "viterbi"] = declared(EventSettings, "decisions")
     viterbi_lag_s: float = declared(EventSettings, "viterbi_lag_s")
 
