@@ -16,7 +16,16 @@ the one that covers the most foreground not yet covered by those accepted
 first, and a candidate is accepted only when, in at least ``min_cameras``
 cameras, at least ``min_new`` of the foreground it covers is foreground that
 no accepted candidate covers. The rest are phantoms (or duplicates of a
-person already accepted). Last, an accepted low, small blob next to an
+person already accepted).
+
+The cameras see the bodies in depth order. An upright candidate whose
+foreground in a camera is covered by a body taken before it, standing
+nearer that camera, is hidden there, not explained away: a person seated
+behind a table of others, or standing behind someone, is judged on what
+the camera can show of them. A candidate refused may so pass once a body
+in front of it is taken; the refused are offered again. Low candidates are
+not judged so: a piece of hull or a leg behind a body is hidden the same
+way, and a person lying behind someone rarely shows in two cameras. Last, an accepted low, small blob next to an
 accepted upright person's top is a fragment of that person (legs carved
 apart from the body where furniture hides them from some cameras), not a
 person of its own.
@@ -57,6 +66,12 @@ FRAGMENT_MAX_M3 = 0.05
 """A low blob smaller than this (half a carved adult lying down), ..."""
 FRAGMENT_RADIUS_M = 0.45
 """... closer than this on the floor to the top of an accepted upright person, is a piece of that person."""
+HIDDEN_MARGIN_M = 0.3
+"""A body taken this much nearer a camera than an upright candidate hides the pixels they share from it."""
+MIN_SEEN = 0.3
+"""A camera speaks for a candidate only where it sees (does not hide) at least this share of what it covers."""
+MAX_ROUNDS = 4
+"""Rounds of the cover: candidates refused are offered again while a round takes someone."""
 
 
 @dataclass(frozen=True)
@@ -111,10 +126,13 @@ def _explain(blobs, masks, cams: Mapping[str, Camera], grid: VoxelGrid, min_came
     if len(blobs) < 2 or len(used) < min_cameras:
         return Explanation(list(blobs), [], {id(b): tuple(used) for b in blobs})
     fg = {c: np.asarray(masks[c]) > 127 for c in used}
-    # per blob and camera: the splat's box and its covered-foreground pixels (bool within the box)
+    # per blob and camera: the splat's box, its covered-foreground pixels (bool within the box), their
+    # count and the body's median depth from that camera
     cores = [_core(b, grid) for b in blobs]
     splats = [{c: _splat(core, cams[c], grid, fg[c]) for c in used} for core in cores]
-    accepted = greedy_cover(splats, {c: fg[c].shape for c in used}, min_cameras=min_cameras, min_new=min_new)
+    hideable = [_upright(b) for b in blobs]
+    accepted = greedy_cover(splats, {c: fg[c].shape for c in used}, min_cameras=min_cameras, min_new=min_new,
+                            hideable=hideable)
     accepted = _without_fragments(accepted, blobs, grid)
     taken = {k for k, _ in accepted}
     return Explanation([blobs[k] for k, _ in accepted], [b for k, b in enumerate(blobs) if k not in taken],
@@ -127,51 +145,82 @@ def greedy_cover(
     *,
     min_cameras: int,
     min_new: float,
+    hideable: Sequence[bool] | None = None,
 ) -> list[tuple[int, tuple[str, ...]]]:
     """The greedy silhouette cover: which candidates are people, in the order taken.
 
-    splats: per candidate, camera id -> ``((y0, y1, x0, x1), hit, n_hit)`` (the foreground its
-    projection covers: a bool box of the mask and its pixel count) or None. shapes: camera id -> (H, W)
-    of its mask. The candidate covering the most foreground not yet covered is taken first, if in at
-    least ``min_cameras`` cameras at least ``min_new`` of what it covers is not yet covered; ties go to
-    the lower index. Returns ``(candidate index, cameras where it covers its own)`` per person.
+    splats: per candidate, camera id -> ``((y0, y1, x0, x1), hit, n_hit[, depth])`` (the foreground its
+    projection covers: a bool box of the mask and its pixel count; with ``hideable``, also the
+    candidate's median depth from that camera) or None. shapes: camera id -> (H, W) of its mask. The
+    candidate covering the most foreground not yet covered is taken first, if in at least
+    ``min_cameras`` cameras at least ``min_new`` of what it covers is not yet covered; ties go to the
+    lower index. Returns ``(candidate index, cameras where it covers its own)`` per person.
 
     What a candidate covers anew only shrinks as others are taken, so its last count bounds it from
-    above (lazy greedy): only the candidate on top of the queue is counted again, and one that fails
-    the per-camera test can never pass it later. The same choices as counting every candidate anew
-    at every step, without the quadratic cost in a crowd.
+    above (lazy greedy): only the candidate on top of the queue is counted again. Without
+    ``hideable``, one that fails the per-camera test can never pass it later: the same choices as
+    counting every candidate anew at every step, without the quadratic cost in a crowd.
+
+    hideable: per candidate, whether the depth order speaks for it (:func:`new_cover`): its pixels
+    that a body taken before covers from HIDDEN_MARGIN_M or more nearer the camera are hidden, not
+    evidence against it. A candidate refused may then pass once the bodies in front of it are taken,
+    so the refused are offered again, while a round takes someone, up to MAX_ROUNDS rounds.
     """
     covered = {c: np.zeros(shape, dtype=bool) for c, shape in shapes.items()}
-    heap = [(-sum(s[2] for s in sp.values() if s is not None), k) for k, sp in enumerate(splats)]
-    heapq.heapify(heap)
+    nearest = None if hideable is None else {c: np.full(shape, np.inf, dtype=np.float32) for c, shape in shapes.items()}
     accepted: list[tuple[int, tuple[str, ...]]] = []
-    while heap:
-        _, k = heapq.heappop(heap)
-        new_total, cams_ok = new_cover(splats[k], covered, min_new)
-        if len(cams_ok) < min_cameras:
-            continue  # a phantom, or a duplicate of someone taken: it only loses from here on
-        if heap and (-new_total, k) > heap[0]:
-            heapq.heappush(heap, (-new_total, k))  # another may now cover more: count it first
-            continue
-        accepted.append((k, tuple(cams_ok)))
-        for c, s in splats[k].items():
-            if s is not None:
-                (y0, y1, x0, x1), hit, _ = s
-                covered[c][y0:y1, x0:x1] |= hit
+    pending = list(range(len(splats)))
+    for _ in range(1 if hideable is None else MAX_ROUNDS):
+        heap = [(-sum(s[2] for s in splats[k].values() if s is not None), k) for k in pending]
+        heapq.heapify(heap)
+        refused, taken_before = [], len(accepted)
+        while heap:
+            _, k = heapq.heappop(heap)
+            depth_order = nearest if hideable is not None and hideable[k] else None
+            new_total, cams_ok = new_cover(splats[k], covered, min_new, depth_order)
+            if len(cams_ok) < min_cameras:
+                refused.append(k)  # a phantom, or a duplicate of someone taken (or hidden, for now)
+                continue
+            if heap and (-new_total, k) > heap[0]:
+                heapq.heappush(heap, (-new_total, k))  # another may now cover more: count it first
+                continue
+            accepted.append((k, tuple(cams_ok)))
+            for c, s in splats[k].items():
+                if s is not None:
+                    (y0, y1, x0, x1), hit = s[0], s[1]
+                    covered[c][y0:y1, x0:x1] |= hit
+                    if nearest is not None:
+                        box = nearest[c][y0:y1, x0:x1]
+                        box[hit] = np.minimum(box[hit], s[3])
+        if len(accepted) == taken_before or not refused:
+            break
+        pending = sorted(refused)
     return accepted
 
 
-def new_cover(splat: Mapping[str, tuple | None], covered: Mapping[str, np.ndarray], min_new: float) -> tuple[int, list[str]]:
+def new_cover(splat: Mapping[str, tuple | None], covered: Mapping[str, np.ndarray], min_new: float,
+              nearest: Mapping[str, np.ndarray] | None = None) -> tuple[int, list[str]]:
     """What one candidate covers that ``covered`` (camera id -> (H, W) bool) does not: the pixel count
-    over all cameras, and the cameras where it is at least ``min_new`` of what the candidate covers."""
+    over all cameras, and the cameras where it is at least ``min_new`` of what the candidate covers.
+
+    nearest: camera id -> (H, W) depth of the nearest body taken at each pixel (inf where none). Then
+    the pixels a body at least HIDDEN_MARGIN_M nearer the camera covers are hidden from it: the share
+    is of what it covers less what is hidden, and a camera that sees less than MIN_SEEN of what it
+    covers cannot speak for it at all. Where a phantom is hidden, a few stray pixels of its own at the
+    rim of the body in front would otherwise be share enough."""
     new_total, cams_ok = 0, []
     for c, s in splat.items():
         if s is None:
             continue
-        (y0, y1, x0, x1), hit, n_hit = s
+        (y0, y1, x0, x1), hit, n_hit = s[0], s[1], s[2]
         new = int(np.count_nonzero(hit & ~covered[c][y0:y1, x0:x1]))
         new_total += new
-        if new >= min_new * n_hit:
+        seen = n_hit
+        if nearest is not None:
+            seen -= int(np.count_nonzero(hit & (nearest[c][y0:y1, x0:x1] < s[3] - HIDDEN_MARGIN_M)))
+            if seen < MIN_SEEN * n_hit:
+                continue  # the camera sees too little of it to speak for it (nor against it)
+        if new >= min_new * seen:
             cams_ok.append(c)
     return new_total, cams_ok
 
@@ -230,7 +279,8 @@ def _core(blob: Blob, grid: VoxelGrid) -> np.ndarray:
 
 def _splat(ijk: np.ndarray, cam: Camera, grid: VoxelGrid, fg: np.ndarray):
     """The projection of voxels ``ijk`` (N, 3) into ``cam``: ((y0, y1, x0, x1), covered foreground (bool, box-sized),
-    its pixel count), or None when it covers no foreground in the image."""
+    its pixel count, the voxels' median depth from the camera in metres), or None when it covers no foreground
+    in the image."""
     keys = _unique_cells(ijk)
     pts = grid.centres(_cells(keys))
     uv, ok = cam.project(pts)
@@ -241,7 +291,8 @@ def _splat(ijk: np.ndarray, cam: Camera, grid: VoxelGrid, fg: np.ndarray):
     # the splat's radius: half the diagonal of a sampled cell, at the blob's median depth
     spacing = grid.voxel_m * SPLAT_STEP * max(1.0, (len(keys) / MAX_POINTS) ** (1 / 3))
     f = float(cam.K[0, 0])
-    radius = int(np.clip(round(f * spacing * 0.87 / max(float(np.median(depth)), 0.1)), 1, 40))
+    median_depth = float(np.median(depth))
+    radius = int(np.clip(round(f * spacing * 0.87 / max(median_depth, 0.1)), 1, 40))
     h, w = fg.shape
     px = np.clip(np.round(uv).astype(np.int64), 0, [w - 1, h - 1])
     x0, y0 = max(int(px[:, 0].min()) - radius, 0), max(int(px[:, 1].min()) - radius, 0)
@@ -251,7 +302,7 @@ def _splat(ijk: np.ndarray, cam: Camera, grid: VoxelGrid, fg: np.ndarray):
     kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * radius + 1, 2 * radius + 1))
     hit = (cv2.dilate(img, kernel) > 0) & fg[y0:y1, x0:x1]
     n_hit = int(np.count_nonzero(hit))
-    return None if n_hit == 0 else ((y0, y1, x0, x1), hit, n_hit)
+    return None if n_hit == 0 else ((y0, y1, x0, x1), hit, n_hit, median_depth)
 
 
 def _unique_cells(ijk: np.ndarray) -> np.ndarray:

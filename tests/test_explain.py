@@ -170,3 +170,63 @@ def test_a_low_piece_beside_a_standing_person_is_part_of_them_not_a_person(lut_c
     found = explain_blobs(blobs, masks, rig, carve.grid).people
     assert len(found) == people
     assert near(found, (3.0, 3.0))
+
+
+def _box_splat(y0, y1, x0, x1, depth):
+    """A splat covering the whole box (y0, y1, x0, x1) of foreground, at ``depth`` metres."""
+    hit = np.ones((y1 - y0, x1 - x0), dtype=bool)
+    return (y0, y1, x0, x1), hit, int(hit.sum()), float(depth)
+
+
+@pytest.mark.parametrize("behind_m, taken", [(3.0, [0, 1, 2]), (2.2, [0, 1]), (1.0, [0, 1])])
+def test_a_person_hidden_behind_one_taken_is_judged_on_what_the_camera_shows_of_her(behind_m, taken):
+    """Camera c1 sees candidate 2's 400 pixels as 240 over candidate 0's silhouette, 100 over candidate
+    1's and 60 of its own (15 %, under ``min_new`` = 20 %); camera c2 sees it apart. 0 and 1 are taken
+    first. When 2 lies 1 m behind 0 (farther than HIDDEN_MARGIN_M) and in front of 1, the 240 are
+    hidden from c1, which sees 160 of it (40 %, over MIN_SEEN): 60 of those are its own (37.5 %), so
+    c1 speaks for it too. Within the margin (0.2 m behind 0) or in front of 0, c1 speaks against it."""
+    from fusion_server.explain import greedy_cover
+
+    shapes = {"c1": (40, 40), "c2": (40, 40)}
+    splats = [
+        {"c1": _box_splat(0, 20, 0, 12, 2.0), "c2": _box_splat(0, 20, 0, 20, 2.0)},
+        {"c1": _box_splat(0, 20, 12, 17, 6.0), "c2": _box_splat(20, 40, 0, 20, 6.0)},
+        {"c1": _box_splat(0, 20, 0, 20, behind_m), "c2": _box_splat(0, 5, 20, 40, behind_m)},
+    ]
+    assert [k for k, _ in greedy_cover(splats, shapes, min_cameras=2, min_new=0.2, hideable=[True] * 3)] == taken
+    # without the depth order (or for a candidate it does not speak for) the one behind is refused
+    assert [k for k, _ in greedy_cover(splats, shapes, min_cameras=2, min_new=0.2)] == [0, 1]
+    assert [k for k, _ in greedy_cover(splats, shapes, min_cameras=2, min_new=0.2, hideable=[True, True, False])] == [0, 1]
+
+
+def test_a_candidate_hidden_but_for_a_rim_is_not_spoken_for_by_the_rim():
+    """A phantom behind a person: in c1, 240 of its 280 pixels are the person's, who stands 1 m
+    nearer; the 40 at the rim (what the person's splat leaves of their silhouette) are its own. The
+    camera sees 14 % of it, under MIN_SEEN: c1 neither speaks for it nor against it, and with c2
+    alone it is refused."""
+    from fusion_server.explain import greedy_cover
+
+    shapes = {"c1": (40, 40), "c2": (40, 40)}
+    splats = [
+        {"c1": _box_splat(0, 20, 0, 12, 2.0), "c2": _box_splat(0, 20, 0, 20, 2.0)},
+        {"c1": _box_splat(0, 20, 0, 14, 3.0), "c2": _box_splat(20, 30, 20, 40, 3.0)},
+    ]
+    assert [k for k, _ in greedy_cover(splats, shapes, min_cameras=2, min_new=0.2, hideable=[True, True])] == [0]
+
+
+def test_a_candidate_refused_is_offered_again_once_a_body_in_front_of_it_is_taken():
+    """Three cameras. Candidate 0 (800 pixels, 5 m away) is taken first. Candidate 1 (800, 3 m) is
+    then refused: in c1, 360 of its 400 pixels are 0's, which lies behind it, so nothing hides them.
+    Candidate 2 (480, 1 m: nearest of all) is taken on c2 and c3. In c1 it covers 240 of 1's pixels
+    from in front: offered again, 1 is taken (c1 sees 160 of its pixels, 40 of them its own)."""
+    from fusion_server.explain import greedy_cover
+
+    shapes = {c: (40, 40) for c in ("c1", "c2", "c3")}
+    splats = [
+        {"c1": _box_splat(0, 20, 0, 20, 5.0), "c2": _box_splat(20, 40, 0, 20, 5.0), "c3": None},
+        {"c1": _box_splat(0, 20, 2, 22, 3.0), "c2": _box_splat(0, 20, 20, 40, 3.0), "c3": None},
+        {"c1": _box_splat(0, 20, 0, 14, 1.0), "c2": _box_splat(0, 5, 0, 20, 1.0), "c3": _box_splat(0, 5, 0, 20, 1.0)},
+    ]
+    assert greedy_cover(splats, shapes, min_cameras=2, min_new=0.2, hideable=[True] * 3) == [
+        (0, ("c1", "c2")), (2, ("c2", "c3")), (1, ("c1", "c2"))]
+    assert greedy_cover(splats, shapes, min_cameras=2, min_new=0.2) == [(0, ("c1", "c2")), (2, ("c2", "c3"))]
