@@ -25,10 +25,11 @@ behind a table of others, or standing behind someone, is judged on what
 the camera can show of them. A candidate refused may so pass once a body
 in front of it is taken; the refused are offered again. Low candidates are
 not judged so: a piece of hull or a leg behind a body is hidden the same
-way, and a person lying behind someone rarely shows in two cameras. Last, an accepted low, small blob next to an
-accepted upright person's top is a fragment of that person (legs carved
-apart from the body where furniture hides them from some cameras), not a
-person of its own.
+way, and a person lying behind someone rarely shows in two cameras.
+
+Last, an accepted low, small blob next to an accepted upright person's top
+is a fragment of that person (legs carved apart from the body where
+furniture hides them from some cameras), not a person of its own.
 
 Masks at any resolution: each camera is resized to its mask. Pure: no clock,
 no I/O.
@@ -192,9 +193,10 @@ def greedy_cover(
                     if nearest is not None:
                         box = nearest[c][y0:y1, x0:x1]
                         box[hit] = np.minimum(box[hit], s[3])
-        if len(accepted) == taken_before or not refused:
+        # only a hideable candidate can pass later: for the others what is new only shrinks
+        pending = sorted(k for k in refused if hideable is not None and hideable[k])
+        if len(accepted) == taken_before or not pending:
             break
-        pending = sorted(refused)
     return accepted
 
 
