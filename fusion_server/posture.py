@@ -47,7 +47,7 @@ Pure math: time comes in as ``stamp_ns``; no I/O, no clock.
 from __future__ import annotations
 
 import math
-from collections import deque
+from collections import Counter, deque
 from dataclasses import dataclass, field
 from functools import lru_cache
 from typing import Iterable, Literal, Mapping, Protocol, Sequence
@@ -131,6 +131,9 @@ _ON_SEAT = np.array([s in ("sitting", "sitting_raised") for s in STATES])
 _ON_BED = np.array([s == "lying_raised" for s in STATES])
 """(len(STATES),) bool: the state of a body lying above the floor (on a bed or a sofa)."""
 
+_ON_FLOOR = np.array([s == "lying" for s in STATES])
+"""(len(STATES),) bool: the state of a body lying on the floor (see ``lying_min_span``)."""
+
 _BENT = np.array([s in ("bending", "kneeling") for s in STATES])
 """(len(STATES),) bool: the states of a body bent over or kneeling (see ``seated_bend_log_odds``)."""
 
@@ -148,6 +151,22 @@ def backs_of(occluders: Iterable) -> list[Hotspot]:
     lo, hi = BACK_BAND_M
     return [Hotspot(name=o.name, polygon_m=np.asarray(o.polygon_m), kind="back")
             for o in occluders if o.z_min_m <= lo and o.z_max_m >= hi]
+
+
+def own_spans(tracks: Sequence[object]) -> list[float | None]:
+    """Per track, the diagonal of the floor box of the blob it matched this frame (``blob.bbox_m``),
+    metres; None for a track without a blob of its own (none matched, or one that another track
+    matched too: a blob two people share tells neither's span)."""
+    blobs = [getattr(t, "blob", None) for t in tracks]
+    shared = Counter(id(b) for b in blobs if b is not None)
+    out: list[float | None] = []
+    for b in blobs:
+        if b is None or shared[id(b)] > 1:
+            out.append(None)
+        else:
+            lo, hi = np.asarray(b.bbox_m, dtype=np.float64)[:, :2]
+            out.append(float(np.hypot(*(hi - lo))))
+    return out
 
 
 def company_of(tracks: Sequence[object]) -> np.ndarray:
@@ -242,7 +261,10 @@ MID_BAND_M = 1.0
 
 
 class ProfiledTrack(Protocol):
-    """What posture needs of a track estimate (any object with these attributes)."""
+    """What posture needs of a track estimate (any object with these attributes). Optional too:
+    ``x``, ``y`` (the seats and beds it is at), ``vx``, ``vy`` (walking), ``confirmed`` (company)
+    and ``blob``, the blob matched this frame (None when none): a blob of its own tells the body's
+    span (:func:`own_spans`)."""
 
     id: int
     z_top_m: float
@@ -607,6 +629,7 @@ class PostureParams(Settings):
     seatless_log_odds: float = Field(3.0, ge=0.0, **_FINITE)
     bedless_log_odds: float = Field(8.0, ge=0.0, **_FINITE)
     seated_bend_log_odds: float = Field(1.0, ge=0.0, **_FINITE)
+    lying_min_span: float = Field(0.5, ge=0.0, **_FINITE)
     decisions: Literal["frame", "viterbi"] = declared(EventSettings, "decisions")
     viterbi_lag_s: float = declared(EventSettings, "viterbi_lag_s")
 
@@ -716,6 +739,16 @@ class PostureEstimator:
         and a seated body whose lap the table hides carves half-way between
         the two shapes (a short person most of all, their head nearer the
         table). A body clearly bent over still reads bending there.
+    lying_min_span: a body whose shape reads lying on the floor but that
+        reaches across the floor less than this share of the person's
+        standing height (the diagonal of its floor box, ``span_m`` given
+        to :meth:`update`) is a piece of the person, not the person, and
+        tells nothing of their posture: the frame is passed over as one
+        without a body (the reading holds). Someone lying, even curled up,
+        spans more than half their height; the shins and thighs of a
+        seated person whose upper body the carving lost (a table and a
+        faulty camera) span half a metre and carve as flat and low as a
+        body lying down, and nothing else in the model looks like them.
     model: the :class:`PostureModel` (default :func:`default_model`).
     decisions: one of :data:`DECISIONS`. ``frame`` reports the forward
         filter's posture after ``min_duration_s``; ``viterbi`` reports the
@@ -748,6 +781,7 @@ class PostureEstimator:
         self.walking_log_odds = p.walking_log_odds
         self.seatless_log_odds = p.seatless_log_odds
         self.seated_bend_log_odds = p.seated_bend_log_odds
+        self.lying_min_span = p.lying_min_span
         self.bedless_log_odds = p.bedless_log_odds
         self.model = model or default_model()
         self.height_posterior = self.height_prior.copy()
@@ -780,7 +814,8 @@ class PostureEstimator:
         return self._last
 
     def update(self, stamp_ns: int, height_profile: np.ndarray, speed_mps: float = 0.0,
-               on_seat: bool | None = None, on_bed: bool | None = None, crowded: bool = False) -> PostureReading | None:
+               on_seat: bool | None = None, on_bed: bool | None = None, crowded: bool = False,
+               span_m: float | None = None) -> PostureReading | None:
         """Feed one frame's (nz,) height profile; returns the current reading.
 
         speed_mps: the person's floor speed (the tracker's smoothed estimate);
@@ -790,6 +825,8 @@ class PostureEstimator:
         on_bed: whether the person is on one of the site's beds or sofas; None
         where the site marks none (see ``bedless_log_odds``).
         crowded: whether someone else stands close by (see ``crowded_height_weight``).
+        span_m: how far the body reaches across the floor (the diagonal of its floor box), metres;
+        None where it is not known (see ``lying_min_span``).
 
         An empty profile changes nothing and returns the previous reading
         (None if there is none yet). Frames must come in time order; a frame
@@ -805,6 +842,8 @@ class PostureEstimator:
                 lik = np.full(len(DECODED_STATES), -np.inf)
                 lik[OUTSIDE] = 0.0
                 self._decode(stamp_ns, lik, None)
+            return self._last
+        if span_m is not None and self._a_piece(raw, float(span_m)):
             return self._last
         dt_s = 0.0 if self._last_stamp_ns is None else (stamp_ns - self._last_stamp_ns) * 1e-9
         self._last_stamp_ns = stamp_ns
@@ -870,6 +909,14 @@ class PostureEstimator:
             state=STATES[state],
         )
         return self._last
+
+    def _a_piece(self, raw: PostureFeatures, span_m: float) -> bool:
+        """Whether a body of ``span_m`` across the floor whose shape ``raw`` reads lying on the floor
+        is a piece of the person (see ``lying_min_span``), at the standing height believed now."""
+        height = self.standing_height_m
+        if span_m >= self.lying_min_span * height:
+            return False
+        return bool(_ON_FLOOR[int(np.argmax(posture_log_likelihoods(feature_vector(raw, height), self.model)))])
 
     def _decode(self, stamp_ns: int, lik: np.ndarray, prob: np.ndarray | None) -> tuple[int, np.ndarray] | None:
         """Push one frame's (S,) log-likelihoods over :data:`DECODED_STATES` into
@@ -967,6 +1014,7 @@ class PostureBank:
         seen: set[int] = set()
         tracks = list(tracks)
         crowded = self.crowded(tracks)
+        spans = own_spans(tracks)
         for n, track in enumerate(tracks):
             tid = int(track.id)
             seen.add(tid)
@@ -975,7 +1023,8 @@ class PostureBank:
                 est = self._estimators[tid] = PostureEstimator(**self._kwargs)
             vx, vy = getattr(track, "vx", 0.0), getattr(track, "vy", 0.0)
             reading = est.update(stamp_ns, track.height_profile, speed_mps=float(np.hypot(vx, vy)),
-                                 on_seat=self.on_seat(track), on_bed=self.on_bed(track), crowded=bool(crowded[n]))
+                                 on_seat=self.on_seat(track), on_bed=self.on_bed(track), crowded=bool(crowded[n]),
+                                 span_m=spans[n])
             if reading is not None:
                 out[tid] = reading
         for tid in [t for t in self._estimators if t not in seen]:

@@ -22,6 +22,7 @@ from fusion_server.posture import (
     classify,
     feature_vector,
     fir_smooth,
+    own_spans,
     posture_log_likelihoods,
     profile_features,
 )
@@ -444,6 +445,76 @@ def test_at_a_seat_a_shape_between_seated_and_bent_reads_seated_a_clear_bend_sti
     assert most(between, True, seated_bend_log_odds=0.0) == most(between, False) == most(between, None) == {"bending"}
     for f in (0.7, 1.0):
         assert most(body_profile(blend("sitting", "bending", f), height_m=1.54, inflate_m=0.1), True) == {"bending"}
+
+
+def _seated_then(piece: np.ndarray, span_m: float | None, *, height_m: float = 1.75, seconds: int = 5) -> list[str]:
+    """Postures read while a person walks in (3 s), sits (5 s), then shows only ``piece`` spanning
+    ``span_m`` across the floor for ``seconds``, at a seat."""
+    est = PostureEstimator(voxel_m=VOXEL_M)
+    t = 0
+    for _ in range(3 * FPS):
+        est.update(t, body_profile("standing", height_m=height_m, inflate_m=0.1), speed_mps=1.0, on_seat=True)
+        t += NS // FPS
+    for _ in range(5 * FPS):
+        est.update(t, body_profile("sitting", height_m=height_m, inflate_m=0.1), on_seat=True, span_m=0.8)
+        t += NS // FPS
+    out = []
+    for _ in range(seconds * FPS):
+        out.append(est.update(t, piece, on_seat=True, span_m=span_m).posture)
+        t += NS // FPS
+    return out
+
+
+def test_the_legs_of_a_seated_person_alone_are_a_piece_not_someone_lying():
+    """A seated person whose upper body the carving lost leaves their shins and thighs: under 0.45 m,
+    flat and low, the shape of a body lying on the floor, but half a metre across the floor where a
+    person lying spans more than half their height. Told the span, the estimator passes those
+    frames over and the person still reads seated; not told it, the same frames read lying. A body
+    lying on the floor reads lying from the same seat (a fall from a chair), and so does a child of
+    1.1 m lying curled over 0.7 m."""
+    seated = body_profile("sitting", inflate_m=0.1)
+    legs = seated.copy()
+    legs[int(round(0.45 / VOXEL_M)):] = 0
+    assert profile_features(legs, VOXEL_M).top_m == pytest.approx(0.45)
+    assert set(_seated_then(legs, 0.55)) == {"sitting"}
+    assert _seated_then(legs, None)[-1] == "lying"  # the shape alone says lying
+    lying = body_profile("standing", tilt_deg=90, inflate_m=0.1)
+    assert _seated_then(lying, 1.8)[-1] == "lying"
+    child = body_profile("standing", height_m=1.1, tilt_deg=90, inflate_m=0.1)
+    assert _seated_then(child, 0.7, height_m=1.1)[-1] == "lying"
+    with pytest.raises(ValueError, match="lying_min_span"):
+        PostureEstimator(voxel_m=VOXEL_M, lying_min_span=-0.1)
+
+
+def test_own_spans_are_the_floor_diagonal_of_a_blob_no_other_track_matched():
+    from types import SimpleNamespace as Thing
+
+    own = Thing(bbox_m=np.array([[1.0, 2.0, 0.0], [1.3, 2.4, 0.45]]))  # 0.3 x 0.4 m on the floor: 0.5 m
+    shared = Thing(bbox_m=np.array([[0.0, 0.0, 0.0], [2.0, 1.0, 1.8]]))
+    tracks = [Thing(blob=own), Thing(blob=shared), Thing(blob=shared), Thing(blob=None), Thing()]
+    spans = own_spans(tracks)
+    assert spans[0] == pytest.approx(0.5)
+    assert spans[1:] == [None, None, None, None]
+    # the bank gives each estimator its track's span: a seated person's legs alone in a blob of their
+    # own stay seated; the same legs in a blob another track shares read lying, as the shape says
+    seated = body_profile("sitting", inflate_m=0.1)
+    legs = seated.copy()
+    legs[int(round(0.45 / VOXEL_M)):] = 0
+    def body(k):  # a blob of a seated person's own, 0.6 x 0.6 m on the floor
+        return Thing(bbox_m=np.array([[2.0 * k, 0.0, 0.0], [2.0 * k + 0.6, 0.6, 1.3]]))
+
+    bank = PostureBank(voxel_m=VOXEL_M)
+    for i in range(8 * FPS):
+        walk = i < 3 * FPS
+        out = bank.update(i * NS // FPS, [
+            Thing(id=k, x=2.0 * k, y=0.0, vx=1.0 if walk else 0.0, vy=0.0, blob=body(k),
+                  height_profile=body_profile("standing", inflate_m=0.1) if walk else seated) for k in (1, 2)])
+    assert out[1].posture == out[2].posture == "sitting"
+    for i in range(8 * FPS, 13 * FPS):
+        out = bank.update(i * NS // FPS, [Thing(id=1, x=2.0, y=0.0, vx=0.0, vy=0.0, blob=own, height_profile=legs),
+                                          Thing(id=2, x=4.0, y=0.0, vx=0.0, vy=0.0, blob=shared, height_profile=legs),
+                                          Thing(id=3, x=4.2, y=0.0, vx=0.0, vy=0.0, blob=shared, height_profile=seated)])
+    assert out[1].posture == "sitting" and out[2].posture == "lying"
 
 
 def test_posture_bank_tells_each_track_whether_it_is_at_a_seat():
