@@ -220,7 +220,7 @@ def bench_tracking(quick: bool) -> list[dict[str, Any]]:
                 t0 = time.perf_counter()
                 blobs = pipeline.detect_people(carve, masks)
                 t1 = time.perf_counter()
-                estimates = pipeline.tracker.step(carve, blobs, carve.stamp_ns)
+                estimates = pipeline.tracker.step(carve, blobs, carve.stamp_ns, hidden=pipeline.refused_blobs)
                 t2 = time.perf_counter()
                 readings = pipeline.update_postures(estimates, carve.stamp_ns)
                 t3 = time.perf_counter()

@@ -131,7 +131,7 @@ def _explain(blobs, masks, cams: Mapping[str, Camera], grid: VoxelGrid, min_came
     # count and the body's median depth from that camera
     cores = [_core(b, grid) for b in blobs]
     splats = [{c: _splat(core, cams[c], grid, fg[c]) for c in used} for core in cores]
-    hideable = [_upright(b) for b in blobs]
+    hideable = [upright(b) for b in blobs]
     accepted = greedy_cover(splats, {c: fg[c].shape for c in used}, min_cameras=min_cameras, min_new=min_new,
                             hideable=hideable)
     accepted = _without_fragments(accepted, blobs, grid)
@@ -237,13 +237,13 @@ def _without_fragments(accepted: list[tuple[int, tuple[str, ...]]], blobs: Seque
     from their body (hidden from some cameras, holes in a mask), the piece covers foreground of its
     own in two cameras like a person would; a person low enough and small enough to be that piece
     (a crouching child) would stand inside the other's body."""
-    tops = np.array([_top_xy(blobs[k], grid) for k, _ in accepted if _upright(blobs[k])]).reshape(-1, 2)
+    tops = np.array([_top_xy(blobs[k], grid) for k, _ in accepted if upright(blobs[k])]).reshape(-1, 2)
     if not len(tops):
         return accepted
     keep = []
     for k, cams in accepted:
         b = blobs[k]
-        if not _upright(b) and b.volume_m3 < FRAGMENT_MAX_M3:
+        if not upright(b) and b.volume_m3 < FRAGMENT_MAX_M3:
             if np.min(np.hypot(tops[:, 0] - b.x, tops[:, 1] - b.y)) < FRAGMENT_RADIUS_M:
                 continue
         keep.append((k, cams))
@@ -263,17 +263,17 @@ def _top_xy(blob: Blob, grid: VoxelGrid) -> tuple[float, float]:
     return float(x), float(y)
 
 
-def _upright(blob: Blob) -> bool:
+def upright(blob: Blob) -> bool:
     """Whether ``blob`` is an upright body (:data:`CORE_MIN_TOP_M`, :data:`LYING_MAX_TOP_M`)."""
     return blob.z_top_m > CORE_MIN_TOP_M and blob.body_top_m > LYING_MAX_TOP_M
 
 
 def _core(blob: Blob, grid: VoxelGrid) -> np.ndarray:
-    """(N, 3) int voxel indices of the blob's body: for an upright blob (:func:`_upright`) the
+    """(N, 3) int voxel indices of the blob's body: for an upright blob (:func:`upright`) the
     voxels within CORE_RADIUS_M on the floor of its highest column, so that hull volume hanging on
     to a person (where cones cross beside them) claims no foreground for them; a low blob whole."""
     ijk = blob.ijk
-    if not _upright(blob):
+    if not upright(blob):
         return ijk
     d2 = ((ijk[:, :2] - _top_ij(blob)) ** 2).sum(axis=1)
     return ijk[d2 <= (CORE_RADIUS_M / grid.voxel_m) ** 2]

@@ -30,7 +30,7 @@ from fusion_server.carving import Carver
 from fusion_server.carving.occlusion import Occluder
 from fusion_server.consistency import CameraMoved, ConsistencyMonitor, ConsistencyParams
 from fusion_server.detection import Blob, detect_blobs
-from fusion_server.explain import BlobExplainer
+from fusion_server.explain import BlobExplainer, upright
 from fusion_server.events import EventReasoner, FallParams, InactivityParams
 from fusion_server.grid import CarveResult
 from fusion_server.heads import HeadGaps
@@ -154,6 +154,7 @@ class FusionPipeline:
         self.min_cameras = int(min_cameras if min_cameras is not None else carver.min_cameras)
         self.camera_ids: tuple[str, ...] = carver.camera_ids
         self.explainer = BlobExplainer(self.cameras)
+        self.refused_blobs: list[Blob] = []  # the last frame set's upright blobs the explanation did not take for people
         self.head_gaps = HeadGaps(self.cameras)
         self._bodies: list[TrackEstimate] = []  # the tracker's estimates of the last frame set
         self.consistency = ConsistencyMonitor(carver, self.cameras, consistency)
@@ -218,7 +219,7 @@ class FusionPipeline:
             self._restore = None
         carve = self.carver.carve(masks, stamp_ns, depths=depths)
         blobs = self.detect_people(carve, masks)
-        bodies = self.tracker.step(carve, blobs, stamp_ns, heads_apart=self._heads_apart(masks))
+        bodies = self.tracker.step(carve, blobs, stamp_ns, heads_apart=self._heads_apart(masks), hidden=self.refused_blobs)
         self._bodies = bodies
         try:
             _, moved = self.consistency.step(masks, bodies, stamp_ns)
@@ -425,8 +426,12 @@ class FusionPipeline:
     def detect_people(self, carve: CarveResult, masks: Mapping[str, np.ndarray]) -> list[Blob]:
         """The blobs of ``carve`` that are people, given the frame set's ``masks``."""
         # only the blobs that explain foreground of their own are people: the rest are phantoms
-        # where other people's cones cross, or duplicates of someone already accepted
-        return self.explainer.explain(detect_blobs(carve), masks, carve.grid).people
+        # where other people's cones cross, duplicates of someone already accepted, or people the
+        # others hide; the upright ones are kept for the tracker (they hold up a still person it
+        # follows; a low one is as often a piece of someone's legs beside them)
+        verdict = self.explainer.explain(detect_blobs(carve), masks, carve.grid)
+        self.refused_blobs = [b for b in verdict.phantoms if upright(b)]
+        return verdict.people
 
     def update_postures(self, estimates: list[TrackEstimate], stamp_ns: int) -> dict[int, PostureReading]:
         """Feed each track's posture estimator this frame's estimate (a new track gets a new

@@ -22,6 +22,12 @@ Seed paper 000, sections 2.2.2 and 2.3. Every frame:
 4. a target is *confirmed* (trusted as a person) while ``r`` is at least
    ``confirm_reliability`` and destroyed when ``r`` drops below
    ``delete_reliability``;
+   a confirmed target that stands still and is left without a blob, on hull
+   the explanation refused (``hidden``: an upright blob no camera could vouch for, its
+   top within :data:`HELD_UP_TOP_M` of the top read at the target on the
+   frame before), counts as matched: a person seated or standing still
+   where others hide them from the cameras that could vouch for them is
+   still carved there;
 5. blobs no target matched start new targets, if large enough;
 6. two targets closer than ``merge_distance_m`` for ``merge_frames``
    consecutive frames follow the same person: the older one is kept.
@@ -58,6 +64,11 @@ __all__ = [
     "TrackEstimate",
     "Tracker",
 ]
+
+HELD_UP_M = 0.4
+"""A refused blob holds up a still target whose floor position is at most this far from its centroid ..."""
+HELD_UP_TOP_M = 0.3
+"""... and whose top is within this of the top read at the target on the frame set before."""
 
 CostFunction = Callable[[np.ndarray, Sequence[Blob]], np.ndarray]
 """``(target_xy, blobs) -> cost``: target_xy (T, 2) float64 floor positions, world
@@ -336,11 +347,14 @@ class Tracker:
         return min(c.learning_rate_max, 1.0 / max(age_frames, 1) + c.learning_rate_min)
 
     def step(self, result: CarveResult, blobs: list[Blob], stamp_ns: int,
-             heads_apart: Iterable[tuple[int, int]] = ()) -> list[TrackEstimate]:
+             heads_apart: Iterable[tuple[int, int]] = (), hidden: Sequence[Blob] = ()) -> list[TrackEstimate]:
         """Advance all targets to ``stamp_ns`` with this frame's floor maps and blobs.
 
         heads_apart: pairs of target ids whose two heads the cameras see apart on this frame set
         (:class:`~fusion_server.heads.HeadGaps`, tested where the targets stood on the last one).
+        hidden: the blobs of the frame set the explanation did not take for people; they start no
+        target and move none, but one under a still confirmed target left without a blob holds it
+        up (module text, step 4).
 
         Returns every live target (confirmed or not), sorted by id.
         Raises ValueError if ``stamp_ns`` is earlier than the previous frame's.
@@ -381,14 +395,15 @@ class Tracker:
             self._share(blob_of, unmatched_targets, blobs, result)
             unmatched_blobs = [bi for bi in unmatched_blobs if int(bi) not in blob_of.values()]
         parts = self._split_shared(blob_of, blobs, result)
+        held_up = self._held_up(blob_of, hidden)
 
         for n, t in enumerate(self._targets):
             bi = blob_of.get(n)
             blob = None if bi is None else blobs[bi]
             t.age += 1
-            hit = 1.0 if blob is not None else 0.0
+            hit = 1.0 if blob is not None or n in held_up else 0.0
             t.reliability += self.learning_rate(t.age) * (hit - t.reliability)
-            if blob is None and _border_distance(t.x, t.y, floor_lo, floor_hi) <= self.confirmation.leave_margin_m:
+            if hit == 0.0 and _border_distance(t.x, t.y, floor_lo, floor_hi) <= self.confirmation.leave_margin_m:
                 t.reliability = min(t.reliability, np.nextafter(self.confirmation.confirm_reliability, 0.0))
             profile, volume_m3 = parts.get(n, (None, None)) if blob is not None else (None, None)
             if blob is not None and profile is None:
@@ -425,6 +440,24 @@ class Tracker:
             t.update_stillness(stamp_ns, self.motion.still_window_s, self.motion.still_speed_mps)
         confirm = self.confirmation.confirm_reliability
         return [t.estimate(stamp_ns, confirm, nz) for t in sorted(self._targets, key=lambda t: t.id)]
+
+    def _held_up(self, blob_of: dict[int, int], hidden: Sequence[Blob]) -> set[int]:
+        """Indices of the still confirmed targets left without a blob that a ``hidden`` blob holds up
+        (:data:`HELD_UP_M`, :data:`HELD_UP_TOP_M`); each blob holds up one target, the first in order."""
+        if not hidden:
+            return set()
+        held, used = set(), set()
+        confirm = self.confirmation.confirm_reliability
+        for n, t in enumerate(self._targets):
+            if n in blob_of or t.reliability < confirm or not t.still:
+                continue
+            d = [math.hypot(b.x - t.x, b.y - t.y) if abs(b.z_top_m - t.z_top_m) <= HELD_UP_TOP_M else math.inf
+                 for b in hidden]
+            k = int(np.argmin(d))
+            if d[k] <= HELD_UP_M and k not in used:
+                used.add(k)
+                held.add(n)
+        return held
 
     def _blobs_holding_all(self) -> set[int]:
         """``id()`` of the blobs of the last frame shared by targets and holding all their bodies: the

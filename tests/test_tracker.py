@@ -557,3 +557,56 @@ def test_a_target_never_seen_apart_from_the_person_does_not_live_on_their_blob()
             assert est[2].blob is None, n
             assert est[2].confirmed == (n < 38), n
     assert set(by_id(out[-1])) == {1}
+
+
+def hidden_still(hidden_body, walk_frames: int = 0, n_still: int = 60, n_hidden: int = 40):
+    """A person 1.75 m tall walks ``walk_frames`` frames at 0.9 m/s to (2.0, 2.0) and stands there
+    ``n_still`` frames, then the explanation refuses their blob for ``n_hidden`` frames while the
+    hull ``hidden_body`` stays carved (blobs passed as ``hidden``). The estimates of the last frames."""
+    tr = Tracker(rng=np.random.default_rng(3), motion=MotionParams(still_window_s=1.0, still_speed_mps=0.15))
+    out = []
+    for n in range(walk_frames + n_still):
+        x = 2.0 - 0.06 * max(walk_frames - n, 0)
+        res = frame(n, person(x, 2.0))
+        out.append(tr.step(res, detect_blobs(res), res.stamp_ns))
+    for n in range(walk_frames + n_still, walk_frames + n_still + n_hidden):
+        res = frame(n, hidden_body)
+        out.append(tr.step(res, [], res.stamp_ns, hidden=detect_blobs(res)))
+    return out[walk_frames + n_still:]
+
+
+def test_a_still_person_the_others_hide_is_held_up_by_the_refused_blob_of_their_body():
+    """The refused blob of their own body (same place, same top) counts as a match: reliability goes
+    on as if seen (the paper's equations), the target stays confirmed and where it stood. Without
+    it, the target is unconfirmed on the 8th frame unmatched (as a person who left)."""
+    held = hidden_still(person(2.0, 2.0))
+    assert all(len(o) == 1 and o[0].confirmed for o in held)
+    np.testing.assert_allclose([o[0].reliability for o in held], reliability_oracle([True] * 100)[60:])
+    assert held[-1][0].x == pytest.approx(2.0, abs=0.05) and held[-1][0].y == pytest.approx(2.0, abs=0.05)
+    alone = []
+    tr = Tracker(rng=np.random.default_rng(3), motion=MotionParams(still_window_s=1.0, still_speed_mps=0.15))
+    for n in range(100):
+        res = frame(n, person(2.0, 2.0))
+        alone.append(tr.step(res, detect_blobs(res) if n < 60 else [], res.stamp_ns))
+    assert [o[0].confirmed for o in alone[60:68]] == [True] * 7 + [False]
+
+
+def test_a_refused_blob_away_from_the_person_holds_nobody_up():
+    """Hull 1 m away on the floor (where cones cross beside someone) holds nobody up: the target is
+    unconfirmed on the 8th frame without a blob, as a person who left."""
+    out = hidden_still(person(3.0, 2.0))
+    assert [bool(o) and o[0].confirmed for o in out[:8]] == [True] * 7 + [False]
+
+
+def test_a_refused_blob_whose_top_is_not_the_persons_does_not_hold_them_up():
+    """A refused blob 0.45 m lower than the top read at the target on the frame set before (1.75 m)
+    is not their body: that frame set is a miss (the paper's equations with one miss)."""
+    out = hidden_still(person(2.0, 2.0, height_m=1.3))
+    assert out[0][0].reliability == pytest.approx(reliability_oracle([True] * 60 + [False])[60])
+
+
+def test_a_person_still_moving_is_not_held_up():
+    """Walking until the frame before their blob is refused: not still, so a refused blob where
+    the filter puts them holds nothing up (a track coasting after a walker is no one seated)."""
+    out = hidden_still(person(2.0, 2.0), walk_frames=30, n_still=1)
+    assert not out[7] or not out[7][0].confirmed
