@@ -135,10 +135,30 @@ def stopped_raises(*, who: str, log: logging.Logger | None) -> Iterator[None]:
     previous = {sig: signal.signal(sig, _raise) for sig in _SIGNALS}
     try:
         yield
+    except Stopped:
+        raise
+    except Exception as exc:
+        # a compiled module's initialisation turns the exception raised in it into its own
+        # ("ImportError: initialization failed", caused by Stopped): still the stop that was asked
+        if _ASKED_BY and _stopped_in(exc):
+            raise Stopped(_ASKED_BY[-1]) from exc
+        raise
     finally:
         for sig, handler in previous.items():
             signal.signal(sig, handler)
         _ASKED_DEPTH.pop()
+
+
+def _stopped_in(exc: BaseException) -> bool:
+    """Whether :class:`Stopped` is among the causes or contexts of ``exc``."""
+    seen: set[int] = set()
+    cause: BaseException | None = exc
+    while cause is not None and id(cause) not in seen:
+        if isinstance(cause, Stopped):
+            return True
+        seen.add(id(cause))
+        cause = cause.__cause__ or cause.__context__
+    return False
 
 
 @contextmanager

@@ -42,6 +42,25 @@ def test_a_signal_whose_exception_a_library_eats_still_stops_the_start_up():
             assert not stop.is_set()
 
 
+def test_a_signal_during_a_compiled_modules_initialisation_stops_the_start_up():
+    """A compiled module (scipy's HiGHS, loading) turns the exception raised in its initialisation
+    into ``ImportError: initialization failed`` caused by it: the start-up stops as asked, and an
+    ImportError nothing asked for stays one."""
+    with pytest.raises(Stopped) as caught:
+        with stopped_raises(who="test", log=None):
+            try:
+                os.kill(os.getpid(), signal.SIGTERM)
+                time.sleep(1.0)
+            except Stopped as stop:        # what the module's initialisation does with it
+                raise ImportError("initialization failed") from stop
+            pytest.fail("the start-up went on after the signal")
+    assert caught.value.signame == "SIGTERM"
+    assert isinstance(caught.value.__cause__, ImportError)
+    with pytest.raises(ImportError):
+        with stopped_raises(who="test", log=None):
+            raise ImportError("no module named nothing")
+
+
 def _free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
